@@ -1,0 +1,1 @@
+"""The HIL runtime: command line, validation against the seed papers, benchmarks."""

@@ -1,0 +1,1 @@
+"""Benchmarks: they print JSON and measure their reference in the same run."""

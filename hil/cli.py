@@ -1,0 +1,130 @@
+"""The ``hil`` command line.
+
+    hil validate [--json] [--out DIR] [--only NAME ...]
+    hil bench plant [--json] [--config FILE ...] [--seconds S]
+    hil config-keys [--markdown]
+
+Exit status: 0 on success, 1 when a validation row is not ok, 2 on bad input
+(a machine file that does not load, an unknown experiment).
+"""
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+from plant.errors import ConfigError
+
+CONFIG_DIR = Path(__file__).resolve().parent.parent / "configs"
+
+
+def _eprint(*args) -> None:
+    print(*args, file=sys.stderr, flush=True)
+
+
+def _fmt(value) -> str:
+    if isinstance(value, float):
+        return f"{value:.4g}"
+    return str(value)
+
+
+def cmd_validate(args) -> int:
+    from hil.validate.core import run_all
+
+    out_dir = None if args.no_plots else Path(args.out)
+    rows = run_all(out_dir, args.only or None,
+                   progress=lambda name, s: _eprint(f"  {name:<28} {s:6.1f} s"))
+    if args.json:
+        print(json.dumps([r.as_dict() for r in rows], indent=1))
+    else:
+        print(validate_table(rows))
+        if out_dir is not None:
+            print(f"\nplots in {out_dir}/")
+    return 0 if all(r.ok for r in rows) else 1
+
+
+def validate_table(rows) -> str:
+    """Markdown table of validation rows (what README shows)."""
+    lines = ["| experiment | paper / reference | model | unit | ok | reference | tolerance |",
+             "|---|---|---|---|---|---|---|"]
+    for r in rows:
+        lines.append(f"| {r.experiment} | {_fmt(r.paper)} | {_fmt(r.model)} | {r.unit} | "
+                     f"{'yes' if r.ok else '**NO**'} | {r.reference} | {r.tolerance} |")
+    return "\n".join(lines)
+
+
+def cmd_bench_plant(args) -> int:
+    from hil.bench.plant import run
+
+    configs = [Path(c) for c in args.config] or sorted(CONFIG_DIR.glob("*.toml"))
+
+    def progress(row):
+        _eprint(f"  {row.config:<16} {row.ns_per_step:7.0f} ns/sub-step  x{row.realtime_factor:5.1f}"
+                f" real time  {row.speedup_vs_reference:6.0f}x reference")
+
+    rows = run(configs, args.seconds, args.ref_seconds, progress)
+    if args.json:
+        print(json.dumps(rows, indent=1))
+    else:
+        for r in rows:
+            print(f"{r['config']:<16} {r['ns_per_step']:8.0f} ns/sub-step  dt {r['substep_s']*1e6:6.2f} µs  "
+                  f"real-time factor {r['realtime_factor']:6.1f}  reference "
+                  f"{r['reference_ns_per_step']:9.0f} ns  speed-up {r['speedup_vs_reference']:6.0f}x  "
+                  f"cold start {r['cold_start_s']:.1f} s")
+    return 0
+
+
+def cmd_config_keys(args) -> int:
+    from plant.config import schema_rows
+
+    rows = schema_rows()
+    if args.markdown:
+        print("| section | key | unit | range | default | applies to | meaning |")
+        print("|---|---|---|---|---|---|---|")
+        for r in rows:
+            print(f"| {r['section']} | `{r['key']}` | {r['unit']} | {r['range']} | "
+                  f"{r['default']} | {r['only']} | {r['doc']} |")
+    else:
+        for r in rows:
+            print(f"[{r['section']}] {r['key']:<34} {r['unit']:<10} {r['default']:<10} {r['doc']}")
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="hil", description="Feed-drive HIL plant emulator")
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    v = sub.add_parser("validate", help="run the seed experiments, paper beside model")
+    v.add_argument("--json", action="store_true", help="print a JSON list of rows")
+    v.add_argument("--out", default="validate-out", help="folder for the plots")
+    v.add_argument("--no-plots", action="store_true", help="write no plots")
+    v.add_argument("--only", nargs="*", metavar="NAME", help="run only these experiments")
+    v.set_defaults(func=cmd_validate)
+
+    b = sub.add_parser("bench", help="benchmarks (JSON with --json)")
+    bsub = b.add_subparsers(dest="what", required=True)
+    bp = bsub.add_parser("plant", help="kernel ns per sub-step vs uncompiled reference")
+    bp.add_argument("--json", action="store_true")
+    bp.add_argument("--config", action="append", default=[], help="machine file (repeatable; "
+                    "default: every file in configs/)")
+    bp.add_argument("--seconds", type=float, default=1.0, help="timing per config, s")
+    bp.add_argument("--ref-seconds", type=float, default=2.0, help="reference timing, s")
+    bp.set_defaults(func=cmd_bench_plant)
+
+    k = sub.add_parser("config-keys", help="every machine-file key with unit and meaning")
+    k.add_argument("--markdown", action="store_true")
+    k.set_defaults(func=cmd_config_keys)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return args.func(args)
+    except (ConfigError, KeyError) as exc:
+        _eprint(f"hil: {exc}")
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

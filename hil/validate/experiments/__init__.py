@@ -1,0 +1,1 @@
+"""Importing this package registers every experiment (one module per topic)."""

@@ -1,0 +1,74 @@
+"""Direct-drive torque motor with commutation-angle field weakening (seed 001 eq. 1-10).
+
+The motor is one equivalent coil: L dI/dt = U - R I - K_S(beta) omega, torque
+M = K_M(beta) I, with K_M = K_S = K (SI units make them equal) and
+|U| <= U_Z (eq. 2).  Without field weakening K = K_0 (beta = 90 deg).  Above
+omega_Mmax = U_Z/K_0 - M_max R / K_0^2 (eq. 8) the converter lowers the
+commutation angle so that the torque asked for stays reachable; solving eq. 9,
+M = (U_Z - omega K) K / R, for K gives eq. 10:
+
+    K(omega, M) = U_Z / (2 omega) + sqrt((U_Z / (2 omega))^2 - R M / omega)
+
+(the paper prints the square root's argument garbled; this is the root of
+eq. 9 that tends to U_Z/omega, the larger one).  Where the torque asked for is
+beyond the curve, K = U_Z / (2 omega) gives the most torque there is.  The
+current setpoint is scaled as I_set = M_set / K (eq. 5).
+"""
+
+import math
+
+from numba import njit
+
+from plant.effects.pmsm import clamp, pi_step
+from plant.layout import (P_DT, P_EXP_D, P_FW_ENABLED, P_FW_M_MAX, P_I_MAX, P_KI_I, P_KP_I,
+                          P_KT, P_R, P_SUB_PER_PWM, P_UDC, S_INT_Q, S_IQ, S_IQ_MEAS, S_KM,
+                          S_UQ_NEXT)
+
+
+@njit(cache=True, error_model="numpy")
+def field_weakening_k(k0, r, uz, m_max, omega, m_set):
+    """Torque constant K (N·m/A) the converter commutes with at speed ``omega`` (rad/s)
+    for a torque demand ``m_set`` (N·m); seed 001 eq. 8 and 10."""
+    w = abs(omega)
+    w_mmax = uz / k0 - m_max * r / (k0 * k0)
+    if w <= w_mmax or w == 0.0:
+        return k0
+    half = uz / (2.0 * w)
+    disc = half * half - r * abs(m_set) / w
+    if disc <= 0.0:
+        return min(k0, half)
+    return min(k0, half + math.sqrt(disc))
+
+
+@njit(cache=True, error_model="numpy")
+def torque_limit(k0, r, uz, m_max, omega):
+    """Largest steady torque (N·m) at speed ``omega`` (rad/s): eq. 9 maximised over the
+    commutation (K <= K_0, best at K = U_Z / (2 omega)), capped at M_max."""
+    w = abs(omega)
+    k = k0 if w == 0.0 else min(k0, uz / (2.0 * w))
+    return min(m_max, (uz - w * k) * k / r)
+
+
+@njit(cache=True, error_model="numpy")
+def commutation_control(p, s, iq_ref, omega):
+    """Converter event: commutation angle, current setpoint (eq. 5), PI on the coil current."""
+    k0 = p[P_KT]
+    m_set = k0 * clamp(iq_ref, -p[P_I_MAX], p[P_I_MAX])
+    k = k0
+    if p[P_FW_ENABLED] > 0.0:
+        k = field_weakening_k(k0, p[P_R], p[P_UDC], p[P_FW_M_MAX], omega, m_set)
+    s[S_KM] = k
+    i_set = clamp(m_set / k, -p[P_I_MAX], p[P_I_MAX])
+    period = p[P_DT] * p[P_SUB_PER_PWM]
+    u, s[S_INT_Q] = pi_step(i_set - s[S_IQ_MEAS], s[S_INT_Q], p[P_KP_I], p[P_KI_I], period,
+                            p[P_UDC])
+    s[S_UQ_NEXT] = u
+
+
+@njit(cache=True, error_model="numpy")
+def commutation_substep(p, s, u, omega):
+    """Advance the coil current one sub-step (exact decay); return the torque (N·m)."""
+    k = s[S_KM]
+    i_inf = (u - k * omega) / p[P_R]
+    s[S_IQ] = i_inf + (s[S_IQ] - i_inf) * p[P_EXP_D]
+    return k * s[S_IQ]

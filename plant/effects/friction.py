@@ -1,0 +1,91 @@
+"""Table friction: viscous, Coulomb, Stribeck, Karnopp stick-slip (seed 003 §4.1) and the
+presliding nonlinear spring of seed 004 eq. 1.
+
+Sign convention: every function returns the force (N; N·m for rotary tables)
+that friction exerts *on* the body, opposing its motion or its applied force.
+"""
+
+import math
+
+from numba import njit
+
+from plant.layout import (P_FR_COULOMB, P_FR_DV, P_FR_STATIC, P_FR_STRIBECK_V, P_FR_VISCOUS,
+                          P_PRE_A, P_PRE_ENABLED, P_PRE_K1, P_PRE_X1, S_PRE_DIR, S_PRE_F,
+                          S_PRE_XREV)
+
+
+@njit(cache=True, error_model="numpy")
+def sliding_friction(p, v):
+    """Friction while sliding at velocity ``v``: -(B v + sign(v) (F_C + (F_H - F_C)
+    exp(-(v/v_s)^2))); without a Stribeck velocity the level is F_C."""
+    level = p[P_FR_COULOMB]
+    vs = p[P_FR_STRIBECK_V]
+    if vs > 0.0:
+        level += (p[P_FR_STATIC] - p[P_FR_COULOMB]) * math.exp(-(v / vs) ** 2)
+    if v > 0.0:
+        return -p[P_FR_VISCOUS] * v - level
+    if v < 0.0:
+        return -p[P_FR_VISCOUS] * v + level
+    return 0.0
+
+
+@njit(cache=True, error_model="numpy")
+def karnopp_friction(p, v, f_app, mass, dt):
+    """Karnopp stick-slip friction on a body of ``mass`` moving at ``v`` under the other
+    forces ``f_app``, for one sub-step of ``dt``.
+
+    Returns (friction force, stuck).  Inside the zero-velocity band, or when
+    the velocity would cross zero within this sub-step, the body sticks while
+    |f_app| <= F_H: friction cancels f_app and the caller sets v = 0.  Above
+    F_H it breaks away against F_H.  Outside the band it slides.
+    """
+    f_h = p[P_FR_STATIC]
+    if abs(v) <= p[P_FR_DV]:
+        if abs(f_app) <= f_h:
+            return -f_app, True
+        return (-f_h if f_app > 0.0 else f_h), False
+    ff = sliding_friction(p, v)
+    v_new = v + dt * (f_app + ff) / mass
+    if v_new * v <= 0.0 and abs(f_app) <= f_h:
+        return -f_app, True
+    return ff, False
+
+
+@njit(cache=True, error_model="numpy")
+def presliding_force(p, s, v):
+    """Friction with the presliding spring on: the spring force plus viscous friction."""
+    return -s[S_PRE_F] - p[P_FR_VISCOUS] * v
+
+
+@njit(cache=True, error_model="numpy")
+def presliding_update(p, s, x_old, x_new):
+    """Integrate dF/dx = k1 / (|(x - x_rev)/x1|^a + 1) from x_old to x_new (midpoint rule).
+
+    x_rev is the position of the last reversal of motion: the law starts
+    again from there (seed 004).  Beyond the Coulomb level F_C (when given)
+    the force saturates: the contact slides.
+    """
+    dx = x_new - x_old
+    if dx == 0.0:
+        return
+    direction = 1.0 if dx > 0.0 else -1.0
+    if direction != s[S_PRE_DIR]:
+        s[S_PRE_DIR] = direction
+        s[S_PRE_XREV] = x_old
+    u = abs(0.5 * (x_old + x_new) - s[S_PRE_XREV]) / p[P_PRE_X1]
+    f = s[S_PRE_F] + p[P_PRE_K1] / (u ** p[P_PRE_A] + 1.0) * dx
+    fc = p[P_FR_COULOMB]
+    if fc > 0.0:
+        f = min(fc, max(-fc, f))
+    s[S_PRE_F] = f
+
+
+@njit(cache=True, error_model="numpy")
+def table_friction(p, s, v, f_app, mass, dt):
+    """Friction on the table for one sub-step: the presliding law when enabled, else
+    Karnopp stick-slip with Stribeck sliding.  Returns (force, stuck)."""
+    if p[P_PRE_ENABLED] > 0.0:
+        return presliding_force(p, s, v), False
+    if p[P_FR_STATIC] <= 0.0:
+        return -p[P_FR_VISCOUS] * v, False
+    return karnopp_friction(p, v, f_app, mass, dt)

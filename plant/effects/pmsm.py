@@ -1,0 +1,107 @@
+"""PMSM in the rotor (d-q) frame with the drive's discrete FOC current loops (seed 000).
+
+Electrical equations (SI; omega_e = pole_pairs * omega_m)::
+
+    L_d di_d/dt = u_d - R i_d + omega_e L_q i_q
+    L_q di_q/dt = u_q - R i_q - omega_e L_d i_d - omega_e psi
+    T           = 1.5 p (psi i_q + (L_d - L_q) i_d i_q)
+
+The currents are integrated with the exponential (exact-decay) Euler rule over
+one sub-step: exact for a locked rotor with the voltage held by the PWM, and
+stable for any sub-step.  The current controller runs once per PWM period: it
+samples the measured currents, runs two PI loops and limits the voltage
+vector to U_dc/2; the inverter applies that voltage during the *next* period
+(one period of computation/PWM delay, seed 001 eq. 3).
+"""
+
+import math
+
+from numba import njit
+
+from plant.layout import (P_EXP_D, P_EXP_Q, P_I_MAX, P_KI_I, P_KP_I, P_LD, P_LQ, P_POLE_PAIRS,
+                          P_PSI, P_R, P_SUB_PER_PWM, P_DT, P_UDC, S_ID, S_ID_MEAS, S_INT_D,
+                          S_INT_Q, S_IQ, S_IQ_MEAS, S_UD_NEXT, S_UQ_NEXT)
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def clamp(x, lo, hi):
+    """``x`` limited to [lo, hi]."""
+    return lo if x < lo else (hi if x > hi else x)
+
+
+@njit(cache=True, error_model="numpy")
+def pi_step(err, integ, kp, ki, period, umax):
+    """One discrete PI update with anti-windup by conditional integration.
+
+    Returns (output limited to ±umax, new integrator).  The integrator only
+    moves when the output is not saturated or the error pulls it back.
+    """
+    u = kp * err + integ
+    if u > umax:
+        if err < 0.0:
+            integ += ki * period * err
+        return umax, integ
+    if u < -umax:
+        if err > 0.0:
+            integ += ki * period * err
+        return -umax, integ
+    return u, integ + ki * period * err
+
+
+@njit(cache=True, error_model="numpy")
+def dq_current_control(p, s, id_ref, iq_ref):
+    """Current controller event: PI on the held measured currents -> next voltages.
+
+    The voltage vector is limited to U_dc/2 with the d axis served first (the
+    flux-producing current keeps priority, as drives do).
+    """
+    period = p[P_DT] * p[P_SUB_PER_PWM]
+    imax = p[P_I_MAX]
+    umax = 0.5 * p[P_UDC]
+    iq_ref = clamp(iq_ref, -imax, imax)
+    id_ref = clamp(id_ref, -imax, imax)
+    ud, s[S_INT_D] = pi_step(id_ref - s[S_ID_MEAS], s[S_INT_D], p[P_KP_I], p[P_KI_I],
+                             period, umax)
+    uq_max = math.sqrt(max(umax * umax - ud * ud, 0.0))
+    uq, s[S_INT_Q] = pi_step(iq_ref - s[S_IQ_MEAS], s[S_INT_Q], p[P_KP_I], p[P_KI_I],
+                             period, uq_max)
+    s[S_UD_NEXT] = ud
+    s[S_UQ_NEXT] = uq
+
+
+@njit(cache=True, error_model="numpy")
+def limit_voltage(ud, uq, umax):
+    """Scale the vector (ud, uq) back to magnitude ``umax`` if it is longer."""
+    mag = math.sqrt(ud * ud + uq * uq)
+    if mag > umax:
+        k = umax / mag
+        return ud * k, uq * k
+    return ud, uq
+
+
+@njit(cache=True, error_model="numpy")
+def dq_substep(p, s, ud, uq, omega_m):
+    """Advance i_d, i_q over one sub-step with the voltages held; return the torque."""
+    r = p[P_R]
+    we = p[P_POLE_PAIRS] * omega_m
+    i_d = s[S_ID]
+    i_q = s[S_IQ]
+    d_inf = (ud + we * p[P_LQ] * i_q) / r
+    q_inf = (uq - we * p[P_LD] * i_d - we * p[P_PSI]) / r
+    s[S_ID] = d_inf + (i_d - d_inf) * p[P_EXP_D]
+    s[S_IQ] = q_inf + (i_q - q_inf) * p[P_EXP_Q]
+    return dq_torque(p, s[S_ID], s[S_IQ])
+
+
+@njit(cache=True, error_model="numpy")
+def dq_torque(p, i_d, i_q):
+    """Electromagnetic torque (N·m; N for linear motors) of the d-q currents."""
+    return 1.5 * p[P_POLE_PAIRS] * (p[P_PSI] * i_q + (p[P_LD] - p[P_LQ]) * i_d * i_q)
+
+
+@njit(cache=True, error_model="numpy")
+def first_order_substep(p, s, iq_ref):
+    """Current loop as a first-order lag (seed 004's T_cl): exact over one sub-step."""
+    imax = p[P_I_MAX]
+    target = clamp(iq_ref, -imax, imax)
+    s[S_IQ] = target + (s[S_IQ] - target) * p[P_EXP_Q]

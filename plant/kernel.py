@@ -1,0 +1,267 @@
+"""The axis kernel: every effect composed into one allocation-free step function.
+
+``axis_step_nb(p, s, inp, out, n_sub)`` advances one axis by ``n_sub``
+sub-steps of ``p[P_DT]`` seconds with the setpoints ``inp`` held, writes the
+output signals into ``out`` and returns a status code (``STATUS_*`` in
+:mod:`plant.layout`).  It never raises and never allocates; the model
+selectors in ``p`` (motor, mechanics, solver, friction switches) pick the
+effects a machine file asked for.
+
+One sub-step, in order:
+
+1. once per PWM period: the inverter takes the voltage computed last period,
+   the drive samples the currents and runs its current controller (or takes
+   the voltage setpoint in voltage mode);
+2. the motor's currents advance with the applied voltage; torque = motor
+   torque + cogging;
+3. mechanics: chain forces (springs, dampers, bearings), the nut coupling the
+   torsional and axial screw chains to the table at the nut's present
+   location, table friction with stiction, then a symplectic Euler (or TLM)
+   update.
+"""
+
+from numba import njit
+
+from plant.effects.chain import (chain_clear_forces, chain_drift, chain_internal_forces,
+                                 chain_kick, dead_zone)
+from plant.effects.cogging import cogging_torque
+from plant.effects.commutation import commutation_control, commutation_substep
+from plant.effects.friction import presliding_update, table_friction
+from plant.effects.pmsm import (dq_current_control, dq_substep, dq_torque, first_order_substep,
+                                limit_voltage)
+from plant.effects.sensors import counts, measure_current
+from plant.effects.tlm import tlm_step
+from plant.layout import (I_ENABLE, I_ID_REF, I_IQ_REF, I_LOAD, I_MODE, I_UD, I_UQ,
+                          INPUT_VOLTAGE, MECH_SCREW, MOTOR_COMMUTATION, MOTOR_DQ,
+                          MOTOR_FIRST_ORDER, O_ENCODER, O_FRICTION, O_ID, O_ID_MEAS, O_IQ,
+                          O_IQ_MEAS, O_MOTOR_POS, O_MOTOR_VEL, O_NUT_FORCE, O_SCALE, O_STATUS,
+                          O_TABLE_POS, O_TABLE_VEL, O_TIME, O_TORQUE, O_UD, O_UQ,
+                          P_DIVERGE_LIMIT, P_DT, P_ENC_COUNTS_PER_RAD, P_LEAD_RATIO,
+                          P_MECH_MODEL, P_MOTOR_MODEL, P_N_AX, P_N_ROT, P_NUT_C, P_NUT_GAP,
+                          P_NUT_K, P_NUT_S0, P_OFF_AX, P_OFF_ROT, P_POLE_PAIRS,
+                          P_PRE_ENABLED, P_SCALE_RES, P_SEG_LEN, P_SOFF_AX, P_SOFF_ROT,
+                          P_SOLVER, P_SUB_PER_PWM, P_TABLE_M, P_UDC, S_FRICTION, S_ID,
+                          S_ID_MEAS, S_INT_D, S_INT_Q, S_IQ, S_IQ_MEAS, S_NUT_F, S_STUCK,
+                          S_SUB_COUNT, S_TABLE_V, S_TABLE_X, S_TIME, S_TORQUE, S_UD_APPLIED,
+                          S_UD_NEXT, S_UQ_APPLIED, S_UQ_NEXT, SOLVER_LUMPED, STATUS_DIVERGED,
+                          STATUS_NONFINITE, STATUS_OK)
+
+
+@njit(cache=True, error_model="numpy")
+def pwm_event(p, s, inp, omega_m):
+    """Start of a PWM period: apply last period's voltage, sample, compute the next one."""
+    model = int(p[P_MOTOR_MODEL])
+    s[S_UD_APPLIED] = s[S_UD_NEXT]
+    s[S_UQ_APPLIED] = s[S_UQ_NEXT]
+    if model == MOTOR_DQ:
+        s[S_ID_MEAS] = measure_current(p, s, s[S_ID])
+    s[S_IQ_MEAS] = measure_current(p, s, s[S_IQ])
+    if inp[I_ENABLE] <= 0.0:
+        # pulses blocked: no voltage now or next period, controller reset
+        s[S_UD_APPLIED] = 0.0
+        s[S_UQ_APPLIED] = 0.0
+        s[S_UD_NEXT] = 0.0
+        s[S_UQ_NEXT] = 0.0
+        s[S_INT_D] = 0.0
+        s[S_INT_Q] = 0.0
+        return
+    if model == MOTOR_FIRST_ORDER:
+        return
+    if inp[I_MODE] == INPUT_VOLTAGE:
+        umax = 0.5 * p[P_UDC] if model == MOTOR_DQ else p[P_UDC]
+        s[S_UD_NEXT], s[S_UQ_NEXT] = limit_voltage(inp[I_UD], inp[I_UQ], umax)
+    elif model == MOTOR_DQ:
+        dq_current_control(p, s, inp[I_ID_REF], inp[I_IQ_REF])
+    else:
+        commutation_control(p, s, inp[I_IQ_REF], omega_m)
+
+
+@njit(cache=True, error_model="numpy")
+def motor_substep(p, s, inp, omega_m):
+    """Advance the motor's electrical state one sub-step; return its torque (N·m or N)."""
+    model = int(p[P_MOTOR_MODEL])
+    if model == MOTOR_DQ:
+        return dq_substep(p, s, s[S_UD_APPLIED], s[S_UQ_APPLIED], omega_m)
+    if model == MOTOR_COMMUTATION:
+        return commutation_substep(p, s, s[S_UQ_APPLIED], omega_m)
+    iq_ref = inp[I_IQ_REF] if inp[I_ENABLE] > 0.0 else 0.0
+    first_order_substep(p, s, iq_ref)
+    return dq_torque(p, 0.0, s[S_IQ])
+
+
+@njit(cache=True, error_model="numpy")
+def nut_coupling(p, s, ro, nr, ao, na):
+    """Nut force (N, pushing the table forward) at the nut's present place on the screw.
+
+    The nut sits between screw nodes j and j+1 with weight w; its angle and
+    axial displacement are interpolated there and its reaction is spread back
+    with the same weights, which keeps the coupling energy-consistent while
+    the place moves with the table (seed 003's moving nut).
+    """
+    pos = (p[P_NUT_S0] + s[S_TABLE_X]) / p[P_SEG_LEN]
+    j = int(pos)
+    j = 0 if j < 0 else (na - 2 if j > na - 2 else j)
+    w = pos - j
+    w = 0.0 if w < 0.0 else (1.0 if w > 1.0 else w)
+    lead = p[P_LEAD_RATIO]
+    theta = (1.0 - w) * s[ro + 1 + j] + w * s[ro + 2 + j]
+    omega = (1.0 - w) * s[ro + nr + 1 + j] + w * s[ro + nr + 2 + j]
+    u = (1.0 - w) * s[ao + j] + w * s[ao + j + 1]
+    du = (1.0 - w) * s[ao + na + j] + w * s[ao + na + j + 1]
+    delta = u + lead * theta - s[S_TABLE_X]
+    rate = du + lead * omega - s[S_TABLE_V]
+    gap = p[P_NUT_GAP]
+    de = dead_zone(delta, gap)
+    f = p[P_NUT_K] * de
+    if de != 0.0 or gap <= 0.0:
+        f += p[P_NUT_C] * rate
+    fr = ro + 2 * nr
+    fa = ao + 2 * na
+    s[fr + 1 + j] -= (1.0 - w) * f * lead
+    s[fr + 2 + j] -= w * f * lead
+    s[fa + j] -= (1.0 - w) * f
+    s[fa + j + 1] -= w * f
+    return f
+
+
+@njit(cache=True, error_model="numpy")
+def screw_mechanics(p, s, load, dt, lumped):
+    """One sub-step of motor - coupling - screw - nut - table (torque already in scratch)."""
+    ro = int(p[P_SOFF_ROT])
+    nr = int(p[P_N_ROT])
+    ao = int(p[P_SOFF_AX])
+    na = int(p[P_N_AX])
+    por = int(p[P_OFF_ROT])
+    poa = int(p[P_OFF_AX])
+    f_nut = nut_coupling(p, s, ro, nr, ao, na)
+    s[S_NUT_F] = f_nut
+    v = s[S_TABLE_V]
+    m = p[P_TABLE_M]
+    f_app = f_nut + load
+    ff, stuck = table_friction(p, s, v, f_app, m, dt)
+    s[S_FRICTION] = ff
+    s[S_STUCK] = 1.0 if stuck else 0.0
+    if lumped:
+        chain_kick(p, por, s, ro, nr, dt)
+        chain_kick(p, poa, s, ao, na, dt)
+        chain_drift(s, ro, nr, dt)
+        chain_drift(s, ao, na, dt)
+    else:
+        tlm_step(p, por, s, ro, nr, dt)
+        tlm_step(p, poa, s, ao, na, dt)
+    v = 0.0 if stuck else v + dt * (f_app + ff) / m
+    x_old = s[S_TABLE_X]
+    s[S_TABLE_V] = v
+    s[S_TABLE_X] = x_old + dt * v
+    if p[P_PRE_ENABLED] > 0.0:
+        presliding_update(p, s, x_old, s[S_TABLE_X])
+
+
+@njit(cache=True, error_model="numpy")
+def lumped_mechanics(p, s, load, dt):
+    """One sub-step of the rigid or two-mass chain; the table moves with the last node."""
+    ro = int(p[P_SOFF_ROT])
+    nr = int(p[P_N_ROT])
+    por = int(p[P_OFF_ROT])
+    last = nr - 1
+    ratio = p[P_LEAD_RATIO]
+    fr = ro + 2 * nr
+    v = ratio * s[ro + nr + last]
+    f_app = s[fr + last] / ratio + load
+    m_eff = p[por + last] / (ratio * ratio)
+    ff, stuck = table_friction(p, s, v, f_app, m_eff, dt)
+    s[S_FRICTION] = ff
+    s[S_STUCK] = 1.0 if stuck else 0.0
+    s[fr + last] += (ff + load) * ratio
+    chain_kick(p, por, s, ro, nr, dt)
+    if stuck:
+        s[ro + nr + last] = 0.0
+    chain_drift(s, ro, nr, dt)
+    x_old = s[S_TABLE_X]
+    s[S_TABLE_X] = ratio * s[ro + last]
+    s[S_TABLE_V] = ratio * s[ro + nr + last]
+    if p[P_PRE_ENABLED] > 0.0:
+        presliding_update(p, s, x_old, s[S_TABLE_X])
+
+
+@njit(cache=True, error_model="numpy")
+def substep(p, s, inp):
+    """Advance the axis by one sub-step of p[P_DT]."""
+    dt = p[P_DT]
+    ro = int(p[P_SOFF_ROT])
+    nr = int(p[P_N_ROT])
+    omega_m = s[ro + nr]
+    if s[S_SUB_COUNT] == 0.0:
+        pwm_event(p, s, inp, omega_m)
+    s[S_SUB_COUNT] += 1.0
+    if s[S_SUB_COUNT] >= p[P_SUB_PER_PWM]:
+        s[S_SUB_COUNT] = 0.0
+    torque = motor_substep(p, s, inp, omega_m) + cogging_torque(p, p[P_POLE_PAIRS] * s[ro])
+    s[S_TORQUE] = torque
+    lumped = p[P_SOLVER] == SOLVER_LUMPED
+    screw = p[P_MECH_MODEL] == MECH_SCREW
+    if lumped:
+        chain_internal_forces(p, int(p[P_OFF_ROT]), s, ro, nr)
+        if screw:
+            chain_internal_forces(p, int(p[P_OFF_AX]), s, int(p[P_SOFF_AX]), int(p[P_N_AX]))
+    else:
+        chain_clear_forces(s, ro, nr)
+        chain_clear_forces(s, int(p[P_SOFF_AX]), int(p[P_N_AX]))
+    s[ro + 2 * nr] += torque
+    if screw:
+        screw_mechanics(p, s, inp[I_LOAD], dt, lumped)
+    else:
+        lumped_mechanics(p, s, inp[I_LOAD], dt)
+    s[S_TIME] += dt
+
+
+@njit(cache=True, error_model="numpy")
+def check_state(p, s):
+    """STATUS_OK, or the fault a non-finite or runaway state value shows."""
+    limit = p[P_DIVERGE_LIMIT]
+    for i in range(s.size):
+        x = s[i]
+        if x != x or x - x != 0.0:
+            return STATUS_NONFINITE
+        if abs(x) > limit:
+            return STATUS_DIVERGED
+    return STATUS_OK
+
+
+@njit(cache=True, error_model="numpy")
+def write_outputs(p, s, out, status):
+    """Fill ``out`` (layout O_*) from the state."""
+    ro = int(p[P_SOFF_ROT])
+    nr = int(p[P_N_ROT])
+    out[O_STATUS] = status
+    out[O_TIME] = s[S_TIME]
+    out[O_MOTOR_POS] = s[ro]
+    out[O_MOTOR_VEL] = s[ro + nr]
+    out[O_TABLE_POS] = s[S_TABLE_X]
+    out[O_TABLE_VEL] = s[S_TABLE_V]
+    out[O_ENCODER] = counts(s[ro], p[P_ENC_COUNTS_PER_RAD])
+    res = p[P_SCALE_RES]
+    out[O_SCALE] = counts(s[S_TABLE_X], 1.0 / res) if res > 0.0 else 0.0
+    out[O_ID] = s[S_ID]
+    out[O_IQ] = s[S_IQ]
+    out[O_ID_MEAS] = s[S_ID_MEAS]
+    out[O_IQ_MEAS] = s[S_IQ_MEAS]
+    out[O_TORQUE] = s[S_TORQUE]
+    out[O_UD] = s[S_UD_APPLIED]
+    out[O_UQ] = s[S_UQ_APPLIED]
+    out[O_NUT_FORCE] = s[S_NUT_F]
+    out[O_FRICTION] = s[S_FRICTION]
+
+
+@njit(cache=True, error_model="numpy")
+def axis_step_nb(p, s, inp, out, n_sub):
+    """Advance ``n_sub`` sub-steps with ``inp`` held; fill ``out``; return a status code.
+
+    The state is checked once per call (a NaN or a runaway value persists, so
+    nothing is missed); after a fault status the caller must reset the state.
+    """
+    for _ in range(n_sub):
+        substep(p, s, inp)
+    status = check_state(p, s)
+    write_outputs(p, s, out, status)
+    return status

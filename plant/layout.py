@@ -1,0 +1,186 @@
+"""Index layout of the flat float64 arrays the axis kernel works on.
+
+Four arrays describe one axis at run time:
+
+``params``
+    ``P_COUNT`` scalars (indices ``P_*`` below, SI units) followed by the
+    mechanical chains' per-node and per-link arrays, at the offsets stored in
+    ``P_OFF_*`` (whole numbers held as float64).
+``state``
+    ``S_COUNT`` scalars (``S_*``) followed by the chains' node positions,
+    velocities and, for the TLM solver, wave variables, at ``P_SOFF_*``.
+``inp``
+    ``I_COUNT`` setpoints, held constant over one call of the kernel.
+``out``
+    ``O_COUNT`` signals written at the end of every call.
+
+Module-level integers are compile-time constants for numba, so indexing with
+these names costs nothing.  Rotary quantities are in rad, rad/s, N·m; linear
+ones in m, m/s, N.  The "motor coordinate" is an angle for rotary motors and a
+position for linear motors; the "table coordinate" is a position in m for
+screw-driven and linear axes and an angle in rad for direct-drive rotary axes.
+"""
+
+# --- model selectors (values of P_MOTOR_MODEL, P_MECH_MODEL, P_SOLVER) ------
+MOTOR_DQ = 0  # PMSM in d-q with discrete FOC current PI loops (seed 000)
+MOTOR_FIRST_ORDER = 1  # current loop as first-order lag T_cl (seed 004)
+MOTOR_COMMUTATION = 2  # torque motor with commutation-angle field weakening (seed 001)
+
+MECH_RIGID = 0  # one inertia (motor, screw and table lumped)
+MECH_TWO_MASS = 1  # motor - coupling - load
+MECH_SCREW = 2  # motor - coupling - distributed screw - moving nut - table
+
+SOLVER_LUMPED = 0  # semi-implicit (symplectic) Euler on the lumped chains
+SOLVER_TLM = 1  # transmission-line modelling for the chains (seed 003)
+
+INPUT_CURRENT = 0  # setpoint is the current (the plant holds the current loop)
+INPUT_VOLTAGE = 1  # setpoint is the d-q voltage (the controller holds it)
+
+# --- kernel status codes ----------------------------------------------------
+STATUS_OK = 0
+STATUS_NONFINITE = 1  # a state became NaN or infinite; the kernel stopped stepping
+STATUS_DIVERGED = 2  # |state| exceeded P_DIVERGE_LIMIT; the kernel stopped stepping
+
+# --- scalar parameters --------------------------------------------------------
+_p = iter(range(1000))
+P_MOTOR_MODEL = next(_p)
+P_MECH_MODEL = next(_p)
+P_SOLVER = next(_p)
+P_DT = next(_p)  # s, integration sub-step
+P_SUB_PER_PWM = next(_p)  # sub-steps per PWM / current-controller period
+P_DIVERGE_LIMIT = next(_p)  # any |state| above this is a fault
+
+# motor, electrical
+P_POLE_PAIRS = next(_p)  # electrical rad per rad (rotary) or per m (linear: pi / pole pitch)
+P_R = next(_p)  # ohm, phase resistance
+P_LD = next(_p)  # H
+P_LQ = next(_p)  # H
+P_PSI = next(_p)  # V·s, permanent-magnet flux linkage (dq model)
+P_KT = next(_p)  # N·m/A or N/A, torque (force) constant 1.5·p·psi
+P_KE = next(_p)  # V·s/rad, back-EMF constant K_S (commutation model)
+P_UDC = next(_p)  # V, DC-link voltage; voltage vector limited to U_dc/2
+P_I_MAX = next(_p)  # A, current setpoint limit
+P_KP_I = next(_p)  # V/A, current PI proportional gain
+P_KI_I = next(_p)  # V/(A·s), current PI integral gain
+P_T_CL = next(_p)  # s, first-order current-loop time constant
+P_EXP_D = next(_p)  # exp(-R dt / L_d), exact decay over one sub-step
+P_EXP_Q = next(_p)  # exp(-R dt / L_q)
+P_FW_ENABLED = next(_p)  # 1: commutation-angle field weakening (seed 001 eq. 6-10)
+P_FW_M_MAX = next(_p)  # N·m, rated maximum torque M_max of seed 001 eq. 8
+
+# cogging: up to N_COG harmonics of the electrical angle
+N_COG = 6
+P_COG_N = next(_p)  # number of harmonics in use
+P_COG_ORDER = next(_p)
+for _ in range(N_COG - 1):
+    next(_p)
+P_COG_AMP = next(_p)  # N·m or N
+for _ in range(N_COG - 1):
+    next(_p)
+P_COG_PHASE = next(_p)  # rad
+for _ in range(N_COG - 1):
+    next(_p)
+
+# transmission
+P_LEAD_RATIO = next(_p)  # m/rad, table travel per screw radian (lead / 2 pi); 1 when direct
+P_NUT_K = next(_p)  # N/m, nut axial contact stiffness
+P_NUT_C = next(_p)  # N·s/m, nut axial damping
+P_NUT_GAP = next(_p)  # m, total backlash in the nut (dead zone width)
+P_NUT_S0 = next(_p)  # m, nut distance from the screw's first node at table position 0
+P_SEG_LEN = next(_p)  # m, length of one screw segment
+P_TABLE_M = next(_p)  # kg, table mass (screw model)
+
+# table friction (acts on the table, or on the last torsional node reflected)
+P_FR_VISCOUS = next(_p)  # N·s/m (N·m·s/rad for direct rotary)
+P_FR_COULOMB = next(_p)  # N
+P_FR_STATIC = next(_p)  # N, breakaway force F_H
+P_FR_STRIBECK_V = next(_p)  # m/s, Stribeck velocity (0: no Stribeck curve)
+P_FR_DV = next(_p)  # m/s, Karnopp zero-velocity band half-width
+P_PRE_ENABLED = next(_p)  # 1: presliding nonlinear spring (seed 004 eq. 1)
+P_PRE_K1 = next(_p)  # N/m, initial presliding stiffness T1 (table units)
+P_PRE_X1 = next(_p)  # m, x1
+P_PRE_A = next(_p)  # exponent a
+
+# sensors
+P_ENC_COUNTS_PER_RAD = next(_p)  # motor encoder counts per motor rad (or per m, linear)
+P_SCALE_RES = next(_p)  # m (rad for rotary), linear scale resolution; 0: no scale
+P_I_NOISE = next(_p)  # A, standard deviation of current-measurement noise
+P_I_LSB = next(_p)  # A, current-measurement quantization step; 0: none
+P_SEED = next(_p)  # noise generator seed
+
+# chain layout (offsets into params and state; counts)
+P_N_ROT = next(_p)  # number of torsional nodes (motor is node 0)
+P_N_AX = next(_p)  # number of axial screw nodes (0 without screw)
+P_OFF_ROT = next(_p)  # params offset of the torsional chain block
+P_OFF_AX = next(_p)  # params offset of the axial chain block
+P_SOFF_ROT = next(_p)  # state offset of the torsional chain block
+P_SOFF_AX = next(_p)  # state offset of the axial chain block
+P_COUNT = next(_p)
+del _p
+
+# A chain of n nodes occupies 6n-3 params (inertias, ground dampers, ground
+# springs, link springs, link dampers, link backlash gaps) and 5n-2 state values
+# (positions, velocities, a force scratch area, TLM wave variables); the exact
+# order is in plant.effects.chain.
+
+# --- scalar state ------------------------------------------------------------
+_s = iter(range(1000))
+S_TIME = next(_s)  # s
+S_SUB_COUNT = next(_s)  # sub-steps since the last current-controller update
+S_RNG_COUNTER = next(_s)  # draws made from the noise generator
+S_ID = next(_s)  # A (commutation and first-order models use S_IQ only)
+S_IQ = next(_s)
+S_INT_D = next(_s)  # V, PI integrators
+S_INT_Q = next(_s)
+S_UD_APPLIED = next(_s)  # V, voltage the inverter applies during this PWM period
+S_UQ_APPLIED = next(_s)
+S_UD_NEXT = next(_s)  # V, voltage computed this period, applied next (PWM delay)
+S_UQ_NEXT = next(_s)
+S_ID_MEAS = next(_s)  # A, sampled and held measured currents
+S_IQ_MEAS = next(_s)
+S_KM = next(_s)  # N·m/A, present torque constant (commutation model)
+S_TORQUE = next(_s)  # N·m or N, electromagnetic torque of the last sub-step
+S_TABLE_X = next(_s)  # table position (screw model; kinematic otherwise)
+S_TABLE_V = next(_s)
+S_NUT_F = next(_s)  # N, nut force of the last sub-step
+S_FRICTION = next(_s)  # N, table friction of the last sub-step
+S_STUCK = next(_s)  # 1 while Karnopp stiction holds the friction body
+S_PRE_F = next(_s)  # N, presliding friction force
+S_PRE_XREV = next(_s)  # m, position at the last reversal
+S_PRE_DIR = next(_s)  # +1 / -1, present direction of motion
+S_COUNT = next(_s)
+del _s
+
+# --- inputs ------------------------------------------------------------------
+_i = iter(range(100))
+I_MODE = next(_i)  # INPUT_CURRENT or INPUT_VOLTAGE
+I_ENABLE = next(_i)  # 1: power stage on; 0: torque off (pulses blocked)
+I_ID_REF = next(_i)  # A
+I_IQ_REF = next(_i)  # A
+I_UD = next(_i)  # V (voltage mode)
+I_UQ = next(_i)  # V
+I_LOAD = next(_i)  # N (N·m for direct rotary), external force on the table
+I_COUNT = next(_i)
+del _i
+
+# --- outputs -----------------------------------------------------------------
+_o = iter(range(100))
+O_STATUS = next(_o)
+O_TIME = next(_o)  # s
+O_MOTOR_POS = next(_o)  # rad (m for linear motors)
+O_MOTOR_VEL = next(_o)  # rad/s (m/s)
+O_TABLE_POS = next(_o)  # m (rad for direct rotary)
+O_TABLE_VEL = next(_o)
+O_ENCODER = next(_o)  # motor encoder counts (whole number)
+O_SCALE = next(_o)  # linear-scale counts (whole number)
+O_ID = next(_o)  # A, true currents
+O_IQ = next(_o)
+O_ID_MEAS = next(_o)  # A, measured (noise, quantization, sample and hold)
+O_IQ_MEAS = next(_o)
+O_TORQUE = next(_o)  # N·m (N), electromagnetic torque incl. cogging
+O_UD = next(_o)  # V, applied voltages
+O_UQ = next(_o)
+O_NUT_FORCE = next(_o)  # N
+O_FRICTION = next(_o)  # N (N·m), table friction
+O_COUNT = next(_o)
+del _o

@@ -1,0 +1,51 @@
+"""The folder tree's data-flow rule: plant imports nothing from hil or io_adapters, and
+io_adapters nothing from plant or hil (style guide habit 11).  Checked on the source
+with the ast module, so a lazy import inside a function is caught as well."""
+
+import ast
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+FORBIDDEN = {"plant": {"hil", "io_adapters"}, "io_adapters": {"plant", "hil"}}
+PLANT_ALLOWED_THIRD_PARTY = {"numpy", "numba", "scipy"}
+
+
+def imported_top_names(path: Path) -> set[str]:
+    tree = ast.parse(path.read_text(), filename=str(path))
+    names = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            names.update(a.name.split(".")[0] for a in node.names)
+        elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+            names.add(node.module.split(".")[0])
+    return names
+
+
+@pytest.mark.parametrize("package", sorted(FORBIDDEN))
+def test_package_does_not_import_downstream(package):
+    """No module of ``package`` imports a package that sits after it in the data flow."""
+    files = sorted((ROOT / package).rglob("*.py"))
+    assert files, f"{package}/ has no Python files"
+    for f in files:
+        bad = imported_top_names(f) & FORBIDDEN[package]
+        assert not bad, f"{f.relative_to(ROOT)} imports {sorted(bad)}"
+
+
+def test_plant_uses_only_numpy_numba_scipy():
+    """plant/ depends on numpy, numba and scipy (linear algebra at build time) besides the
+    standard library."""
+    import sys
+
+    stdlib = set(sys.stdlib_module_names)
+    for f in sorted((ROOT / "plant").rglob("*.py")):
+        third = imported_top_names(f) - stdlib - {"plant"}
+        assert third <= PLANT_ALLOWED_THIRD_PARTY, f"{f.relative_to(ROOT)} imports {third}"
+
+
+def test_the_kernel_guard_catches_a_violation(tmp_path):
+    """The checker itself finds a forbidden import (so the tests above can fail)."""
+    bad = tmp_path / "m.py"
+    bad.write_text("def f():\n    from hil.cli import main\n")
+    assert "hil" in imported_top_names(bad)
