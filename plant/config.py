@@ -444,8 +444,9 @@ def _check_physics(cfg: MachineConfig) -> None:
     f_c, f_h = (fr.coulomb_nm, fr.breakaway_nm) if kind == "rotary" else (fr.coulomb_n,
                                                                            fr.breakaway_n)
     if f_h and f_h < f_c:
-        raise ConfigError(f"{cfg.path}: [friction] breakaway ({f_h:g}) must be >= Coulomb "
-                          f"({f_c:g})")
+        sfx, unit = ("_nm", "N*m") if kind == "rotary" else ("_n", "N")
+        raise ConfigError(f"{cfg.path}: [friction] breakaway{sfx} = {f_h:g} {unit} must be >= "
+                          f"coulomb{sfx} = {f_c:g} {unit}")
     pre = cfg.presliding
     if pre.enabled:
         _require(cfg, "presliding", "stiffness_n_per_m", "presliding friction")

@@ -39,7 +39,8 @@ class Result:
     tolerance: str
 
     def as_dict(self) -> dict:
-        return asdict(self)
+        """Plain-Python fields (NumPy scalars converted), ready for JSON."""
+        return {k: (v.item() if hasattr(v, "item") else v) for k, v in asdict(self).items()}
 
 
 @dataclass(frozen=True)
@@ -65,7 +66,7 @@ def experiment(name: str, seed: str):
 
 def within(model: float, ref: float, rel: float = 0.0, abs_: float = 0.0) -> bool:
     """True when |model - ref| <= max(rel * |ref|, abs_)."""
-    return abs(model - ref) <= max(rel * abs(ref), abs_)
+    return bool(abs(model - ref) <= max(rel * abs(ref), abs_))
 
 
 def run_all(out_dir: Path | None, only: list[str] | None = None,
