@@ -41,15 +41,6 @@ def field_weakening_k(k0, r, uz, m_max, omega, m_set):
 
 
 @njit(cache=True, error_model="numpy")
-def torque_limit(k0, r, uz, m_max, omega):
-    """Largest steady torque (N·m) at speed ``omega`` (rad/s): eq. 9 maximised over the
-    commutation (K <= K_0, best at K = U_Z / (2 omega)), capped at M_max."""
-    w = abs(omega)
-    k = k0 if w == 0.0 else min(k0, uz / (2.0 * w))
-    return min(m_max, (uz - w * k) * k / r)
-
-
-@njit(cache=True, error_model="numpy")
 def commutation_control(p, s, iq_ref, omega):
     """Converter event: commutation angle, current setpoint (eq. 5), PI on the coil current."""
     k0 = p[P_KT]

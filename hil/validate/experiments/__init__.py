@@ -1,1 +1,3 @@
 """Importing this package registers every experiment (one module per topic)."""
+
+from hil.validate.experiments import cogging, electrical  # noqa: F401
