@@ -22,8 +22,7 @@ One sub-step, in order:
 
 from numba import njit
 
-from plant.effects.chain import (chain_clear_forces, chain_drift, chain_internal_forces,
-                                 chain_kick, dead_zone)
+from plant.effects.chain import chain_clear_forces, chain_internal_forces, chain_step, dead_zone
 from plant.effects.cogging import cogging_torque
 from plant.effects.commutation import commutation_control, commutation_substep
 from plant.effects.friction import presliding_update, table_friction
@@ -142,10 +141,8 @@ def screw_mechanics(p, s, load, dt, lumped):
     s[S_FRICTION] = ff
     s[S_STUCK] = 1.0 if stuck else 0.0
     if lumped:
-        chain_kick(p, por, s, ro, nr, dt)
-        chain_kick(p, poa, s, ao, na, dt)
-        chain_drift(s, ro, nr, dt)
-        chain_drift(s, ao, na, dt)
+        chain_step(p, por, s, ro, nr, dt, -1)
+        chain_step(p, poa, s, ao, na, dt, -1)
     else:
         tlm_step(p, por, s, ro, nr, dt)
         tlm_step(p, poa, s, ao, na, dt)
@@ -173,10 +170,7 @@ def lumped_mechanics(p, s, load, dt):
     s[S_FRICTION] = ff
     s[S_STUCK] = 1.0 if stuck else 0.0
     s[fr + last] += (ff + load) * ratio
-    chain_kick(p, por, s, ro, nr, dt)
-    if stuck:
-        s[ro + nr + last] = 0.0
-    chain_drift(s, ro, nr, dt)
+    chain_step(p, por, s, ro, nr, dt, last if stuck else -1)
     x_old = s[S_TABLE_X]
     s[S_TABLE_X] = ratio * s[ro + last]
     s[S_TABLE_V] = ratio * s[ro + nr + last]

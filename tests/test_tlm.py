@@ -68,8 +68,7 @@ def run(p, s, n, dt, steps, use_tlm, f_ext, tip, energy):
         else:
             chain.chain_internal_forces(p, 0, s, 0, n)
             s[2 * n : 3 * n] += f_ext
-            chain.chain_kick(p, 0, s, 0, n, dt)
-            chain.chain_drift(s, 0, n, dt)
+            chain.chain_step(p, 0, s, 0, n, dt, -1)
             energy[k] = chain.chain_energy(p, 0, s, 0, n)
         tip[k] = s[n - 1]
 

@@ -59,41 +59,44 @@ def dead_zone(delta, gap):
 def chain_internal_forces(p, po, s, so, n):
     """Write the chain's own spring, damper and ground forces into the scratch area.
 
-    Overwrites ``s[so+2n : so+3n]``; external forces are added afterwards.
+    Overwrites ``s[so+2n : so+3n]``; external forces are added afterwards.  The
+    link force is carried to the next node in a local variable rather than
+    through memory, which keeps the loop free of store-to-load stalls.
     """
     xo = so
     vo = so + n
     fo = so + 2 * n
-    for i in range(n):
-        s[fo + i] = -p[po + 2 * n + i] * s[xo + i] - p[po + n + i] * s[vo + i]
+    carry = 0.0
+    x = s[xo]
+    v = s[vo]
     for i in range(n - 1):
-        k = p[po + 3 * n + i]
-        c = p[po + 4 * n - 1 + i]
+        x_next = s[xo + i + 1]
+        v_next = s[vo + i + 1]
         gap = p[po + 5 * n - 2 + i]
-        delta = s[xo + i + 1] - s[xo + i]
-        de = dead_zone(delta, gap)
-        fl = k * de
+        de = dead_zone(x_next - x, gap)
+        fl = p[po + 3 * n + i] * de
         if de != 0.0 or gap <= 0.0:
-            fl += c * (s[vo + i + 1] - s[vo + i])
-        s[fo + i] += fl
-        s[fo + i + 1] -= fl
+            fl += p[po + 4 * n - 1 + i] * (v_next - v)
+        s[fo + i] = carry + fl - p[po + 2 * n + i] * x - p[po + n + i] * v
+        carry = -fl
+        x = x_next
+        v = v_next
+    s[fo + n - 1] = carry - p[po + 3 * n - 1] * x - p[po + 2 * n - 1] * v
 
 
 @njit(cache=True, error_model="numpy")
-def chain_kick(p, po, s, so, n, dt):
-    """Velocity update from the forces in the scratch area: v += dt * f / m."""
+def chain_step(p, po, s, so, n, dt, hold):
+    """Semi-implicit Euler update from the forces in the scratch area:
+    v += dt * f / m, then x += dt * v.  Node ``hold`` (-1: none) is held at rest
+    for this sub-step (Karnopp stiction on that node)."""
     vo = so + n
     fo = so + 2 * n
     for i in range(n):
-        s[vo + i] += dt * s[fo + i] / p[po + i]
-
-
-@njit(cache=True, error_model="numpy")
-def chain_drift(s, so, n, dt):
-    """Position update from the (new) velocities: x += dt * v."""
-    vo = so + n
-    for i in range(n):
-        s[so + i] += dt * s[vo + i]
+        v = s[vo + i] + dt * s[fo + i] / p[po + i]
+        if i == hold:
+            v = 0.0
+        s[vo + i] = v
+        s[so + i] += dt * v
 
 
 @njit(cache=True, error_model="numpy")
