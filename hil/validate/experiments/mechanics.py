@@ -6,9 +6,8 @@ file (rigid, two-mass, undamped, torque-free) are built in memory from the
 parsed TOML, so every run goes through the same checks as a user's file.
 """
 
-import copy
 import math
-import tomllib
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -17,209 +16,28 @@ import scipy.linalg
 
 from hil.validate import plots
 from hil.validate.core import Result, experiment, within
-from plant import Plant, layout as L
+from plant import Plant
+from plant import layout as L
 from plant.assemble import build_chains, mechanics_matrices, natural_frequencies
-from plant.config import load_machine, parse_machine
-from plant.effects.chain import chain_energy
-from plant.effects.tlm import tlm_init
+from plant.config import load_machine
 
-ROOT = Path(__file__).resolve().parents[3]
-ARROW = ROOT / "configs" / "arrow500_x.toml"
-HELD_MOTOR_KGM2 = 1.0e4  # motor inertia that stands for a clamped rotor (10^7 x the real one)
-
-
-def result(name: str, ref: float, model: float, unit: str, ok, reference: str,
-           tolerance: str) -> Result:
-    """A Result with plain Python numbers (numpy scalars do not serialise)."""
-    return Result(name, float(ref), float(model), unit, bool(ok), reference, tolerance)
-
-
-# --- machine-file variants ------------------------------------------------------------------
-
-def machine_raw(path: Path = ARROW) -> dict:
-    """A machine file as a nested dict of TOML tables (a fresh copy)."""
-    return tomllib.loads(path.read_text())
-
-
-def with_keys(raw: dict, changes: dict) -> dict:
-    """Copy of ``raw`` with ``{"section": {"key": value}}`` set; a section value of None
-    removes the section."""
-    out = copy.deepcopy(raw)
-    for sec, values in changes.items():
-        if values is None:
-            out.pop(sec, None)
-        else:
-            out.setdefault(sec, {}).update(values)
-    return out
-
-
-def plant_of(raw: dict, label: str, table_pos: float = 0.0) -> Plant:
-    """Check ``raw`` like a machine file (named ``label`` in errors) and build the axis."""
-    return Plant(parse_machine(raw, label), table_pos)
-
-
-def torque_free(raw: dict, t_cl: float = 1.0e-4) -> dict:
-    """The motor as a first-order current loop without cogging: zero current gives exactly
-    zero torque (a d-q motor with blocked pulses would brake through its shorted winding).
-    ``t_cl`` in s."""
-    out = with_keys(raw, {"cogging": None, "field_weakening": None,
-                          "current_loop": None})
-    out["motor"]["model"] = "first_order"
-    out["motor"].pop("inductance_q_h", None)
-    out["current_loop"] = {"time_constant_s": t_cl}
-    return out
-
-
-def frictionless(raw: dict) -> dict:
-    """No table friction, no presliding, no motor bearing drag."""
-    out = with_keys(raw, {"friction": None, "presliding": None})
-    out["motor"]["viscous_nms_per_rad"] = 0.0
-    return out
-
-
-def undamped(raw: dict) -> dict:
-    """Every damper of the coupling, screw, bearings and nut set to zero."""
-    out = frictionless(raw)
-    if "coupling" in out:
-        out["coupling"]["damping_nms_per_rad"] = 0.0
-    if "screw" in out:
-        out["screw"].update(torsional_damping_nms_per_rad=0.0, axial_damping_ns_per_m=0.0,
-                            bearing_viscous_nms_per_rad=0.0, nut_damping_ns_per_m=0.0,
-                            thrust_bearing_damping_ns_per_m=0.0)
-    return out
-
-
-def screw_inertia(path: Path = ARROW) -> float:
-    """Polar mass moment of the screw of a screw machine file, rho*pi*d^4/32*L (kg·m²)."""
-    sc = load_machine(path).screw
-    return sc.density_kg_m3 * math.pi * sc.diameter_m ** 4 / 32.0 * sc.length_m
-
-
-def lumped_variant(raw: dict, model: str, path: Path = ARROW) -> dict:
-    """The screw axis as a 'rigid' or 'two_mass' model: the screw becomes load inertia
-    (and, for 'rigid', the coupling hubs too)."""
-    j_load = screw_inertia(path)
-    if model == "rigid":
-        j_load += raw["coupling"].get("inertia_kgm2", 0.0)
-        out = with_keys(raw, {"coupling": None, "screw": None})
-    else:
-        out = with_keys(raw, {"screw": None})
-    out["mechanics"] = {"model": model, "lead_m": raw["mechanics"]["lead_m"],
-                        "load_inertia_kgm2": j_load}
-    return out
-
-
-# --- measurements -----------------------------------------------------------------------------
-
-def crossing_frequency(t: np.ndarray, y: np.ndarray) -> float:
-    """Frequency (Hz) of a zero-mean oscillation ``y(t)`` from a straight-line fit through
-    its linearly interpolated zero crossings (needs at least three crossings)."""
-    i = np.nonzero(np.signbit(y[:-1]) != np.signbit(y[1:]))[0]
-    tc = t[i] - y[i] * (t[i + 1] - t[i]) / (y[i + 1] - y[i])
-    half_period = np.polyfit(np.arange(tc.size), tc, 1)[0]
-    return 0.5 / half_period
-
-
-def symplectic_frequency(omega: float, dt: float) -> float:
-    """Angular frequency (rad/s) that semi-implicit Euler with step ``dt`` gives an
-    undamped mode of ``omega``: 2/dt asin(omega dt/2)."""
-    return 2.0 / dt * math.asin(0.5 * omega * dt)
-
-
-class ScrewState:
-    """Views of a screw-model plant's state as the coordinate vector q of
-    :func:`plant.assemble.mechanics_matrices` (torsional nodes, axial nodes, table)."""
-
-    def __init__(self, plant: Plant):
-        p = plant.params
-        self.plant = plant
-        self.ro, self.nr = int(p[L.P_SOFF_ROT]), int(p[L.P_N_ROT])
-        self.ao, self.na = int(p[L.P_SOFF_AX]), int(p[L.P_N_AX])
-        self.q0 = self.positions()
-
-    def positions(self) -> np.ndarray:
-        """q (rad, m), shape (nr + na + 1,)."""
-        s = self.plant.state
-        return np.concatenate([s[self.ro:self.ro + self.nr], s[self.ao:self.ao + self.na],
-                               [s[L.S_TABLE_X]]])
-
-    def velocities(self) -> np.ndarray:
-        """dq/dt, shape (nr + na + 1,)."""
-        s = self.plant.state
-        return np.concatenate([s[self.ro + self.nr:self.ro + 2 * self.nr],
-                               s[self.ao + self.na:self.ao + 2 * self.na], [s[L.S_TABLE_V]]])
-
-    def displace(self, dq: np.ndarray, dv: np.ndarray | None = None) -> None:
-        """Add ``dq`` (and ``dv``) to the rest state; re-derive TLM waves; refresh outputs."""
-        s, p, plant = self.plant.state, self.plant.params, self.plant
-        nr, na = self.nr, self.na
-        s[self.ro:self.ro + nr] += dq[:nr]
-        s[self.ao:self.ao + na] += dq[nr:nr + na]
-        s[L.S_TABLE_X] += dq[-1]
-        if dv is not None:
-            s[self.ro + nr:self.ro + 2 * nr] += dv[:nr]
-            s[self.ao + na:self.ao + 2 * na] += dv[nr:nr + na]
-            s[L.S_TABLE_V] += dv[-1]
-        if p[L.P_SOLVER] == L.SOLVER_TLM:
-            tlm_init(p, int(p[L.P_OFF_ROT]), s, self.ro, nr, plant.dt)
-            tlm_init(p, int(p[L.P_OFF_AX]), s, self.ao, na, plant.dt)
-        plant.step(0)
-
-    def record(self, n_calls: int, n_sub: int) -> tuple[np.ndarray, np.ndarray, int]:
-        """Step ``n_calls`` times by ``n_sub``; returns (t in s of shape (n_calls,),
-        q - q_rest of shape (n_calls, nq), worst kernel status)."""
-        t = np.empty(n_calls)
-        q = np.empty((n_calls, self.q0.size))
-        status = 0
-        for k in range(n_calls):
-            status = max(status, self.plant.step(n_sub))
-            t[k] = self.plant.output("time_s")
-            q[k] = self.positions() - self.q0
-        return t, q, status
-
-
-def nut_deflection(plant: Plant) -> float:
-    """Nut spring deflection (m) at the nut's present place, as the kernel computes it
-    (backlash dead zone not applied)."""
-    cfg, s = plant.config, plant.state
-    st = ScrewState(plant)
-    seg = cfg.screw.length_m / cfg.screw.segments
-    pos = (cfg.screw.nut_offset_m + s[L.S_TABLE_X]) / seg
-    j = min(max(int(pos), 0), st.na - 2)
-    w = min(max(pos - j, 0.0), 1.0)
-    theta = (1 - w) * s[st.ro + 1 + j] + w * s[st.ro + 2 + j]
-    u = (1 - w) * s[st.ao + j] + w * s[st.ao + j + 1]
-    return u + plant.built.ratio * theta - s[L.S_TABLE_X]
-
-
-def screw_energy(plant: Plant) -> float:
-    """Kinetic plus elastic energy (J) of both chains, the table and the nut spring."""
-    p, s = plant.params, plant.state
-    st = ScrewState(plant)
-    e = chain_energy(p, int(p[L.P_OFF_ROT]), s, st.ro, st.nr)
-    e += chain_energy(p, int(p[L.P_OFF_AX]), s, st.ao, st.na)
-    e += 0.5 * p[L.P_TABLE_M] * s[L.S_TABLE_V] ** 2
-    return e + 0.5 * p[L.P_NUT_K] * nut_deflection(plant) ** 2
-
-
-# --- 1. rigid body ----------------------------------------------------------------------------
-
-def rigid_inertia(plant: Plant) -> float:
-    """Analytic J_total = J_m + J_load + m (lead/2pi)^2 (kg·m²) of a rigid screw axis."""
-    cfg = plant.config
-    r = cfg.mechanics.lead_m / (2.0 * math.pi)
-    return cfg.motor.inertia_kgm2 + cfg.mechanics.load_inertia_kgm2 + cfg.table.mass_kg * r * r
-
-
-def mean_acceleration(plant: Plant, inputs: dict, t_settle: float, t_end: float):
-    """Apply ``inputs`` from rest, return (motor acceleration in rad/s² between t_settle and
-    t_end (s), mean torque there in N·m, worst status, the trace)."""
-    plant.set_input(**inputs)
-    n = int(round(t_end / plant.pwm_period))
-    tr = plant.run(n, plant.sub_per_pwm)
-    k0 = int(round(t_settle / plant.pwm_period))
-    acc = (tr["motor_vel"][-1] - tr["motor_vel"][k0]) / (tr["time_s"][-1] - tr["time_s"][k0])
-    return acc, float(tr["torque"][k0 + 1:].mean()), int(tr["status"].max()), tr
+from hil.validate.experiments.variants import (
+    ARROW,
+    HELD_MOTOR_KGM2,
+    ScrewState,
+    crossing_frequency,
+    frictionless,
+    lumped_variant,
+    machine_raw,
+    mean_acceleration,
+    plant_of,
+    result,
+    rigid_inertia,
+    screw_energy,
+    torque_free,
+    undamped,
+    with_keys,
+)
 
 
 @experiment("rigid_acceleration", "000")
@@ -234,7 +52,8 @@ def rigid_acceleration(out_dir: Path | None) -> list[Result]:
     base = frictionless(lumped_variant(machine_raw(), "rigid"))
     cases = (
         ("first-order current 2 A", torque_free(base), {"iq_ref_a": 2.0}),
-        ("d-q FOC current 2 A (T: mean reported torque)", with_keys(base, {"cogging": None}), {"iq_ref_a": 2.0}),
+        ("d-q FOC current 2 A (T: mean reported torque)", with_keys(base, {"cogging": None}),
+         {"iq_ref_a": 2.0}),
         ("table force 500 N, no current", torque_free(base), {"load": 500.0}),
     )
     rows, traces = [], []
@@ -292,9 +111,11 @@ def two_mass_resonance(out_dir: Path | None) -> list[Result]:
     cfg = free.config
     half_hub = 0.5 * cfg.coupling.inertia_kgm2  # the coupling's hubs, one on each side
     j1 = cfg.motor.inertia_kgm2 + half_hub
-    j2 = half_hub + cfg.mechanics.load_inertia_kgm2 + cfg.table.mass_kg * (cfg.mechanics.lead_m / (2 * math.pi)) ** 2
+    r = cfg.mechanics.lead_m / (2.0 * math.pi)
+    j2 = half_hub + cfg.mechanics.load_inertia_kgm2 + cfg.table.mass_kg * r * r
     k = cfg.coupling.stiffness_nm_per_rad
-    refs = {"resonance": math.sqrt(k * (j1 + j2) / (j1 * j2)), "anti-resonance": math.sqrt(k / j2)}
+    refs = {"resonance": math.sqrt(k * (j1 + j2) / (j1 * j2)),
+            "anti-resonance": math.sqrt(k / j2)}
     rows, curves = [], []
     for (name, ref), plant, node in zip(refs.items(), (free, held), (1, 0)):
         t, v, status = free_vibration(plant, node, 1e-3, 20.0, ref / (2 * math.pi))
@@ -348,18 +169,33 @@ def rod_convergence(segments: tuple) -> dict:
         # rot node 0 is the motor, node 1 the screw's coupling end; ax node 0 the bearing end
         f = {"torsional": clamped_first_frequency(rot.m, rot.k_link, 2),
              "axial": clamped_first_frequency(ax.m, ax.k_link, 1)}
-        for name in refs:
-            errs[name].append(f[name] / refs[name] - 1.0)
+        for name, f_ref in refs.items():
+            errs[name].append(f[name] / f_ref - 1.0)
     return {name: (refs[name], np.array(errs[name])) for name in refs}
 
 
-def kernel_mode_frequency(plant: Plant, mode: int, periods: float = 20.0):
-    """Start the (undamped) screw model in eigenvector ``mode`` of mechanics_matrices and
-    measure the frequency of its modal coordinate in the kernel's free vibration.
+@dataclass(frozen=True)
+class ModeRun:
+    """The kernel's free vibration started in one eigenvector of mechanics_matrices.
 
-    Returns (linearised frequency in Hz, kernel frequency in Hz, largest share of any other
-    mode in the response, worst status, t, modal coordinate).
+    Attributes:
+        f_lin: linearised natural frequency (Hz).
+        f_kernel: frequency of the kernel's modal coordinate (Hz).
+        leak: largest amplitude any other elastic mode reaches, relative to this one.
+        status: worst kernel status.
+        t: s, shape (n,); eta: the modal coordinate, normalised, shape (n,).
     """
+    f_lin: float
+    f_kernel: float
+    leak: float
+    status: int
+    t: np.ndarray
+    eta: np.ndarray
+
+
+def kernel_mode_frequency(plant: Plant, mode: int, periods: float = 20.0) -> ModeRun:
+    """Start the (undamped) screw model in eigenvector ``mode`` of mechanics_matrices,
+    1 µm at the table, and follow its modal coordinate for ``periods`` periods."""
     table_pos = plant.state[L.S_TABLE_X]
     m_mat, _, k_mat = mechanics_matrices(plant.config, table_pos)
     lam, phi = scipy.linalg.eigh(k_mat, m_mat)
@@ -372,8 +208,8 @@ def kernel_mode_frequency(plant: Plant, mode: int, periods: float = 20.0):
     eta = q @ (m_mat @ phi)  # modal coordinates, shape (n_calls, nq)
     eta /= np.abs(eta[:, mode]).max()
     others = np.delete(eta, [0, mode], axis=1)  # mode 0: rigid-body rotation
-    return f_lin, crossing_frequency(t, eta[:, mode] - eta[:, mode].mean()), float(
-        np.abs(others).max()), status, t, eta[:, mode]
+    return ModeRun(f_lin, crossing_frequency(t, eta[:, mode] - eta[:, mode].mean()),
+                   float(np.abs(others).max()), status, t, eta[:, mode])
 
 
 @experiment("screw_modes", "000")
@@ -395,12 +231,12 @@ def screw_modes(out_dir: Path | None) -> list[Result]:
     traces = []
     for mode in (1, 2):
         plant = plant_of(raw, f"{ARROW} (undamped, torque-free)", table_pos=0.25)
-        f_lin, f_kernel, leak, status, t, eta = kernel_mode_frequency(plant, mode)
-        ok = status == 0 and within(f_kernel, f_lin, rel=1e-3) and leak < 0.01
-        rows.append(result(f"Arrow screw model mode {mode}: kernel free vibration", f_lin,
-                           f_kernel, "Hz", ok, "linearisation: eigh(K, M) of "
+        run = kernel_mode_frequency(plant, mode)
+        ok = run.status == 0 and within(run.f_kernel, run.f_lin, rel=1e-3) and run.leak < 0.01
+        rows.append(result(f"Arrow screw model mode {mode}: kernel free vibration", run.f_lin,
+                           run.f_kernel, "Hz", ok, "linearisation: eigh(K, M) of "
                            "mechanics_matrices at 250 mm", "±0.1 %, other modes < 1 %"))
-        traces.append((mode, t, eta))
+        traces.append((mode, run.t, run.eta))
     if out_dir is not None:
         _plot_screw_modes(out_dir, segments, conv, traces)
     return rows
@@ -408,14 +244,15 @@ def screw_modes(out_dir: Path | None) -> list[Result]:
 
 def _plot_screw_modes(out_dir, segments, conv, traces):
     fig, ax = plots.new_figure(1, 2, "Ball screw modes (Arrow 500 X)")
-    for name, (f_ref, err) in conv.items():
-        ax[0, 0].loglog(segments, np.abs(err), "o-", label=f"{name} ({f_ref:.0f} Hz)")
+    for (name, (f_ref, err)), style in zip(conv.items(), ("o-", "x--")):
+        ax[0, 0].loglog(segments, np.abs(err), style, label=f"{name} ({f_ref:.0f} Hz)")
     ax[0, 0].loglog(segments, 0.5 * np.abs(conv["axial"][1][0]) * (segments[0] / np.array(
         segments)) ** 2, "k--", label="1/N^2")
     ax[0, 0].set(xlabel="segments N", ylabel="|f_lumped / f_rod - 1|")
     ax[0, 0].legend()
     for mode, t, eta in traces:
-        ax[0, 1].plot(t * 1e3, eta, label=f"mode {mode}")
+        first = t < 0.02
+        ax[0, 1].plot(t[first] * 1e3, eta[first], label=f"mode {mode}")
     ax[0, 1].set(xlabel="time (ms)", ylabel="modal coordinate (kernel, normalised)")
     ax[0, 1].legend()
     plots.save(fig, out_dir, "screw_modes")
@@ -455,7 +292,7 @@ def static_stiffness(raw: dict, table_pos: float, force: float, t_end: float):
     r = plant.built.ratio
     x0, th0 = plant.output("table_pos"), plant.output("motor_pos")
     plant.set_input(load=force)
-    n = int(round(t_end / plant.pwm_period))
+    n = round(t_end / plant.pwm_period)
     tr = plant.run(n, plant.sub_per_pwm)
     defl = (tr["table_pos"] - x0) - r * (tr["motor_pos"] - th0)
     drift = abs(defl[-1] - defl[int(0.9 * n)]) / abs(defl[-1])
@@ -550,26 +387,42 @@ def linear_reference(cfg, table_pos: float, dq: np.ndarray, t: np.ndarray) -> np
     return sol.y[:nq].T
 
 
-def trajectory_errors(max_omega_dt: float | None, horizon: float):
-    """Largest deviation of the kernel's motor angle and table position from the DOP853
-    reference over ``horizon`` s, each relative to the reference's amplitude.
-    Returns (dt in s, {"motor": err, "table": err}, worst status, t, kernel q, reference q)."""
+@dataclass(frozen=True)
+class TrajectoryRun:
+    """The kernel against the DOP853 reference from the same start.
+
+    Attributes:
+        dt: sub-step (s).
+        errors: "motor" / "table" -> largest deviation relative to the reference amplitude.
+        status: worst kernel status.
+        t: s, shape (n,); q, ref: kernel and reference q - q_rest, shape (n, nq).
+    """
+    dt: float
+    errors: dict
+    status: int
+    t: np.ndarray
+    q: np.ndarray
+    ref: np.ndarray
+
+
+def trajectory_errors(max_omega_dt: float | None, horizon: float) -> TrajectoryRun:
+    """Run the pre-twisted undamped Arrow for ``horizon`` s with the kernel and DOP853."""
     plant, st, dq = conservative_arrow(max_omega_dt)
-    n = int(round(horizon / plant.pwm_period))
+    n = round(horizon / plant.pwm_period)
     t, q, status = st.record(n, plant.sub_per_pwm)
     ref = linear_reference(plant.config, st.q0[-1], dq, t)
     errs = {name: float(np.abs(q[:, i] - ref[:, i]).max() / np.abs(ref[:, i]).max())
             for name, i in (("motor", 0), ("table", -1))}
-    return plant.dt, errs, status, t, q, ref
+    return TrajectoryRun(plant.dt, errs, status, t, q, ref)
 
 
 @experiment("energy_conservation", "000")
 def energy_conservation(out_dir: Path | None) -> list[Result]:
     """Undamped Arrow screw model, coupling pre-twisted: the energy (both chains, table, nut)
-    oscillates boundedly without drift over 104 000 sub-steps (symplectic Euler conserves a
-    shadow energy within O(omega dt)); the trajectory matches solve_ivp on the linear
-    M, C, K, with the first-order error of semi-implicit Euler (10x smaller dt, 10x smaller
-    error)."""
+    oscillates boundedly without drift over 4000 PWM periods, 104 000 sub-steps (symplectic
+    Euler conserves a shadow energy within O(omega dt)); the trajectory matches solve_ivp on
+    the linear M, C, K, with the first-order error of semi-implicit Euler (10x smaller dt,
+    10x smaller error)."""
     plant, _, _ = conservative_arrow()
     omega_dt = plant.built.omega_max * plant.dt
     t_e, e, status = energy_history(plant, 4000)
@@ -584,25 +437,26 @@ def energy_conservation(out_dir: Path | None) -> list[Result]:
                    "< 1e-4")]
     runs = {}
     for label, mod in (("config dt", None), ("dt / 10", 0.1 * omega_dt)):
-        runs[label] = trajectory_errors(mod, 0.01)
-        dt, errs, status, *_ = runs[label]
-        for name, err in errs.items():
-            rows.append(result(f"trajectory vs DOP853, {name}, {label} ({dt * 1e6:.2f} µs)",
-                               0.0, err, "max error / amplitude", status == 0 and err < 0.01,
+        run = runs[label] = trajectory_errors(mod, 0.01)
+        for name, err in run.errors.items():
+            rows.append(result(f"trajectory vs DOP853, {name}, {label} "
+                               f"({run.dt * 1e6:.2f} µs)", 0.0, err, "max error / amplitude",
+                               run.status == 0 and err < 0.01,
                                "second solver: solve_ivp DOP853 on mechanics_matrices",
                                "< 1 % over 10 ms"))
-    order = math.log(runs["config dt"][1]["motor"] / runs["dt / 10"][1]["motor"]) / math.log(
-        runs["config dt"][0] / runs["dt / 10"][0])
+    coarse, fine = runs["config dt"], runs["dt / 10"]
+    order = math.log(coarse.errors["motor"] / fine.errors["motor"]) / math.log(
+        coarse.dt / fine.dt)
     rows.append(result("trajectory error order in dt (motor angle)", 1.0, order, "1",
                        within(order, 1.0, abs_=0.2), "semi-implicit Euler is first order",
                        "±0.2"))
     if out_dir is not None:
-        _plot_energy(out_dir, t_e, e, runs["config dt"])
+        _plot_energy(out_dir, t_e, e, coarse)
     return rows
 
 
 def _plot_energy(out_dir, t_e, e, run):
-    _, _, _, t, q, ref = run
+    t, q, ref = run.t, run.q, run.ref
     fig, ax = plots.new_figure(1, 2, "Undamped Arrow screw model")
     ax[0, 0].plot(t_e * 1e3, e - 1.0)
     ax[0, 0].set(xlabel="time (ms)", ylabel="E / E0 - 1")
@@ -628,9 +482,10 @@ def lumped_vs_tlm(out_dir: Path | None) -> list[Result]:
     for solver in ("lumped", "tlm"):
         change = {"mechanics": {"solver": solver}}
         plant = plant_of(with_keys(free_raw, change), f"{ARROW} ({solver}, undamped)", 0.25)
-        f_lin, f1, _, st1, t, eta = kernel_mode_frequency(plant, 1)
-        k, _, st2 = static_stiffness(with_keys(held_raw, change), 0.25, 1000.0, 0.12)
-        res[solver] = (f1, k, max(st1, st2), t, eta)
+        run = kernel_mode_frequency(plant, 1)
+        k, _, status = static_stiffness(with_keys(held_raw, change), 0.25, 1000.0, 0.12)
+        res[solver] = (run.f_kernel, k, max(run.status, status), run.t, run.eta)
+        f_lin = run.f_lin
     (f_l, k_l, st_l, *_), (f_t, k_t, st_t, *_) = res["lumped"], res["tlm"]
     ok = st_l == 0 and st_t == 0
     rows = [result("TLM vs lumped: first natural frequency at 250 mm", f_l, f_t, "Hz",
