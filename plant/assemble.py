@@ -133,6 +133,14 @@ def build_chains(cfg: MachineConfig) -> tuple[Chain, Chain | None]:
     return rot, Chain(ma, c_gnd, k_gnd, ka, ca, np.zeros(n))
 
 
+def reflected_inertia(cfg: MachineConfig) -> float:
+    """Total inertia moved by the motor, reflected to the motor coordinate (kg·m², or kg for
+    linear motors): every torsional node plus the table through the lead."""
+    rot, ax = build_chains(cfg)
+    table = cfg.table.mass_kg * transmission_ratio(cfg) ** 2 if ax is not None else 0.0
+    return float(rot.m.sum()) + table
+
+
 def _chain_matrices(ch: Chain):
     n = ch.n
     M = np.diag(ch.m)
@@ -254,6 +262,7 @@ def build(cfg: MachineConfig) -> Built:
                               f"motor model '{mo.model}'")
         p[L.P_EXP_D] = math.exp(-mo.resistance_ohm * dt / p[L.P_LD])
         p[L.P_EXP_Q] = math.exp(-mo.resistance_ohm * dt / p[L.P_LQ])
+    p[L.P_DECOUPLE] = 1.0 if cl.decoupling and mo.model == "dq" else 0.0
     p[L.P_FW_ENABLED] = 1.0 if cfg.field_weakening.enabled else 0.0
     p[L.P_FW_M_MAX] = cfg.field_weakening.max_torque_nm
     cog = cfg.cogging

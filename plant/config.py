@@ -73,6 +73,9 @@ class CurrentLoopSection:
     ti_s: float = key("s", "PI integral time.", 0.0, ge=0.0, only="model=dq|commutation")
     time_constant_s: float = key("s", "First-order current-loop time constant T_cl.", 0.0,
                                  ge=0.0, only="model=first_order")
+    decoupling: bool = key("-", "EMF and cross-coupling precontrol (u_d -= w_e L_q i_q, "
+                           "u_q += w_e (psi + L_d i_d)), as drives have by default.", True,
+                           only="model=dq")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -220,6 +223,8 @@ SECTIONS = {
     "table": TableSection, "friction": FrictionSection, "presliding": PreslidingSection,
     "sensors": SensorsSection, "simulation": SimulationSection,
 }
+# sections read by other packages (hil's controller): the plant keeps them as raw tables
+FOREIGN_SECTIONS = ("controller",)
 # sections that may be absent: they then take every default
 OPTIONAL_SECTIONS = {"field_weakening", "cogging", "friction", "presliding", "sensors",
                      "simulation", "current_loop"}
@@ -243,6 +248,11 @@ class MachineConfig:
     presliding: PreslidingSection
     sensors: SensorsSection
     simulation: SimulationSection
+    foreign: dict
+
+    def section(self, name: str) -> dict:
+        """A section another package owns (see FOREIGN_SECTIONS), as a raw table; {} if absent."""
+        return dict(self.foreign.get(name, {}))
 
 
 def load_machine(path: str | Path, overrides: dict | None = None) -> MachineConfig:
@@ -269,15 +279,18 @@ def load_machine(path: str | Path, overrides: dict | None = None) -> MachineConf
 
 def parse_machine(raw: dict, where: str) -> MachineConfig:
     """Check a machine description already parsed from TOML (see :func:`load_machine`)."""
+    foreign = {sec: raw[sec] for sec in FOREIGN_SECTIONS if sec in raw}
+    raw = {sec: v for sec, v in raw.items() if sec not in FOREIGN_SECTIONS}
     for sec in raw:
         if sec not in SECTIONS:
-            raise ConfigError(f"{where}: unknown section [{sec}]{_suggest(sec, SECTIONS)}")
+            known = list(SECTIONS) + list(FOREIGN_SECTIONS)
+            raise ConfigError(f"{where}: unknown section [{sec}]{_suggest(sec, known)}")
     sections = {}
     for sec, cls in SECTIONS.items():
         if sec in raw:
             if not isinstance(raw[sec], dict):
                 raise ConfigError(f"{where}: [{sec}] must be a table of keys")
-            sections[sec] = _build(cls, raw[sec], where, sec)
+            sections[sec] = build_section(cls, raw[sec], where, sec)
         else:
             sections[sec] = None
     kind = _need(sections, "machine", where).kind
@@ -286,9 +299,9 @@ def parse_machine(raw: dict, where: str) -> MachineConfig:
     context = {"kind": kind, "model": motor.model}
     for sec in ("machine", "motor", "cogging", "friction", "sensors", "mechanics"):
         if sections[sec] is not None:
-            _check_only(sections[sec], raw.get(sec, {}), context, where, sec)
+            check_applies(sections[sec], raw.get(sec, {}), context, where, sec)
     if sections["current_loop"] is not None:
-        _check_only(sections["current_loop"], raw["current_loop"], context, where,
+        check_applies(sections["current_loop"], raw["current_loop"], context, where,
                     "current_loop")
     wanted = {"coupling": mech.model in ("two_mass", "screw"), "screw": mech.model == "screw",
               "table": kind in ("screw", "linear")}
@@ -302,7 +315,7 @@ def parse_machine(raw: dict, where: str) -> MachineConfig:
     for sec in OPTIONAL_SECTIONS:
         if sections[sec] is None:
             sections[sec] = SECTIONS[sec]()
-    cfg = MachineConfig(path=where, **sections)
+    cfg = MachineConfig(path=where, foreign=foreign, **sections)
     _check_physics(cfg)
     return cfg
 
@@ -318,7 +331,8 @@ def _suggest(name, known) -> str:
     return f"; did you mean '{close[0]}'?" if close else ""
 
 
-def _build(cls, values: dict, where: str, sec: str):
+def build_section(cls, values: dict, where: str, sec: str):
+    """Check one table of keys against a section class declared with plant.schema.key."""
     known = {f.name: f for f in fields(cls)}
     for name in values:
         if name not in known:
@@ -380,7 +394,7 @@ def _applies(only: str, context: dict) -> bool:
     return context[name] in allowed.split("|")
 
 
-def _check_only(section, given: dict, context, where, sec):
+def check_applies(section, given: dict, context, where, sec):
     """Refuse keys that the chosen kind / motor model does not use."""
     for f in fields(section):
         only = f.metadata.get("only")

@@ -70,7 +70,7 @@ def pwm_event(p, s, inp, omega_m):
         umax = 0.5 * p[P_UDC] if model == MOTOR_DQ else p[P_UDC]
         s[S_UD_NEXT], s[S_UQ_NEXT] = limit_voltage(inp[I_UD], inp[I_UQ], umax)
     elif model == MOTOR_DQ:
-        dq_current_control(p, s, inp[I_ID_REF], inp[I_IQ_REF])
+        dq_current_control(p, s, inp[I_ID_REF], inp[I_IQ_REF], omega_m)
     else:
         commutation_control(p, s, inp[I_IQ_REF], omega_m)
 

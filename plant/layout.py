@@ -65,6 +65,7 @@ P_KI_I = next(_p)  # V/(A·s), current PI integral gain
 P_T_CL = next(_p)  # s, first-order current-loop time constant
 P_EXP_D = next(_p)  # exp(-R dt / L_d), exact decay over one sub-step
 P_EXP_Q = next(_p)  # exp(-R dt / L_q)
+P_DECOUPLE = next(_p)  # 1: EMF and cross-coupling precontrol in the d-q current loops
 P_FW_ENABLED = next(_p)  # 1: commutation-angle field weakening (seed 001 eq. 6-10)
 P_FW_M_MAX = next(_p)  # N·m, rated maximum torque M_max of seed 001 eq. 8
 

@@ -52,7 +52,7 @@ def commutation_control(p, s, iq_ref, omega):
     i_set = clamp(m_set / k, -p[P_I_MAX], p[P_I_MAX])
     period = p[P_DT] * p[P_SUB_PER_PWM]
     u, s[S_INT_Q] = pi_step(i_set - s[S_IQ_MEAS], s[S_INT_Q], p[P_KP_I], p[P_KI_I], period,
-                            p[P_UDC])
+                            0.0, p[P_UDC])
     s[S_UQ_NEXT] = u
 
 

@@ -18,7 +18,7 @@ import math
 
 from numba import njit
 
-from plant.layout import (P_EXP_D, P_EXP_Q, P_I_MAX, P_KI_I, P_KP_I, P_LD, P_LQ, P_POLE_PAIRS,
+from plant.layout import (P_DECOUPLE, P_EXP_D, P_EXP_Q, P_I_MAX, P_KI_I, P_KP_I, P_LD, P_LQ, P_POLE_PAIRS,
                           P_PSI, P_R, P_SUB_PER_PWM, P_DT, P_UDC, S_ID, S_ID_MEAS, S_INT_D,
                           S_INT_Q, S_IQ, S_IQ_MEAS, S_UD_NEXT, S_UQ_NEXT)
 
@@ -30,13 +30,14 @@ def clamp(x, lo, hi):
 
 
 @njit(cache=True, error_model="numpy")
-def pi_step(err, integ, kp, ki, period, umax):
-    """One discrete PI update with anti-windup by conditional integration.
+def pi_step(err, integ, kp, ki, period, ff, umax):
+    """One discrete PI update plus a feed-forward ``ff``, with anti-windup by conditional
+    integration.
 
-    Returns (output limited to ±umax, new integrator).  The integrator only
-    moves when the output is not saturated or the error pulls it back.
+    Returns (ff + PI output limited to ±umax, new integrator).  The integrator
+    only moves when the output is not saturated or the error pulls it back.
     """
-    u = kp * err + integ
+    u = ff + kp * err + integ
     if u > umax:
         if err < 0.0:
             integ += ki * period * err
@@ -49,22 +50,31 @@ def pi_step(err, integ, kp, ki, period, umax):
 
 
 @njit(cache=True, error_model="numpy")
-def dq_current_control(p, s, id_ref, iq_ref):
+def dq_current_control(p, s, id_ref, iq_ref, omega_m):
     """Current controller event: PI on the held measured currents -> next voltages.
 
-    The voltage vector is limited to U_dc/2 with the d axis served first (the
-    flux-producing current keeps priority, as drives do).
+    With P_DECOUPLE the back-EMF and the d-q cross-coupling are fed forward
+    from the speed ``omega_m`` (rad/s; m/s for linear motors), so the PI only
+    has to correct what the model of the motor misses.  The voltage vector is
+    limited to U_dc/2 with the d axis served first (the flux-producing current
+    keeps priority, as drives do).
     """
     period = p[P_DT] * p[P_SUB_PER_PWM]
     imax = p[P_I_MAX]
     umax = 0.5 * p[P_UDC]
     iq_ref = clamp(iq_ref, -imax, imax)
     id_ref = clamp(id_ref, -imax, imax)
+    ff_d = 0.0
+    ff_q = 0.0
+    if p[P_DECOUPLE] > 0.0:
+        we = p[P_POLE_PAIRS] * omega_m
+        ff_d = -we * p[P_LQ] * s[S_IQ_MEAS]
+        ff_q = we * (p[P_PSI] + p[P_LD] * s[S_ID_MEAS])
     ud, s[S_INT_D] = pi_step(id_ref - s[S_ID_MEAS], s[S_INT_D], p[P_KP_I], p[P_KI_I],
-                             period, umax)
+                             period, ff_d, umax)
     uq_max = math.sqrt(max(umax * umax - ud * ud, 0.0))
     uq, s[S_INT_Q] = pi_step(iq_ref - s[S_IQ_MEAS], s[S_INT_Q], p[P_KP_I], p[P_KI_I],
-                             period, uq_max)
+                             period, ff_q, uq_max)
     s[S_UD_NEXT] = ud
     s[S_UQ_NEXT] = uq
 
