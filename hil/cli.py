@@ -3,6 +3,9 @@
     hil validate [--json] [--out DIR] [--only NAME ...]
     hil bench plant [--json] [--config FILE ...] [--seconds S]
     hil config-keys [--markdown]
+    hil sim CONFIG --program FILE --out DIR [--start MM] [--json]
+    hil measure CONFIG step current|speed|position --amplitude X [--at MM] --out DIR
+    hil measure CONFIG bode current|speed --amplitude X [--offset X] --out DIR
 
 Exit status: 0 on success, 1 when a validation row is not ok, 2 on bad input
 (a machine file that does not load, an unknown experiment).
@@ -90,6 +93,30 @@ def cmd_config_keys(args) -> int:
     return 0
 
 
+def cmd_sim(args) -> int:
+    from hil.commands import print_summary, run_sim
+
+    summary = run_sim(Path(args.config), Path(args.program), Path(args.out), args.start,
+                      args.axis, args.every)
+    print_summary(summary, args.json)
+    return 0
+
+
+def cmd_measure(args) -> int:
+    from hil.commands import print_summary, run_bode, run_step
+
+    if args.kind == "step":
+        summary = run_step(Path(args.config), args.loop, args.amplitude, args.at,
+                           Path(args.out))
+    else:
+        if args.loop == "position":
+            raise KeyError("bode measures the current or the speed loop, not 'position'")
+        summary = run_bode(Path(args.config), args.loop, args.amplitude, args.offset,
+                           args.order, args.periods, args.at, Path(args.out))
+    print_summary(summary, args.json)
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="hil", description="Feed-drive HIL plant emulator")
     sub = parser.add_subparsers(dest="command", required=True)
@@ -110,6 +137,31 @@ def build_parser() -> argparse.ArgumentParser:
     bp.add_argument("--seconds", type=float, default=1.0, help="timing per config, s")
     bp.add_argument("--ref-seconds", type=float, default=2.0, help="reference timing, s")
     bp.set_defaults(func=cmd_bench_plant)
+
+    s = sub.add_parser("sim", help="controller and plant in lock-step on a part program")
+    s.add_argument("config", help="machine file (TOML)")
+    s.add_argument("--program", required=True, help="part program (G-code subset)")
+    s.add_argument("--out", required=True, help="folder for trace.csv and sim.png")
+    s.add_argument("--start", type=float, default=0.0, help="initial table position, mm (deg)")
+    s.add_argument("--axis", help="axis letter in the program (default X, or C if rotary)")
+    s.add_argument("--every", type=int, help="trace row every n ticks (default: the "
+                   "position-control cycle)")
+    s.add_argument("--json", action="store_true")
+    s.set_defaults(func=cmd_sim)
+
+    m = sub.add_parser("measure", help="the controller's step and frequency-response tests")
+    m.add_argument("config", help="machine file (TOML)")
+    m.add_argument("kind", choices=("step", "bode"))
+    m.add_argument("loop", choices=("current", "speed", "position"))
+    m.add_argument("--amplitude", type=float, required=True,
+                   help="step or PRBS amplitude: A, mm/min (deg/min) or mm (deg)")
+    m.add_argument("--offset", type=float, default=0.0, help="bode: setpoint offset, same unit")
+    m.add_argument("--at", type=float, default=0.0, help="table position, mm (deg)")
+    m.add_argument("--order", type=int, default=12, help="bode: PRBS register length")
+    m.add_argument("--periods", type=int, default=4, help="bode: PRBS periods averaged")
+    m.add_argument("--out", required=True, help="folder for the plot and the CSV")
+    m.add_argument("--json", action="store_true")
+    m.set_defaults(func=cmd_measure)
 
     k = sub.add_parser("config-keys", help="every machine-file key with unit and meaning")
     k.add_argument("--markdown", action="store_true")

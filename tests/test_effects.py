@@ -55,7 +55,7 @@ def test_gaussian_draws_have_unit_variance():
 def test_pi_output_never_exceeds_its_limit(err, integ, kp, ki, umax):
     """Property: the PI output is limited to ±umax, and a saturated PI does not wind up
     further in the saturating direction (conditional integration)."""
-    u, new = pi_step(err, integ, kp, ki, 1.25e-4, umax)
+    u, new = pi_step(err, integ, kp, ki, 1.25e-4, 0.0, umax)
     assert abs(u) <= umax
     if abs(kp * err + integ) > umax and err * (kp * err + integ) > 0:
         assert new == integ

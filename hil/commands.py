@@ -1,0 +1,121 @@
+"""``hil sim`` and ``hil measure``: lock-step runs that write files a person opens.
+
+Units at this edge are the CNC's: mm, mm/min and A (deg and deg/min on rotary
+tables); everything inside is SI.
+"""
+
+import json
+import math
+import sys
+from pathlib import Path
+
+from hil.controller.config import axis_limits, load_controller
+from hil.controller.interpolator import plan
+from hil.controller.program import read_program
+from hil.measure.frequency_response import bandwidth_hz, bode_plot, peaks, write_csv
+from hil.measure.runs import (bode, current_step, position_step, speed_step,
+                              write_step_csv)
+from hil.reports import plot_sim, plot_step
+from hil.sim import LockStep, servo_trace_columns
+from hil.trace_file import write_trace
+from plant.assemble import transmission_ratio
+from plant.config import MachineConfig, load_machine
+
+#: seconds simulated after the program's end so the axis settles
+SETTLE_S = 0.2
+
+
+def _edge(cfg: MachineConfig) -> tuple[float, str]:
+    """Factor from SI table units to the CNC's (mm or deg) and that unit."""
+    return (180.0 / math.pi, "deg") if cfg.machine.kind == "rotary" else (1e3, "mm")
+
+
+def _progress(label: str):
+    def show(fraction: float) -> None:
+        print(f"\r{label} {100 * fraction:5.1f} %", end="", file=sys.stderr, flush=True)
+    return show
+
+
+def _axis_letter(cfg: MachineConfig, axis: str | None) -> str:
+    return axis or ("C" if cfg.machine.kind == "rotary" else "X")
+
+
+def run_sim(config: Path, program: Path, out: Path, start: float, axis: str | None,
+            every: int | None) -> dict:
+    """Simulate ``program`` on ``config`` from table position ``start`` (mm or deg);
+    write trace.csv (one row per ``every`` ticks, default the position-control cycle) and
+    sim.png into ``out``; return a summary (CNC units)."""
+    cfg = load_machine(config)
+    k, unit = _edge(cfg)
+    x0 = start / k
+    prog = read_program(program, axis=_axis_letter(cfg, axis), start=x0)
+    profile = plan(prog, axis_limits(cfg, load_controller(cfg)))
+    ls = LockStep(cfg, x0)
+    ls.enable()
+    ls.ctrl.run_profile(profile)
+    res = ls.run(profile.duration_s + SETTLE_S, _progress("simulating"))
+    print(file=sys.stderr)
+    out.mkdir(parents=True, exist_ok=True)
+    meta = {"machine": str(config), "program": str(program), "axis": prog.axis,
+            "source": "hil sim (lock-step)"}
+    every = every or ls.ctrl.sec.position_cycle_ratio
+    write_trace(out / "trace.csv", servo_trace_columns(res, every), meta)
+    plot_sim(res, out / "sim.png", f"{cfg.machine.name}: {program.name}")
+    fe = res["following_error"] * k
+    return {"duration_s": float(res["t_s"][-1] - res["t_s"][0]),
+            f"following_error_max_{unit}": float(abs(fe).max()),
+            f"following_error_rms_{unit}": float((fe ** 2).mean() ** 0.5),
+            f"final_position_{unit}": float(res["x_act"][-1] * k),
+            "trace": str(out / "trace.csv"), "plot": str(out / "sim.png")}
+
+
+def run_step(config: Path, loop: str, amplitude: float, at: float, out: Path) -> dict:
+    """A step of the current (A), speed (mm/min or deg/min) or position (mm or deg) loop
+    starting at table position ``at``; writes step_<loop>.png and .csv."""
+    cfg = load_machine(config)
+    k, unit = _edge(cfg)
+    x0 = at / k
+    if loop == "current":
+        res, scale, shown = current_step(cfg, amplitude, x0=x0), 1.0, "A"
+    elif loop == "speed":
+        res = speed_step(cfg, amplitude / k / 60.0, x0=x0)
+        scale, shown = k * 60.0, f"{unit}/min"
+    else:
+        res, scale, shown = position_step(cfg, x0, amplitude / k), k, unit
+    out.mkdir(parents=True, exist_ok=True)
+    plot_step(res, out / f"step_{loop}.png", f"{cfg.machine.name}: {loop} step "
+              f"{amplitude:g} {shown}", scale, shown)
+    write_step_csv(out / f"step_{loop}.csv", res)
+    return {"loop": loop, "step": amplitude, "unit": shown,
+            "rise_time_ms": res.rise_time_s * 1e3, "overshoot_pct": res.overshoot_pct,
+            "final": res.final * scale, "plot": str(out / f"step_{loop}.png")}
+
+
+def run_bode(config: Path, loop: str, amplitude: float, offset: float, order: int,
+             periods: int, at: float, out: Path) -> dict:
+    """Frequency response of the current loop (A) or the speed loop (mm/min or deg/min at
+    the table); writes bode_<loop>.png and .csv."""
+    cfg = load_machine(config)
+    k, unit = _edge(cfg)
+    if loop == "speed":
+        ratio = transmission_ratio(cfg)
+        amplitude, offset = amplitude / k / 60.0 / ratio, offset / k / 60.0 / ratio
+    m = bode(cfg, loop, amplitude, offset, order=order, periods=periods, x0=at / k,
+             progress=_progress(f"{loop}-loop PRBS"))
+    print(file=sys.stderr)
+    out.mkdir(parents=True, exist_ok=True)
+    bode_plot(m.response, out / f"bode_{loop}.png",
+              f"{cfg.machine.name}: {loop}-loop frequency response")
+    write_csv(out / f"bode_{loop}.csv", m.response)
+    return {"loop": loop, "bandwidth_hz": bandwidth_hz(m.response),
+            "peaks_hz": [round(p.freq_hz, 1) for p in peaks(m.response)],
+            "plot": str(out / f"bode_{loop}.png")}
+
+
+def print_summary(summary: dict, as_json: bool) -> None:
+    """JSON, or one 'key: value' line per entry."""
+    if as_json:
+        print(json.dumps(summary, indent=1))
+    else:
+        for key, value in summary.items():
+            print(f"{key}: {value:.6g}" if isinstance(value, float) else f"{key}: {value}")

@@ -1,0 +1,2 @@
+"""The simulated Sinumerik-style controller: interpolator, position/speed/current loops,
+CiA 402 enable sequence."""

@@ -1,0 +1,142 @@
+"""The ``[controller]`` section of a machine file: the simulated NC's machine data.
+
+Keys follow SINUMERIK/SINAMICS parameters where one exists (named in the
+doc); values are in the units their names carry.  For rotary axes the
+velocity, acceleration and jerk keys take degrees (``_deg_min``,
+``_deg_s2``, ``_deg_s3``) and K_v reads (1000 deg/min)/deg, as MD32200 does.
+Cycle times are whole multiples of the plant's PWM period (the basic clock).
+"""
+
+import math
+from dataclasses import dataclass
+
+from plant.config import MachineConfig, build_section, check_applies
+from plant.errors import ConfigError
+from plant.schema import key
+
+
+@dataclass(frozen=True, kw_only=True)
+class ControllerSection:
+    """Controller and drive-control settings."""
+    plant_input: str = key("-", "What the controller sends: 'current' (the plant's drive holds "
+                           "the current loop) or 'voltage' (the controller's current loop "
+                           "sends d-q voltages).", "current", choices=("current", "voltage"))
+    speed_cycle_ratio: int = key("1", "Speed-loop cycle in PWM periods.", 1, ge=1)
+    position_cycle_ratio: int = key("1", "Position-loop cycle in PWM periods (a multiple of "
+                                    "the speed cycle).", 16, ge=1)
+    ipo_cycle_ratio: int = key("1", "Interpolation (IPO) cycle in PWM periods (a multiple of "
+                               "the position cycle).", 32, ge=1)
+    feedback: str = key("-", "Position-loop measuring system: 'scale' (direct, linear scale) "
+                        "or 'motor' (motor encoder through the lead).", "motor",
+                        choices=("scale", "motor"))
+    kv_m_min_per_mm: float = key("(m/min)/mm", "Position-loop gain K_v (MD32200): 1 gives 1 mm "
+                                 "following error at 1 m/min.", gt=0.0)
+    speed_ff: bool = key("-", "Speed feed-forward (MD32620).", True)
+    speed_ff_weight: float = key("1", "Weight of the speed feed-forward (MD32610).", 1.0,
+                                 ge=0.0, le=2.0)
+    torque_ff: bool = key("-", "Torque (acceleration) feed-forward from the interpolator's "
+                          "acceleration and the axis inertia.", False)
+    speedctrl_equiv_time_s: float = key("s", "Equivalent time constant of the closed speed "
+                                        "loop (MD32810); delays the position setpoint of the P "
+                                        "path when feed-forward is on.", 0.0, ge=0.0)
+    speed_kp_nms_per_rad: float = key("N*m*s/rad", "Speed-controller gain (p1460).", 0.0,
+                                      ge=0.0, only="kind=screw|rotary")
+    speed_kp_ns_per_m: float = key("N*s/m", "Speed-controller gain of a linear motor.", 0.0,
+                                   ge=0.0, only="kind=linear")
+    speed_tn_s: float = key("s", "Speed-controller integral time (p1462); 0: P only.", 0.0,
+                            ge=0.0)
+    speed_kd_nms2_per_rad: float = key("N*m*s^2/rad", "Speed-controller D gain (seed 003 eq. "
+                                       "7).", 0.0, ge=0.0, only="kind=screw|rotary")
+    speed_kd_ns2_per_m: float = key("N*s^2/m", "Speed-controller D gain of a linear motor.",
+                                    0.0, ge=0.0, only="kind=linear")
+    speed_setpoint_lowpass_hz: float = key("Hz", "PT2 low-pass on the speed setpoint (p1416 "
+                                           "class); 0: off.", 0.0, ge=0.0)
+    current_setpoint_lowpass_hz: float = key("Hz", "PT2 low-pass on the current setpoint "
+                                             "(p1658 class); 0: off.", 0.0, ge=0.0)
+    notch_hz: float = key("Hz", "Notch on the current setpoint (p1663 class); 0: off.", 0.0,
+                          ge=0.0)
+    notch_bandwidth_hz: float = key("Hz", "-3 dB width of the notch.", 0.0, ge=0.0)
+    notch_depth_db: float = key("dB", "Notch depth (negative dB; -inf dB is not allowed).",
+                                -40.0, le=0.0)
+    max_velocity_mm_min: float = key("mm/min", "Maximum axis velocity (MD32000); G0 feed.",
+                                     0.0, ge=0.0, only="kind=screw|linear")
+    max_acceleration_m_s2: float = key("m/s^2", "Maximum acceleration (MD32300).", 0.0,
+                                       ge=0.0, only="kind=screw|linear")
+    max_jerk_m_s3: float = key("m/s^3", "Maximum jerk (MD32431); 0: no jerk limit.", 0.0,
+                               ge=0.0, only="kind=screw|linear")
+    max_velocity_deg_min: float = key("deg/min", "Maximum axis velocity (MD32000).", 0.0,
+                                      ge=0.0, only="kind=rotary")
+    max_acceleration_deg_s2: float = key("deg/s^2", "Maximum acceleration (MD32300).", 0.0,
+                                         ge=0.0, only="kind=rotary")
+    max_jerk_deg_s3: float = key("deg/s^3", "Maximum jerk (MD32431); 0: no jerk limit.", 0.0,
+                                 ge=0.0, only="kind=rotary")
+    current_kp_v_per_a: float = key("V/A", "Current PI gain (plant_input = 'voltage').", 0.0,
+                                    ge=0.0)
+    current_ti_s: float = key("s", "Current PI integral time (plant_input = 'voltage').", 0.0,
+                              ge=0.0)
+
+
+@dataclass(frozen=True)
+class AxisLimits:
+    """Interpolator limits in SI (m or rad): velocity /s, acceleration /s², jerk /s³ (0: none)."""
+    velocity: float
+    acceleration: float
+    jerk: float
+
+
+def kv_si(section: ControllerSection) -> float:
+    """K_v in 1/s: (m/min)/mm -> (m/s)/m is a factor 1000/60."""
+    return section.kv_m_min_per_mm * 1000.0 / 60.0
+
+
+def axis_limits(cfg: MachineConfig, section: ControllerSection) -> AxisLimits:
+    """The interpolator's limits in SI units of the table coordinate."""
+    if cfg.machine.kind == "rotary":
+        d = math.pi / 180.0
+        return AxisLimits(section.max_velocity_deg_min * d / 60.0,
+                          section.max_acceleration_deg_s2 * d, section.max_jerk_deg_s3 * d)
+    return AxisLimits(section.max_velocity_mm_min / 60000.0, section.max_acceleration_m_s2,
+                      section.max_jerk_m_s3)
+
+
+def load_controller(cfg: MachineConfig) -> ControllerSection:
+    """Check the machine file's ``[controller]`` section; ConfigError names file and key."""
+    raw = cfg.section("controller")
+    if not raw:
+        raise ConfigError(f"{cfg.path}: section [controller] is missing (the simulated "
+                          "controller needs its machine data)")
+    sec = build_section(ControllerSection, raw, cfg.path, "controller")
+    check_applies(sec, raw, {"kind": cfg.machine.kind, "model": cfg.motor.model}, cfg.path,
+                "controller")
+    kp = sec.speed_kp_ns_per_m if cfg.machine.kind == "linear" else sec.speed_kp_nms_per_rad
+    if kp <= 0.0:
+        name = "speed_kp_ns_per_m" if cfg.machine.kind == "linear" else "speed_kp_nms_per_rad"
+        raise ConfigError(f"{cfg.path}: [controller] {name} must be given and > 0")
+    lim = axis_limits(cfg, sec)
+    unit = "deg" if cfg.machine.kind == "rotary" else "mm"
+    if lim.velocity <= 0.0 or lim.acceleration <= 0.0:
+        raise ConfigError(f"{cfg.path}: [controller] the maximum velocity and acceleration "
+                          f"(max_velocity_{unit}_min, max_acceleration_*) must be > 0")
+    if sec.position_cycle_ratio % sec.speed_cycle_ratio:
+        raise ConfigError(f"{cfg.path}: [controller] position_cycle_ratio = "
+                          f"{sec.position_cycle_ratio} must be a multiple of speed_cycle_ratio "
+                          f"= {sec.speed_cycle_ratio}")
+    if sec.ipo_cycle_ratio % sec.position_cycle_ratio:
+        raise ConfigError(f"{cfg.path}: [controller] ipo_cycle_ratio = {sec.ipo_cycle_ratio} "
+                          f"must be a multiple of position_cycle_ratio = "
+                          f"{sec.position_cycle_ratio}")
+    if sec.plant_input == "voltage":
+        if cfg.motor.model != "dq":
+            raise ConfigError(f"{cfg.path}: [controller] plant_input = 'voltage' needs "
+                              "motor.model = 'dq'")
+        if sec.current_kp_v_per_a <= 0.0 or sec.current_ti_s <= 0.0:
+            raise ConfigError(f"{cfg.path}: [controller] current_kp_v_per_a (V/A) and "
+                              "current_ti_s (s) must be > 0 when plant_input = 'voltage'")
+    if sec.feedback == "scale" and (cfg.machine.kind == "rotary"
+                                    or cfg.sensors.scale_resolution_m <= 0.0):
+        raise ConfigError(f"{cfg.path}: [controller] feedback = 'scale' needs [sensors] "
+                          "scale_resolution_m > 0 m")
+    if sec.notch_hz > 0.0 and sec.notch_bandwidth_hz <= 0.0:
+        raise ConfigError(f"{cfg.path}: [controller] notch_bandwidth_hz must be > 0 Hz when "
+                          "notch_hz is set")
+    return sec

@@ -1,0 +1,95 @@
+"""The cascade's loops: position (P with K_v and feed-forward), speed (PI + D, filters),
+current (PI on d and q, for plants that take voltage).
+
+Each loop is an object with a ``step`` per cycle; SI units throughout: motor
+speeds in rad/s (m/s for linear motors), table positions in m (rad for
+rotary tables), currents in A.
+"""
+
+import math
+
+from hil.controller.blocks import PI, PT1, lowpass2, notch
+from hil.controller.config import ControllerSection, kv_si
+
+#: damping of the PT2 setpoint low-passes (the drives' default)
+PT2_DAMPING = 0.7
+
+
+class PositionLoop:
+    """P position controller with K_v, speed feed-forward and the symmetrising delay.
+
+    v_cmd = K_v (x_set' - x_act) + w_ff v_set, where x_set' is the setpoint
+    delayed by the closed speed loop's equivalent time (MD32810) when
+    feed-forward is on, so that the P path and the feed-forward path agree.
+    """
+
+    def __init__(self, sec: ControllerSection, period_s: float, v_max: float):
+        self.kv = kv_si(sec)
+        self.ff = sec.speed_ff_weight if sec.speed_ff else 0.0
+        self.sym = PT1(sec.speedctrl_equiv_time_s if sec.speed_ff else 0.0, period_s)
+        self.v_lim = v_max  # the speed command is limited to the maximum axis velocity
+        self.error = 0.0
+
+    def reset(self, x: float) -> None:
+        """Start at rest at table position ``x``."""
+        self.sym.reset(x)
+        self.error = 0.0
+
+    def step(self, x_set: float, v_set: float, x_act: float) -> float:
+        """Velocity command (table units per s) for this position cycle."""
+        self.error = self.sym.step(x_set) - x_act
+        v = self.kv * self.error + self.ff * v_set
+        return max(-self.v_lim, min(self.v_lim, v))
+
+
+class SpeedLoop:
+    """Speed controller: PT2 setpoint filter, PI (+ D, seed 003 eq. 7), torque / K_t,
+    current feed-forward, PT2 and notch current-setpoint filters, current limit."""
+
+    def __init__(self, sec: ControllerSection, period_s: float, kind: str, kt: float,
+                 i_max: float):
+        linear = kind == "linear"
+        kp = sec.speed_kp_ns_per_m if linear else sec.speed_kp_nms_per_rad
+        self.kd_t = (sec.speed_kd_ns2_per_m if linear else sec.speed_kd_nms2_per_rad) / period_s
+        self.pi = PI(kp, sec.speed_tn_s, period_s, kt * i_max)
+        self.set_filter = lowpass2(sec.speed_setpoint_lowpass_hz, PT2_DAMPING, period_s)
+        self.cur_filter = lowpass2(sec.current_setpoint_lowpass_hz, PT2_DAMPING, period_s)
+        self.notch = notch(sec.notch_hz, sec.notch_bandwidth_hz, sec.notch_depth_db, period_s)
+        self.inv_kt = 1.0 / kt
+        self.i_max = i_max
+        self.e_prev = 0.0
+
+    def reset(self) -> None:
+        """Clear every state (integrator, filters, D memory)."""
+        self.pi.reset()
+        for f in (self.set_filter, self.cur_filter, self.notch):
+            f.reset()
+        self.e_prev = 0.0
+
+    def step(self, w_set: float, w_act: float, i_ff: float) -> float:
+        """q-current setpoint (A) for this speed cycle."""
+        e = self.set_filter.step(w_set) - w_act
+        torque = self.pi.step(e) + self.kd_t * (e - self.e_prev)
+        self.e_prev = e
+        i = self.notch.step(self.cur_filter.step(torque * self.inv_kt + i_ff))
+        return max(-self.i_max, min(self.i_max, i))
+
+
+class CurrentLoop:
+    """d and q current PI loops with the voltage vector limited to U_dc/2 (d first)."""
+
+    def __init__(self, sec: ControllerSection, period_s: float, u_max: float):
+        self.d = PI(sec.current_kp_v_per_a, sec.current_ti_s, period_s, u_max)
+        self.q = PI(sec.current_kp_v_per_a, sec.current_ti_s, period_s, u_max)
+        self.u_max = u_max
+
+    def reset(self) -> None:
+        """Clear both integrators."""
+        self.d.reset()
+        self.q.reset()
+
+    def step(self, id_set: float, iq_set: float, id_act: float, iq_act: float):
+        """(u_d, u_q) in V for this PWM period."""
+        ud = self.d.step(id_set - id_act)
+        self.q.limit = math.sqrt(max(self.u_max * self.u_max - ud * ud, 0.0))
+        return ud, self.q.step(iq_set - iq_act)

@@ -1,0 +1,286 @@
+"""Part programs for one axis: a Sinumerik-style G-code subset -> frozen blocks in SI.
+
+One block per line::
+
+    N10 G90 G71          ; absolute dimensions, metric (the defaults)
+    N20 G0 X250          ; rapid traverse at the axis's maximum velocity (MD32000)
+    N30 G1 X250.5 F200   ; linear move at 200 mm/min; F is modal
+    N40 G4 F0.5          ; dwell 0.5 s (Sinumerik: F in a G4 block is seconds)
+    N50 G91 X-50         ; incremental: 50 mm back, still G1 at F200
+    N60 M30              ; end of program (M2 also)
+
+Words: ``N`` block number (optional, first in the block), ``G0``/``G1`` (modal motion),
+``G4`` (dwell, alone in its block with ``F`` in seconds), ``G90``/``G91`` (absolute /
+incremental, modal, default G90), ``G71`` (metric; ``G70`` inch is refused), the axis
+word, ``F`` feed in mm/min (deg/min for a rotary axis), ``M2``/``M30`` end.  Comments
+run from ``;`` to the end of the line, or sit between ``(`` and ``)``.  Linear axes
+(X Y Z U V W) take mm, rotary axes (A B C) take degrees.  A program is written for one
+axis letter; a word for another axis is refused (multi-axis programs come later).
+
+Every error is a :class:`ProgramError` naming the source, the line and the word.
+"""
+
+import functools
+import math
+import re
+from collections.abc import Callable
+from dataclasses import dataclass
+from enum import Enum
+from pathlib import Path
+
+LINEAR_AXES = "XYZUVW"
+ROTARY_AXES = "ABC"
+_NUMBER = re.compile(r"[+-]?(\d+\.?\d*|\.\d+)")
+_END_CODES = (2, 30)
+
+
+class ProgramError(ValueError):
+    """A part program cannot be read; the message names the source, line and word."""
+
+    def __init__(self, source: str, line: int, message: str):
+        self.source = source
+        self.line = line
+        super().__init__(f"{source} line {line}: {message}")
+
+
+class BlockKind(str, Enum):
+    """What a block does."""
+    MOVE = "move"
+    DWELL = "dwell"
+
+
+@dataclass(frozen=True)
+class Block:
+    """One executable block in SI units of the axis (m for linear, rad for rotary).
+
+    ``start`` and ``target`` are the axis positions before and after the block (equal
+    for a dwell).  ``feed`` is the programmed path velocity in m/s or rad/s, ``inf`` for
+    a rapid (G0) move (the interpolator clips every feed to the axis's maximum velocity)
+    and 0 for a dwell.  ``dwell_s`` is the dwell time in s (0 for a move).  ``line`` is
+    the 1-based line of the program text.
+    """
+    kind: BlockKind
+    line: int
+    start: float
+    target: float
+    feed: float = 0.0
+    rapid: bool = False
+    dwell_s: float = 0.0
+
+
+@dataclass(frozen=True)
+class Program:
+    """A parsed program: its axis letter, whether that axis is rotary (rad) or linear (m),
+    the axis position it starts from (m or rad) and its blocks in order."""
+    axis: str
+    rotary: bool
+    start: float
+    blocks: tuple[Block, ...]
+
+    @property
+    def end(self) -> float:
+        """Axis position after the last block (m or rad)."""
+        return self.blocks[-1].target if self.blocks else self.start
+
+
+ErrorFactory = Callable[[str], ProgramError]
+"""Builds the :class:`ProgramError` of the line being parsed from a message."""
+
+
+@dataclass
+class _Modal:
+    """Modal state carried from block to block while parsing."""
+    pos: float
+    absolute: bool = True
+    motion: int | None = None
+    feed: float | None = None
+    ended: bool = False
+
+
+@dataclass(frozen=True)
+class _Words:
+    """The words of one block, numbers as written (mm, mm/min, s)."""
+    g: tuple[int, ...]
+    axis: float | None
+    axis_word: str
+    f: float | None
+    end: bool
+
+
+def _scales(rotary: bool) -> tuple[float, float]:
+    """(position, feed) factors from program units (mm, mm/min or deg, deg/min) to SI."""
+    if rotary:
+        return math.pi / 180.0, math.pi / 180.0 / 60.0
+    return 1e-3, 1e-3 / 60.0
+
+
+def _strip_comments(text: str, err: ErrorFactory) -> str:
+    """The code of one line without its ``;`` and ``( )`` comments."""
+    code = []
+    i = 0
+    while i < len(text):
+        c = text[i]
+        if c == ";":
+            break
+        if c == "(":
+            close = text.find(")", i)
+            if close < 0:
+                raise err(f"comment '{text[i:]}' is not closed with ')'")
+            i = close + 1
+            code.append(" ")
+            continue
+        if c == ")":
+            raise err("')' without an opening '('")
+        code.append(c)
+        i += 1
+    return "".join(code)
+
+
+def _tokens(code: str, err: ErrorFactory) -> list[tuple[str, str, float]]:
+    """(word as written, letter, value) for each word of a comment-free line."""
+    out = []
+    for m in re.finditer(r"\S+?(?=[A-Za-z]|\s|$)", code):
+        word = m.group(0).upper()
+        letter, digits = word[0], word[1:]
+        if not letter.isalpha():
+            raise err(f"unexpected '{word}' (a word is a letter followed by a number)")
+        if not _NUMBER.fullmatch(digits):
+            raise err(f"bad number in word '{word}'")
+        out.append((word, letter, float(digits)))
+    return out
+
+
+def _words(code: str, axis: str, err: ErrorFactory) -> _Words:
+    """Sort one line's words into G codes, axis, F and end; refuse anything else."""
+    g: list[int] = []
+    values: dict[str, float] = {}
+    written: dict[str, str] = {}
+    end = False
+    for i, (word, letter, value) in enumerate(_tokens(code, err)):
+        if letter == "N":
+            if i != 0 or value != int(value) or value < 0:
+                raise err(f"block number '{word}' must come first and be a whole number")
+        elif letter == "G":
+            g.append(_g_code(word, value, err))
+        elif letter == "M" and value in _END_CODES:
+            end = True
+        elif letter in (axis, "F"):
+            if letter in values:
+                raise err(f"word {letter} appears twice ('{word}')")
+            values[letter] = value
+            written[letter] = word
+        elif letter in LINEAR_AXES + ROTARY_AXES:
+            raise err(f"axis word '{word}' is not for this program's axis {axis} "
+                      f"(single-axis programs only)")
+        else:
+            raise err(f"unknown word '{word}'")
+    return _Words(tuple(g), values.get(axis), written.get(axis, ""), values.get("F"), end)
+
+
+def _g_code(word: str, value: float, err: ErrorFactory) -> int:
+    """The G code's number, refusing inch units and codes outside the subset."""
+    if value == 70:
+        raise err(f"'{word}' (inch) is refused: programs are metric (G71)")
+    if value not in (0, 1, 4, 71, 90, 91):
+        raise err(f"unknown word '{word}' (supported: G0 G1 G4 G71 G90 G91)")
+    return int(value)
+
+
+def _check_groups(g: tuple[int, ...], err: ErrorFactory) -> None:
+    """At most one code of each G group in a block."""
+    for group in ((0, 1, 4), (90, 91)):
+        found = [c for c in g if c in group]
+        if len(found) > 1:
+            raise err("conflicting " + " and ".join(f"G{c}" for c in found))
+
+
+def _block(w: _Words, st: _Modal, rotary: bool, line: int, err: ErrorFactory) -> Block | None:
+    """Update the modal state with one line's words; the block it executes, if any."""
+    _check_groups(w.g, err)
+    pos_scale, feed_scale = _scales(rotary)
+    if 90 in w.g or 91 in w.g:
+        st.absolute = 90 in w.g
+    if 4 in w.g:
+        if w.axis is not None:
+            raise err(f"G4 must stand in its own block (found '{w.axis_word}')")
+        if w.f is None or w.f < 0.0:
+            got = "no F" if w.f is None else f"F{w.f:g}"
+            raise err(f"G4 needs F<seconds> >= 0 (Sinumerik dwell time), got {got}")
+        return Block(BlockKind.DWELL, line, st.pos, st.pos, dwell_s=w.f)
+    for code in w.g:
+        if code in (0, 1):
+            st.motion = code
+    if w.f is not None:
+        if w.f <= 0.0:
+            raise err(f"feed 'F{w.f:g}' must be > 0")
+        st.feed = w.f * feed_scale
+    if w.axis is None:
+        return None
+    if st.motion is None:
+        raise err(f"'{w.axis_word}' without a motion mode (program G0 or G1 first)")
+    if st.motion == 1 and st.feed is None:
+        raise err(f"G1 move '{w.axis_word}' needs a feed: no F programmed yet")
+    start = st.pos
+    st.pos = w.axis * pos_scale if st.absolute else start + w.axis * pos_scale
+    if st.motion == 0:
+        return Block(BlockKind.MOVE, line, start, st.pos, feed=math.inf, rapid=True)
+    return Block(BlockKind.MOVE, line, start, st.pos, feed=st.feed)
+
+
+def parse_program(text: str, axis: str = "X", start: float = 0.0,
+                  source: str = "<program>") -> Program:
+    """Parse a part program for the axis ``axis`` starting at ``start`` (m or rad).
+
+    ``source`` names the program in error messages (a file name).  Raises
+    :class:`ProgramError` on the first bad line; ValueError for an unknown axis letter.
+    """
+    if len(axis) != 1 or axis not in LINEAR_AXES + ROTARY_AXES:
+        raise ValueError(f"axis letter {axis!r} is not one of {LINEAR_AXES + ROTARY_AXES}")
+    rotary = axis in ROTARY_AXES
+    st = _Modal(pos=start)
+    blocks = []
+    for line, raw in enumerate(text.splitlines(), start=1):
+        err = functools.partial(ProgramError, source, line)
+        code = _strip_comments(raw, err)
+        if not code.strip():
+            continue
+        if st.ended:
+            raise err(f"block '{code.strip()}' after the end of the program (M2/M30)")
+        w = _words(code, axis, err)
+        block = _block(w, st, rotary, line, err)
+        if block is not None:
+            blocks.append(block)
+        st.ended = w.end
+    return Program(axis, rotary, start, tuple(blocks))
+
+
+def read_program(path: str | Path, axis: str = "X", start: float = 0.0) -> Program:
+    """Read and parse a part program file (see :func:`parse_program`)."""
+    path = Path(path)
+    return parse_program(path.read_text(), axis, start, source=str(path))
+
+
+def _number(x: float) -> str:
+    """A program number to 1e-6 of its unit (1 nm, 1e-6 deg, 1e-6 mm/min, 1 us)."""
+    return f"{x:.6f}".rstrip("0").rstrip(".")
+
+
+def format_program(program: Program) -> str:
+    """The program as text that :func:`parse_program` reads back (absolute, G90).
+
+    Positions, feeds and dwell times are written to 1e-6 of their program unit (mm or
+    deg, mm/min or deg/min, s): blocks read from absolute values with at most six
+    decimals come back exactly, incremental sums to within their rounding.
+    """
+    pos_scale, feed_scale = _scales(program.rotary)
+    a = program.axis
+    lines = ["G90 G71"]
+    for b in program.blocks:
+        if b.kind is BlockKind.DWELL:
+            lines.append(f"G4 F{_number(b.dwell_s)}")
+        elif b.rapid:
+            lines.append(f"G0 {a}{_number(b.target / pos_scale)}")
+        else:
+            lines.append(f"G1 {a}{_number(b.target / pos_scale)} F{_number(b.feed / feed_scale)}")
+    lines.append("M30")
+    return "\n".join(lines) + "\n"

@@ -1,0 +1,133 @@
+"""Lock-step simulation: controller and emulated drive alternate, no real time.
+
+Each basic-clock tick the controller reads the last feedback and writes a
+setpoint, then the drive applies it and advances the plant one PWM period.
+The same Controller and EmulatedDrive objects run in real time over an
+adapter; here they are only called back to back, faster than real time.
+"""
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from hil.controller.nc import Controller
+from hil.drive import EmulatedDrive
+from hil.trace_file import si_factor
+from hil.wire import Feedback, Setpoint
+from plant import Plant
+from plant.config import MachineConfig
+
+#: recorded signals: name -> unit (SI, table units; w_* are motor-side)
+SIGNALS = {
+    "t_s": "s", "x_set": "m", "v_set": "m/s", "a_set": "m/s^2", "x_act": "m",
+    "v_act": "m/s", "v_cmd": "m/s", "w_set": "rad/s", "w_act": "rad/s", "iq_set": "A",
+    "iq_meas": "A", "iq_true": "A", "table_pos": "m", "motor_pos": "rad",
+    "following_error": "m", "tick": "1",
+}
+
+
+@dataclass(frozen=True)
+class SimResult:
+    """Recorded signals of a lock-step run, one sample per basic-clock tick.
+
+    Attributes:
+        signals: name -> array, shape (n,), units in ``SIGNALS`` (rad and rad/s replace m
+            and m/s on rotary tables).
+        kind: the machine's kind ("screw", "linear", "rotary").
+        ratio: table travel per motor rad (1 when direct).
+        period_s: tick period.
+        meta: text metadata (machine file, program, ...).
+    """
+    signals: dict
+    kind: str
+    ratio: float
+    period_s: float
+    meta: dict = field(default_factory=dict)
+
+    def __getitem__(self, name: str) -> np.ndarray:
+        return self.signals[name]
+
+
+class LockStep:
+    """A controller and an emulated drive of one machine file, stepped together."""
+
+    def __init__(self, cfg: MachineConfig, x0: float = 0.0):
+        self.cfg = cfg
+        self.plant = Plant(cfg, table_pos=x0)
+        self.drive = EmulatedDrive(self.plant)
+        self.ctrl = Controller(cfg, self.plant.pwm_period, x0)
+        self.sp = Setpoint()
+        self.fb = Feedback()
+
+    def enable(self, max_ticks: int = 1000) -> None:
+        """Run the CiA 402 enable sequence until OPERATION ENABLED."""
+        for _ in range(max_ticks):
+            if self.ctrl.enabled:
+                return
+            self.tick()
+        raise RuntimeError(f"drive not enabled after {max_ticks} ticks: "
+                           f"{self.ctrl.enable.reason}")
+
+    def tick(self) -> None:
+        """One controller cycle and one plant PWM period."""
+        self.ctrl.tick(self.fb, self.sp)
+        self.drive.cycle(self.sp, self.fb)
+
+    def run(self, duration_s: float, progress=None) -> SimResult:
+        """Run ``duration_s`` of simulated time, recording every tick."""
+        n = int(math.ceil(duration_s / self.plant.pwm_period))
+        rec = {name: np.empty(n) for name in SIGNALS}
+        ctrl, out = self.ctrl, self.plant
+        step_report = max(1, n // 20)
+        for k in range(n):
+            self.tick()
+            rec["t_s"][k] = ctrl.t
+            rec["x_set"][k] = ctrl.x_set
+            rec["v_set"][k] = ctrl.v_set
+            rec["a_set"][k] = ctrl.a_set
+            rec["x_act"][k] = ctrl.x_act
+            rec["v_act"][k] = ctrl.v_act
+            rec["v_cmd"][k] = ctrl.v_cmd
+            rec["w_set"][k] = ctrl.w_set
+            rec["w_act"][k] = ctrl.w_act
+            rec["iq_set"][k] = ctrl.iq_set
+            rec["iq_meas"][k] = self.fb.iq_a
+            rec["iq_true"][k] = out.output("iq_a")
+            rec["table_pos"][k] = out.output("table_pos")
+            rec["motor_pos"][k] = out.output("motor_pos")
+            rec["following_error"][k] = ctrl.following_error
+            rec["tick"][k] = ctrl.tick_count - 1
+            if progress is not None and k % step_report == 0:
+                progress(k / n)
+        return SimResult(rec, self.cfg.machine.kind, ctrl.ratio, self.plant.pwm_period,
+                         {"machine": self.cfg.path})
+
+
+#: servo-trace column (trace-format.md, linear-axis names) -> SimResult signal
+TRACE_COLUMNS = {
+    "pos_set_mm": "x_set", "pos_mm": "x_act", "vel_set_mm_min": "v_cmd",
+    "vel_mm_min": "v_act", "iq_set_a": "iq_set", "iq_a": "iq_meas",
+    "motor_pos_mm": "motor_pos",
+}
+#: the same columns on a rotary table
+ROTARY_NAMES = {"pos_set_mm": "pos_set_deg", "pos_mm": "pos_deg", "vel_set_mm_min":
+                "vel_set_deg_min", "vel_mm_min": "vel_deg_min", "motor_pos_mm": "motor_pos_deg"}
+
+
+def servo_trace_columns(res: SimResult, every: int) -> dict[str, np.ndarray]:
+    """The recording as servo-trace columns in the file's units (mm, mm/min, A, or deg on
+    rotary tables), on the ticks that are multiples of ``every`` (the position-control
+    cycle: there setpoint and actual position are taken at the same instant, as the
+    NC's servo trace does), time starting at 0.  The velocity setpoint is the speed
+    command sent to the speed loop (feed-forward included); the motor position is
+    converted to table travel through the lead."""
+    rows = np.flatnonzero(res["tick"] % every == 0)
+    cols = {"t_s": res["t_s"][rows] - res["t_s"][rows[0]]}
+    for name, sig in TRACE_COLUMNS.items():
+        values = res[sig] * (res.ratio if sig == "motor_pos" else 1.0)
+        if res.kind == "rotary":
+            name = ROTARY_NAMES.get(name, name)
+        factor, _ = si_factor(name)
+        cols[name] = values[rows] / factor
+    return cols
