@@ -1,9 +1,9 @@
 """The emulated drive: the device side of the wire, around one plant.
 
-Every cycle (one PWM period of the plant) it takes a :class:`~hil.wire.Setpoint`,
+Every cycle (one PWM period of the plant) it takes a :class:`~io_adapters.messages.Setpoint`,
 runs the CiA 402 state machine on its controlword, passes the setpoints to the
 plant only while the state machine has the power stage on, steps the plant
-and fills a :class:`~hil.wire.Feedback`.  A plant fault status latches a
+and fills a :class:`~io_adapters.messages.Feedback`.  A plant fault status latches a
 drive fault (CiA 402 FAULT, torque off) until the state is reset and a fault
 reset is commanded.  Torque is on only in OPERATION ENABLED; a quick stop
 removes it and the axis coasts to rest against its friction (this drive has
@@ -12,7 +12,7 @@ object serves the lock-step simulator and the real-time loop.
 """
 
 from hil.cia402 import DriveStateMachine, State
-from hil.wire import MODE_VOLTAGE, Feedback, Setpoint
+from io_adapters.messages import MODE_VOLTAGE, Feedback, Setpoint
 from plant import Plant
 from plant import layout as L
 

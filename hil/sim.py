@@ -14,7 +14,7 @@ import numpy as np
 from hil.controller.nc import Controller
 from hil.drive import EmulatedDrive
 from hil.trace_file import si_factor
-from hil.wire import Feedback, Setpoint
+from io_adapters.messages import Feedback, Setpoint
 from plant import Plant
 from plant.config import MachineConfig
 

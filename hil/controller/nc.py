@@ -9,8 +9,8 @@ Per tick, in the order a SINUMERIK 840D with SINAMICS runs them:
   encoder (difference over the speed cycle);
 * every tick, when the plant takes voltage, the current loop.
 
-The controller sees the axis only through :class:`~hil.wire.Feedback` (raw
-counts and sampled currents) and answers with a :class:`~hil.wire.Setpoint`.
+The controller sees the axis only through :class:`~io_adapters.messages.Feedback` (raw
+counts and sampled currents) and answers with a :class:`~io_adapters.messages.Setpoint`.
 Test modes for the measuring functions replace the position loop by a speed
 setpoint (``"speed"``) or the speed loop by a current setpoint (``"current"``),
 each given as a function of the controller time plus an optional additive
@@ -24,7 +24,7 @@ from hil.cia402 import EnableSequencer
 from hil.controller.config import ControllerSection, axis_limits, load_controller
 from hil.controller.interpolator import FineInterpolator, Profile, ProfileSamples
 from hil.controller.loops import CurrentLoop, PositionLoop, SpeedLoop
-from hil.wire import MODE_CST, MODE_VOLTAGE, Feedback, Setpoint
+from io_adapters.messages import MODE_CST, MODE_VOLTAGE, Feedback, Setpoint
 from plant.assemble import reflected_inertia, transmission_ratio
 from plant.config import MachineConfig
 

@@ -1,5 +1,8 @@
 """What travels between a controller and the emulated drive, whatever the transport.
 
+Every adapter carries these two records; how it encodes them is its own business
+(see each adapter module for its wire schema).
+
 One :class:`Setpoint` goes from the controller to the drive and one
 :class:`Feedback` comes back every cycle.  Both are small mutable records
 that their owner allocates once and overwrites every cycle.  Feedback carries
