@@ -1,6 +1,5 @@
 """Friction validation experiments (hil.validate.experiments.friction) and their helpers."""
 
-import math
 
 import numpy as np
 import pytest
@@ -9,15 +8,8 @@ from scipy.integrate import quad
 from hil.validate.core import REGISTRY
 from hil.validate.experiments import friction as fr
 from plant.config import load_machine
+from tests.helpers import assert_rows_ok
 
-
-def assert_rows_ok(rows):
-    assert rows, "experiment returned no rows"
-    bad = [r for r in rows if not r.ok]
-    assert not bad, "\n".join(f"{r.experiment}: model {r.model} vs {r.paper} {r.unit} "
-                              f"({r.reference}, {r.tolerance})" for r in bad)
-    for r in rows:
-        assert isinstance(r.ok, bool) and math.isfinite(r.model) and math.isfinite(r.paper)
 
 
 def test_experiments_registered():
