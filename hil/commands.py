@@ -23,6 +23,8 @@ from plant.config import MachineConfig, load_machine
 
 #: seconds simulated after the program's end so the axis settles
 SETTLE_S = 0.2
+#: resonance peaks are reported down to this far below the low-frequency gain, dB
+PEAK_RANGE_DB = 20.0
 
 
 def _edge(cfg: MachineConfig) -> tuple[float, str]:
@@ -107,8 +109,11 @@ def run_bode(config: Path, loop: str, amplitude: float, offset: float, order: in
     bode_plot(m.response, out / f"bode_{loop}.png",
               f"{cfg.machine.name}: {loop}-loop frequency response")
     write_csv(out / f"bode_{loop}.csv", m.response)
-    return {"loop": loop, "bandwidth_hz": bandwidth_hz(m.response),
-            "peaks_hz": [round(p.freq_hz, 1) for p in peaks(m.response)],
+    fr = m.response
+    # resonances a person cares about, not noise ripple near Nyquist far below the pass band
+    floor_db = fr.magnitude_db[0] - PEAK_RANGE_DB
+    return {"loop": loop, "bandwidth_hz": bandwidth_hz(fr),
+            "peaks_hz": [round(p.freq_hz, 1) for p in peaks(fr) if p.magnitude_db > floor_db],
             "plot": str(out / f"bode_{loop}.png")}
 
 
