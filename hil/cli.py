@@ -8,7 +8,8 @@
     hil measure CONFIG bode current|speed --amplitude X [--offset X] --out DIR
 
 Exit status: 0 on success, 1 when a validation row is not ok, 2 on bad input
-(a machine file that does not load, an unknown experiment).
+(a machine file that does not load, a part program that does not parse,
+an unknown experiment).
 """
 
 import argparse
@@ -16,6 +17,7 @@ import json
 import sys
 from pathlib import Path
 
+from hil.controller.program import ProgramError
 from plant.errors import ConfigError
 
 CONFIG_DIR = Path(__file__).resolve().parent.parent / "configs"
@@ -173,7 +175,7 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return args.func(args)
-    except (ConfigError, KeyError) as exc:
+    except (ConfigError, KeyError, ProgramError) as exc:
         _eprint(f"hil: {exc}")
         return 2
 

@@ -27,7 +27,7 @@ from plant.effects.cogging import cogging_torque
 from plant.effects.commutation import commutation_control, commutation_substep
 from plant.effects.friction import presliding_update, table_friction
 from plant.effects.pmsm import (dq_current_control, dq_substep, dq_torque, first_order_substep,
-                                limit_voltage)
+                                freewheel, limit_voltage)
 from plant.effects.sensors import counts, measure_current
 from plant.effects.tlm import tlm_step
 from plant.layout import (I_ENABLE, I_ID_REF, I_IQ_REF, I_LOAD, I_MODE, I_UD, I_UQ,
@@ -39,7 +39,7 @@ from plant.layout import (I_ENABLE, I_ID_REF, I_IQ_REF, I_LOAD, I_MODE, I_UD, I_
                           P_MECH_MODEL, P_MOTOR_MODEL, P_N_AX, P_N_ROT, P_NUT_C, P_NUT_GAP,
                           P_NUT_K, P_NUT_S0, P_OFF_AX, P_OFF_ROT, P_POLE_PAIRS,
                           P_PRE_ENABLED, P_SCALE_RES, P_SEG_LEN, P_SOFF_AX, P_SOFF_ROT,
-                          P_SOLVER, P_SUB_PER_PWM, P_TABLE_M, P_UDC, S_FRICTION, S_ID,
+                          P_SOLVER, P_SUB_PER_PWM, P_TABLE_M, P_UDC, P_LD, P_LQ, S_FRICTION, S_KM, S_ID,
                           S_ID_MEAS, S_INT_D, S_INT_Q, S_IQ, S_IQ_MEAS, S_NUT_F, S_STUCK,
                           S_SUB_COUNT, S_TABLE_V, S_TABLE_X, S_TIME, S_TORQUE, S_UD_APPLIED,
                           S_UD_NEXT, S_UQ_APPLIED, S_UQ_NEXT, SOLVER_LUMPED, STATUS_DIVERGED,
@@ -77,8 +77,21 @@ def pwm_event(p, s, inp, omega_m):
 
 @njit(cache=True, error_model="numpy")
 def motor_substep(p, s, inp, omega_m):
-    """Advance the motor's electrical state one sub-step; return its torque (N·m or N)."""
+    """Advance the motor's electrical state one sub-step; return its torque (N·m or N).
+
+    With the power stage off the currents of the voltage-fed models freewheel to zero
+    (pulses blocked: the windings are open, not shorted; back-EMF above the link
+    voltage, which would rectify into the link, is not modelled)."""
     model = int(p[P_MOTOR_MODEL])
+    if inp[I_ENABLE] <= 0.0 and model != MOTOR_FIRST_ORDER:
+        dt = p[P_DT]
+        if model == MOTOR_DQ:
+            u_link = 0.5 * p[P_UDC]
+            s[S_ID] = freewheel(s[S_ID], u_link, p[P_LD], dt)
+            s[S_IQ] = freewheel(s[S_IQ], u_link, p[P_LQ], dt)
+            return dq_torque(p, s[S_ID], s[S_IQ])
+        s[S_IQ] = freewheel(s[S_IQ], p[P_UDC], p[P_LD], dt)
+        return s[S_KM] * s[S_IQ]
     if model == MOTOR_DQ:
         return dq_substep(p, s, s[S_UD_APPLIED], s[S_UQ_APPLIED], omega_m)
     if model == MOTOR_COMMUTATION:

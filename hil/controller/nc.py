@@ -128,6 +128,20 @@ class Controller:
             self.theta_prev = theta
         self.x_act = fb.scale_counts * self.scale_res if self.scale_res else theta * self.ratio
 
+    def _follow_up(self) -> None:
+        """While the drive is not enabled (start-up, fault): the setpoint follows the actual
+        position, every loop is cleared and a running program is abandoned, as an NC's
+        follow-up mode does; so a fault's bad feedback never reaches a loop's state."""
+        self.x_set = self.x_act
+        self.v_set = self.a_set = self.v_cmd = self.w_set = self.iq_set = self.i_ff = 0.0
+        self.w_act = self.v_act = self.following_error = 0.0
+        self.theta_prev = None
+        self.fine = None
+        self.pos_loop.reset(self.x_act)
+        self.speed_loop.reset()
+        if self.cur_loop is not None:
+            self.cur_loop.reset()
+
     def _position_cycle(self) -> None:
         if self.mode == "position":
             if self.fine is not None:
@@ -151,6 +165,7 @@ class Controller:
         k = self.tick_count
         self.tick_count += 1
         if not self.enable.done:
+            self._follow_up()
             sp.mode = MODE_CST
             sp.iq_ref_a = sp.id_ref_a = sp.ud_v = sp.uq_v = 0.0
             return

@@ -104,6 +104,18 @@ def dq_substep(p, s, ud, uq, omega_m):
 
 
 @njit(cache=True, error_model="numpy")
+def freewheel(i, u_link, l, dt):
+    """Current ``i`` (A) one sub-step later while the inverter's pulses are blocked: it
+    flows back through the freewheeling diodes against the link voltage ``u_link`` (V)
+    and stops at zero (the diodes block the reverse direction)."""
+    if i > 0.0:
+        return max(0.0, i - u_link / l * dt)
+    if i < 0.0:
+        return min(0.0, i + u_link / l * dt)
+    return 0.0
+
+
+@njit(cache=True, error_model="numpy")
 def dq_torque(p, i_d, i_q):
     """Electromagnetic torque (N·m; N for linear motors) of the d-q currents."""
     return 1.5 * p[P_POLE_PAIRS] * (p[P_PSI] * i_q + (p[P_LD] - p[P_LQ]) * i_d * i_q)

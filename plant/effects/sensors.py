@@ -2,6 +2,7 @@
 
 import math
 
+import numpy as np
 from numba import njit
 
 from plant.effects.rng import gaussian
@@ -16,7 +17,8 @@ def counts(position, per_unit):
     """
     if per_unit <= 0.0:
         return 0.0
-    return math.floor(position * per_unit)
+    # np.floor keeps a NaN position NaN (math.floor would turn it into a huge integer)
+    return np.floor(position * per_unit)
 
 
 @njit(cache=True, error_model="numpy")

@@ -1,0 +1,155 @@
+"""``hil sim`` and ``hil measure`` through the command line's entry point (hil.cli.main).
+
+Independent references: the part program's programmed end position (parsed here) and
+the exact-stop fine window of a SINUMERIK axis (MD36010, 0.01 mm) for where the axis ends;
+the controller's position cycle from the machine file for the trace's sample time; the
+servo-trace format (../shared/docs/trace-format.md) for the file; and, for the current
+loop's bandwidth, the exact discrete q-axis loop of the plant's drive built here from the
+machine file (ZOH of R-L, PI on the current sampled at the PWM event, the voltage applied
+one period late, back-EMF cancelled by the drive's precontrol).
+"""
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from hil.cli import main
+from hil.controller.config import load_controller
+from hil.controller.program import read_program
+from hil.trace_file import IDENTIFICATION, read_trace, write_trace
+from plant.config import load_machine
+from tests.conftest import CONFIGS, ROOT
+
+ARROW = CONFIGS / "arrow500_x.toml"
+PROGRAM = ROOT / "programs" / "seed000_moves.nc"
+#: SINUMERIK exact stop fine (MD36010 default), mm
+EXACT_STOP_FINE_MM = 0.01
+
+
+@pytest.fixture(scope="module")
+def sim_out(tmp_path_factory):
+    """`hil sim` of the seed-000 program on the Arrow 500 X: (exit status, output folder)."""
+    out = tmp_path_factory.mktemp("sim")
+    status = main(["sim", str(ARROW), "--program", str(PROGRAM), "--out", str(out)])
+    return status, out
+
+
+def test_sim_writes_trace_and_plot(sim_out):
+    status, out = sim_out
+    assert status == 0
+    assert (out / "trace.csv").stat().st_size > 0
+    assert (out / "sim.png").stat().st_size > 0
+
+
+def test_sim_trace_is_an_identification_trace(sim_out):
+    """The trace reads with the identification columns, samples at the position cycle
+    (16 PWM periods of 125 us = 2 ms) and ends where the program does, within the exact-stop
+    window."""
+    _, out = sim_out
+    trace = read_trace(out / "trace.csv", require=IDENTIFICATION)
+    cfg = load_machine(ARROW)
+    cycle = load_controller(cfg).position_cycle_ratio / cfg.motor.pwm_frequency_hz
+    assert trace.sample_time_s == pytest.approx(cycle, rel=1e-9)
+    end_mm = read_program(PROGRAM).end * 1e3
+    assert end_mm == pytest.approx(480.0)
+    assert trace.column("pos_mm")[-1] == pytest.approx(end_mm, abs=EXACT_STOP_FINE_MM)
+    assert trace.column("pos_set_mm")[-1] == pytest.approx(end_mm, abs=1e-9)
+    assert trace.metadata["program"] == str(PROGRAM)
+
+
+def test_sim_trace_round_trips(sim_out, tmp_path):
+    """Writing the columns read back and reading again gives identical arrays, names and
+    metadata (values are written with repr)."""
+    _, out = sim_out
+    first = read_trace(out / "trace.csv")
+    again = read_trace(write_trace(tmp_path / "again.csv", first.data, first.metadata))
+    assert again.names == first.names
+    assert again.metadata == first.metadata
+    for name in first.names:
+        np.testing.assert_array_equal(again.column(name), first.column(name), err_msg=name)
+
+
+def run_json(capsys, argv: list[str]) -> dict:
+    """main(argv + --json): exit status 0 and the summary it printed."""
+    capsys.readouterr()
+    assert main(argv + ["--json"]) == 0
+    return json.loads(capsys.readouterr().out)
+
+
+@pytest.mark.parametrize("loop, amplitude, final, tol", [
+    ("current", 5.0, 5.0, 0.1),       # A: noise and 13.7 mA quantization in the mean
+    ("speed", 600.0, 600.0, 12.0),    # mm/min: the PI has not fully settled after 50 ms
+    ("position", 0.1, 250.1, 1e-3),   # mm: the table position, 0.1 um scale
+])
+def test_measure_step(capsys, tmp_path, loop, amplitude, final, tol):
+    """Each step measurement writes its plot and CSV, and its summary reports a finite rise
+    time and a final value at the commanded one."""
+    summary = run_json(capsys, ["measure", str(ARROW), "step", loop, "--amplitude",
+                                str(amplitude), "--at", "250", "--out", str(tmp_path)])
+    assert (tmp_path / f"step_{loop}.png").is_file()
+    assert (tmp_path / f"step_{loop}.csv").is_file()
+    assert summary["loop"] == loop and summary["step"] == amplitude
+    assert 0.0 < summary["rise_time_ms"] < 100.0
+    assert summary["final"] == pytest.approx(final, abs=tol)
+
+
+def current_loop_bandwidth_hz(cfg) -> float:
+    """-3 dB frequency of iq_set -> iq_meas of the plant's q current loop, linear analysis.
+
+    Per PWM period T: i' = e i + (1 - e)/R u_applied (e = exp(-R T/L), EMF cancelled),
+    u_applied' = kp (r - i) + I, I' = I + kp T / Ti (r - i); the measurement is the current
+    sampled at the start of the period the setpoint r is applied in.
+    """
+    mo, cl = cfg.motor, cfg.current_loop
+    T = 1.0 / mo.pwm_frequency_hz
+    e = math.exp(-mo.resistance_ohm * T / mo.inductance_q_h)
+    kp, ki = cl.kp_v_per_a, cl.kp_v_per_a * T / cl.ti_s
+    A = np.array([[e, (1.0 - e) / mo.resistance_ohm, 0.0], [-kp, 0.0, 1.0], [-ki, 0.0, 1.0]])
+    B = np.array([0.0, kp, ki])
+    f = np.linspace(1.0, 0.49 / T, 20000)
+    z = np.exp(2j * np.pi * f * T)
+    h = np.array([np.linalg.solve(zk * np.eye(3) - A, B)[0] for zk in z])
+    mag = np.abs(h)
+    return float(f[np.argmax(mag < mag[0] * 10 ** (-3 / 20))])
+
+
+def test_measure_bode_current_bandwidth(capsys, tmp_path):
+    """The current loop's frequency response (PRBS order 9) has the bandwidth the linear
+    analysis of the drive's current loop predicts (about 980 Hz on the Arrow 500 X) within
+    5 %."""
+    summary = run_json(capsys, ["measure", str(ARROW), "bode", "current", "--amplitude", "2",
+                                "--order", "9", "--at", "250", "--out", str(tmp_path)])
+    assert (tmp_path / "bode_current.png").is_file()
+    assert (tmp_path / "bode_current.csv").is_file()
+    expected = current_loop_bandwidth_hz(load_machine(ARROW))
+    assert expected > 500.0
+    assert summary["bandwidth_hz"] == pytest.approx(expected, rel=0.05)
+
+
+def test_sim_without_controller_section_exits_2(capsys, tmp_path):
+    """A machine file without [controller]: exit 2, the message names file and section."""
+    text = ARROW.read_text()
+    machine = tmp_path / "bare.toml"
+    machine.write_text(text[:text.index("[controller]")])
+    status = main(["sim", str(machine), "--program", str(PROGRAM), "--out",
+                   str(tmp_path / "out")])
+    err = capsys.readouterr().err
+    assert status == 2
+    assert str(machine) in err and "[controller]" in err
+    assert not (tmp_path / "out").exists()
+
+
+def test_sim_with_unknown_word_exits_2(capsys, tmp_path):
+    """A program with a word outside the subset: exit 2, the message names the program, the
+    line and the word, and nothing is simulated."""
+    program = tmp_path / "bad.nc"
+    program.write_text("G90 G71\nG1 X10 F1000\nG1 X20 Q5\nM30\n")
+    status = main(["sim", str(ARROW), "--program", str(program), "--out",
+                   str(tmp_path / "out")])
+    err = capsys.readouterr().err
+    assert status == 2
+    assert f"{program} line 3" in err and "Q5" in err
+    assert "Traceback" not in err
+    assert not (tmp_path / "out").exists()
