@@ -8,6 +8,12 @@ One :class:`Setpoint` goes from the controller to the drive and one
 that their owner allocates once and overwrites every cycle.  Feedback carries
 raw sensor values (encoder and scale counts, the sampled current) as a real
 drive reports them; the controller converts them with its own machine data.
+
+Timestamps are integer nanoseconds of ``time.monotonic_ns()`` on the machine
+that takes them; the adapters stamp them, so a loop never sets them.  Only
+differences of two stamps from the same machine mean anything, which is why
+:meth:`Feedback.round_trip_ns` pairs them that way.  Fields marked *local*
+are stamped by the receiving adapter and never sent.
 """
 
 from dataclasses import dataclass
@@ -29,6 +35,9 @@ class Setpoint:
         mode: MODE_CST or MODE_VOLTAGE.
         iq_ref_a, id_ref_a: current setpoints in A (MODE_CST).
         ud_v, uq_v: voltage setpoints in V (MODE_VOLTAGE).
+        t_ns: controller clock when the adapter sent it, ns (set by ``send_setpoint``).
+        rx_ns: *local*, drive clock when the adapter received it, ns (set by
+            ``recv_setpoint``).
     """
     seq: int = 0
     controlword: int = 0
@@ -37,6 +46,8 @@ class Setpoint:
     id_ref_a: float = 0.0
     ud_v: float = 0.0
     uq_v: float = 0.0
+    t_ns: int = 0
+    rx_ns: int = 0
 
 
 @dataclass(slots=True)
@@ -51,6 +62,12 @@ class Feedback:
         scale_counts: linear scale, whole counts (0 without a scale).
         iq_a, id_a: sampled currents in A.
         fault: the plant's fault status (0 = none; plant.layout STATUS_*).
+        sp_t_ns: ``t_ns`` of the latest setpoint the drive's adapter received
+            (controller clock, ns; set by ``send_feedback``).
+        sp_rx_ns: drive clock when that setpoint arrived, ns (set by ``send_feedback``).
+        t_ns: drive clock when the adapter sent this feedback, ns (set by ``send_feedback``).
+        rx_ns: *local*, controller clock when the adapter received it, ns (set by
+            ``recv_feedback``).
     """
     seq: int = 0
     statusword: int = 0
@@ -60,3 +77,13 @@ class Feedback:
     iq_a: float = 0.0
     id_a: float = 0.0
     fault: int = 0
+    sp_t_ns: int = 0
+    sp_rx_ns: int = 0
+    t_ns: int = 0
+    rx_ns: int = 0
+
+    def round_trip_ns(self) -> int:
+        """Transport round trip of the setpoint this feedback answers, ns: from the
+        controller sending it to the controller receiving this feedback, less the time
+        the drive held it, ``(rx_ns - sp_t_ns) - (t_ns - sp_rx_ns)``."""
+        return (self.rx_ns - self.sp_t_ns) - (self.t_ns - self.sp_rx_ns)

@@ -1,3 +1,9 @@
 """Importing this package registers every experiment (one module per topic)."""
 
-from hil.validate.experiments import cogging, electrical, friction, mechanics  # noqa: F401
+from hil.validate.experiments import (  # noqa: F401
+    cogging,
+    controller,
+    electrical,
+    friction,
+    mechanics,
+)

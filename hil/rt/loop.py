@@ -1,0 +1,229 @@
+"""A hard-timed loop: one step per period on absolute deadlines, every tick measured.
+
+::
+
+    loop = RealTimeLoop(period_ns=125_000, step=plant_step, duration_s=10.0,
+                        policy=OverrunPolicy("stop", stop_after=3, grace_ticks=100))
+    signal.signal(signal.SIGINT, lambda *_: loop.request_stop())
+    stats = loop.run()
+
+Tick ``k`` is due at ``t0 + k * period_ns`` (``t0`` one period after :meth:`RealTimeLoop.run`
+starts); the clock wakes the loop at that deadline, ``step(k)`` runs, and the loop writes
+
+* ``lateness_ns[k]`` = wake-up time - deadline,
+* ``compute_ns[k]`` = end of the step - wake-up time
+
+into int64 arrays allocated when the loop is built and written through before the clock
+starts (no page faults later).  A tick keeps nothing allocated: CPython's integers for the
+timestamps are freed as they go, and traced memory does not grow over a run.  A tick *overruns* when its step ends after the next deadline.  What
+follows is the :class:`OverrunPolicy`'s choice, after Simulink Real-Time's and dSPACE's
+overload options:
+
+* ``"count"``: keep going; the following ticks run late until the loop has caught up;
+* ``"skip"``: drop the deadlines already missed and wait for the next future one; the
+  dropped ticks are counted and their slots hold :data:`SKIPPED`;
+* ``"stop"``: like ``"count"``, but stop once ``stop_after`` overruns have happened.
+
+Overruns in the first ``grace_ticks`` ticks (start-up: caches, first page touches) are
+counted apart and never stop the loop.  :meth:`RealTimeLoop.request_stop` only sets a
+flag, checked before every tick: it is what a signal handler should call.
+"""
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+
+from hil.rt.clock import Clock, MonotonicClock
+
+#: the value of a dropped tick's slot in ``lateness_ns`` and ``compute_ns``
+SKIPPED = np.iinfo(np.int64).min
+
+StopReason = Literal["completed", "overruns", "stop_flag"]
+
+
+@dataclass(frozen=True)
+class OverrunPolicy:
+    """What an overrun does (see the module docstring).
+
+    Attributes:
+        action: ``"count"``, ``"skip"`` or ``"stop"``.
+        stop_after: with ``"stop"``, the overrun (after the grace period) that stops the loop.
+        grace_ticks: the first ticks, whose overruns are counted apart and never stop it.
+    """
+    action: Literal["count", "skip", "stop"] = "count"
+    stop_after: int = 1
+    grace_ticks: int = 0
+
+    def __post_init__(self):
+        if self.action not in ("count", "skip", "stop"):
+            raise ValueError(f"overrun action must be count, skip or stop, got {self.action!r}")
+        if self.stop_after < 1:
+            raise ValueError(f"stop_after must be >= 1, got {self.stop_after}")
+        if self.grace_ticks < 0:
+            raise ValueError(f"grace_ticks must be >= 0, got {self.grace_ticks}")
+
+
+def nearest_rank(permille: int, n: int) -> int:
+    """The 1-based rank in ``n`` sorted samples of the smallest one with at least
+    ``permille`` / 1000 of them at or below it (exact integer arithmetic)."""
+    return max(1, -(-permille * n // 1000))
+
+
+@dataclass(frozen=True)
+class Percentiles:
+    """p50, p99, p99.9 and maximum of a sample, in the unit named by the field that holds
+    them (nearest rank: the smallest value with at least that fraction at or below it;
+    NaN for an empty sample)."""
+    p50: float
+    p99: float
+    p999: float
+    max: float
+
+    @classmethod
+    def of_ns_in_us(cls, values_ns: np.ndarray) -> "Percentiles":
+        """The percentiles of ``values_ns`` (ns), in µs."""
+        n = values_ns.size
+        if n == 0:
+            return cls(*([float("nan")] * 4))
+        ordered = np.sort(values_ns)
+        p50, p99, p999 = (float(ordered[nearest_rank(q, n) - 1]) / 1e3 for q in (500, 990, 999))
+        return cls(p50=p50, p99=p99, p999=p999, max=float(ordered[-1]) / 1e3)
+
+    def as_dict(self) -> dict:
+        return {"p50": self.p50, "p99": self.p99, "p999": self.p999, "max": self.max}
+
+
+@dataclass(frozen=True)
+class LoopStats:
+    """What one :meth:`RealTimeLoop.run` measured.
+
+    Attributes:
+        period_ns: the period.
+        lateness_ns, compute_ns: views of the loop's buffers over the deadlines the run
+            covered (``SKIPPED`` where a tick was dropped); the next run overwrites them.
+        ticks: steps run.
+        overruns: overruns after the grace period.
+        grace_overruns: overruns within the grace period.
+        skipped: ticks dropped by the ``"skip"`` policy.
+        stopped_by: ``"completed"``, ``"overruns"`` (the ``"stop"`` policy) or ``"stop_flag"``.
+        wall_s, cpu_s: elapsed real time and the process's CPU time over the run (s).
+        lateness_us, compute_us: percentiles over the ticks run.
+    """
+    period_ns: int
+    lateness_ns: np.ndarray
+    compute_ns: np.ndarray
+    ticks: int
+    overruns: int
+    grace_overruns: int
+    skipped: int
+    stopped_by: StopReason
+    wall_s: float
+    cpu_s: float
+    lateness_us: Percentiles
+    compute_us: Percentiles
+
+    @property
+    def cpu_fraction(self) -> float:
+        """CPU time over elapsed time: the share of one core the run used."""
+        return self.cpu_s / self.wall_s if self.wall_s > 0 else 0.0
+
+    def as_dict(self) -> dict:
+        """The scalar figures (no arrays), JSON-ready."""
+        return {"period_ns": self.period_ns, "ticks": self.ticks, "overruns": self.overruns,
+                "grace_overruns": self.grace_overruns, "skipped": self.skipped,
+                "stopped_by": self.stopped_by, "wall_s": self.wall_s, "cpu_s": self.cpu_s,
+                "cpu_fraction": self.cpu_fraction, "lateness_us": self.lateness_us.as_dict(),
+                "compute_us": self.compute_us.as_dict()}
+
+
+class RealTimeLoop:
+    """Call ``step(k)`` at ``t0 + k * period_ns`` for k = 0 .. n_ticks - 1.
+
+    Args:
+        period_ns: the period (ns), e.g. 125_000 for 8 kHz.
+        step: the work of one tick, given the tick index; it must not block.
+        n_ticks: how many deadlines to run; or
+        duration_s: how long to run (rounded to whole periods).
+        policy: what an overrun does.
+        clock: what to wait on; by default ``MonotonicClock.for_period(period_ns)``.
+    """
+
+    def __init__(self, period_ns: int, step: Callable[[int], None], n_ticks: int | None = None,
+                 duration_s: float | None = None, policy: OverrunPolicy = OverrunPolicy(),
+                 clock: Clock | None = None):
+        if period_ns <= 0:
+            raise ValueError(f"period_ns must be > 0, got {period_ns}")
+        if (n_ticks is None) == (duration_s is None):
+            raise ValueError("give exactly one of n_ticks and duration_s")
+        if n_ticks is None:
+            n_ticks = round(duration_s * 1e9 / period_ns)
+        if n_ticks < 1:
+            raise ValueError(f"the loop needs at least one tick, got {n_ticks} "
+                             f"(period {period_ns} ns, duration {duration_s} s)")
+        self.period_ns = int(period_ns)
+        self.step = step
+        self.n_ticks = int(n_ticks)
+        self.policy = policy
+        self.clock = clock if clock is not None else MonotonicClock.for_period(self.period_ns)
+        self.lateness_ns = np.full(self.n_ticks, SKIPPED, dtype=np.int64)
+        self.compute_ns = np.full(self.n_ticks, SKIPPED, dtype=np.int64)
+        self._stop_requested = False
+
+    def request_stop(self) -> None:
+        """Stop before the next tick (safe to call from a signal handler).  The request
+        stays: a later :meth:`run` returns at once."""
+        self._stop_requested = True
+
+    def run(self) -> LoopStats:
+        """Run the ticks (until done, stopped by the policy, or asked to stop)."""
+        self.lateness_ns.fill(SKIPPED)
+        self.compute_ns.fill(SKIPPED)
+        step, now_ns, sleep_until = self.step, self.clock.now_ns, self.clock.sleep_until
+        lateness, compute = self.lateness_ns, self.compute_ns
+        period, n = self.period_ns, self.n_ticks
+        skip = self.policy.action == "skip"
+        stop_after = self.policy.stop_after if self.policy.action == "stop" else 0
+        grace = self.policy.grace_ticks
+        ticks = overruns = grace_overruns = skipped = 0
+        stopped_by: StopReason = "completed"
+
+        wall0, cpu0 = time.monotonic_ns(), time.process_time_ns()
+        t0 = now_ns() + period
+        k = 0
+        while k < n:
+            if self._stop_requested:
+                stopped_by = "stop_flag"
+                break
+            deadline = t0 + k * period
+            wake = sleep_until(deadline)
+            step(k)
+            end = now_ns()
+            lateness[k] = wake - deadline
+            compute[k] = end - wake
+            ticks += 1
+            if end <= deadline + period:
+                k += 1
+                continue
+            if k < grace:
+                grace_overruns += 1
+            else:
+                overruns += 1
+                if overruns == stop_after:
+                    stopped_by = "overruns"
+                    break
+            k_next = min((end - t0) // period + 1, n) if skip else k + 1
+            skipped += k_next - k - 1
+            k = k_next
+        wall_ns, cpu_ns = time.monotonic_ns() - wall0, time.process_time_ns() - cpu0
+
+        done = slice(0, ticks + skipped)
+        ran = lateness[done] != SKIPPED
+        return LoopStats(
+            period_ns=period, lateness_ns=lateness[done], compute_ns=compute[done],
+            ticks=ticks, overruns=overruns, grace_overruns=grace_overruns, skipped=skipped,
+            stopped_by=stopped_by, wall_s=wall_ns * 1e-9, cpu_s=cpu_ns * 1e-9,
+            lateness_us=Percentiles.of_ns_in_us(lateness[done][ran]),
+            compute_us=Percentiles.of_ns_in_us(compute[done][ran]))

@@ -1,0 +1,210 @@
+"""Ask the operating system for real-time treatment, report what it granted, undo it all.
+
+::
+
+    with realtime_scheduling(SchedulingRequest(cpus=frozenset({last_cpu()}))) as report:
+        stats = loop.run()
+    report.as_dict()["fifo"]    # {'granted': True, 'detail': 'SCHED_FIFO priority 80'}
+
+Each request is made in turn and never raises: a refusal (no privilege, no such device,
+not Linux) is a :class:`Grant` with ``granted=False`` and the reason.  On leaving the
+``with`` block everything that was changed is restored in reverse order.
+
+The policy, the affinity and the timer slack belong to the *calling thread*: enter the
+block in the thread that runs the loop.  Threads it starts afterwards inherit them, so a
+helper thread (a ``multiprocessing.Queue`` feeder, for one) competes with the loop on its
+CPU at the same priority and may never run: set up IPC before entering, or give helpers
+normal priority.  ``mlockall``, ``/dev/cpu_dma_latency`` and the GC are process-wide.
+"""
+
+import ctypes
+import functools
+import gc
+import os
+import struct
+import sys
+from collections.abc import Iterator
+from contextlib import ExitStack, contextmanager
+from dataclasses import asdict, dataclass, fields
+
+#: the PM QoS device: while an fd that wrote a value stays open, CPU idle states with a
+#: longer exit latency (µs) are not used.
+CPU_DMA_LATENCY_PATH = "/dev/cpu_dma_latency"
+
+_MCL_CURRENT, _MCL_FUTURE = 1, 2
+_PR_SET_TIMERSLACK, _PR_GET_TIMERSLACK = 29, 30
+
+
+@dataclass(frozen=True)
+class SchedulingRequest:
+    """What to ask for; ``None`` (or ``False``) leaves that setting alone.
+
+    Attributes:
+        fifo_priority: SCHED_FIFO priority, 1..99 (cyclictest's usual 80 by default).
+        cpus: CPUs to pin the calling thread to (see :func:`last_cpu`).
+        lock_memory: ``mlockall(MCL_CURRENT | MCL_FUTURE)``: no page faults later.
+        cpu_dma_latency_us: hold ``/dev/cpu_dma_latency`` at this many µs.
+        timer_slack_ns: the calling thread's timer slack (the kernel default is 50 µs;
+            Linux 6.7 and later give SCHED_FIFO threads none, earlier kernels do not).
+        freeze_gc: collect, ``gc.freeze()`` and ``gc.disable()``: no collector pauses.
+    """
+    fifo_priority: int | None = 80
+    cpus: frozenset[int] | None = None
+    lock_memory: bool = True
+    cpu_dma_latency_us: int | None = 0
+    timer_slack_ns: int | None = 1
+    freeze_gc: bool = True
+
+
+@dataclass(frozen=True)
+class Grant:
+    """The outcome of one request: granted or not, and what was set or why not."""
+    granted: bool
+    detail: str
+
+
+@dataclass(frozen=True)
+class SchedulingReport:
+    """One :class:`Grant` per request of a :class:`SchedulingRequest`."""
+    fifo: Grant
+    affinity: Grant
+    mlockall: Grant
+    cpu_dma_latency: Grant
+    timer_slack: Grant
+    gc_frozen: Grant
+
+    def as_dict(self) -> dict:
+        """``{name: {"granted": bool, "detail": str}}`` (JSON-ready)."""
+        return asdict(self)
+
+    def granted(self) -> list[str]:
+        """Names of the requests that were granted."""
+        return [f.name for f in fields(self) if getattr(self, f.name).granted]
+
+
+_NOT_REQUESTED = Grant(False, "not requested")
+
+
+def last_cpu() -> int:
+    """The highest-numbered CPU this process may run on (CPU 0 usually takes most
+    interrupts and housekeeping)."""
+    return max(os.sched_getaffinity(0))
+
+
+@functools.cache
+def _libc() -> ctypes.CDLL:
+    return ctypes.CDLL(None, use_errno=True)
+
+
+def _refused(err: OSError) -> Grant:
+    return Grant(False, f"refused: {err.strerror or err} (errno {err.errno})")
+
+
+def _libc_call(name: str, *args) -> int:
+    """Call a libc function that returns -1 on error; raise OSError with its errno."""
+    result = getattr(_libc(), name)(*args)
+    if result == -1:
+        errno = ctypes.get_errno()
+        raise OSError(errno, os.strerror(errno))
+    return result
+
+
+def _request_affinity(cpus: frozenset[int] | None, undo: ExitStack) -> Grant:
+    if cpus is None:
+        return _NOT_REQUESTED
+    try:
+        original = os.sched_getaffinity(0)
+        os.sched_setaffinity(0, cpus)
+    except OSError as err:
+        return _refused(err)
+    undo.callback(os.sched_setaffinity, 0, original)
+    return Grant(True, f"CPUs {sorted(cpus)}")
+
+
+def _request_mlockall(lock: bool, undo: ExitStack) -> Grant:
+    if not lock:
+        return _NOT_REQUESTED
+    try:
+        _libc_call("mlockall", _MCL_CURRENT | _MCL_FUTURE)
+    except OSError as err:
+        return _refused(err)
+    undo.callback(_libc().munlockall)
+    return Grant(True, "MCL_CURRENT | MCL_FUTURE")
+
+
+def _request_cpu_dma_latency(latency_us: int | None, undo: ExitStack) -> Grant:
+    if latency_us is None:
+        return _NOT_REQUESTED
+    try:
+        fd = os.open(CPU_DMA_LATENCY_PATH, os.O_WRONLY | os.O_CLOEXEC)
+    except OSError as err:
+        return _refused(err)
+    try:
+        os.write(fd, struct.pack("i", latency_us))
+    except OSError as err:
+        os.close(fd)
+        return _refused(err)
+    undo.callback(os.close, fd)
+    return Grant(True, f"{latency_us} µs, fd {fd} held open")
+
+
+def _request_timer_slack(slack_ns: int | None, undo: ExitStack) -> Grant:
+    if slack_ns is None:
+        return _NOT_REQUESTED
+    ulong = ctypes.c_ulong
+    try:
+        original = _libc_call("prctl", _PR_GET_TIMERSLACK, ulong(0), ulong(0), ulong(0), ulong(0))
+        _libc_call("prctl", _PR_SET_TIMERSLACK, ulong(slack_ns), ulong(0), ulong(0), ulong(0))
+    except OSError as err:
+        return _refused(err)
+    undo.callback(_libc().prctl, _PR_SET_TIMERSLACK, ulong(original), ulong(0), ulong(0), ulong(0))
+    return Grant(True, f"{slack_ns} ns (was {original} ns)")
+
+
+def _request_fifo(priority: int | None, undo: ExitStack) -> Grant:
+    if priority is None:
+        return _NOT_REQUESTED
+    try:
+        policy, param = os.sched_getscheduler(0), os.sched_getparam(0)
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+    except OSError as err:
+        return _refused(err)
+    undo.callback(os.sched_setscheduler, 0, policy, param)
+    return Grant(True, f"SCHED_FIFO priority {priority}")
+
+
+def _request_gc_freeze(freeze: bool, undo: ExitStack) -> Grant:
+    if not freeze:
+        return _NOT_REQUESTED
+    was_enabled = gc.isenabled()
+    gc.collect()
+    gc.freeze()
+    gc.disable()
+    if was_enabled:
+        undo.callback(gc.enable)
+    undo.callback(gc.unfreeze)
+    return Grant(True, f"{gc.get_freeze_count()} objects frozen, collector disabled")
+
+
+@contextmanager
+def realtime_scheduling(request: SchedulingRequest = SchedulingRequest()) -> Iterator[SchedulingReport]:
+    """Apply ``request`` for the ``with`` block; yields the :class:`SchedulingReport`.
+
+    Order: affinity, memory lock, idle-state latency, timer slack, FIFO (so the set-up
+    runs at normal priority), GC freeze (last, so it freezes the set-up's objects);
+    restored in the reverse order, also when the block raises.  Off Linux nothing is
+    requested and every entry says so.
+    """
+    if not sys.platform.startswith("linux"):
+        off = Grant(False, f"needs Linux, running on {sys.platform}")
+        yield SchedulingReport(off, off, off, off, off, off)
+        return
+    with ExitStack() as undo:
+        affinity = _request_affinity(request.cpus, undo)
+        mlockall = _request_mlockall(request.lock_memory, undo)
+        dma = _request_cpu_dma_latency(request.cpu_dma_latency_us, undo)
+        slack = _request_timer_slack(request.timer_slack_ns, undo)
+        fifo = _request_fifo(request.fifo_priority, undo)
+        gc_frozen = _request_gc_freeze(request.freeze_gc, undo)
+        yield SchedulingReport(fifo=fifo, affinity=affinity, mlockall=mlockall,
+                               cpu_dma_latency=dma, timer_slack=slack, gc_frozen=gc_frozen)

@@ -1,0 +1,178 @@
+"""UDP transport: one msgpack message (:mod:`io_adapters.codec`) per datagram.
+
+URL: ``udp://HOST:PORT[?option=value&...]``.  HOST:PORT is the device's address
+on both sides, so both can be given the same URL:
+
+* the device binds HOST:PORT (port 0 picks a free one; see :attr:`UdpEndpoint.address`)
+  and answers the sender of the latest good setpoint, or a fixed ``peer``;
+* the controller binds an ephemeral port on the same loopback address (or ``bind``),
+  sends to HOST:PORT and drops datagrams from any other address (``stats.foreign``).
+
+Options:
+
+* ``bind=HOST:PORT`` — controller only: its own address.
+* ``peer=HOST:PORT`` — device only: always send feedback there.
+* ``allow_remote=1`` — allow addresses outside the loopback network (refused otherwise).
+* ``drain=1`` — each receive also takes every datagram already queued behind the
+  first, so the loop works on the newest record (see :class:`~io_adapters.base.Endpoint`).
+* ``rcvbuf=BYTES`` — the socket's receive buffer (SO_RCVBUF; the kernel doubles it).
+
+The socket is non-blocking; waits use ``select``, which keeps microsecond timeouts
+(``poll`` rounds up to milliseconds).  SO_REUSEADDR is deliberately not set: on
+Linux it lets a second UDP socket bind the same port and take its datagrams, so a
+second emulator on a busy port is refused instead of silently splitting the
+setpoints.  A device has nobody to answer before the first setpoint arrives (no
+``peer``): ``send_feedback`` then returns False.
+"""
+
+import ipaddress
+import select
+import socket
+
+from io_adapters.base import (
+    AdapterConfigError,
+    AdapterError,
+    Role,
+    flag,
+    parse_options,
+    positive_int,
+)
+from io_adapters.codec import MsgpackEndpoint
+
+#: receive buffer, bytes: far above any message (about 100 bytes)
+MAX_DATAGRAM = 2048
+
+
+def host_port(text: str) -> tuple[str, int]:
+    """``"HOST:PORT"`` or ``"[V6HOST]:PORT"`` -> (host, port)."""
+    host, sep, port = text.rpartition(":")
+    if not sep or not host or not port.isdigit() or int(port) > 65535:
+        raise ValueError(f"{text!r} is not HOST:PORT")
+    return host.strip("[]"), int(port)
+
+
+def _sockaddr(host: str, port: int) -> tuple[int, tuple]:
+    try:
+        family, _, _, _, addr = socket.getaddrinfo(host, port, type=socket.SOCK_DGRAM)[0]
+    except socket.gaierror as e:
+        raise AdapterConfigError(f"cannot resolve {host!r}: {e}") from e
+    return family, addr
+
+
+def _is_loopback(addr: tuple) -> bool:
+    return ipaddress.ip_address(addr[0].partition("%")[0]).is_loopback
+
+
+class UdpEndpoint(MsgpackEndpoint):
+    """One side of a UDP link; see the module docstring for addressing and options.
+
+    Args:
+        role: "device" or "controller".
+        address: the device's (host, port).
+        bind: controller only: its own (host, port); default the loopback address of
+            ``address``'s family, ephemeral port (any address if ``address`` is remote).
+        peer: device only: the (host, port) to send feedback to instead of the sender.
+        allow_remote: allow non-loopback addresses.
+        drain: see :class:`~io_adapters.base.Endpoint`.
+        rcvbuf: SO_RCVBUF in bytes (None: the system default).
+    """
+
+    def __init__(self, role: Role | str, address: tuple[str, int], *,
+                 bind: tuple[str, int] | None = None, peer: tuple[str, int] | None = None,
+                 allow_remote: bool = False, drain: bool = False, rcvbuf: int | None = None):
+        super().__init__(role, drain=drain)
+        device = self.role is Role.DEVICE
+        if device and bind is not None:
+            raise AdapterConfigError("bind= is for the controller side; the device binds "
+                                     "the URL's address")
+        if not device and peer is not None:
+            raise AdapterConfigError("peer= is for the device side; the controller sends "
+                                     "to the URL's address")
+        family, target = _sockaddr(*address)
+        if not device and target[1] == 0:
+            raise AdapterConfigError(f"controller needs the device's port, not 0: {address}")
+        if device:
+            local = target
+        elif bind is not None:
+            local = _sockaddr(*bind)[1]
+        else:
+            local = (target[0] if _is_loopback(target) else "", 0) + target[2:]
+        self._peer = _sockaddr(*peer)[1] if peer is not None else (None if device else target)
+        for addr in (target, local, self._peer):
+            if addr is not None and addr[0] and not allow_remote and not _is_loopback(addr):
+                raise AdapterConfigError(f"{addr[0]} is not a loopback address; add "
+                                         f"allow_remote=1 to use the network")
+        self._device = device
+        self._answer_sender = device and peer is None
+        self._from = None
+        self._buf = bytearray(MAX_DATAGRAM)
+        self._view = memoryview(self._buf)
+        self._sock = socket.socket(family, socket.SOCK_DGRAM)
+        try:
+            if rcvbuf is not None:
+                self._sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, rcvbuf)
+            self._sock.bind(local)
+            self._sock.setblocking(False)
+        except OSError as e:
+            self._sock.close()
+            raise AdapterError(f"cannot bind UDP {local[0]}:{local[1]}: {e}") from e
+
+    @classmethod
+    def from_url(cls, url: str, role: Role | str) -> "UdpEndpoint":
+        """``udp://HOST:PORT?options`` (see the module docstring)."""
+        rest = url.partition("://")[2]
+        netloc, _, query = rest.partition("?")
+        try:
+            address = host_port(netloc.rstrip("/"))
+        except ValueError as e:
+            raise AdapterConfigError(f"{url!r}: expected udp://HOST:PORT ({e})") from e
+        options = parse_options(url, query, {
+            "bind": host_port, "peer": host_port, "allow_remote": flag, "drain": flag,
+            "rcvbuf": positive_int})
+        return cls(role, address, **options)
+
+    @property
+    def address(self) -> tuple:
+        """The local socket address (host, port, ...) actually bound."""
+        return self._sock.getsockname()
+
+    @property
+    def peer(self) -> tuple | None:
+        """Where the next message goes (None: a device that has not heard from anyone)."""
+        return self._peer
+
+    def __repr__(self) -> str:
+        host, port = self._sock.getsockname()[:2] if not self._closed else ("-", "-")
+        return f"<UdpEndpoint {self.role.value} {host}:{port}{' closed' * self._closed}>"
+
+    def _send_bytes(self, payload: bytes) -> bool:
+        if self._peer is None:
+            return False
+        self._sock.sendto(payload, self._peer)
+        return True
+
+    def _recv_bytes(self, timeout_s: float | None) -> memoryview | None:
+        sock = self._sock
+        if timeout_s != 0.0 and not select.select((sock,), (), (), timeout_s)[0]:
+            return None
+        while True:
+            try:
+                n, addr = sock.recvfrom_into(self._buf)
+            except BlockingIOError:
+                return None
+            if self._device or addr == self._peer:
+                self._from = addr
+                return self._view[:n]
+            self.stats.foreign += 1
+
+    def _accept(self, data, into) -> bool:
+        ok = super()._accept(data, into)
+        if ok and self._answer_sender:
+            self._peer = self._from
+        return ok
+
+    def _close(self) -> None:
+        self._sock.close()
+
+    def _fileno(self) -> int:
+        return self._sock.fileno()
