@@ -14,12 +14,16 @@ Setpoint (kind 1), header then::
 
     4  seq          int    u32, the controller's cycle counter
     5  controlword  int    u16, CiA 402 controlword (6040h)
-    6  mode         int    i8, CiA 402 mode of operation (6060h; messages.MODE_*)
-    7  iq_ref_a     float  A, q-current setpoint
-    8  id_ref_a     float  A, d-current setpoint
-    9  ud_v         float  V, d-voltage setpoint
-    10 uq_v         float  V, q-voltage setpoint
-    11 t_ns         int    ns, controller monotonic clock at sending, 0 <= t_ns < 2**63
+    6  mode                      int    i8, CiA 402 mode of operation (6060h; MODE_*)
+    7  target_position_counts    float  motor-encoder increments (CSP)
+    8  target_velocity_counts_s  float  increments/s (CSV)
+    9  velocity_offset_counts_s  float  increments/s, speed feed-forward (CSP)
+    10 iq_ref_a                  float  A, q-current setpoint
+    11 id_ref_a                  float  A, d-current setpoint
+    12 ud_v                      float  V, d-voltage setpoint
+    13 uq_v                      float  V, q-voltage setpoint
+    14 t_ns                      int    ns, controller monotonic clock at sending,
+                                        0 <= t_ns < 2**63
 
 Feedback (kind 2), header then::
 
@@ -29,11 +33,12 @@ Feedback (kind 2), header then::
     7  time_s          float  s, drive time at the end of the cycle
     8  encoder_counts  float  motor encoder counts
     9  scale_counts    float  linear scale counts
-    10 iq_a            float  A, sampled q current
-    11 id_a            float  A, sampled d current
-    12 sp_t_ns         int    ns, t_ns of the latest setpoint received (controller clock)
-    13 sp_rx_ns        int    ns, drive monotonic clock when it arrived
-    14 t_ns            int    ns, drive monotonic clock at sending
+    10 velocity_counts_s float increments/s, the drive's speed actual value
+    11 iq_a            float  A, sampled q current
+    12 id_a            float  A, sampled d current
+    13 sp_t_ns         int    ns, t_ns of the latest setpoint received (controller clock)
+    14 sp_rx_ns        int    ns, drive monotonic clock when it arrived
+    15 t_ns            int    ns, drive monotonic clock at sending
 
 Decoding is strict: anything but an array of exactly this length, version,
 kind, element types and integer ranges raises :class:`FrameError` (NaN and
@@ -83,11 +88,13 @@ HEADER = (_int("version", VERSION, VERSION), _int("kind", 1, 2), _int("session",
           _int("frame", 0, U32))
 SETPOINT_FIELDS = (
     _int("seq", 0, U32), _int("controlword", 0, 0xFFFF), _int("mode", -128, 127),
-    _float("iq_ref_a"), _float("id_ref_a"), _float("ud_v"), _float("uq_v"),
+    _float("target_position_counts"), _float("target_velocity_counts_s"),
+    _float("velocity_offset_counts_s"), _float("iq_ref_a"), _float("id_ref_a"), _float("ud_v"), _float("uq_v"),
     _int("t_ns", 0, T_NS_MAX))
 FEEDBACK_FIELDS = (
     _int("seq", 0, U32), _int("statusword", 0, 0xFFFF), _int("fault", -2**31, 2**31 - 1),
-    _float("time_s"), _float("encoder_counts"), _float("scale_counts"), _float("iq_a"),
+    _float("time_s"), _float("encoder_counts"), _float("scale_counts"),
+    _float("velocity_counts_s"), _float("iq_a"),
     _float("id_a"), _int("sp_t_ns", 0, T_NS_MAX), _int("sp_rx_ns", 0, T_NS_MAX),
     _int("t_ns", 0, T_NS_MAX))
 

@@ -19,6 +19,8 @@ are stamped by the receiving adapter and never sent.
 from dataclasses import dataclass
 
 #: CiA 402 modes of operation used on the wire (6060h values)
+MODE_CSP = 8  # cyclic synchronous position: the drive closes position and speed loops
+MODE_CSV = 9  # cyclic synchronous velocity: the drive closes the speed loop
 MODE_CST = 10  # cyclic synchronous torque: here the q-current setpoint in A
 #: manufacturer-specific mode (negative values are reserved for vendors in CiA 402):
 #: d-q voltage setpoints, for controllers that close the current loop themselves
@@ -32,8 +34,13 @@ class Setpoint:
     Attributes:
         seq: sequence number (wraps at 2**32).
         controlword: CiA 402 controlword (6040h).
-        mode: MODE_CST or MODE_VOLTAGE.
-        iq_ref_a, id_ref_a: current setpoints in A (MODE_CST).
+        mode: MODE_CSP, MODE_CSV, MODE_CST or MODE_VOLTAGE.
+        target_position_counts: position setpoint in motor-encoder increments (MODE_CSP;
+            CiA 402 607Ah with the position factor 1).
+        target_velocity_counts_s: speed setpoint in increments/s (MODE_CSV; 60FFh).
+        velocity_offset_counts_s: speed feed-forward in increments/s (MODE_CSP; 60B1h).
+        iq_ref_a, id_ref_a: current setpoints in A (MODE_CST; in MODE_CSP and MODE_CSV
+            iq_ref_a is added to the drive's speed-controller output as a feed-forward).
         ud_v, uq_v: voltage setpoints in V (MODE_VOLTAGE).
         t_ns: controller clock when the adapter sent it, ns (set by ``send_setpoint``).
         rx_ns: *local*, drive clock when the adapter received it, ns (set by
@@ -42,6 +49,9 @@ class Setpoint:
     seq: int = 0
     controlword: int = 0
     mode: int = MODE_CST
+    target_position_counts: float = 0.0
+    target_velocity_counts_s: float = 0.0
+    velocity_offset_counts_s: float = 0.0
     iq_ref_a: float = 0.0
     id_ref_a: float = 0.0
     ud_v: float = 0.0
@@ -58,8 +68,10 @@ class Feedback:
         seq: sequence number of the setpoint this answers.
         statusword: CiA 402 statusword (6041h).
         time_s: drive time at the end of the cycle.
-        encoder_counts: motor encoder, whole counts.
+        encoder_counts: motor encoder, whole counts (CiA 402 position actual, 6064h).
         scale_counts: linear scale, whole counts (0 without a scale).
+        velocity_counts_s: the drive's speed actual value, increments/s (606Ch): the
+            encoder difference over the drive's speed cycle.
         iq_a, id_a: sampled currents in A.
         fault: the plant's fault status (0 = none; plant.layout STATUS_*).
         sp_t_ns: ``t_ns`` of the latest setpoint the drive's adapter received
@@ -74,6 +86,7 @@ class Feedback:
     time_s: float = 0.0
     encoder_counts: float = 0.0
     scale_counts: float = 0.0
+    velocity_counts_s: float = 0.0
     iq_a: float = 0.0
     id_a: float = 0.0
     fault: int = 0
