@@ -2,6 +2,7 @@
 
     hil validate [--json] [--out DIR] [--only NAME ...]
     hil bench plant [--json] [--config FILE ...] [--seconds S]
+    hil bench loop [--rate 1000,4000,8000] [--seconds S] [--with-plant] [--json]
     hil config-keys [--markdown]
     hil sim CONFIG --program FILE --out DIR [--start MM] [--json]
     hil measure CONFIG step current|speed|position --amplitude X [--at MM] --out DIR
@@ -76,6 +77,23 @@ def cmd_bench_plant(args) -> int:
                   f"real-time factor {r['realtime_factor']:6.1f}  reference "
                   f"{r['reference_ns_per_step']:9.0f} ns  speed-up {r['speedup_vs_reference']:6.0f}x  "
                   f"cold start {r['cold_start_s']:.1f} s")
+    return 0
+
+
+def cmd_bench_loop(args) -> int:
+    from hil.bench.loop import main_rows
+
+    rates = [int(r) for r in args.rate.split(",")]
+    rows = main_rows(rates, args.seconds, args.with_plant)
+    if args.json:
+        print(json.dumps(rows, indent=1))
+    else:
+        for r in rows:
+            lat, cyc = r["lateness_us"], r["cyclictest_us"]
+            base = (f"cyclictest p99.9 {cyc['p999']:7.1f} µs" if cyc else "cyclictest: n/a")
+            print(f"{r['rate_hz']:6d} Hz  lateness p50 {lat['p50']:6.2f}  p99 {lat['p99']:7.2f}  "
+                  f"p99.9 {lat['p999']:7.1f}  max {lat['max']:8.1f} µs  overruns "
+                  f"{r['overruns']:4d}  {base}")
     return 0
 
 
@@ -164,6 +182,14 @@ def build_parser() -> argparse.ArgumentParser:
     m.add_argument("--out", required=True, help="folder for the plot and the CSV")
     m.add_argument("--json", action="store_true")
     m.set_defaults(func=cmd_measure)
+
+    bl = bsub.add_parser("loop", help="hard-timed loop lateness vs cyclictest, same interval")
+    bl.add_argument("--rate", default="1000,4000,8000", help="comma-separated rates, Hz")
+    bl.add_argument("--seconds", type=float, default=5.0, help="run per rate and tool, s")
+    bl.add_argument("--with-plant", action="store_true",
+                    help="step the Arrow 500 X plant every tick")
+    bl.add_argument("--json", action="store_true")
+    bl.set_defaults(func=cmd_bench_loop)
 
     k = sub.add_parser("config-keys", help="every machine-file key with unit and meaning")
     k.add_argument("--markdown", action="store_true")
