@@ -1,4 +1,4 @@
-"""The controller's seed experiments (hil.validate.experiments.controller) and one direct
+"""The controller's seed experiments (hil.validate.experiments.seed000_loops and .moves) and one direct
 physical check of each: unity DC gain of the current loop, kinematics of a speed step, the
 position loop's decay rate, a stiffer coupling raising the torsional peak, the trapezoid's
 travel at the programmed feed, the velocity limit of the linear motor's move."""
@@ -10,12 +10,13 @@ import pytest
 
 from hil.measure.frequency_response import peaks
 from hil.measure.runs import bode, position_step, speed_step
-from hil.validate.experiments import controller as C
+from hil.validate.experiments import moves as MV
+from hil.validate.experiments import seed000_loops as L0
 from plant.assemble import natural_frequencies, transmission_ratio
 from plant.config import load_machine
 
-EXPERIMENTS = (C.seed000_current_steps, C.seed000_velocity_steps, C.seed000_position_step,
-               C.seed000_speed_loop_bode, C.seed003_trapezoid, C.seed002_linear_move)
+EXPERIMENTS = (L0.seed000_current_steps, L0.seed000_velocity_steps, L0.seed000_position_step,
+               L0.seed000_speed_loop_bode, MV.seed003_trapezoid, MV.seed002_linear_move)
 
 
 @pytest.mark.parametrize("run", EXPERIMENTS, ids=lambda f: f.__name__)
@@ -33,8 +34,8 @@ def test_experiment_rows_ok(run):
 def test_current_loop_unity_dc_gain():
     """Analytic: a PI current loop has no steady error, so the closed loop's gain tends to
     1 (0 dB, 0 deg) at low frequency; checked at the PRBS's lowest line (7.8 Hz)."""
-    fr = bode(load_machine(C.ARROW), "current", C.CURRENT_PRBS_A, order=10,
-              x0=C.ARROW_X0).response
+    fr = bode(load_machine(L0.ARROW), "current", L0.CURRENT_PRBS_A, order=10,
+              x0=L0.ARROW_X0).response
     assert abs(fr.magnitude_db[0]) < 0.2
     assert abs(fr.phase_deg[0]) < 5.0
 
@@ -42,8 +43,8 @@ def test_current_loop_unity_dc_gain():
 def test_speed_step_table_travels_at_the_setpoint():
     """Kinematics: once the 500 mm/min step has settled, the true table position advances
     by v * dt (40 ms to 120 ms after the step) within 1 %."""
-    v = 500.0 / C.MM_MIN
-    res = speed_step(load_machine(C.ARROW), v, duration_s=0.12, x0=C.ARROW_X0)
+    v = 500.0 / L0.MM_MIN
+    res = speed_step(load_machine(L0.ARROW), v, duration_s=0.12, x0=L0.ARROW_X0)
     x, t = res.sim["table_pos"], res.t_s
     i0, i1 = np.searchsorted(t, 0.04), len(t) - 1
     assert (x[i1] - x[i0]) / (t[i1] - t[i0]) == pytest.approx(v, rel=0.01)
@@ -54,11 +55,11 @@ def test_position_step_decays_at_the_slow_root():
     error decays as the slowest root of the closed loop, -32 1/s (slower than K_v = 33.3 1/s:
     the PI speed loop lags a decaying command); the error's log-slope from 60 to 150 ms
     (0.5 mm step, far above the 0.1 µm scale) matches it within 5 %."""
-    cfg = load_machine(C.ARROW)
-    slow = max(np.roots(C.position_loop_polynomials(cfg)[1]).real)
-    res = position_step(cfg, C.ARROW_X0, C.POSITION_STEP_M, duration_s=0.16)
+    cfg = load_machine(L0.ARROW)
+    slow = max(np.roots(L0.position_loop_polynomials(cfg)[1]).real)
+    res = position_step(cfg, L0.ARROW_X0, L0.POSITION_STEP_M, duration_s=0.16)
     tail = (res.t_s >= 0.06) & (res.t_s <= 0.15)
-    err = C.ARROW_X0 + C.POSITION_STEP_M - res.response[tail]
+    err = L0.ARROW_X0 + L0.POSITION_STEP_M - res.response[tail]
     rate = np.polyfit(res.t_s[tail], np.log(err), 1)[0]
     assert rate == pytest.approx(slow, rel=0.05)
 
@@ -67,22 +68,22 @@ def test_stiffer_coupling_raises_the_torsional_peak():
     """Linearised mechanics: doubling the coupling stiffness moves the torsional mode from
     ~415 Hz to ~555 Hz (natural_frequencies); the closed speed loop's peak follows it
     within 10 %."""
-    cfg = load_machine(C.ARROW, overrides={"coupling": {"stiffness_nm_per_rad": 6600.0}})
+    cfg = load_machine(L0.ARROW, overrides={"coupling": {"stiffness_nm_per_rad": 6600.0}})
     ratio = transmission_ratio(cfg)
-    mode = natural_frequencies(cfg, C.ARROW_X0)[2] / (2.0 * math.pi)
-    fr = bode(cfg, "speed", C.SPEED_PRBS_AMPLITUDE_MM_MIN / C.MM_MIN / ratio,
-              C.SPEED_PRBS_OFFSET_MM_MIN / C.MM_MIN / ratio, order=12, x0=C.ARROW_X0).response
+    mode = natural_frequencies(cfg, L0.ARROW_X0)[2] / (2.0 * math.pi)
+    fr = bode(cfg, "speed", L0.SPEED_PRBS_AMPLITUDE_MM_MIN / L0.MM_MIN / ratio,
+              L0.SPEED_PRBS_OFFSET_MM_MIN / L0.MM_MIN / ratio, order=12, x0=L0.ARROW_X0).response
     found = [p.freq_hz for p in peaks(fr) if 300.0 < p.freq_hz < 1000.0]
-    assert mode > 1.2 * C.PAPER_RESONANCE_HZ
+    assert mode > 1.2 * L0.PAPER_RESONANCE_HZ
     assert min(found, key=lambda f: abs(f - mode)) == pytest.approx(mode, rel=0.1)
 
 
 def test_trapezoid_travels_at_the_programmed_feed():
     """Kinematics of seed 003's program (F6000): over the outward constant phase the true
     table position advances at 6000 mm/min within 0.1 %."""
-    res = C.run_trapezoid()
-    feed = C.PAPER_FEED_MM_MIN / C.MM_MIN
-    on = np.flatnonzero(C.cruise(res, feed, 1.0))
+    res = MV.run_trapezoid()
+    feed = MV.PAPER_FEED_MM_MIN / L0.MM_MIN
+    on = np.flatnonzero(MV.cruise(res, feed, 1.0))
     x, t = res["table_pos"], res["t_s"]
     speed = (x[on[-1]] - x[on[0]]) / (t[on[-1]] - t[on[0]])
     assert speed == pytest.approx(feed, rel=1e-3)
@@ -91,7 +92,7 @@ def test_trapezoid_travels_at_the_programmed_feed():
 def test_linear_move_cruises_at_the_velocity_limit():
     """Seed 002 Fig. 4: the speed command is limited to 2.5 m/s; between 0.15 s and 0.35 s
     (after the overshoot, before the approach) the axis cruises at that limit within 1 %."""
-    res = position_step(load_machine(C.LD386), C.LD386_X0, C.PAPER_MOVE_M, duration_s=0.4)
-    assert res.sim["v_cmd"].max() <= C.PAPER_PEAK_VELOCITY * (1.0 + 1e-12)
+    res = position_step(load_machine(MV.LD386), MV.LD386_X0, MV.PAPER_MOVE_M, duration_s=0.4)
+    assert res.sim["v_cmd"].max() <= MV.PAPER_PEAK_VELOCITY * (1.0 + 1e-12)
     cruise = (res.t_s >= 0.15) & (res.t_s <= 0.35)
-    assert np.median(res.sim["v_act"][cruise]) == pytest.approx(C.PAPER_PEAK_VELOCITY, rel=0.01)
+    assert np.median(res.sim["v_act"][cruise]) == pytest.approx(MV.PAPER_PEAK_VELOCITY, rel=0.01)

@@ -2,8 +2,9 @@
 
 from hil.validate.experiments import (  # noqa: F401
     cogging,
-    controller,
     electrical,
     friction,
     mechanics,
+    moves,
+    seed000_loops,
 )
