@@ -3,6 +3,8 @@
     hil validate [--json] [--out DIR] [--only NAME ...]
     hil bench plant [--json] [--config FILE ...] [--seconds S]
     hil bench loop [--rate 1000,4000,8000] [--seconds S] [--with-plant] [--json]
+    hil bench adapters [--n N] [--adapter udp|serial] [--json]
+    hil report RUN [--cyclictest]
     hil config-keys [--markdown]
     hil sim CONFIG --program FILE --out DIR [--start MM] [--json]
     hil measure CONFIG step current|speed|position --amplitude X [--at MM] --out DIR
@@ -19,6 +21,7 @@ import sys
 from pathlib import Path
 
 from hil.controller.program import ProgramError
+from hil.report.latency import ReportError
 from plant.errors import ConfigError
 
 CONFIG_DIR = Path(__file__).resolve().parent.parent / "configs"
@@ -94,6 +97,30 @@ def cmd_bench_loop(args) -> int:
             print(f"{r['rate_hz']:6d} Hz  lateness p50 {lat['p50']:6.2f}  p99 {lat['p99']:7.2f}  "
                   f"p99.9 {lat['p999']:7.1f}  max {lat['max']:8.1f} µs  overruns "
                   f"{r['overruns']:4d}  {base}")
+    return 0
+
+
+def cmd_report(args) -> int:
+    from hil.report.latency import REPORT_MD, report_run
+
+    report_run(Path(args.run), args.cyclictest_seconds if args.cyclictest else None,
+               note=_eprint)
+    print((Path(args.run) / REPORT_MD).read_text())
+    return 0
+
+
+def cmd_bench_adapters(args) -> int:
+    from hil.bench.adapters import TRANSPORTS, main_rows
+
+    rows = main_rows(args.n, args.adapter or list(TRANSPORTS))
+    if args.json:
+        print(json.dumps(rows, indent=1))
+    else:
+        for r in rows:
+            rt, raw = r["round_trip_us"], r["raw_echo_us"]
+            print(f"{r['adapter']:<7} {r['transport']:<20} round trip p50 {rt['p50']:7.1f}  "
+                  f"p99.9 {rt['p999']:7.1f} µs   raw echo p50 {raw['p50']:7.1f}  "
+                  f"p99.9 {raw['p999']:7.1f} µs   overhead p50 {r['overhead_p50_us']:+6.1f} µs")
     return 0
 
 
@@ -191,6 +218,20 @@ def build_parser() -> argparse.ArgumentParser:
     bl.add_argument("--json", action="store_true")
     bl.set_defaults(func=cmd_bench_loop)
 
+    ba = bsub.add_parser("adapters", help="setpoint-to-feedback round trip vs raw echo")
+    ba.add_argument("--n", type=int, default=20000, help="round trips of each kind")
+    ba.add_argument("--adapter", action="append", choices=("udp", "serial"),
+                    help="repeatable; default: all")
+    ba.add_argument("--json", action="store_true")
+    ba.set_defaults(func=cmd_bench_adapters)
+
+    r = sub.add_parser("report", help="latency and jitter report of a run folder")
+    r.add_argument("run", help="run folder (run.npz + report.json)")
+    r.add_argument("--cyclictest", action="store_true",
+                   help="cyclictest baseline at the run's period (needs rt-tests)")
+    r.add_argument("--cyclictest-seconds", type=float, default=10.0, help="baseline length, s")
+    r.set_defaults(func=cmd_report)
+
     k = sub.add_parser("config-keys", help="every machine-file key with unit and meaning")
     k.add_argument("--markdown", action="store_true")
     k.set_defaults(func=cmd_config_keys)
@@ -201,7 +242,7 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return args.func(args)
-    except (ConfigError, KeyError, ProgramError) as exc:
+    except (ConfigError, KeyError, ProgramError, ReportError) as exc:
         _eprint(f"hil: {exc}")
         return 2
 

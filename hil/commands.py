@@ -15,7 +15,7 @@ from hil.controller.program import read_program
 from hil.measure.frequency_response import bandwidth_hz, bode_plot, peaks, write_csv
 from hil.measure.runs import (bode, current_step, position_step, speed_step,
                               write_step_csv)
-from hil.reports import plot_sim, plot_step
+from hil.figures import plot_sim, plot_step
 from hil.sim import LockStep, servo_trace_columns
 from hil.trace_file import write_trace
 from plant.assemble import transmission_ratio

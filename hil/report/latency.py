@@ -1,0 +1,357 @@
+"""Latency and jitter report of one emulator run: ``hil report RUN``.
+
+:func:`load_run` reads a run folder into a :class:`RunData`; :func:`build_report` reduces
+it to a JSON-ready dict; :func:`write_report` writes ``report_latency.json``, ``report.md``
+and ``latency_hist.png`` into the folder.  :func:`report_run` does all three, with an
+optional cyclictest baseline at the run's period (:mod:`hil.report.baseline`).
+
+Percentiles are nearest rank, as :mod:`hil.rt` computes them
+(:meth:`hil.rt.loop.Percentiles.of_ns_in_us`): the p-th percentile of n samples is the
+smallest sample with at least p % of them at or below it, i.e. the ``ceil(p/100 * n)``-th
+smallest.  Every figure is over the ticks that ran (dropped ticks excluded).
+
+The run folder
+--------------
+``run.npz`` (``numpy.savez``), integer arrays of one slot per deadline the loop covered,
+tick k in slot k (``LoopStats.lateness_ns`` and ``compute_ns`` as the loop returned them)::
+
+    lateness_ns    int64[n]  wake-up time - deadline, ns; SKIPPED (int64 min) where the
+                             tick was dropped
+    compute_ns     int64[n]  end of the step - wake-up time, ns; SKIPPED where dropped
+
+and, when the run had an adapter, five round-trip stamps, int64[n] each, all five or none
+(``time.monotonic_ns()`` values; 0 = no stamp).  Only the tick that first used a newly
+received setpoint carries stamps; every other slot is 0 in all five::
+
+    tick_start_ns  device clock at the start of that tick's step (read first thing in it)
+    sp_t_ns        Setpoint.t_ns: controller clock when the controller sent the setpoint
+    sp_rx_ns       Setpoint.rx_ns: device clock when the device's adapter returned it
+    fb_t_ns        Feedback.t_ns: device clock when that tick's feedback was sent
+    fb_rx_ns       Feedback.rx_ns: controller clock when the controller's adapter received
+                   that feedback; 0 where the controller side's stamp is not known
+
+``report.json``, a JSON object; the keys read here (others are ignored)::
+
+    "loop":       LoopStats.as_dict(); "period_ns", "ticks", "overruns", "skipped" are read
+    "scheduling": SchedulingReport.as_dict()
+    "adapter":    {"name": str (e.g. the URL), "stats": dataclasses.asdict(AdapterStats)},
+                  or null / absent for a run without one
+    "host":       hil.report.host.host_fingerprint() taken during the run; optional (the
+                  report then takes the fingerprint of the machine it runs on)
+
+``loop.ticks + loop.skipped`` must equal n and ``loop.skipped`` the SKIPPED slots.
+
+The round trip and its parts
+----------------------------
+Per tick k with stamps (all ns; "controller" and "device" clocks may be different
+machines, so only differences on one clock are taken)::
+
+    total_ns     = fb_rx_ns - sp_t_ns              controller clock: setpoint sent to
+                                                   feedback received
+    hold_ns      = fb_t_ns - sp_rx_ns              device clock: how long the drive held it
+    transport_ns = total_ns - hold_ns              (= Feedback.round_trip_ns())
+    wait_ns      = tick_start_ns - sp_rx_ns        setpoint's arrival to the start of the
+                                                   tick that used it
+    compute_ns   = compute_ns[k]                   the tick's compute time
+
+so ``total = transport + wait + compute + (fb_t_ns - tick_start_ns - compute_ns[k])``; the
+last term is the end of the step to the send, negative when the feedback goes out before
+the step ends.  ``total`` and ``transport`` need ``fb_rx_ns``; ``wait`` and ``compute`` do
+not.  "Arrival" is when the adapter returned the setpoint to the daemon, not when the
+bytes reached the socket: a daemon that reads its setpoint inside the tick sees a wait
+near or below zero and the real wait inside ``transport``.
+"""
+
+import json
+import math
+import sys
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from hil.report.baseline import CyclictestBaseline, run_cyclictest_baseline
+from hil.report.host import host_fingerprint
+from hil.rt.cyclictest import CyclictestError
+from hil.rt.loop import SKIPPED, Percentiles
+from hil.rt.scheduling import last_cpu
+
+RUN_NPZ = "run.npz"
+RUN_JSON = "report.json"
+REPORT_JSON = "report_latency.json"
+REPORT_MD = "report.md"
+REPORT_PNG = "latency_hist.png"
+#: a slot with no value: the loop's marker of a dropped tick, also used for a tick
+#: without a round trip
+NO_VALUE = SKIPPED
+STAMP_KEYS = ("tick_start_ns", "sp_t_ns", "sp_rx_ns", "fb_t_ns", "fb_rx_ns")
+PERCENTILE_DEFINITION = "nearest rank: the ceil(p/100 * n)-th smallest of n samples"
+#: lateness histogram: log-spaced bins from HIST_LOW_US up, HIST_BINS_PER_DECADE per decade
+HIST_LOW_US = 0.1
+HIST_BINS_PER_DECADE = 20
+
+
+class ReportError(ValueError):
+    """A run folder that cannot be read: a missing file or key, or arrays that disagree.
+    The message names the file and the key."""
+
+
+@dataclass(frozen=True, eq=False)
+class RoundTrip:
+    """The setpoint-to-feedback round trip, split as the module docstring defines, one
+    slot per tick (``NO_VALUE`` where a tick has no round trip or that part is unknown).
+
+    Attributes:
+        total_ns: setpoint sent to feedback received, controller clock.
+        transport_ns: ``total_ns`` less the time the drive held the setpoint.
+        wait_ns: the setpoint's arrival to the start of the tick that used it.
+        compute_ns: that tick's compute time.
+    """
+    total_ns: np.ndarray
+    transport_ns: np.ndarray
+    wait_ns: np.ndarray
+    compute_ns: np.ndarray
+
+
+@dataclass(frozen=True, eq=False)
+class RunData:
+    """What a latency report is made from (see the module docstring for the files).
+
+    Attributes:
+        period_ns: the loop's period.
+        lateness_ns, compute_ns: per tick, ``NO_VALUE`` where the tick was dropped.
+        overruns: overruns after the grace period.
+        skipped: ticks dropped by the ``"skip"`` overrun policy (missed ticks).
+        scheduling: ``SchedulingReport.as_dict()``.
+        adapter: the adapter's name, or None for a run without one.
+        adapter_stats: its ``AdapterStats`` as a dict, or None.
+        round_trip: the per-tick round trip, or None when the run recorded no stamps.
+        host: the host fingerprint taken during the run, or None.
+    """
+    period_ns: int
+    lateness_ns: np.ndarray
+    compute_ns: np.ndarray
+    overruns: int
+    skipped: int
+    scheduling: dict
+    adapter: str | None = None
+    adapter_stats: dict | None = None
+    round_trip: RoundTrip | None = None
+    host: dict | None = None
+
+
+# -- reading a run folder ------------------------------------------------------------------
+
+def _count(section: dict, key: str, where: str, minimum: int = 0) -> int:
+    value = section.get(key)
+    if type(value) is not int or value < minimum:
+        raise ReportError(f"{where}: {key!r} must be an integer >= {minimum}, got {value!r}")
+    return value
+
+
+def _int_array(arrays: dict, key: str, n: int | None, where: Path) -> np.ndarray:
+    a = arrays[key]
+    if a.ndim != 1 or not np.issubdtype(a.dtype, np.integer):
+        raise ReportError(f"{where}: {key!r} must be a 1-D integer array, got {a.dtype} "
+                          f"of shape {a.shape}")
+    if n is not None and a.size != n:
+        raise ReportError(f"{where}: {key!r} has {a.size} slots, lateness_ns {n}")
+    return a.astype(np.int64)
+
+
+def round_trip_from_stamps(stamps: dict[str, np.ndarray],
+                           compute_ns: np.ndarray) -> RoundTrip:
+    """The parts of the module docstring from the five stamp arrays (0 = no stamp)."""
+    tick, sp_t, sp_rx, fb_t, fb_rx = (stamps[k] for k in STAMP_KEYS)
+    has = (tick != 0) & (sp_t != 0) & (sp_rx != 0) & (fb_t != 0) & (compute_ns != NO_VALUE)
+    known = has & (fb_rx != 0)
+    total = np.where(known, fb_rx - sp_t, NO_VALUE)
+    transport = np.where(known, total - (fb_t - sp_rx), NO_VALUE)
+    return RoundTrip(total_ns=total, transport_ns=transport,
+                     wait_ns=np.where(has, tick - sp_rx, NO_VALUE),
+                     compute_ns=np.where(has, compute_ns, NO_VALUE))
+
+
+def load_run(folder: Path | str) -> RunData:
+    """Read ``run.npz`` and ``report.json`` of a run folder (keys: module docstring).
+
+    Raises:
+        ReportError: a file is missing or unreadable, a key is missing or of the wrong
+            type, or the files disagree on the number of ticks.
+    """
+    folder = Path(folder)
+    npz_path, json_path = folder / RUN_NPZ, folder / RUN_JSON
+    try:
+        meta = json.loads(json_path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise ReportError(f"{json_path}: cannot read the run's report: {e}") from e
+    try:
+        with np.load(npz_path) as npz:
+            arrays = {k: npz[k] for k in npz.files}
+    except (OSError, ValueError) as e:
+        raise ReportError(f"{npz_path}: cannot read the recording: {e}") from e
+    if not isinstance(meta, dict):
+        raise ReportError(f"{json_path}: expected a JSON object")
+    for key in ("lateness_ns", "compute_ns"):
+        if key not in arrays:
+            raise ReportError(f"{npz_path}: no {key!r} (has {sorted(arrays)})")
+    stamped = [k for k in STAMP_KEYS if k in arrays]
+    if stamped and len(stamped) != len(STAMP_KEYS):
+        raise ReportError(f"{npz_path}: round-trip stamps need all of {list(STAMP_KEYS)}, "
+                          f"found only {stamped}")
+
+    lateness = _int_array(arrays, "lateness_ns", None, npz_path)
+    compute = _int_array(arrays, "compute_ns", lateness.size, npz_path)
+    loop, scheduling = meta.get("loop"), meta.get("scheduling")
+    if not isinstance(loop, dict) or not isinstance(scheduling, dict):
+        raise ReportError(f"{json_path}: needs the objects 'loop' (LoopStats.as_dict()) and "
+                          f"'scheduling' (SchedulingReport.as_dict())")
+    where = f"{json_path} 'loop'"
+    period_ns = _count(loop, "period_ns", where, minimum=1)
+    ticks, skipped = _count(loop, "ticks", where), _count(loop, "skipped", where)
+    dropped = int(np.count_nonzero(lateness == NO_VALUE))
+    if ticks + skipped != lateness.size or dropped != skipped:
+        raise ReportError(f"{npz_path}: {lateness.size} slots with {dropped} dropped, but "
+                          f"{where} says {ticks} ticks + {skipped} skipped (write "
+                          f"LoopStats.lateness_ns, not the loop's whole buffer)")
+    adapter = meta.get("adapter")
+    if adapter is not None and not (isinstance(adapter, dict) and isinstance(
+            adapter.get("name"), str) and isinstance(adapter.get("stats"), dict)):
+        raise ReportError(f"{json_path}: 'adapter' must be null or "
+                          f"{{'name': str, 'stats': {{...}}}}, got {adapter!r:.200}")
+    host = meta.get("host")
+    if host is not None and not isinstance(host, dict):
+        raise ReportError(f"{json_path}: 'host' must be an object, got {host!r:.200}")
+    round_trip = None
+    if stamped:
+        stamps = {k: _int_array(arrays, k, lateness.size, npz_path) for k in STAMP_KEYS}
+        round_trip = round_trip_from_stamps(stamps, compute)
+    return RunData(period_ns=period_ns, lateness_ns=lateness, compute_ns=compute,
+                   overruns=_count(loop, "overruns", where), skipped=skipped,
+                   scheduling=scheduling,
+                   adapter=None if adapter is None else adapter["name"],
+                   adapter_stats=None if adapter is None else adapter["stats"],
+                   round_trip=round_trip, host=host)
+
+
+# -- the report ------------------------------------------------------------------------------
+
+def summary_us(values_ns: np.ndarray) -> dict | None:
+    """``{"min", "p50", "p99", "p999", "max"}`` of ``values_ns`` in µs (nearest rank),
+    or None for no samples."""
+    if values_ns.size == 0:
+        return None
+    return {"min": float(values_ns.min()) / 1e3, **Percentiles.of_ns_in_us(values_ns).as_dict()}
+
+
+def _round_trip_summary(run: RunData) -> dict | None:
+    rt = run.round_trip
+    if rt is None:
+        return None
+    has = rt.wait_ns != NO_VALUE
+    known = rt.total_ns != NO_VALUE
+    return {"adapter": run.adapter, "samples": int(has.sum()), "with_transport": int(known.sum()),
+            "total_us": summary_us(rt.total_ns[known]),
+            "transport_us": summary_us(rt.transport_ns[known]),
+            "wait_us": summary_us(rt.wait_ns[has]), "compute_us": summary_us(rt.compute_ns[has])}
+
+
+def _histogram(lateness_ns: np.ndarray, cyclictest: CyclictestBaseline | None) -> dict:
+    """Counts of lateness and of cyclictest's wake-ups on shared log-spaced bins (µs);
+    a cyclictest bin counts at its centre (value + 0.5 µs), its overflows not at all,
+    lateness below the first edge in the first bin."""
+    top_us = max(float(lateness_ns.max()) / 1e3 if lateness_ns.size else 0.0, 1.0)
+    if cyclictest is not None and cyclictest.counts.any():
+        top_us = max(top_us, float(cyclictest.bins_us[cyclictest.counts > 0][-1]) + 1.0)
+    n_bins = HIST_BINS_PER_DECADE * max(1, math.ceil(math.log10(top_us / HIST_LOW_US)))
+    edges_us = HIST_LOW_US * 10.0 ** (np.arange(n_bins + 1) / HIST_BINS_PER_DECADE)
+    clip = (edges_us[0], edges_us[-1])
+    lateness_counts = np.histogram(np.clip(lateness_ns / 1e3, *clip), edges_us)[0]
+    cyclictest_counts = None
+    if cyclictest is not None:
+        cyclictest_counts = np.histogram(np.clip(cyclictest.bins_us + 0.5, *clip), edges_us,
+                                         weights=cyclictest.counts)[0].astype(np.int64).tolist()
+    return {"edges_us": edges_us.tolist(), "lateness_counts": lateness_counts.tolist(),
+            "cyclictest_counts": cyclictest_counts}
+
+
+def build_report(run: RunData, cyclictest: CyclictestBaseline | None = None) -> dict:
+    """The report as a JSON-ready dict::
+
+        {"period_us", "ticks", "overruns", "missed_ticks",
+         "lateness_us" | "compute_us" | "slack_us": {"min", "p50", "p99", "p999", "max"},
+         "round_trip": {"adapter", "samples", "with_transport", "total_us",
+                        "transport_us", "wait_us", "compute_us"} or null,
+         "adapter": {"name", "stats"} or null, "scheduling", "host", "host_source",
+         "cyclictest": {"interval_us", "samples", "overflows", "latency_us"} or null,
+         "histogram": {"edges_us", "lateness_counts", "cyclictest_counts"},
+         "percentiles"}
+
+    Slack is ``period - compute - lateness`` per tick: the time from the end of the step to
+    the next deadline (negative: an overrun), so its worst case is its ``min``.  ``host`` is
+    the run's fingerprint when it recorded one, otherwise this machine's (``host_source``
+    says which).  A summary over no samples is null.
+    """
+    ran = run.lateness_ns != NO_VALUE
+    lateness, compute = run.lateness_ns[ran], run.compute_ns[ran]
+    baseline = None
+    if cyclictest is not None:
+        baseline = {"interval_us": cyclictest.interval_us, "samples": cyclictest.samples,
+                    "overflows": cyclictest.overflows,
+                    "latency_us": None if cyclictest.samples == 0 else
+                    {"min": cyclictest.min_us, **cyclictest.latency_us.as_dict()}}
+    return {
+        "period_us": run.period_ns / 1e3,
+        "ticks": int(ran.sum()), "overruns": run.overruns, "missed_ticks": run.skipped,
+        "lateness_us": summary_us(lateness), "compute_us": summary_us(compute),
+        "slack_us": summary_us(run.period_ns - compute - lateness),
+        "round_trip": _round_trip_summary(run),
+        "adapter": None if run.adapter is None else {"name": run.adapter,
+                                                     "stats": run.adapter_stats},
+        "scheduling": run.scheduling,
+        "host": run.host if run.host is not None else host_fingerprint(),
+        "host_source": "run" if run.host is not None else "report",
+        "cyclictest": baseline,
+        "histogram": _histogram(lateness, cyclictest),
+        "percentiles": PERCENTILE_DEFINITION,
+    }
+
+
+def write_report(folder: Path | str, report: dict) -> list[Path]:
+    """Write ``report_latency.json``, ``report.md`` and ``latency_hist.png`` into
+    ``folder``; returns their paths."""
+    from hil.report.render import markdown, plot_histogram
+
+    folder = Path(folder)
+    json_path, md_path, png_path = folder / REPORT_JSON, folder / REPORT_MD, folder / REPORT_PNG
+    json_path.write_text(json.dumps(report, indent=1, allow_nan=False) + "\n")
+    md_path.write_text(markdown(report, title=folder.name, histogram_png=REPORT_PNG))
+    plot_histogram(report, png_path)
+    return [json_path, md_path, png_path]
+
+
+def report_run(folder: Path | str, cyclictest_s: float | None = None,
+               note: Callable[[str], None] = lambda message: print(message, file=sys.stderr)
+               ) -> dict:
+    """What ``hil report RUN`` does: load the run, run cyclictest at its period for
+    ``cyclictest_s`` seconds (None: no baseline) on the last CPU at SCHED_FIFO 80, build
+    the report and write it into the folder.  ``note`` receives why a baseline is missing.
+    """
+    run = load_run(folder)
+    baseline = None
+    if cyclictest_s is not None:
+        interval_us = max(1, round(run.period_ns / 1e3))
+        if interval_us * 1000 != run.period_ns:
+            note(f"cyclictest runs at whole µs: {interval_us} µs for the run's "
+                 f"{run.period_ns} ns")
+        try:
+            baseline = run_cyclictest_baseline(interval_us, cyclictest_s, cpu=last_cpu())
+        except CyclictestError as err:
+            note(f"cyclictest failed, no baseline: {err}")
+        else:
+            if baseline is None:
+                note("cyclictest is not installed (apt-get install rt-tests): no baseline")
+    report = build_report(run, baseline)
+    write_report(folder, report)
+    return report

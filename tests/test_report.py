@@ -1,0 +1,330 @@
+"""The latency report (hil.report) against figures worked out by hand, the run folder's
+format, the host fingerprint on a machine missing files, and the shape of the adapter
+benchmark's rows (no timing asserted).
+
+Percentiles are nearest rank, as hil.rt computes them: the p-th percentile of n samples
+is the ceil(p/100 * n)-th smallest.  The synthetic run has 1000 ticks that ran, with
+lateness 10, 20, ..., 10000 ns, so p50 is the 500th (5000 ns), p99 the 990th (9900 ns),
+p99.9 the 999th (9990 ns).
+"""
+
+import json
+import multiprocessing
+import os
+from multiprocessing import resource_tracker
+
+import numpy as np
+import pytest
+
+from hil.bench import adapters as bench_adapters
+from hil.report import host
+from hil.report.baseline import CyclictestBaseline
+from hil.report.latency import (
+    NO_VALUE,
+    ReportError,
+    RoundTrip,
+    RunData,
+    build_report,
+    load_run,
+    report_run,
+    write_report,
+)
+
+PERIOD_NS = 100_000
+N_RAN = 1000
+SKIPPED_SLOT = 500                  # the loop dropped this deadline
+COMPUTE_NS = 30_000
+SLOW_COMPUTE_NS = 95_000            # the last tick's: it overruns by 5 µs
+RT_SLOTS = np.arange(1, 1000, 10)   # 100 ticks that first used a new setpoint
+TRANSPORT_NS = 50_000 + 100 * np.arange(RT_SLOTS.size)  # 50.0 .. 59.9 µs
+WAIT_NS = 2_000
+SEND_BEFORE_END_NS = 500            # the feedback leaves 0.5 µs before the step ends
+CONTROLLER_CLOCK_OFFSET_NS = 123_456_789  # another machine's clock
+SCHEDULING = {"fifo": {"granted": True, "detail": "SCHED_FIFO priority 80"},
+              "cpu_dma_latency": {"granted": False, "detail": "refused: Permission denied"}}
+ADAPTER_STATS = {"sent": 100, "received": 100, "lost": 0, "malformed": 0}
+
+#: cyclictest -h 10 output, edited: 1000 wake-ups, 998 in bins 5, 6 and 9 µs, 2 past 10 µs
+HISTOGRAM = """\
+# Histogram
+000000 000000
+000001 000000
+000002 000000
+000003 000000
+000004 000000
+000005 000500
+000006 000490
+000007 000000
+000008 000000
+000009 000008
+# Total: 000000998
+# Min Latencies: 00005
+# Avg Latencies: 00006
+# Max Latencies: 00250
+# Histogram Overflows: 00002
+"""
+
+
+def loop_arrays() -> tuple[np.ndarray, np.ndarray]:
+    """lateness_ns and compute_ns with one dropped slot (1001 slots, 1000 ticks ran)."""
+    lateness = np.insert(10 * np.arange(1, N_RAN + 1), SKIPPED_SLOT, NO_VALUE).astype(np.int64)
+    compute = np.full(N_RAN + 1, COMPUTE_NS, dtype=np.int64)
+    compute[SKIPPED_SLOT] = NO_VALUE
+    compute[-1] = SLOW_COMPUTE_NS
+    return lateness, compute
+
+
+def stamps(lateness: np.ndarray, compute: np.ndarray) -> dict[str, np.ndarray]:
+    """The five round-trip stamps of the module docstring, built from the parts."""
+    keys = ("tick_start_ns", "sp_t_ns", "sp_rx_ns", "fb_t_ns", "fb_rx_ns")
+    out = {k: np.zeros(lateness.size, dtype=np.int64) for k in keys}
+    k = RT_SLOTS
+    tick = 10**12 + k * PERIOD_NS + lateness[k]
+    sp_rx = tick - WAIT_NS
+    fb_t = tick + compute[k] - SEND_BEFORE_END_NS
+    sp_t = sp_rx - TRANSPORT_NS // 2 + CONTROLLER_CLOCK_OFFSET_NS
+    fb_rx = sp_t + TRANSPORT_NS + (fb_t - sp_rx)
+    for key, values in zip(keys, (tick, sp_t, sp_rx, fb_t, fb_rx)):
+        out[key][k] = values
+    return out
+
+
+def expected_round_trip(n_slots: int) -> RoundTrip:
+    parts = {name: np.full(n_slots, NO_VALUE, dtype=np.int64) for name in
+             ("total_ns", "transport_ns", "wait_ns", "compute_ns")}
+    parts["transport_ns"][RT_SLOTS] = TRANSPORT_NS
+    parts["wait_ns"][RT_SLOTS] = WAIT_NS
+    parts["compute_ns"][RT_SLOTS] = COMPUTE_NS
+    parts["total_ns"][RT_SLOTS] = TRANSPORT_NS + WAIT_NS + COMPUTE_NS - SEND_BEFORE_END_NS
+    return RoundTrip(**parts)
+
+
+def synthetic_run(**changes) -> RunData:
+    lateness, compute = loop_arrays()
+    fields = {"period_ns": PERIOD_NS, "lateness_ns": lateness, "compute_ns": compute,
+              "overruns": 1, "skipped": 1, "scheduling": SCHEDULING,
+              "adapter": "udp://127.0.0.1:5005", "adapter_stats": ADAPTER_STATS,
+              "round_trip": expected_round_trip(lateness.size), "host": host.host_fingerprint()}
+    return RunData(**{**fields, **changes})
+
+
+def write_run_folder(folder, with_stamps=True, **meta_changes):
+    """A run folder as the daemon writes it (the documented keys only)."""
+    lateness, compute = loop_arrays()
+    arrays = {"lateness_ns": lateness, "compute_ns": compute}
+    if with_stamps:
+        arrays |= stamps(lateness, compute)
+    np.savez(folder / "run.npz", **arrays)
+    meta = {"loop": {"period_ns": PERIOD_NS, "ticks": N_RAN, "overruns": 1, "skipped": 1,
+                     "stopped_by": "completed"},
+            "scheduling": SCHEDULING,
+            "adapter": {"name": "udp://127.0.0.1:5005", "stats": ADAPTER_STATS},
+            "watchdog": [], **meta_changes}
+    (folder / "report.json").write_text(json.dumps(meta))
+
+
+# -- the figures -----------------------------------------------------------------------------
+
+def test_tick_figures_are_nearest_rank_over_the_ticks_that_ran():
+    r = build_report(synthetic_run())
+    assert (r["period_us"], r["ticks"], r["overruns"], r["missed_ticks"]) == (100.0, 1000, 1, 1)
+    assert r["lateness_us"] == {"min": 0.01, "p50": 5.0, "p99": 9.9, "p999": 9.99, "max": 10.0}
+    assert r["compute_us"] == {"min": 30.0, "p50": 30.0, "p99": 30.0, "p999": 30.0, "max": 95.0}
+
+
+def test_slack_is_period_minus_compute_minus_lateness():
+    # the last tick: 100 - 95 - 10 = -5 µs; the others 70 µs - lateness 0.01 .. 9.99 µs,
+    # so the k-th smallest slack (k >= 2) is 60.01 + 0.01 (k - 2) µs
+    assert build_report(synthetic_run())["slack_us"] == {
+        "min": -5.0, "p50": 64.99, "p99": 69.89, "p999": 69.98, "max": 69.99}
+
+
+def test_round_trip_parts_by_hand():
+    rt = build_report(synthetic_run())["round_trip"]
+    assert (rt["adapter"], rt["samples"], rt["with_transport"]) == ("udp://127.0.0.1:5005", 100, 100)
+    # 100 samples 50.0, 50.1, ..., 59.9 µs: p50 is the 50th, p99 the 99th, p99.9 the 100th
+    assert rt["transport_us"] == {"min": 50.0, "p50": 54.9, "p99": 59.8, "p999": 59.9, "max": 59.9}
+    assert rt["wait_us"] == dict.fromkeys(("min", "p50", "p99", "p999", "max"), 2.0)
+    assert rt["compute_us"] == dict.fromkeys(("min", "p50", "p99", "p999", "max"), 30.0)
+    assert rt["total_us"] == {"min": 81.5, "p50": 86.4, "p99": 91.3, "p999": 91.4, "max": 91.4}
+
+
+def test_a_run_without_round_trips_or_samples_reports_nulls():
+    lateness = np.array([NO_VALUE], dtype=np.int64)
+    r = build_report(synthetic_run(lateness_ns=lateness, compute_ns=lateness.copy(),
+                                   round_trip=None, adapter=None, adapter_stats=None))
+    assert r["ticks"] == 0 and r["lateness_us"] is None and r["slack_us"] is None
+    assert r["round_trip"] is None and r["adapter"] is None
+
+
+def test_cyclictest_baseline_sits_beside_the_lateness():
+    base = CyclictestBaseline.from_histogram(HISTOGRAM, interval_us=100)
+    r = build_report(synthetic_run(), base)
+    assert r["cyclictest"] == {"interval_us": 100, "samples": 1000, "overflows": 2, "latency_us": {
+        "min": 5.0, "p50": 5.0, "p99": 6.0, "p999": 250.0, "max": 250.0}}
+    hist = r["histogram"]
+    assert len(hist["edges_us"]) == len(hist["lateness_counts"]) + 1
+    assert sum(hist["lateness_counts"]) == 1000 and sum(hist["cyclictest_counts"]) == 998
+    assert r["host_source"] == "run"
+
+
+def test_host_is_taken_now_when_the_run_recorded_none():
+    r = build_report(synthetic_run(host=None))
+    assert r["host_source"] == "report" and set(r["host"]) == HOST_KEYS
+
+
+# -- the files -------------------------------------------------------------------------------
+
+def test_written_report_has_json_markdown_with_units_and_a_png(tmp_path):
+    report = build_report(synthetic_run(), CyclictestBaseline.from_histogram(HISTOGRAM, 100))
+    paths = write_report(tmp_path, report)
+    assert [p.name for p in paths] == ["report_latency.json", "report.md", "latency_hist.png"]
+    assert json.loads(paths[0].read_text()) == report
+    md = paths[1].read_text()
+    for text in ("| 0.010 µs | 5.000 µs | 9.900 µs | 9.990 µs | 10.000 µs |",  # lateness
+                 "| -5.000 µs | 64.990 µs | 69.890 µs | 69.980 µs | 69.990 µs |",  # slack
+                 "| 5 µs | 5 µs | 6 µs | 250 µs | 250 µs |",  # cyclictest
+                 "| 50.000 µs | 54.900 µs | 59.800 µs | 59.900 µs | 59.900 µs |",  # transport
+                 "Period 100.000 µs (10000 Hz); 1000 ticks run; 1 overruns; 1 missed ticks",
+                 "| fifo | yes | SCHED_FIFO priority 80 |", "| lost | 0 |", "PREEMPT_RT",
+                 "![tick lateness histogram](latency_hist.png)"):
+        assert text in md, text
+    assert paths[2].read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_load_run_derives_the_parts_from_the_stamps(tmp_path):
+    write_run_folder(tmp_path)
+    run = load_run(tmp_path)
+    lateness, compute = loop_arrays()
+    assert (run.period_ns, run.overruns, run.skipped) == (PERIOD_NS, 1, 1)
+    np.testing.assert_array_equal(run.lateness_ns, lateness)
+    np.testing.assert_array_equal(run.compute_ns, compute)
+    assert run.scheduling == SCHEDULING and run.host is None
+    assert (run.adapter, run.adapter_stats) == ("udp://127.0.0.1:5005", ADAPTER_STATS)
+    want = expected_round_trip(lateness.size)
+    for name in ("total_ns", "transport_ns", "wait_ns", "compute_ns"):
+        np.testing.assert_array_equal(getattr(run.round_trip, name), getattr(want, name), name)
+
+
+def test_without_the_controllers_stamp_only_wait_and_compute_are_known(tmp_path):
+    write_run_folder(tmp_path)
+    with np.load(tmp_path / "run.npz") as npz:
+        arrays = dict(npz)
+    arrays["fb_rx_ns"][:] = 0
+    np.savez(tmp_path / "run.npz", **arrays)
+    rt = build_report(load_run(tmp_path))["round_trip"]
+    assert (rt["samples"], rt["with_transport"], rt["total_us"], rt["transport_us"]) == (
+        100, 0, None, None)
+    assert rt["wait_us"]["p50"] == 2.0
+
+
+def test_a_run_without_stamps_or_adapter_loads(tmp_path):
+    write_run_folder(tmp_path, with_stamps=False, adapter=None)
+    run = load_run(tmp_path)
+    assert run.round_trip is None and run.adapter is None and run.adapter_stats is None
+
+
+@pytest.mark.parametrize("damage, match", [
+    (lambda d: (d / "run.npz").unlink(), "run.npz: cannot read"),
+    (lambda d: (d / "report.json").write_text("{"), "report.json: cannot read"),
+    (lambda d: write_run_folder(d, loop={"period_ns": PERIOD_NS, "ticks": N_RAN + 1,
+                                         "overruns": 0, "skipped": 1}),
+     "1001 slots with 1 dropped, but .* says 1001 ticks"),
+    (lambda d: write_run_folder(d, loop={"period_ns": 0, "ticks": N_RAN, "overruns": 0,
+                                         "skipped": 1}), "'period_ns' must be an integer >= 1"),
+    (lambda d: write_run_folder(d, scheduling=None), "needs the objects 'loop'"),
+    (lambda d: np.savez(d / "run.npz", **{k: v for k, v in np.load(d / "run.npz").items()
+                                          if k != "fb_rx_ns"}), "need all of"),
+])
+def test_a_bad_run_folder_is_refused_naming_file_and_key(tmp_path, damage, match):
+    write_run_folder(tmp_path)
+    damage(tmp_path)
+    with pytest.raises(ReportError, match=match):
+        load_run(tmp_path)
+
+
+def test_report_run_writes_the_files_and_says_why_there_is_no_baseline(tmp_path, monkeypatch):
+    write_run_folder(tmp_path)
+    monkeypatch.setenv("PATH", str(tmp_path / "empty"))
+    notes = []
+    report = report_run(tmp_path, cyclictest_s=1, note=notes.append)
+    assert report["cyclictest"] is None and any("not installed" in n for n in notes)
+    assert {"report_latency.json", "report.md", "latency_hist.png"} <= {
+        p.name for p in tmp_path.iterdir()}
+
+
+# -- the host fingerprint --------------------------------------------------------------------
+
+HOST_KEYS = {"kernel_release", "kernel_version", "machine", "preempt_rt", "preempt_rt_source",
+             "preemption", "cpu_model", "cpu_count", "governors", "virtualization", "python",
+             "numba"}
+
+
+def test_host_fingerprint_on_this_machine_has_every_key():
+    h = host.host_fingerprint()
+    assert set(h) == HOST_KEYS
+    assert isinstance(h["preempt_rt"], bool) and h["cpu_count"] >= 1
+    assert json.loads(json.dumps(h)) == h
+
+
+def test_host_fingerprint_never_raises_when_files_are_missing(tmp_path, monkeypatch):
+    monkeypatch.setattr(host, "REALTIME_PATH", tmp_path / "no" / "realtime")
+    monkeypatch.setattr(host, "CPUINFO_PATH", tmp_path / "no" / "cpuinfo")
+    monkeypatch.setattr(host, "CPU_SYSFS", tmp_path / "no" / "cpu")
+    monkeypatch.setenv("PATH", str(tmp_path / "no"))
+    h = host.host_fingerprint()
+    assert set(h) == HOST_KEYS
+    assert h["preempt_rt_source"] == "uname -v" and h["virtualization"] == "unavailable"
+    assert h["cpu_count"] == os.cpu_count()
+    assert set(h["governors"].values()) == {"unavailable"} and len(h["governors"]) == os.cpu_count()
+
+
+def test_host_fingerprint_reads_a_fake_tree(tmp_path, monkeypatch):
+    (tmp_path / "realtime").write_text("1\n")
+    (tmp_path / "cpuinfo").write_text(
+        "processor\t: 0\nmodel name\t: Test CPU 3000\nflags\t\t: fpu hypervisor sse\n\n"
+        "processor\t: 1\nmodel name\t: Test CPU 3000\nflags\t\t: fpu hypervisor sse\n")
+    (tmp_path / "cpu" / "cpu0" / "cpufreq").mkdir(parents=True)
+    (tmp_path / "cpu" / "cpu0" / "cpufreq" / "scaling_governor").write_text("performance\n")
+    (tmp_path / "cpu" / "cpu1").mkdir()
+    (tmp_path / "cpu" / "cpufreq").mkdir()  # not a CPU
+    monkeypatch.setattr(host, "REALTIME_PATH", tmp_path / "realtime")
+    monkeypatch.setattr(host, "CPUINFO_PATH", tmp_path / "cpuinfo")
+    monkeypatch.setattr(host, "CPU_SYSFS", tmp_path / "cpu")
+    monkeypatch.setenv("PATH", str(tmp_path / "no"))
+    h = host.host_fingerprint()
+    assert (h["preempt_rt"], h["preempt_rt_source"]) == (True, str(tmp_path / "realtime"))
+    assert (h["cpu_model"], h["cpu_count"]) == ("Test CPU 3000", 2)
+    assert h["governors"] == {"cpu0": "performance", "cpu1": "unavailable"}
+    assert h["virtualization"].startswith("hypervisor flag set")
+
+
+# -- the adapter benchmark -------------------------------------------------------------------
+
+def _open_fds() -> int:
+    return len(os.listdir("/proc/self/fd"))
+
+
+def test_adapter_bench_rows_have_the_documented_shape_and_leave_nothing_behind():
+    resource_tracker.ensure_running()  # spawn starts it once per process and keeps its pipe
+    before = _open_fds()
+    notes = []
+    rows = bench_adapters.run(5, ["udp", "serial"], note=notes.append)
+    assert [r["adapter"] for r in rows] == ["udp", "serial"] and len(notes) == 2
+    for row in rows:
+        assert set(row) == {"adapter", "transport", "n", "setpoint_bytes", "feedback_bytes",
+                            "round_trip_us", "raw_echo_us", "overhead_p50_us", "ratio_p50",
+                            "cpu_dma_latency_held"}
+        assert row["n"] == 5 and row["feedback_bytes"] > row["setpoint_bytes"] > 0
+        for key in ("round_trip_us", "raw_echo_us"):
+            p = row[key]
+            assert set(p) == {"p50", "p99", "p999", "max"}
+            assert 0 < p["p50"] <= p["p99"] <= p["p999"] <= p["max"]
+        assert row["overhead_p50_us"] == row["round_trip_us"]["p50"] - row["raw_echo_us"]["p50"]
+    assert multiprocessing.active_children() == []
+    assert _open_fds() == before
+
+
+def test_adapter_bench_refuses_unknown_adapters():
+    with pytest.raises(ValueError, match="among"):
+        bench_adapters.run(5, ["can"])
