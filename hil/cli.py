@@ -1,5 +1,8 @@
 """The ``hil`` command line.
 
+    hil demo [--config FILE] [--program FILE] [--out DIR] [--no-rt]
+    hil run CONFIG --adapter URL [--duration S] [--record DIR] [--watchdog-cycles N] ...
+    hil controller CONFIG --adapter URL --program FILE [--out DIR] ...
     hil validate [--json] [--out DIR] [--only NAME ...]
     hil bench plant [--json] [--config FILE ...] [--seconds S]
     hil bench loop [--rate 1000,4000,8000] [--seconds S] [--with-plant] [--json]
@@ -231,6 +234,20 @@ def build_parser() -> argparse.ArgumentParser:
                    help="cyclictest baseline at the run's period (needs rt-tests)")
     r.add_argument("--cyclictest-seconds", type=float, default=10.0, help="baseline length, s")
     r.set_defaults(func=cmd_report)
+
+    from hil.runtime import controller_proc, demo, emulator
+
+    run = sub.add_parser("run", help="the emulator daemon: the plant behind an adapter, "
+                         "in real time")
+    emulator.add_arguments(run)
+    run.set_defaults(func=emulator.run_from_args)
+    ctl = sub.add_parser("controller", help="the simulated NC as a process over an adapter")
+    controller_proc.add_arguments(ctl)
+    ctl.set_defaults(func=controller_proc.run_from_args)
+    dem = sub.add_parser("demo", help="emulator and controller over UDP loopback, compared "
+                         "with the lock-step simulation")
+    demo.add_arguments(dem)
+    dem.set_defaults(func=demo.run_from_args)
 
     k = sub.add_parser("config-keys", help="every machine-file key with unit and meaning")
     k.add_argument("--markdown", action="store_true")

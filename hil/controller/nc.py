@@ -29,8 +29,8 @@ from plant.assemble import reflected_inertia, transmission_ratio
 from plant.config import MachineConfig
 
 MODES = ("position", "speed", "current")
-#: ticks the drive may take to reach OPERATION ENABLED before the NC reports a failure
-ENABLE_TIMEOUT_TICKS = 100
+#: time the drive may take to reach OPERATION ENABLED before the NC reports a failure, s
+ENABLE_TIMEOUT_S = 0.5
 
 
 class Controller:
@@ -64,7 +64,8 @@ class Controller:
         else:
             self.rad_per_count = 2.0 * math.pi / cfg.sensors.encoder_counts_per_rev
         self.scale_res = cfg.sensors.scale_resolution_m if sec.feedback == "scale" else 0.0
-        self.enable = EnableSequencer(timeout_cycles=ENABLE_TIMEOUT_TICKS)
+        self.enable_timeout_ticks = max(1, round(ENABLE_TIMEOUT_S / period_s))
+        self.enable = EnableSequencer(timeout_cycles=self.enable_timeout_ticks)
         self.enable.enable()
         self.mode = "position"
         self.fine: FineInterpolator | None = None

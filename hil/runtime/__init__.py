@@ -1,0 +1,16 @@
+"""The real-time HIL runtime: the emulator daemon, the simulated controller as a process,
+and the demo that runs both over a transport.
+
+* :mod:`hil.runtime.emulator` — ``hil run``: the plant behind an adapter, one PWM period
+  per tick on absolute deadlines, a watchdog, a run folder (``run.npz`` + ``report.json``);
+* :mod:`hil.runtime.watchdog` — the emulator's controller watchdog and its CiA 402 fault;
+* :mod:`hil.runtime.recording` — the emulator's preallocated per-tick recording;
+* :mod:`hil.runtime.controller_proc` — ``hil controller``: the simulated NC running a part
+  program against any adapter, writing ``trace.csv`` and ``summary.json``;
+* :mod:`hil.runtime.sync` — how the two loops meet: the controller's alignment to the
+  drive's ticks, and which ticks exchanged data as the lock-step simulation does;
+* :mod:`hil.runtime.demo` — ``hil demo``: both processes over UDP loopback, compared with
+  the lock-step simulation of the same program;
+* :mod:`hil.runtime.common` — what the processes share: exit codes, signal handling,
+  JSON output, the scheduling request.
+"""

@@ -1,0 +1,136 @@
+"""What the runtime's processes share: exit codes, input errors, signals, JSON, scheduling.
+
+Exit codes of ``hil run``, ``hil controller`` and ``hil demo``: :data:`EXIT_OK` (done, or
+stopped by SIGTERM/SIGINT with every file written), :data:`EXIT_FAILED` (the run itself
+failed: overruns under the ``stop`` policy, a drive that never answered or faulted, a child
+process that failed), :data:`EXIT_BAD_INPUT` (a machine file, part program, URL or option
+refused before anything started).
+"""
+
+import json
+import math
+import os
+import signal
+import sys
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager, nullcontext
+from pathlib import Path
+
+from hil.rt.scheduling import SchedulingReport, SchedulingRequest, realtime_scheduling
+from plant.config import MachineConfig
+
+EXIT_OK = 0
+EXIT_FAILED = 1
+EXIT_BAD_INPUT = 2
+
+
+class RuntimeInputError(ValueError):
+    """A runtime setting given on the command line is out of range; the message names the
+    option, the value and the unit or range expected."""
+
+
+def eprint(*args) -> None:
+    """Print to stderr at once (the processes' log)."""
+    print(*args, file=sys.stderr, flush=True)
+
+
+def cnc_unit(cfg: MachineConfig) -> tuple[float, str]:
+    """Factor from SI table units (m, rad) to the CNC's (mm, deg), and that unit."""
+    return (180.0 / math.pi, "deg") if cfg.machine.kind == "rotary" else (1e3, "mm")
+
+
+def period_ns_of(rate_hz: float) -> int:
+    """The loop period in whole ns for a rate in Hz (the same integer in every process, so
+    two loops at one rate on one machine keep their phase)."""
+    return round(1e9 / rate_hz)
+
+
+@contextmanager
+def stop_on_signals(request_stop: Callable[[], None]) -> Iterator[None]:
+    """SIGTERM and SIGINT call ``request_stop`` (which must only set a flag) for the
+    ``with`` block; the previous handlers come back after it."""
+    def handler(signum, frame) -> None:
+        request_stop()
+
+    previous = {s: signal.signal(s, handler) for s in (signal.SIGTERM, signal.SIGINT)}
+    try:
+        yield
+    finally:
+        for s, h in previous.items():
+            signal.signal(s, h)
+
+
+def scheduling(realtime: bool, cpu: int | None, priority: int):
+    """A context manager yielding the :class:`SchedulingReport` of SCHED_FIFO ``priority``
+    pinned to ``cpu`` (None: not pinned), memory locked, ``/dev/cpu_dma_latency`` at 0,
+    1 ns timer slack and the GC frozen -- or, without ``realtime``, yielding None."""
+    if not realtime:
+        return nullcontext(None)
+    cpus = None if cpu is None else frozenset({cpu})
+    return realtime_scheduling(SchedulingRequest(fifo_priority=priority, cpus=cpus))
+
+
+def scheduling_dict(report: SchedulingReport | None) -> dict:
+    """The report as JSON, or every request "not requested" when real time was off."""
+    if report is not None:
+        return report.as_dict()
+    off = {"granted": False, "detail": "not requested (--no-rt)"}
+    return {name: dict(off) for name in ("fifo", "affinity", "mlockall", "cpu_dma_latency",
+                                         "timer_slack", "gc_frozen")}
+
+
+def check_cpu(cpu: int | None, option: str = "--cpu") -> None:
+    """Refuse a CPU this process may not run on."""
+    if cpu is not None and cpu not in os.sched_getaffinity(0):
+        raise RuntimeInputError(f"{option} {cpu}: not one of the CPUs this process may use "
+                                f"{sorted(os.sched_getaffinity(0))}")
+
+
+def _finite(value):
+    """``value`` with every non-finite float replaced by None (strict JSON)."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if isinstance(value, dict):
+        return {k: _finite(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_finite(v) for v in value]
+    return value
+
+
+def write_json(path: Path, data: dict) -> Path:
+    """Write ``data`` as strict JSON (NaN and inf become null) atomically: the file is
+    complete or absent, never half written."""
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(json.dumps(_finite(data), indent=1, allow_nan=False) + "\n")
+    os.replace(tmp, path)
+    return path
+
+
+def served_url(url: str, address: tuple | None) -> str:
+    """``url`` with the port actually bound when it asked for port 0 (``udp://H:0``)."""
+    scheme, sep, rest = url.partition("://")
+    netloc, q, query = rest.partition("?")
+    if scheme != "udp" or address is None or not netloc.endswith(":0"):
+        return url
+    return f"{scheme}{sep}{netloc[:-2]}:{address[1]}{q}{query}"
+
+
+class StopFlag:
+    """What a SIGTERM/SIGINT handler sets: a flag, passed on to the loop once it exists, so
+    a signal during start-up still ends the run cleanly (the loop then runs no tick)."""
+
+    def __init__(self):
+        self.requested = False
+        self._loop = None
+
+    def request(self) -> None:
+        """Set the flag (safe in a signal handler: no I/O, no allocation of note)."""
+        self.requested = True
+        if self._loop is not None:
+            self._loop.request_stop()
+
+    def attach(self, loop) -> None:
+        """The :class:`~hil.rt.loop.RealTimeLoop` to stop; stopped at once if already asked."""
+        self._loop = loop
+        if self.requested:
+            loop.request_stop()

@@ -1,0 +1,90 @@
+"""What the runtime and loopback tests share: a machine-file variant two Python loops keep
+up with, and child processes that are always reaped.
+
+Every wait is bounded; every child started through :class:`Children` is killed and reaped
+when the block ends, and the block checks that none is left running.
+"""
+
+import os
+import re
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+from hil.runtime.demo import wait_ready
+from tests.conftest import CONFIGS, ROOT
+
+ARROW = CONFIGS / "arrow500_x.toml"
+#: the Arrow 500 X at 2 kHz PWM: the current-loop gain at the technical optimum for the
+#: longer PWM delay (K_p = L / (3 T_pwm) = 0.0045 H / 1.5 ms = 3 V/A), the position and IPO
+#: cycles kept at 2 ms and 4 ms, the speed gain halved for the 4x longer speed cycle
+SLOW_2KHZ = {"pwm_frequency_hz": "2000.0", "kp_v_per_a": "3.0", "position_cycle_ratio": "4",
+             "ipo_cycle_ratio": "8", "speed_kp_nms_per_rad": "0.6"}
+#: longest wait for a child's ready line (a cold numba cache compiles for ~10 s)
+READY_S = 120.0
+#: longest wait for a child to finish once it should
+EXIT_S = 60.0
+
+
+def machine_variant(path: Path, values: dict[str, str], source: Path = ARROW) -> Path:
+    """``source`` with each ``key = value`` line of ``values`` replaced (each key must occur
+    exactly once, at the start of a line); written to ``path``."""
+    text = source.read_text()
+    for key, value in values.items():
+        text, n = re.subn(rf"^{key}\s*=\s*[^#\n]*", f"{key} = {value} ", text, flags=re.MULTILINE)
+        assert n == 1, f"{source}: {key} found {n} times"
+    path.write_text(text)
+    return path
+
+
+def python_module(module: str, *args) -> list[str]:
+    return [sys.executable, "-m", module, *map(str, args)]
+
+
+ENV = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, (
+    str(ROOT), os.environ.get("PYTHONPATH"))))}
+
+
+class Children:
+    """Child processes of one test: started here, killed and reaped on leaving."""
+
+    def __init__(self, log_dir: Path):
+        self.log_dir = log_dir
+        self.procs: list[subprocess.Popen] = []
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        for p in self.procs:
+            if p.poll() is None:
+                p.kill()
+            p.wait(timeout=EXIT_S)
+            if p.stdout is not None:
+                p.stdout.close()
+        assert all(p.returncode is not None for p in self.procs), "a child is still running"
+
+    def start(self, name: str, argv: list[str], ready: bool = False) -> subprocess.Popen:
+        """Start ``argv`` with stderr (and stdout unless ``ready``) to ``<name>.log``."""
+        with open(self.log_dir / f"{name}.log", "w") as log:
+            proc = subprocess.Popen(argv, cwd=ROOT, env=ENV, text=True, stderr=log,
+                                    stdout=subprocess.PIPE if ready else log)
+        self.procs.append(proc)
+        return proc
+
+    def emulator(self, config: Path, url: str, run_dir: Path, *extra) -> tuple:
+        """``hil run`` on ``config`` at ``url``; returns (process, URL served) once ready."""
+        proc = self.start("emulator", python_module(
+            "hil.runtime.emulator", config, "--adapter", url, "--record", run_dir, *extra),
+            ready=True)
+        return proc, wait_ready(proc, READY_S)
+
+    def log(self, name: str) -> str:
+        return (self.log_dir / f"{name}.log").read_text()
+
+
+def terminate(proc: subprocess.Popen) -> int:
+    """SIGTERM, then the exit status (bounded wait)."""
+    proc.send_signal(signal.SIGTERM)
+    return proc.wait(timeout=EXIT_S)
