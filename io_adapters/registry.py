@@ -9,6 +9,9 @@ Built in:
 * ``serial://PORT[?options]`` — :class:`io_adapters.serial_link.SerialEndpoint`;
   PORT is a device path (``serial:///dev/ttyUSB0``), an open file descriptor
   (``serial://fd/5``) or a pyserial URL (``serial://loop://``).
+* ``can://INTERFACE/CHANNEL?node=N&rated_current_ma=I`` — CANopen CiA 402 through
+  python-can: :class:`io_adapters.can_cia402.CanDriveEndpoint` (device) and
+  :class:`io_adapters.can_master.CanMasterEndpoint` (controller).
 
 More schemes come from :func:`register` or from installed packages that declare
 an entry point in the group ``feeddrive_hil.adapters``, named after the scheme,
@@ -25,6 +28,7 @@ ENTRY_POINT_GROUP = "feeddrive_hil.adapters"
 BUILTIN = {
     "udp": "io_adapters.udp:UdpEndpoint",
     "serial": "io_adapters.serial_link:SerialEndpoint",
+    "can": "io_adapters.can_cia402:CanDriveEndpoint",
 }
 _registered: dict[str, str] = {}
 

@@ -383,9 +383,10 @@ def test_transports_are_imported_only_when_opened():
     script = textwrap.dedent("""
         import sys
         import io_adapters
-        lazy = ("io_adapters.udp", "io_adapters.serial_link", "serial")
+        lazy = ("io_adapters.udp", "io_adapters.serial_link", "serial",
+                "io_adapters.can_cia402", "can", "canopen")
         assert not [m for m in lazy if m in sys.modules], sys.modules.keys()
-        assert io_adapters.known_schemes() == ["serial", "udp"]
+        assert io_adapters.known_schemes() == ["can", "serial", "udp"]
         with io_adapters.open_endpoint("udp://127.0.0.1:0", "device"):
             pass
         assert "io_adapters.udp" in sys.modules
@@ -394,9 +395,9 @@ def test_transports_are_imported_only_when_opened():
     subprocess.run([sys.executable, "-c", script], cwd=ROOT, check=True, timeout=60)
 
 
-@pytest.mark.parametrize("url", ["can://vcan0", "UDP-ish://x", "127.0.0.1:5005"])
+@pytest.mark.parametrize("url", ["canbus://vcan0", "UDP-ish://x", "127.0.0.1:5005"])
 def test_unknown_scheme_lists_the_known_ones(url):
-    with pytest.raises(AdapterConfigError, match="serial, udp"):
+    with pytest.raises(AdapterConfigError, match="can, serial, udp"):
         open_endpoint(url, "device")
 
 
@@ -442,7 +443,7 @@ def test_entry_points_add_schemes(monkeypatch):
     plug = EntryPoint("plug", f"{__name__}:MemoryEndpoint", registry.ENTRY_POINT_GROUP)
     monkeypatch.setattr(registry, "entry_points",
                         lambda group: [plug] if group == registry.ENTRY_POINT_GROUP else [])
-    assert known_schemes() == ["plug", "serial", "udp"]
+    assert known_schemes() == ["can", "plug", "serial", "udp"]
     with open_endpoint("plug://", "device") as ep:
         assert isinstance(ep, MemoryEndpoint)
 

@@ -1,0 +1,205 @@
+"""``can://INTERFACE/CHANNEL``, controller side: a small CiA 402 master for one drive.
+
+Plain python-can, no receive thread: :meth:`send_setpoint` sends the RPDOs of the
+setpoint's mode and then SYNC; :meth:`recv_feedback` reads the bus until TPDO1-3 have
+all arrived and turns them into a :class:`~io_adapters.messages.Feedback`.  The bus is
+opened with filters for the drive's TPDOs and heartbeat only, so the master never takes
+its own RPDOs or SYNC for input (``udp_multicast`` hands every process its own frames).
+The PDO mapping, URL and units are those of :mod:`io_adapters.cia402_objects`.
+
+Setpoint to RPDOs, per mode (6060h = ``mode``)::
+
+    CSP  RPDO1 (6040h, 6060h), RPDO2 (607Ah, 60B1h), RPDO4 (6071h = 0, 60B2h = iq_ref_a)
+    CSV  RPDO1, RPDO3 (60FFh), RPDO4 (6071h = 0, 60B2h = iq_ref_a)
+    CST  RPDO1, RPDO4 (6071h = iq_ref_a, 60B2h = 0)
+
+Positions and speeds are rounded to whole increments; currents to per mille of
+``rated_current_ma``.  A setpoint the wire cannot carry raises
+:class:`~io_adapters.base.FrameError` when sent, naming the field: another mode
+(MODE_VOLTAGE), a non-zero ``id_ref_a``, a non-finite value or one outside its object's
+range.
+
+TPDOs to Feedback: ``statusword`` 6041h, ``fault`` from 603Fh (FF00h + s gives s; any
+other non-zero code is passed on), ``encoder_counts`` 6064h, ``velocity_counts_s``
+606Ch, ``iq_a`` 6078h per mille, ``scale_counts`` 60E4h:01; ``time_s`` and ``id_a`` are
+0 (not on this wire).  The drive sends at SYNC k the feedback of the cycle SYNC k-1
+started, so ``seq`` is the seq of the setpoint sent one SYNC before the last.  The
+drive's clock is not on the wire either: ``sp_t_ns`` = ``sp_rx_ns`` and ``t_ns`` are
+the ``t_ns`` of those two setpoints (stamped as their RPDOs and SYNC went out), so
+:meth:`~io_adapters.messages.Feedback.round_trip_ns` is the time from sending the last
+setpoint to receiving the last TPDO its SYNC brought back.
+
+The master sends NMT "start remote node" when opened and again whenever the drive
+reports boot-up or PRE-OPERATIONAL (its heartbeat), so either side may start first.
+Counted in :attr:`stats`: ``malformed`` TPDOs (wrong DLC, remote frames), ``lost`` TPDO
+sets left incomplete (a TPDO came again before the other two).
+"""
+
+import math
+import time
+
+import can
+
+from io_adapters.base import AdapterError, Endpoint, FrameError, Role
+from io_adapters.can_cia402 import CanDriveEndpoint, open_bus
+from io_adapters.cia402_objects import (
+    FAULT_CODE_BASE,
+    HEARTBEAT_BASE,
+    INT_RANGE,
+    NMT_BOOT_UP,
+    NMT_COB_ID,
+    NMT_PRE_OPERATIONAL,
+    NMT_START,
+    PROCESS_OBJECTS,
+    SYNC_COB_ID,
+    CanLink,
+    amps,
+    permille,
+    rpdo_layouts,
+    tpdo_layouts,
+)
+from io_adapters.messages import MODE_CSP, MODE_CST, MODE_CSV, Feedback, Setpoint
+
+#: RPDOs (0-based) sent in each mode, RPDO1 first
+MODE_RPDOS = {MODE_CSP: (0, 1, 3), MODE_CSV: (0, 2, 3), MODE_CST: (0, 3)}
+STANDARD_ID_MASK = 0x7FF
+
+
+def _wire_int(sp: Setpoint, field: str, wire_value: float, obj: tuple[int, int]) -> int:
+    """``wire_value`` (``sp.field`` in wire units) rounded into the type of ``obj``;
+    FrameError naming the field if it does not fit."""
+    lo, hi = INT_RANGE[PROCESS_OBJECTS[obj][1]]
+    if not math.isfinite(wire_value) or not lo <= round(wire_value) <= hi:
+        raise FrameError(f"Setpoint.{field}={getattr(sp, field)!r} does not fit "
+                         f"{obj[0]:04X}h ({lo} to {hi} on the wire)")
+    return round(wire_value)
+
+
+class CanMasterEndpoint(Endpoint):
+    """The controller side of ``can://`` (see the module docstring); opened through
+    :meth:`io_adapters.can_cia402.CanDriveEndpoint.from_url`."""
+
+    @classmethod
+    def from_url(cls, url: str, role: Role | str) -> Endpoint:
+        return CanDriveEndpoint.from_url(url, role)
+
+    def __init__(self, link: CanLink):
+        super().__init__(Role.CONTROLLER)
+        self.link = link
+        self._rpdos = rpdo_layouts(link.node)
+        self._rpdo_msgs = tuple(can.Message(arbitration_id=p.cob_id, is_extended_id=False,
+                                            data=bytearray(p.frame.size)) for p in self._rpdos)
+        self._sync = can.Message(arbitration_id=SYNC_COB_ID, is_extended_id=False, data=b"")
+        self._start = can.Message(arbitration_id=NMT_COB_ID, is_extended_id=False,
+                                  data=bytes((NMT_START, link.node)))
+        self._tpdos = tpdo_layouts(link.node)
+        self._tpdo_slot = {p.cob_id: k for k, p in enumerate(self._tpdos)}
+        self._heartbeat_id = HEARTBEAT_BASE + link.node
+        self._values: list[tuple] = [()] * len(self._tpdos)
+        self._got = 0
+        self._all = (1 << len(self._tpdos)) - 1
+        self._seq = [0, 0]      # seq of the setpoints sent with the last two SYNCs
+        self._sync_ns = [0, 0]  # and when those SYNCs were sent
+        wanted = [*self._tpdo_slot, self._heartbeat_id]
+        self.bus = open_bus(link, can_filters=[
+            {"can_id": i, "can_mask": STANDARD_ID_MASK, "extended": False} for i in wanted])
+        try:
+            self._bus_send(self._start)
+        except AdapterError:
+            self.bus.shutdown()
+            raise
+
+    def _bus_send(self, msg: can.Message) -> None:
+        try:
+            self.bus.send(msg)
+        except can.CanError as e:
+            raise AdapterError(f"{self!r}: send failed: {e}") from e
+
+    # -- setpoint to RPDOs + SYNC --------------------------------------------------------
+    def _write(self, sp: Setpoint) -> bool:
+        pdos = MODE_RPDOS.get(sp.mode)
+        if pdos is None:
+            raise FrameError(f"Setpoint.mode={sp.mode}: a CiA 402 drive on CAN takes "
+                             f"CSP ({MODE_CSP}), CSV ({MODE_CSV}) or CST ({MODE_CST})")
+        if sp.id_ref_a != 0.0:
+            raise FrameError(f"Setpoint.id_ref_a={sp.id_ref_a!r}: no CiA 402 object "
+                             "carries a d-current setpoint")
+        if not 0 <= sp.controlword <= 0xFFFF:
+            raise FrameError(f"Setpoint.controlword={sp.controlword!r} does not fit 6040h "
+                             "(0 to 65535 on the wire)")
+        current = _wire_int(sp, "iq_ref_a", permille(sp.iq_ref_a, self.link.rated_current_ma),
+                            (0x6071, 0))
+        torque, offset = (current, 0) if sp.mode == MODE_CST else (0, current)
+        values = ((sp.controlword, sp.mode),
+                  (_wire_int(sp, "target_position_counts", sp.target_position_counts,
+                             (0x607A, 0)),
+                   _wire_int(sp, "velocity_offset_counts_s", sp.velocity_offset_counts_s,
+                             (0x60B1, 0))),
+                  (_wire_int(sp, "target_velocity_counts_s", sp.target_velocity_counts_s,
+                             (0x60FF, 0)),),
+                  (torque, offset))
+        for k in pdos:
+            self._rpdos[k].frame.pack_into(self._rpdo_msgs[k].data, 0, *values[k])
+            self._bus_send(self._rpdo_msgs[k])
+        self._bus_send(self._sync)
+        self._seq[:] = self._seq[1], sp.seq
+        self._sync_ns[:] = self._sync_ns[1], sp.t_ns
+        return True
+
+    # -- TPDOs to feedback ---------------------------------------------------------------
+    def _read(self, into: Feedback, timeout_s: float | None) -> bool:
+        deadline = None if timeout_s is None else time.monotonic() + timeout_s
+        wait = timeout_s
+        try:
+            while (msg := self.bus.recv(wait)) is not None:
+                if self._accept(msg, into):
+                    return True
+                if deadline is not None:
+                    wait = max(0.0, deadline - time.monotonic())
+        except can.CanError as e:
+            raise AdapterError(f"{self!r}: receive failed: {e}") from e
+        return False
+
+    def _accept(self, msg: can.Message, into: Feedback) -> bool:
+        """Take one frame; True once it completes a TPDO set written into ``into``."""
+        can_id = msg.arbitration_id
+        if can_id == self._heartbeat_id:
+            if msg.data and msg.data[0] & 0x7F in (NMT_BOOT_UP, NMT_PRE_OPERATIONAL):
+                self._bus_send(self._start)
+            return False
+        slot = self._tpdo_slot.get(can_id)
+        if slot is None:
+            return False
+        layout = self._tpdos[slot]
+        if msg.is_remote_frame or len(msg.data) != layout.frame.size:
+            self.stats.malformed += 1
+            return False
+        bit = 1 << slot
+        if self._got & bit:
+            self.stats.lost += 1
+            self._got = 0
+        self._values[slot] = layout.frame.unpack(msg.data)
+        self._got |= bit
+        if self._got != self._all:
+            return False
+        self._got = 0
+        self._fill(into)
+        self.stats.received += 1
+        return True
+
+    def _fill(self, into: Feedback) -> None:
+        (statusword, _mode, error_code), (position, velocity), (current, _, scale) = self._values
+        into.seq = self._seq[0]
+        into.statusword = statusword
+        into.fault = error_code - FAULT_CODE_BASE if error_code > FAULT_CODE_BASE else error_code
+        into.time_s = 0.0
+        into.encoder_counts = float(position)
+        into.velocity_counts_s = float(velocity)
+        into.iq_a = amps(current, self.link.rated_current_ma)
+        into.id_a = 0.0
+        into.scale_counts = float(scale)
+        into.sp_t_ns = into.sp_rx_ns = self._sync_ns[0]
+        into.t_ns = self._sync_ns[1]
+
+    def _close(self) -> None:
+        self.bus.shutdown()
