@@ -7,7 +7,7 @@
     hil bench plant [--json] [--config FILE ...] [--seconds S]
     hil bench loop [--rate 1000,4000,8000] [--seconds S] [--with-plant] [--json]
     hil bench adapters [--n N] [--adapter udp|serial] [--json]
-    hil report RUN [--cyclictest]
+    hil report RUN [--cyclictest] [--controller DIR]
     hil config-keys [--markdown]
     hil sim CONFIG --program FILE --out DIR [--start MM] [--json]
     hil measure CONFIG step current|speed|position --amplitude X [--at MM] --out DIR
@@ -107,7 +107,7 @@ def cmd_report(args) -> int:
     from hil.report.latency import REPORT_MD, report_run
 
     report_run(Path(args.run), args.cyclictest_seconds if args.cyclictest else None,
-               note=_eprint)
+               note=_eprint, controller=args.controller)
     print((Path(args.run) / REPORT_MD).read_text())
     return 0
 
@@ -233,6 +233,9 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--cyclictest", action="store_true",
                    help="cyclictest baseline at the run's period (needs rt-tests)")
     r.add_argument("--cyclictest-seconds", type=float, default=10.0, help="baseline length, s")
+    r.add_argument("--controller", metavar="DIR",
+                   help="hil controller's --out folder: pair its controller.npz with the "
+                        "run for the round trip's total and transport")
     r.set_defaults(func=cmd_report)
 
     from hil.runtime import controller_proc, demo, emulator

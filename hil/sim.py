@@ -4,6 +4,11 @@ Each basic-clock tick the controller reads the last feedback and writes a
 setpoint, then the drive applies it and advances the plant one PWM period.
 The same Controller and EmulatedDrive objects run in real time over an
 adapter; here they are only called back to back, faster than real time.
+
+``feedback_delay_ticks`` models a link whose feedback comes back later than the next
+tick: with d, controller tick k reads the feedback of drive cycle k-1-d (0: cycle k-1).
+CANopen CiA 402 with synchronous PDOs has d = 1: the drive's TPDOs at SYNC k carry
+the cycle SYNC k-1 started, and the master reads them before its next SYNC.
 """
 
 import math
@@ -50,15 +55,28 @@ class SimResult:
 
 
 class LockStep:
-    """A controller and an emulated drive of one machine file, stepped together."""
+    """A controller and an emulated drive of one machine file, stepped together.
 
-    def __init__(self, cfg: MachineConfig, x0: float = 0.0):
+    Args:
+        cfg: the machine file.
+        x0: the table's position at start.
+        feedback_delay_ticks: extra ticks the feedback takes to reach the controller
+            (see the module docstring); ``fb`` is always the drive's newest feedback.
+    """
+
+    def __init__(self, cfg: MachineConfig, x0: float = 0.0, feedback_delay_ticks: int = 0):
+        if feedback_delay_ticks < 0:
+            raise ValueError(f"feedback_delay_ticks must be >= 0, got {feedback_delay_ticks}")
         self.cfg = cfg
         self.plant = Plant(cfg, table_pos=x0)
         self.drive = EmulatedDrive(self.plant)
         self.ctrl = Controller(cfg, self.plant.pwm_period, x0)
         self.sp = Setpoint()
-        self.fb = Feedback()
+        self.feedback_delay_ticks = feedback_delay_ticks
+        #: the feedback in flight: the controller reads slot i, the drive then rewrites it
+        self._line = [Feedback() for _ in range(feedback_delay_ticks + 1)]
+        self._slot = 0
+        self.fb = self._line[0]
 
     def enable(self, max_ticks: int = 1000) -> None:
         """Run the CiA 402 enable sequence until OPERATION ENABLED."""
@@ -71,8 +89,11 @@ class LockStep:
 
     def tick(self) -> None:
         """One controller cycle and one plant PWM period."""
-        self.ctrl.tick(self.fb, self.sp)
-        self.drive.cycle(self.sp, self.fb)
+        fb = self._line[self._slot]
+        self.ctrl.tick(fb, self.sp)
+        self.drive.cycle(self.sp, fb)
+        self.fb = fb
+        self._slot = (self._slot + 1) % len(self._line)
 
     def run(self, duration_s: float, progress=None) -> SimResult:
         """Run ``duration_s`` of simulated time, recording every tick."""

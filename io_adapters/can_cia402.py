@@ -8,16 +8,30 @@ RPDO consumer and the TPDO producer, over a python-can bus.
 One drive cycle per SYNC.  At each SYNC the drive
 
 1. sends TPDO1-3 holding the feedback of the cycle before (synchronous, type 1: the
-   values :meth:`send_feedback` wrote, once there are any; NMT OPERATIONAL only),
+   values :meth:`send_feedback` wrote since the SYNC before, when it wrote them exactly
+   once; NMT OPERATIONAL only).  A loop that wrote none since (its cycle did not run)
+   or two (it ran twice: it is not in step with SYNC) gets nothing sent, so the master
+   sees an answer missing rather than taking a stale one, or one two cycles on, for the
+   answer to its last SYNC,
 2. latches the values received before it, by RPDO (NMT OPERATIONAL only) or by SDO
    (controlword, mode, targets, offsets) and wakes :meth:`recv_setpoint`, which turns
    them into a :class:`~io_adapters.messages.Setpoint`.
 
+A SYNC may carry a counter byte (CiA 301, DLC 1; :mod:`io_adapters.can_master` counts
+1-240): the TPDO1 it sends then has the manufacturer-specific statusword bits set to
+say which SYNC sent it -- bit 8 (:data:`SW_ECHO`) and the counter's low two bits in bits
+14-15 -- so a master can tell a late answer from a new one.  Those bits are 0 in TPDO1
+otherwise, and never in the 6041h that SDO reads.
+
 So the feedback of a setpoint reaches the master one SYNC later, as on a real CiA 402
-network.  With no SYNC for ``sync_timeout_ms`` the drive starts its cycle on its own
-clock, every ``sync_timeout_ms``, sending its TPDOs the same way: a master that has not
-started SYNC yet (or stopped it) still sees the statusword move.  SYNC is taken in
-PRE-OPERATIONAL and OPERATIONAL; SDO in every state.  The drive boots into
+network.  :attr:`last_sync_ns` is when the newest SYNC was latched
+(``time.monotonic_ns``; 0 before the first): a loop that runs on its own clock locks
+its cycle to it (``hil run`` does, :class:`hil.runtime.sync.SyncLock`), as a CiA 402
+drive synchronises its control cycle to SYNC.  With no SYNC for ``sync_timeout_ms``
+the drive starts its cycle on its own clock, every ``sync_timeout_ms``, sending its
+TPDOs the same way (the newest values, however many cycles wrote them since): a master
+that has not started SYNC yet (or stopped it) still sees the statusword move.  SYNC is
+taken in PRE-OPERATIONAL and OPERATIONAL; SDO in every state.  The drive boots into
 PRE-OPERATIONAL and sends its boot-up message when opened.
 
 Setpoint from the latched objects: ``seq`` counts the cycles; ``controlword`` = 6040h;
@@ -65,6 +79,11 @@ from io_adapters.cia402_objects import (
 from io_adapters.messages import MODE_CST, Feedback, Setpoint
 
 SW_FAULT = 1 << 3
+#: TPDO1 statusword: bit 8 set when bits 14-15 hold the low two bits of the counter of
+#: the SYNC that sent it (manufacturer-specific bits of CiA 402's 6041h)
+SW_ECHO = 1 << 8
+ECHO_SHIFT = 14
+SW_ECHO_MASK = SW_ECHO | 3 << ECHO_SHIFT
 U32_MASK = 0xFFFFFFFF
 #: objects written by the master, in the order :meth:`CanDriveEndpoint._fill` reads them
 INPUTS = ((0x6040, 0), (0x6060, 0), (0x607A, 0), (0x60B1, 0), (0x60FF, 0), (0x6071, 0),
@@ -114,7 +133,8 @@ class CanDriveEndpoint(Endpoint):
         self._cycle = threading.Condition(self._lock)
         self._latched = (0,) * len(INPUTS)
         self._ready = False
-        self._have_feedback = False
+        self._written = 0  # send_feedback calls since the last cycle started
+        self.last_sync_ns = 0
         self._cycles = 0
         self._mode = NO_MODE
         self._last_cycle_s = time.monotonic()
@@ -190,7 +210,7 @@ class CanDriveEndpoint(Endpoint):
                 layout.frame.pack_into(staged, 0, *vals)
                 self._image.update(zip(layout.objects, vals))
             self._image[ERROR_REGISTER] = 1 if fb.statusword & SW_FAULT else 0
-            self._have_feedback = True
+            self._written += 1
         return True
 
     def _close(self) -> None:
@@ -198,13 +218,21 @@ class CanDriveEndpoint(Endpoint):
         self.network.disconnect()
 
     # -- the bus's side (canopen's receive thread) ---------------------------------------
-    def _start_cycle(self, now: float) -> None:
+    def _start_cycle(self, now: float, by_sync: bool = False,
+                     counter: int | None = None) -> None:
         """Send the TPDOs, latch the inputs, wake the loop (the lock is held)."""
-        if self._have_feedback and self.node.nmt.state == "OPERATIONAL":
+        fresh = self._written == 1 if by_sync else self._written > 0
+        if fresh and self.node.nmt.state == "OPERATIONAL":
             with self.network.send_lock:
                 for msg, staged in zip(self._tpdo_msgs, self._staged):
                     msg.data[:] = staged
+                tpdo1 = self._tpdo_msgs[0].data  # statusword little-endian: bits 8-15
+                tpdo1[1] &= ~SW_ECHO_MASK >> 8 & 0xFF
+                if counter is not None:
+                    tpdo1[1] |= (SW_ECHO | (counter & 3) << ECHO_SHIFT) >> 8
+                for msg in self._tpdo_msgs:
                     self.network.bus.send(msg)
+        self._written = 0
         if self._ready:
             self.stats.lost += 1
         self._latched = tuple(self._image[obj] for obj in INPUTS)
@@ -215,8 +243,10 @@ class CanDriveEndpoint(Endpoint):
 
     def _on_sync(self, can_id: int, data: bytearray, timestamp: float) -> None:
         if self.node.nmt.state in ("PRE-OPERATIONAL", "OPERATIONAL"):
+            now_ns = time.monotonic_ns()
             with self._lock:
-                self._start_cycle(time.monotonic())
+                self.last_sync_ns = now_ns
+                self._start_cycle(now_ns * 1e-9, True, data[0] if len(data) == 1 else None)
 
     def _on_rpdo(self, can_id: int, data: bytearray, timestamp: float) -> None:
         if self.node.nmt.state != "OPERATIONAL":

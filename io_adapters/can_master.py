@@ -2,9 +2,13 @@
 
 Plain python-can, no receive thread: :meth:`send_setpoint` sends the RPDOs of the
 setpoint's mode and then SYNC; :meth:`recv_feedback` reads the bus until TPDO1-3 have
-all arrived and turns them into a :class:`~io_adapters.messages.Feedback`.  The bus is
-opened with filters for the drive's TPDOs and heartbeat only, so the master never takes
+all arrived and turns them into a :class:`~io_adapters.messages.Feedback`.  The master
+takes only the drive's TPDOs and heartbeat and skips every other frame, so it never takes
 its own RPDOs or SYNC for input (``udp_multicast`` hands every process its own frames).
+On ``socketcan`` the kernel filters for it; on the other buses it reads every frame and
+skips them itself: python-can filters those in software, and its ``recv(0)`` returns
+None on meeting a filtered frame with more frames queued behind it, so a poll per cycle
+would fall behind the master's own echoes.
 The PDO mapping, URL and units are those of :mod:`io_adapters.cia402_objects`.
 
 Setpoint to RPDOs, per mode (6060h = ``mode``)::
@@ -23,11 +27,16 @@ TPDOs to Feedback: ``statusword`` 6041h, ``fault`` from 603Fh (FF00h + s gives s
 other non-zero code is passed on), ``encoder_counts`` 6064h, ``velocity_counts_s``
 606Ch, ``iq_a`` 6078h per mille, ``scale_counts`` 60E4h:01; ``time_s`` and ``id_a`` are
 0 (not on this wire).  The drive sends at SYNC k the feedback of the cycle SYNC k-1
-started, so ``seq`` is the seq of the setpoint sent one SYNC before the last.  The
-drive's clock is not on the wire either: ``sp_t_ns`` = ``sp_rx_ns`` and ``t_ns`` are
-the ``t_ns`` of those two setpoints (stamped as their RPDOs and SYNC went out), so
-:meth:`~io_adapters.messages.Feedback.round_trip_ns` is the time from sending the last
-setpoint to receiving the last TPDO its SYNC brought back.
+started, so ``seq`` is the seq of the setpoint sent with SYNC k-1.  Each SYNC carries a
+counter byte (CiA 301, 1-240) and the drive echoes which SYNC sent a TPDO set
+(:data:`io_adapters.can_cia402.SW_ECHO`, bits 8, 14-15 of the statusword, removed
+here), so a set that comes late is labelled with the SYNC it answers, not taken for the
+answer to the last one; without the echo (another drive) the set is taken for the
+answer to the last SYNC sent.  The drive's clock is not on the wire either:
+``sp_t_ns`` = ``sp_rx_ns`` and ``t_ns`` are the ``t_ns`` of the setpoints sent with SYNC
+k-1 and SYNC k (stamped as their RPDOs and SYNC went out), so
+:meth:`~io_adapters.messages.Feedback.round_trip_ns` is the time from sending SYNC k to
+taking the TPDO set it brought back.
 
 The master sends NMT "start remote node" when opened and again whenever the drive
 reports boot-up or PRE-OPERATIONAL (its heartbeat), so either side may start first.
@@ -41,7 +50,13 @@ import time
 import can
 
 from io_adapters.base import AdapterError, Endpoint, FrameError, Role
-from io_adapters.can_cia402 import CanDriveEndpoint, open_bus
+from io_adapters.can_cia402 import (
+    ECHO_SHIFT,
+    SW_ECHO,
+    SW_ECHO_MASK,
+    CanDriveEndpoint,
+    open_bus,
+)
 from io_adapters.cia402_objects import (
     FAULT_CODE_BASE,
     HEARTBEAT_BASE,
@@ -62,6 +77,8 @@ from io_adapters.messages import MODE_CSP, MODE_CST, MODE_CSV, Feedback, Setpoin
 
 #: RPDOs (0-based) sent in each mode, RPDO1 first
 MODE_RPDOS = {MODE_CSP: (0, 1, 3), MODE_CSV: (0, 2, 3), MODE_CST: (0, 3)}
+#: the SYNC counter runs 1 .. this (CiA 301's largest overflow value, a multiple of 4)
+SYNC_COUNTER_MAX = 240
 STANDARD_ID_MASK = 0x7FF
 
 
@@ -77,7 +94,26 @@ def _wire_int(sp: Setpoint, field: str, wire_value: float, obj: tuple[int, int])
 
 class CanMasterEndpoint(Endpoint):
     """The controller side of ``can://`` (see the module docstring); opened through
-    :meth:`io_adapters.can_cia402.CanDriveEndpoint.from_url`."""
+    :meth:`io_adapters.can_cia402.CanDriveEndpoint.from_url`.
+
+    What a loop needs to know of this link (:mod:`hil.runtime.sync`):
+
+    Attributes:
+        sync_producer: each setpoint sent ends with SYNC, which starts the drive's cycle;
+            the drive locks its cycle to it, not the master to the drive.
+        feedback_delay_ticks: the feedback read before the setpoint of cycle k answers
+            the setpoint of cycle k-2 (the drive answers SYNC k-1 at SYNC k): one tick
+            more than lock-step timing.
+        drive_clock: False: the drive's time (``Feedback.time_s``) is not on this wire.
+        lag_is_age: True: a set labelled with an older SYNC than that (it came late) is
+            that many cycles old, since the drive echoes the SYNC that sent it; a loop
+            extrapolates it over the excess as over a missing one.
+    """
+
+    sync_producer = True
+    feedback_delay_ticks = 1
+    drive_clock = False
+    lag_is_age = True
 
     @classmethod
     def from_url(cls, url: str, role: Role | str) -> Endpoint:
@@ -89,7 +125,10 @@ class CanMasterEndpoint(Endpoint):
         self._rpdos = rpdo_layouts(link.node)
         self._rpdo_msgs = tuple(can.Message(arbitration_id=p.cob_id, is_extended_id=False,
                                             data=bytearray(p.frame.size)) for p in self._rpdos)
-        self._sync = can.Message(arbitration_id=SYNC_COB_ID, is_extended_id=False, data=b"")
+        self._sync = can.Message(arbitration_id=SYNC_COB_ID, is_extended_id=False,
+                                 data=bytearray(1))
+        self._n = 0                    # SYNCs sent
+        self._history = [(0, 0)] * 8   # (seq, t_ns) of SYNC n at n & 7
         self._start = can.Message(arbitration_id=NMT_COB_ID, is_extended_id=False,
                                   data=bytes((NMT_START, link.node)))
         self._tpdos = tpdo_layouts(link.node)
@@ -102,7 +141,8 @@ class CanMasterEndpoint(Endpoint):
         self._sync_ns = [0, 0]  # and when those SYNCs were sent
         wanted = [*self._tpdo_slot, self._heartbeat_id]
         self.bus = open_bus(link, can_filters=[
-            {"can_id": i, "can_mask": STANDARD_ID_MASK, "extended": False} for i in wanted])
+            {"can_id": i, "can_mask": STANDARD_ID_MASK, "extended": False} for i in wanted]
+            if link.interface == "socketcan" else None)
         try:
             self._bus_send(self._start)
         except AdapterError:
@@ -141,9 +181,12 @@ class CanMasterEndpoint(Endpoint):
         for k in pdos:
             self._rpdos[k].frame.pack_into(self._rpdo_msgs[k].data, 0, *values[k])
             self._bus_send(self._rpdo_msgs[k])
+        self._sync.data[0] = self._n % SYNC_COUNTER_MAX + 1  # = n + 1 modulo 4
         self._bus_send(self._sync)
+        self._n += 1
         self._seq[:] = self._seq[1], sp.seq
         self._sync_ns[:] = self._sync_ns[1], sp.t_ns
+        self._history[self._n & 7] = (sp.seq, sp.t_ns)
         return True
 
     # -- TPDOs to feedback ---------------------------------------------------------------
@@ -189,8 +232,16 @@ class CanMasterEndpoint(Endpoint):
 
     def _fill(self, into: Feedback) -> None:
         (statusword, _mode, error_code), (position, velocity), (current, _, scale) = self._values
-        into.seq = self._seq[0]
-        into.statusword = statusword
+        if statusword & SW_ECHO:
+            # the drive says which SYNC sent this set: the last one sent with that
+            # counter modulo 4 (a set 4 or more SYNCs late is taken for a newer one)
+            n = self._n - (self._n - (statusword >> ECHO_SHIFT) & 3)
+            into.seq, into.sp_t_ns = self._history[n - 1 & 7]
+            into.t_ns = self._history[n & 7][1]
+        else:
+            into.seq, into.sp_t_ns, into.t_ns = self._seq[0], self._sync_ns[0], self._sync_ns[1]
+        into.sp_rx_ns = into.sp_t_ns
+        into.statusword = statusword & ~SW_ECHO_MASK
         into.fault = error_code - FAULT_CODE_BASE if error_code > FAULT_CODE_BASE else error_code
         into.time_s = 0.0
         into.encoder_counts = float(position)
@@ -198,8 +249,6 @@ class CanMasterEndpoint(Endpoint):
         into.iq_a = amps(current, self.link.rated_current_ma)
         into.id_a = 0.0
         into.scale_counts = float(scale)
-        into.sp_t_ns = into.sp_rx_ns = self._sync_ns[0]
-        into.t_ns = self._sync_ns[1]
 
     def _close(self) -> None:
         self.bus.shutdown()

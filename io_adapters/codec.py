@@ -37,8 +37,11 @@ Feedback (kind 2), header then::
     11 iq_a            float  A, sampled q current
     12 id_a            float  A, sampled d current
     13 sp_t_ns         int    ns, t_ns of the latest setpoint received (controller clock)
-    14 sp_rx_ns        int    ns, drive monotonic clock when it arrived
+    14 sp_rx_ns        int    ns, drive monotonic clock when it arrived (UDP: the
+                              kernel's receive stamp; serial: when the adapter read it)
     15 t_ns            int    ns, drive monotonic clock at sending
+    16 tick_ns         int    ns, drive monotonic clock at the start of the tick that
+                              produced it (0: not given)
 
 Decoding is strict: anything but an array of exactly this length, version,
 kind, element types and integer ranges raises :class:`FrameError` (NaN and
@@ -89,14 +92,15 @@ HEADER = (_int("version", VERSION, VERSION), _int("kind", 1, 2), _int("session",
 SETPOINT_FIELDS = (
     _int("seq", 0, U32), _int("controlword", 0, 0xFFFF), _int("mode", -128, 127),
     _float("target_position_counts"), _float("target_velocity_counts_s"),
-    _float("velocity_offset_counts_s"), _float("iq_ref_a"), _float("id_ref_a"), _float("ud_v"), _float("uq_v"),
+    _float("velocity_offset_counts_s"), _float("iq_ref_a"), _float("id_ref_a"),
+    _float("ud_v"), _float("uq_v"),
     _int("t_ns", 0, T_NS_MAX))
 FEEDBACK_FIELDS = (
     _int("seq", 0, U32), _int("statusword", 0, 0xFFFF), _int("fault", -2**31, 2**31 - 1),
     _float("time_s"), _float("encoder_counts"), _float("scale_counts"),
     _float("velocity_counts_s"), _float("iq_a"),
     _float("id_a"), _int("sp_t_ns", 0, T_NS_MAX), _int("sp_rx_ns", 0, T_NS_MAX),
-    _int("t_ns", 0, T_NS_MAX))
+    _int("t_ns", 0, T_NS_MAX), _int("tick_ns", 0, T_NS_MAX))
 
 
 class Schema:

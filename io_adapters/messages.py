@@ -78,6 +78,9 @@ class Feedback:
             (controller clock, ns; set by ``send_feedback``).
         sp_rx_ns: drive clock when that setpoint arrived, ns (set by ``send_feedback``).
         t_ns: drive clock when the adapter sent this feedback, ns (set by ``send_feedback``).
+        tick_ns: drive clock at the start of the tick that read the setpoint and produced
+            this feedback, ns (set by the drive's loop; 0: the drive does not say).  Gives a
+            controller the drive's tick phase, which arrival stamps do not.
         rx_ns: *local*, controller clock when the adapter received it, ns (set by
             ``recv_feedback``).
     """
@@ -93,6 +96,7 @@ class Feedback:
     sp_t_ns: int = 0
     sp_rx_ns: int = 0
     t_ns: int = 0
+    tick_ns: int = 0
     rx_ns: int = 0
 
     def round_trip_ns(self) -> int:

@@ -23,11 +23,30 @@ Linux it lets a second UDP socket bind the same port and take its datagrams, so 
 second emulator on a busy port is refused instead of silently splitting the
 setpoints.  A device has nobody to answer before the first setpoint arrives (no
 ``peer``): ``send_feedback`` then returns False.
+
+Arrival stamps: ``Setpoint.rx_ns`` and ``Feedback.rx_ns`` are the kernel's receive time of
+the datagram (``SO_TIMESTAMPNS``, read from ``recvmsg``'s ancillary data), not the time the
+adapter returned it, so a setpoint that waited in the socket for the drive's tick has an
+arrival before that tick.  The kernel's stamp is on CLOCK_REALTIME; :class:`RealtimeToMonotonic`
+moves it to ``time.monotonic_ns()`` with an offset measured when the socket opens and again
+when a stamp is more than :data:`OFFSET_REFRESH_NS` from the last measurement.  The
+converted stamp is never later than the true arrival and at most
+:attr:`RealtimeToMonotonic.window_ns` (the measurement's bracket, a few hundred ns) earlier,
+plus any step of the realtime clock (``settimeofday``, an NTP step, a leap second) since the
+last measurement, which lasts until the next one (at most :data:`OFFSET_REFRESH_NS` plus
+the step later); NTP's slewing changes both clocks' rate alike and does not move the
+offset.  Where the option is refused, or a datagram comes
+without the stamp, ``rx_ns`` is the user-space stamp of :class:`~io_adapters.base.Endpoint`
+(after the adapter read it), as on the serial transport (:attr:`UdpEndpoint.kernel_stamps`
+says which).
 """
 
 import ipaddress
 import select
 import socket
+import struct
+import sys
+import time
 
 from io_adapters.base import (
     AdapterConfigError,
@@ -41,6 +60,17 @@ from io_adapters.codec import MsgpackEndpoint
 
 #: receive buffer, bytes: far above any message (about 100 bytes)
 MAX_DATAGRAM = 2048
+#: Linux's SO_TIMESTAMPNS (SO_TIMESTAMPNS_OLD of asm-generic/socket.h, used by x86, Arm,
+#: RISC-V, PowerPC, s390 and MIPS; Python's socket module does not name it); the control
+#: message carrying the stamp has the same type and a struct timespec of two C longs.
+#: None: no kernel stamps on this platform
+SO_TIMESTAMPNS = 35 if sys.platform == "linux" else None
+TIMESPEC = struct.Struct("@ll")
+#: the realtime-to-monotonic offset is measured again when a stamp is this far from the
+#: last measurement, ns
+OFFSET_REFRESH_NS = 1_000_000_000
+#: readings per offset measurement; the narrowest bracket is kept
+OFFSET_TRIES = 5
 
 
 def host_port(text: str) -> tuple[str, int]:
@@ -61,6 +91,43 @@ def _sockaddr(host: str, port: int) -> tuple[int, tuple]:
 
 def _is_loopback(addr: tuple) -> bool:
     return ipaddress.ip_address(addr[0].partition("%")[0]).is_loopback
+
+
+class RealtimeToMonotonic:
+    """CLOCK_REALTIME ns -> ``time.monotonic_ns()`` ns, by an offset measured now and again.
+
+    A measurement reads monotonic, realtime, monotonic (m0, r, m1), :data:`OFFSET_TRIES`
+    times, and keeps the narrowest bracket: the true offset is between r - m1 and r - m0,
+    and r - m0 is used, so a converted time is never late and at most ``window_ns`` =
+    m1 - m0 early (while the realtime clock is not stepped; see the module docstring).
+
+    Attributes:
+        offset_ns: realtime minus monotonic, ns, as last measured.
+        window_ns: the width of that measurement's bracket, ns.
+    """
+
+    def __init__(self):
+        self.offset_ns = self.window_ns = self._measured_at_ns = 0
+        self.measure()
+
+    def measure(self) -> None:
+        """Measure the offset again."""
+        best = None
+        for _ in range(OFFSET_TRIES):
+            m0 = time.monotonic_ns()
+            r = time.clock_gettime_ns(time.CLOCK_REALTIME)
+            m1 = time.monotonic_ns()
+            if best is None or m1 - m0 < best[2] - best[0]:
+                best = (m0, r, m1)
+        m0, r, m1 = best
+        self.offset_ns, self.window_ns, self._measured_at_ns = r - m0, m1 - m0, r
+
+    def monotonic_ns(self, realtime_ns: int) -> int:
+        """``realtime_ns`` on the monotonic clock, measuring the offset first when
+        ``realtime_ns`` is more than :data:`OFFSET_REFRESH_NS` from the last measurement."""
+        if abs(realtime_ns - self._measured_at_ns) > OFFSET_REFRESH_NS:
+            self.measure()
+        return realtime_ns - self.offset_ns
 
 
 class UdpEndpoint(MsgpackEndpoint):
@@ -105,7 +172,9 @@ class UdpEndpoint(MsgpackEndpoint):
         self._device = device
         self._answer_sender = device and peer is None
         self._from = None
+        self._from_ns = self._arrival_ns = 0  # kernel stamps (monotonic) or 0: none
         self._buf = bytearray(MAX_DATAGRAM)
+        self._bufs = (self._buf,)
         self._view = memoryview(self._buf)
         self._sock = socket.socket(family, socket.SOCK_DGRAM)
         try:
@@ -116,6 +185,18 @@ class UdpEndpoint(MsgpackEndpoint):
         except OSError as e:
             self._sock.close()
             raise AdapterError(f"cannot bind UDP {local[0]}:{local[1]}: {e}") from e
+        self._clock = self._kernel_stamps_on()
+        self._ancillary = socket.CMSG_SPACE(TIMESPEC.size) if self._clock else 0
+
+    def _kernel_stamps_on(self) -> RealtimeToMonotonic | None:
+        """Ask for SO_TIMESTAMPNS; the clock converting its stamps, None if refused."""
+        if SO_TIMESTAMPNS is None:
+            return None
+        try:
+            self._sock.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)
+        except OSError:
+            return None
+        return RealtimeToMonotonic()
 
     @classmethod
     def from_url(cls, url: str, role: Role | str) -> "UdpEndpoint":
@@ -135,6 +216,16 @@ class UdpEndpoint(MsgpackEndpoint):
     def address(self) -> tuple:
         """The local socket address (host, port, ...) actually bound."""
         return self._sock.getsockname()
+
+    @property
+    def kernel_stamps(self) -> bool:
+        """True when ``rx_ns`` comes from the kernel's receive stamp (module docstring)."""
+        return self._clock is not None
+
+    @property
+    def clock(self) -> RealtimeToMonotonic | None:
+        """The conversion of the kernel's stamps (None without them)."""
+        return self._clock
 
     @property
     def peer(self) -> tuple | None:
@@ -157,19 +248,40 @@ class UdpEndpoint(MsgpackEndpoint):
             return None
         while True:
             try:
-                n, addr = sock.recvfrom_into(self._buf)
+                n, ancillary, _, addr = sock.recvmsg_into(self._bufs, self._ancillary)
             except BlockingIOError:
                 return None
             if self._device or addr == self._peer:
                 self._from = addr
+                self._from_ns = self._kernel_ns(ancillary)
                 return self._view[:n]
             self.stats.foreign += 1
 
+    def _kernel_ns(self, ancillary: list) -> int:
+        """The kernel's receive stamp in ``ancillary``, monotonic ns; 0 if it has none."""
+        for level, kind, data in ancillary:
+            if level == socket.SOL_SOCKET and kind == SO_TIMESTAMPNS \
+                    and len(data) == TIMESPEC.size:
+                sec, nsec = TIMESPEC.unpack(data)
+                return self._clock.monotonic_ns(sec * 1_000_000_000 + nsec)
+        return 0
+
     def _accept(self, data, into) -> bool:
         ok = super()._accept(data, into)
-        if ok and self._answer_sender:
-            self._peer = self._from
+        if ok:
+            self._arrival_ns = self._from_ns
+            if self._answer_sender:
+                self._peer = self._from
         return ok
+
+    def _receive(self, into, timeout_s: float | None) -> bool:
+        """The base class's receive, then ``into.rx_ns`` = the kernel's stamp of the
+        record kept (the newest, when draining) if it had one."""
+        if not super()._receive(into, timeout_s):
+            return False
+        if self._arrival_ns:
+            into.rx_ns = self._arrival_ns
+        return True
 
     def _close(self) -> None:
         self._sock.close()

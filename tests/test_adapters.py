@@ -19,6 +19,7 @@ import socket
 import subprocess
 import sys
 import textwrap
+import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -42,6 +43,7 @@ from io_adapters import (
     register,
     registry,
 )
+from io_adapters import udp
 from io_adapters.serial_link import frame
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -323,6 +325,79 @@ def test_udp_bad_urls_are_refused(url, role, match):
 def test_udp_remote_needs_the_flag():
     with open_endpoint("udp://0.0.0.0:0?allow_remote=1", "device") as ep:
         assert ep.address[0] == "0.0.0.0"
+
+
+# -- UDP arrival stamps ---------------------------------------------------------------
+
+def test_udp_arrival_is_the_kernels_receive_stamp():
+    """rx_ns is when the datagram reached the socket, not when recv returned it: before the
+    receiver even asked, after the sender's send stamp less the documented bound (the
+    realtime-to-monotonic conversion is never late and at most ``window_ns`` early)."""
+    link = udp_link()
+    try:
+        assert link.device.kernel_stamps and link.controller.kernel_stamps
+        sp, got_sp, fb, got_fb = Setpoint(), Setpoint(), Feedback(), Feedback()
+        assert link.controller.send_setpoint(sp)
+        time.sleep(QUIET_S)  # it waits in the socket
+        before = time.monotonic_ns()
+        assert link.device.recv_setpoint(got_sp, WAIT_S)
+        after = time.monotonic_ns()
+        assert sp.t_ns - link.device.clock.window_ns <= got_sp.rx_ns <= before <= after
+        assert link.device.send_feedback(fb)
+        time.sleep(QUIET_S)
+        before = time.monotonic_ns()
+        assert link.controller.recv_feedback(got_fb, WAIT_S)
+        after = time.monotonic_ns()
+        assert fb.t_ns - link.controller.clock.window_ns <= got_fb.rx_ns <= before <= after
+        assert got_fb.sp_rx_ns == got_sp.rx_ns  # the echo carries the kernel's stamp
+    finally:
+        link.close()
+
+
+def test_udp_draining_keeps_the_newest_records_arrival():
+    link = udp_link("?drain=1")
+    try:
+        link.inject([setpoint_msg(frame_no=0, seq=0)])
+        time.sleep(QUIET_S)
+        newest_sent = time.monotonic_ns()
+        link.inject([setpoint_msg(frame_no=1, seq=1)])
+        sp = Setpoint()
+        assert link.device.recv_setpoint(sp, WAIT_S) and sp.seq == 1
+        assert newest_sent - link.device.clock.window_ns <= sp.rx_ns <= time.monotonic_ns()
+    finally:
+        link.close()
+
+
+@pytest.mark.parametrize("option", [None, 0x7FFF], ids=["unknown", "refused"])
+def test_udp_without_kernel_stamps_stamps_in_user_space(monkeypatch, option):
+    """No SO_TIMESTAMPNS on the platform (None), or the kernel refuses the option: rx_ns
+    is the time recv returned the record, as on serial."""
+    monkeypatch.setattr(udp, "SO_TIMESTAMPNS", option)
+    link = udp_link()
+    try:
+        assert not link.device.kernel_stamps and link.device.clock is None
+        sp, got = Setpoint(), Setpoint()
+        assert link.controller.send_setpoint(sp)
+        time.sleep(QUIET_S)
+        before = time.monotonic_ns()
+        assert link.device.recv_setpoint(got, WAIT_S)
+        assert sp.t_ns < before <= got.rx_ns <= time.monotonic_ns()
+    finally:
+        link.close()
+
+
+def test_realtime_offset_is_measured_when_opened_and_again_a_second_on(monkeypatch):
+    clock = udp.RealtimeToMonotonic()
+    m0 = time.monotonic_ns()
+    now = time.clock_gettime_ns(time.CLOCK_REALTIME)
+    m1 = time.monotonic_ns()
+    assert m0 - clock.window_ns <= clock.monotonic_ns(now) <= m1  # never late
+    measured = []
+    monkeypatch.setattr(clock, "measure", lambda: measured.append(True))
+    clock.monotonic_ns(now + udp.OFFSET_REFRESH_NS // 2)
+    assert not measured
+    clock.monotonic_ns(now + 2 * udp.OFFSET_REFRESH_NS)
+    assert measured == [True]
 
 
 # -- a record-level endpoint: the contract without bytes (as a CAN adapter will be) -----

@@ -1,6 +1,6 @@
 """The latency report (hil.report) against figures worked out by hand, the run folder's
-format, the host fingerprint on a machine missing files, and the shape of the adapter
-benchmark's rows (no timing asserted).
+format, its pairing with a controller's folder, the host fingerprint on a machine missing
+files, and the shape of the adapter benchmark's rows (no timing asserted).
 
 Percentiles are nearest rank, as hil.rt computes them: the p-th percentile of n samples
 is the ceil(p/100 * n)-th smallest.  The synthetic run has 1000 ticks that ran, with
@@ -19,8 +19,10 @@ import pytest
 from hil.bench import adapters as bench_adapters
 from hil.report import host
 from hil.report.baseline import CyclictestBaseline
+from hil.report.render import markdown
 from hil.report.latency import (
     NO_VALUE,
+    Pairing,
     ReportError,
     RoundTrip,
     RunData,
@@ -142,6 +144,7 @@ def test_slack_is_period_minus_compute_minus_lateness():
 def test_round_trip_parts_by_hand():
     rt = build_report(synthetic_run())["round_trip"]
     assert (rt["adapter"], rt["samples"], rt["with_transport"]) == ("udp://127.0.0.1:5005", 100, 100)
+    assert (rt["negative_waits"], rt["pairing"]) == (0, None)
     # 100 samples 50.0, 50.1, ..., 59.9 µs: p50 is the 50th, p99 the 99th, p99.9 the 100th
     assert rt["transport_us"] == {"min": 50.0, "p50": 54.9, "p99": 59.8, "p999": 59.9, "max": 59.9}
     assert rt["wait_us"] == dict.fromkeys(("min", "p50", "p99", "p999", "max"), 2.0)
@@ -216,6 +219,95 @@ def test_without_the_controllers_stamp_only_wait_and_compute_are_known(tmp_path)
     assert (rt["samples"], rt["with_transport"], rt["total_us"], rt["transport_us"]) == (
         100, 0, None, None)
     assert rt["wait_us"]["p50"] == 2.0
+
+
+def test_negative_waits_are_counted_and_explained():
+    rt = expected_round_trip(N_RAN + 1)
+    rt.wait_ns[RT_SLOTS[:3]] = -1_000  # three setpoints arrived 1 µs after their tick began
+    report = build_report(synthetic_run(round_trip=rt))
+    assert report["round_trip"]["negative_waits"] == 3
+    assert "3 of 100 waits are negative." in markdown(report, "run", "h.png")
+    assert "negative" not in markdown(build_report(synthetic_run()), "run", "h.png")
+
+
+# -- pairing with the controller's folder ----------------------------------------------------
+
+#: run ticks the controller recorded no row for (before its recording started)
+BEFORE_RECORDING = RT_SLOTS[:10]
+#: a tick whose own feedback the controller never read: it read the next tick's, which
+#: echoes the same setpoint (same sp_t_ns, fb_t_ns one period later)
+SUPERSEDED = RT_SLOTS[10]
+
+
+def write_pair(folder):
+    """An emulator run folder (fb_rx_ns 0, as the daemon writes it) in folder/emulator and
+    the controller's controller.npz in folder/controller: one row per controller tick, a
+    tick without new feedback (all three stamps 0) after each one with."""
+    run, ctl = folder / "emulator", folder / "controller"
+    run.mkdir()
+    ctl.mkdir()
+    write_run_folder(run)
+    with np.load(run / "run.npz") as npz:
+        arrays = dict(npz)
+    sp_t, fb_t, fb_rx = (arrays[k][RT_SLOTS].copy() for k in ("sp_t_ns", "fb_t_ns", "fb_rx_ns"))
+    arrays["fb_rx_ns"][:] = 0
+    np.savez(run / "run.npz", **arrays)
+    i = int(np.flatnonzero(RT_SLOTS == SUPERSEDED)[0])
+    fb_t[i] += PERIOD_NS
+    fb_rx[i] += PERIOD_NS
+    read = ~np.isin(RT_SLOTS, BEFORE_RECORDING)
+    rows = np.stack([sp_t[read], fb_t[read], fb_rx[read]], axis=1)
+    rows = np.insert(rows, np.arange(1, len(rows) + 1), 0, axis=0)  # the ticks without
+    np.savez(ctl / "controller.npz", k=np.arange(len(rows)), fb_new=(rows[:, 0] != 0) * 1,
+             fb_sp_t_ns=rows[:, 0], fb_t_ns=rows[:, 1], fb_rx_ns=rows[:, 2])
+    return run, ctl
+
+
+def test_pairing_fills_total_and_transport_of_the_matched_ticks(tmp_path):
+    run_dir, ctl_dir = write_pair(tmp_path)
+    run = load_run(run_dir, controller=ctl_dir)
+    assert run.pairing == Pairing(controller=str(ctl_dir), rows=90, matched=89,
+                                  unmatched_ticks=11, unmatched_rows=1)
+    want = expected_round_trip(N_RAN + 1)
+    unmatched = np.r_[BEFORE_RECORDING, SUPERSEDED]
+    for name in ("total_ns", "transport_ns"):
+        getattr(want, name)[unmatched] = NO_VALUE
+    for name in ("total_ns", "transport_ns", "wait_ns", "compute_ns"):
+        np.testing.assert_array_equal(getattr(run.round_trip, name), getattr(want, name), name)
+    rt = build_report(run)["round_trip"]
+    assert (rt["samples"], rt["with_transport"]) == (100, 89)
+    assert rt["pairing"] == {"controller": str(ctl_dir), "rows": 90, "matched": 89,
+                             "unmatched_ticks": 11, "unmatched_rows": 1}
+    # the 89 transports left: 51.1 .. 59.9 µs in 0.1 µs steps; p50 is the 45th
+    # (ceil 44.5), p99 the 89th (ceil 88.11)
+    assert rt["transport_us"] == {"min": 51.1, "p50": 55.5, "p99": 59.9, "p999": 59.9,
+                                  "max": 59.9}
+
+
+def test_report_run_with_the_controller_reports_the_pairing(tmp_path):
+    run_dir, ctl_dir = write_pair(tmp_path)
+    report = report_run(run_dir, controller=ctl_dir)
+    md = (run_dir / "report.md").read_text()
+    assert report["round_trip"]["with_transport"] == 89
+    assert "89 matched; 11 setpoints without a controller row" in md
+    assert "--controller DIR" in (write_report(tmp_path, build_report(load_run(run_dir)))[1]
+                                  .read_text())
+
+
+@pytest.mark.parametrize("damage, match", [
+    (lambda run, ctl: (ctl / "controller.npz").unlink(), "controller.npz: cannot read"),
+    (lambda run, ctl: np.savez(ctl / "controller.npz", k=np.arange(3)),
+     r"controller.npz: no \['fb_sp_t_ns', 'fb_t_ns', 'fb_rx_ns'\]"),
+    (lambda run, ctl: np.savez(ctl / "controller.npz", fb_sp_t_ns=np.zeros(3, int),
+                               fb_t_ns=np.zeros(2, int), fb_rx_ns=np.zeros(3, int)),
+     "'fb_t_ns' has 2 slots"),
+    (lambda run, ctl: write_run_folder(run, with_stamps=False), "no round-trip stamps to pair"),
+])
+def test_a_bad_pairing_is_refused_naming_file_and_key(tmp_path, damage, match):
+    run_dir, ctl_dir = write_pair(tmp_path)
+    damage(run_dir, ctl_dir)
+    with pytest.raises(ReportError, match=match):
+        load_run(run_dir, controller=ctl_dir)
 
 
 def test_a_run_without_stamps_or_adapter_loads(tmp_path):

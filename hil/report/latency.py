@@ -1,9 +1,10 @@
-"""Latency and jitter report of one emulator run: ``hil report RUN``.
+"""Latency and jitter report of one emulator run: ``hil report RUN [--controller DIR]``.
 
-:func:`load_run` reads a run folder into a :class:`RunData`; :func:`build_report` reduces
-it to a JSON-ready dict; :func:`write_report` writes ``report_latency.json``, ``report.md``
-and ``latency_hist.png`` into the folder.  :func:`report_run` does all three, with an
-optional cyclictest baseline at the run's period (:mod:`hil.report.baseline`).
+:func:`load_run` reads a run folder into a :class:`RunData`, pairing its round trips with
+the controller's recording when given one; :func:`build_report` reduces it to a JSON-ready
+dict; :func:`write_report` writes ``report_latency.json``, ``report.md`` and
+``latency_hist.png`` into a folder.  :func:`report_run` does all three, with an optional
+cyclictest baseline at the run's period (:mod:`hil.report.baseline`).
 
 Percentiles are nearest rank, as :mod:`hil.rt` computes them
 (:meth:`hil.rt.loop.Percentiles.of_ns_in_us`): the p-th percentile of n samples is the
@@ -25,10 +26,13 @@ received setpoint carries stamps; every other slot is 0 in all five::
 
     tick_start_ns  device clock at the start of that tick's step (read first thing in it)
     sp_t_ns        Setpoint.t_ns: controller clock when the controller sent the setpoint
-    sp_rx_ns       Setpoint.rx_ns: device clock when the device's adapter returned it
+    sp_rx_ns       Setpoint.rx_ns: device clock when the setpoint arrived: on UDP the
+                   kernel's receive stamp (io_adapters.udp), on serial when the adapter
+                   returned it
     fb_t_ns        Feedback.t_ns: device clock when that tick's feedback was sent
-    fb_rx_ns       Feedback.rx_ns: controller clock when the controller's adapter received
-                   that feedback; 0 where the controller side's stamp is not known
+    fb_rx_ns       Feedback.rx_ns: controller clock when that feedback arrived; 0 where
+                   the controller side's stamp is not known (the emulator always writes 0:
+                   the pairing below fills it)
 
 ``report.json``, a JSON object; the keys read here (others are ignored)::
 
@@ -40,6 +44,28 @@ received setpoint carries stamps; every other slot is 0 in all five::
                   report then takes the fingerprint of the machine it runs on)
 
 ``loop.ticks + loop.skipped`` must equal n and ``loop.skipped`` the SKIPPED slots.
+
+The controller's folder
+-----------------------
+``controller.npz`` of ``hil controller --out DIR``
+(:data:`hil.runtime.controller_proc.INT_COLUMNS`), int64[m] each, one row per controller
+tick it recorded (from the program's start), 0 in all three on a tick without new
+feedback::
+
+    fb_sp_t_ns     Feedback.sp_t_ns: the t_ns of the setpoint that feedback answers
+    fb_t_ns        Feedback.t_ns: device clock when the drive sent it
+    fb_rx_ns       Feedback.rx_ns: controller clock when it arrived
+
+Pairing (``load_run(RUN, controller=DIR)``): a run tick with stamps takes ``fb_rx_ns`` from
+the row whose ``fb_sp_t_ns`` is its ``sp_t_ns`` and whose ``fb_t_ns`` is its ``fb_t_ns``:
+the very feedback that tick sent (``sp_t_ns`` alone is not enough: each feedback until the
+next setpoint arrives echoes the same one; a feedback is accepted once, so one row at
+most matches).  A run tick no row matches keeps run.npz's ``fb_rx_ns`` (0: its total and
+transport stay unknown, left out of their figures) and is counted as an unmatched tick:
+the controller recorded no row then (the alignment and enable sequence before its
+recording, the disable after it), or it never read that feedback (lost, or superseded by
+a newer one before its tick).  A row no tick matches is counted as an unmatched row: the
+drive sent that feedback on a tick without a new setpoint.  run.npz is not rewritten.
 
 The round trip and its parts
 ----------------------------
@@ -57,16 +83,21 @@ machines, so only differences on one clock are taken)::
 so ``total = transport + wait + compute + (fb_t_ns - tick_start_ns - compute_ns[k])``; the
 last term is the end of the step to the send, negative when the feedback goes out before
 the step ends.  ``total`` and ``transport`` need ``fb_rx_ns``; ``wait`` and ``compute`` do
-not.  "Arrival" is when the adapter returned the setpoint to the daemon, not when the
-bytes reached the socket: a daemon that reads its setpoint inside the tick sees a wait
-near or below zero and the real wait inside ``transport``.
+not.  "Arrival" is ``Setpoint.rx_ns``: on UDP the kernel's stamp, moved to the monotonic
+clock never late and at most ``io_adapters.udp.RealtimeToMonotonic.window_ns`` early, so a
+setpoint that arrived before its tick has a wait >= 0.  A wait is negative only for a
+setpoint that arrived after its tick had started and before the daemon polled for it (at
+most the start of the step to the poll: microseconds, more when the step was preempted
+there), or where arrival is when the adapter returned the
+setpoint (serial; UDP where the kernel gives no stamp): then the time it waited for the
+tick counts as transport.
 """
 
 import json
 import math
 import sys
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
@@ -79,6 +110,9 @@ from hil.rt.scheduling import last_cpu
 
 RUN_NPZ = "run.npz"
 RUN_JSON = "report.json"
+CONTROLLER_NPZ = "controller.npz"
+#: the controller.npz columns the pairing reads
+CONTROLLER_KEYS = ("fb_sp_t_ns", "fb_t_ns", "fb_rx_ns")
 REPORT_JSON = "report_latency.json"
 REPORT_MD = "report.md"
 REPORT_PNG = "latency_hist.png"
@@ -114,6 +148,24 @@ class RoundTrip:
     compute_ns: np.ndarray
 
 
+@dataclass(frozen=True)
+class Pairing:
+    """The run's round trips against a controller's rows (module docstring, Pairing).
+
+    Attributes:
+        controller: the controller's folder.
+        rows: its rows with a new feedback's stamps.
+        matched: run ticks with stamps that took their ``fb_rx_ns`` from a row.
+        unmatched_ticks: run ticks with stamps no row matched.
+        unmatched_rows: rows no run tick matched.
+    """
+    controller: str
+    rows: int
+    matched: int
+    unmatched_ticks: int
+    unmatched_rows: int
+
+
 @dataclass(frozen=True, eq=False)
 class RunData:
     """What a latency report is made from (see the module docstring for the files).
@@ -128,6 +180,8 @@ class RunData:
         adapter_stats: its ``AdapterStats`` as a dict, or None.
         round_trip: the per-tick round trip, or None when the run recorded no stamps.
         host: the host fingerprint taken during the run, or None.
+        pairing: how the round trips were paired with a controller's folder, or None
+            when they were not.
     """
     period_ns: int
     lateness_ns: np.ndarray
@@ -139,6 +193,7 @@ class RunData:
     adapter_stats: dict | None = None
     round_trip: RoundTrip | None = None
     host: dict | None = None
+    pairing: Pairing | None = None
 
 
 # -- reading a run folder ------------------------------------------------------------------
@@ -160,11 +215,17 @@ def _int_array(arrays: dict, key: str, n: int | None, where: Path) -> np.ndarray
     return a.astype(np.int64)
 
 
+def _stamped(stamps: dict[str, np.ndarray], compute_ns: np.ndarray) -> np.ndarray:
+    """Ticks with a round trip: the four device-side stamps and a compute time."""
+    return ((stamps["tick_start_ns"] != 0) & (stamps["sp_t_ns"] != 0)
+            & (stamps["sp_rx_ns"] != 0) & (stamps["fb_t_ns"] != 0) & (compute_ns != NO_VALUE))
+
+
 def round_trip_from_stamps(stamps: dict[str, np.ndarray],
                            compute_ns: np.ndarray) -> RoundTrip:
     """The parts of the module docstring from the five stamp arrays (0 = no stamp)."""
     tick, sp_t, sp_rx, fb_t, fb_rx = (stamps[k] for k in STAMP_KEYS)
-    has = (tick != 0) & (sp_t != 0) & (sp_rx != 0) & (fb_t != 0) & (compute_ns != NO_VALUE)
+    has = _stamped(stamps, compute_ns)
     known = has & (fb_rx != 0)
     total = np.where(known, fb_rx - sp_t, NO_VALUE)
     transport = np.where(known, total - (fb_t - sp_rx), NO_VALUE)
@@ -173,12 +234,58 @@ def round_trip_from_stamps(stamps: dict[str, np.ndarray],
                      compute_ns=np.where(has, compute_ns, NO_VALUE))
 
 
-def load_run(folder: Path | str) -> RunData:
-    """Read ``run.npz`` and ``report.json`` of a run folder (keys: module docstring).
+def load_controller_stamps(folder: Path | str) -> dict[str, np.ndarray]:
+    """The pairing columns of ``controller.npz`` in ``folder`` (module docstring).
+
+    Raises:
+        ReportError: the file is missing or unreadable, or a column missing or not 1-D
+            integers of one length.
+    """
+    path = Path(folder) / CONTROLLER_NPZ
+    try:
+        with np.load(path) as npz:
+            arrays = {k: npz[k] for k in npz.files}
+    except (OSError, ValueError) as e:
+        raise ReportError(f"{path}: cannot read the controller's recording: {e}") from e
+    missing = [k for k in CONTROLLER_KEYS if k not in arrays]
+    if missing:
+        raise ReportError(f"{path}: no {missing} (has {sorted(arrays)}; recorded by an "
+                          f"older hil controller?)")
+    first = _int_array(arrays, CONTROLLER_KEYS[0], None, path)
+    return {k: _int_array(arrays, k, first.size, path) for k in CONTROLLER_KEYS}
+
+
+def pair_with_controller(stamps: dict[str, np.ndarray], compute_ns: np.ndarray,
+                         controller: dict[str, np.ndarray],
+                         name: str) -> tuple[np.ndarray, Pairing]:
+    """``fb_rx_ns`` of the run with the controller's stamps filled in where a row matches
+    (module docstring, Pairing), and the counts; ``controller`` as
+    :func:`load_controller_stamps` returns it, ``name`` its folder."""
+    rows = controller["fb_sp_t_ns"] != 0
+    rx_of = dict(zip(zip(controller["fb_sp_t_ns"][rows].tolist(),
+                         controller["fb_t_ns"][rows].tolist()),
+                     controller["fb_rx_ns"][rows].tolist()))
+    fb_rx = stamps["fb_rx_ns"].copy()
+    ticks = np.flatnonzero(_stamped(stamps, compute_ns))
+    keys = zip(stamps["sp_t_ns"][ticks].tolist(), stamps["fb_t_ns"][ticks].tolist())
+    matched = 0
+    for k, key in zip(ticks.tolist(), keys):
+        rx = rx_of.pop(key, None)
+        if rx is not None:
+            fb_rx[k] = rx
+            matched += 1
+    return fb_rx, Pairing(controller=name, rows=int(rows.sum()), matched=matched,
+                          unmatched_ticks=ticks.size - matched, unmatched_rows=len(rx_of))
+
+
+def load_run(folder: Path | str, controller: Path | str | None = None) -> RunData:
+    """Read ``run.npz`` and ``report.json`` of a run folder (keys: module docstring), and
+    pair its round trips with ``controller.npz`` in ``controller`` when given.
 
     Raises:
         ReportError: a file is missing or unreadable, a key is missing or of the wrong
-            type, or the files disagree on the number of ticks.
+            type, the files disagree on the number of ticks, or ``controller`` is given
+            for a run without round-trip stamps.
     """
     folder = Path(folder)
     npz_path, json_path = folder / RUN_NPZ, folder / RUN_JSON
@@ -223,16 +330,21 @@ def load_run(folder: Path | str) -> RunData:
     host = meta.get("host")
     if host is not None and not isinstance(host, dict):
         raise ReportError(f"{json_path}: 'host' must be an object, got {host!r:.200}")
-    round_trip = None
+    if controller is not None and not stamped:
+        raise ReportError(f"{npz_path}: no round-trip stamps to pair with {controller}")
+    round_trip = pairing = None
     if stamped:
         stamps = {k: _int_array(arrays, k, lateness.size, npz_path) for k in STAMP_KEYS}
+        if controller is not None:
+            stamps["fb_rx_ns"], pairing = pair_with_controller(
+                stamps, compute, load_controller_stamps(controller), str(controller))
         round_trip = round_trip_from_stamps(stamps, compute)
     return RunData(period_ns=period_ns, lateness_ns=lateness, compute_ns=compute,
                    overruns=_count(loop, "overruns", where), skipped=skipped,
                    scheduling=scheduling,
                    adapter=None if adapter is None else adapter["name"],
                    adapter_stats=None if adapter is None else adapter["stats"],
-                   round_trip=round_trip, host=host)
+                   round_trip=round_trip, host=host, pairing=pairing)
 
 
 # -- the report ------------------------------------------------------------------------------
@@ -252,6 +364,8 @@ def _round_trip_summary(run: RunData) -> dict | None:
     has = rt.wait_ns != NO_VALUE
     known = rt.total_ns != NO_VALUE
     return {"adapter": run.adapter, "samples": int(has.sum()), "with_transport": int(known.sum()),
+            "negative_waits": int((rt.wait_ns[has] < 0).sum()),
+            "pairing": None if run.pairing is None else asdict(run.pairing),
             "total_us": summary_us(rt.total_ns[known]),
             "transport_us": summary_us(rt.transport_ns[known]),
             "wait_us": summary_us(rt.wait_ns[has]), "compute_us": summary_us(rt.compute_ns[has])}
@@ -281,7 +395,9 @@ def build_report(run: RunData, cyclictest: CyclictestBaseline | None = None) -> 
 
         {"period_us", "ticks", "overruns", "missed_ticks",
          "lateness_us" | "compute_us" | "slack_us": {"min", "p50", "p99", "p999", "max"},
-         "round_trip": {"adapter", "samples", "with_transport", "total_us",
+         "round_trip": {"adapter", "samples", "with_transport", "negative_waits",
+                        "pairing": {"controller", "rows", "matched", "unmatched_ticks",
+                                    "unmatched_rows"} (Pairing) or null, "total_us",
                         "transport_us", "wait_us", "compute_us"} or null,
          "adapter": {"name", "stats"} or null, "scheduling", "host", "host_source",
          "cyclictest": {"interval_us", "samples", "overflows", "latency_us"} or null,
@@ -291,7 +407,8 @@ def build_report(run: RunData, cyclictest: CyclictestBaseline | None = None) -> 
     Slack is ``period - compute - lateness`` per tick: the time from the end of the step to
     the next deadline (negative: an overrun), so its worst case is its ``min``.  ``host`` is
     the run's fingerprint when it recorded one, otherwise this machine's (``host_source``
-    says which).  A summary over no samples is null.
+    says which).  ``negative_waits`` counts the round trips whose wait is below 0 (module
+    docstring).  A summary over no samples is null.
     """
     ran = run.lateness_ns != NO_VALUE
     lateness, compute = run.lateness_ns[ran], run.compute_ns[ran]
@@ -332,13 +449,14 @@ def write_report(folder: Path | str, report: dict) -> list[Path]:
 
 
 def report_run(folder: Path | str, cyclictest_s: float | None = None,
-               note: Callable[[str], None] = lambda message: print(message, file=sys.stderr)
-               ) -> dict:
-    """What ``hil report RUN`` does: load the run, run cyclictest at its period for
-    ``cyclictest_s`` seconds (None: no baseline) on the last CPU at SCHED_FIFO 80, build
-    the report and write it into the folder.  ``note`` receives why a baseline is missing.
+               note: Callable[[str], None] = lambda message: print(message, file=sys.stderr),
+               controller: Path | str | None = None) -> dict:
+    """What ``hil report RUN`` does: load the run (paired with the controller's folder
+    ``controller`` when given), run cyclictest at its period for ``cyclictest_s`` seconds
+    (None: no baseline) on the last CPU at SCHED_FIFO 80, build the report and write it
+    into the folder.  ``note`` receives why a baseline is missing.
     """
-    run = load_run(folder)
+    run = load_run(folder, controller)
     baseline = None
     if cyclictest_s is not None:
         interval_us = max(1, round(run.period_ns / 1e3))

@@ -6,9 +6,14 @@ in the Markdown carries its unit.
 
 from pathlib import Path
 
-NEGATIVE_WAIT = ("A negative wait: the setpoint was read after its tick had started (its "
-                 "arrival is when the adapter returned it), so the time it waited for the "
-                 "tick counts as transport, not here.")
+NEGATIVE_WAIT = ("A negative wait: the setpoint arrived after its tick had started but "
+                 "before the daemon polled for it inside the step (microseconds, more when "
+                 "the step was preempted there); or the adapter has no arrival stamp "
+                 "(serial, or UDP without the kernel's receive stamp), so its arrival is when "
+                 "the adapter returned it and the time it waited for the tick counts as "
+                 "transport.")
+NO_PAIRING = ("Total and transport need the controller's receive stamps: "
+              "`hil report RUN --controller DIR` pairs them from its controller.npz.")
 QUANTILES = (("min", "min"), ("p50", "p50"), ("p99", "p99"), ("p999", "p99.9"),
              ("max", "max"))
 
@@ -58,14 +63,24 @@ def _round_trip(report: dict) -> list[str]:
         return ["## Round trip", "", "The run recorded no round-trip stamps.", ""]
     counts = (f"{rt['samples']} setpoints, {rt['with_transport']} with the controller's "
               f"receive stamp (total and transport need it).")
+    pairing = rt["pairing"]
+    if pairing is not None:
+        counts += (f"  Paired with `{_cell(pairing['controller'])}`: {pairing['matched']} "
+                   f"matched; {pairing['unmatched_ticks']} setpoints without a controller "
+                   f"row (left out of total and transport); {pairing['unmatched_rows']} of "
+                   f"its {pairing['rows']} feedback rows matched no setpoint (sent on a "
+                   f"tick without a new one).")
     lines = [f"## Round trip setpoint → feedback, adapter `{rt['adapter']}`", "", counts, ""]
     lines += _table_head("part")
     lines += [_row("total (setpoint sent → feedback received)", rt["total_us"]),
               _row("transport (total − time the drive held the setpoint)", rt["transport_us"]),
               _row("wait for tick (arrival → start of the tick using it)", rt["wait_us"]),
               _row("compute (that tick's compute time)", rt["compute_us"]), ""]
-    if rt["wait_us"] is not None and rt["wait_us"]["p50"] < 0:
-        lines += [NEGATIVE_WAIT, ""]
+    if pairing is None and rt["with_transport"] == 0:
+        lines += [NO_PAIRING, ""]
+    if rt["negative_waits"]:
+        lines += [f"{rt['negative_waits']} of {rt['samples']} waits are negative.  "
+                  + NEGATIVE_WAIT, ""]
     return lines
 
 

@@ -14,14 +14,20 @@ by a :class:`~hil.rt.loop.RealTimeLoop` instead of back to back with the drive:
    feedback for a moment and place this loop's ticks half a period from the drive's, so
    that a setpoint reaches the drive before its next cycle and the feedback comes back
    before this loop's next tick: the two loops then exchange data exactly as the lock-step
-   simulation does (tick k reads drive cycle k-1, its setpoint drives cycle k);
+   simulation does (tick k reads drive cycle k-1, its setpoint drives cycle k).  Over a
+   link whose master produces SYNC (``can://``) the drive locks its cycle to this loop's
+   SYNC instead (:func:`hil.runtime.sync.align_by_sync`), and its answer comes one SYNC
+   later: tick k reads drive cycle k-2 (the endpoint's ``feedback_delay_ticks``, 1;
+   ``hil.sim.LockStep(feedback_delay_ticks=1)`` is the matching simulation);
 4. run: each tick polls the newest feedback (timeout 0), ``ctrl.tick(fb, sp)``, sends the
    setpoint; the CiA 402 enable sequence first, then, on the tick the drive reports
    OPERATION ENABLED, the program (as ``hil sim`` does), recorded for the program's
    duration plus :data:`hil.commands.SETTLE_S`.  A tick without new feedback (a late drive
    cycle, a lost frame) extrapolates the last one with the drive's speed actual value
    (606Ch) over one period, as a controller bridges a missing bus telegram, instead of
-   reading a frozen encoder as standstill;
+   reading a frozen encoder as standstill; on a link whose feedback says how old it is
+   (``lag_is_age``: ``can://``, where an answer that came after this loop's tick is read
+   a tick late) a late answer is extrapolated the same way over the ticks it is late;
 5. send disable voltage, close, write ``trace.csv`` (servo-trace format, one row per
    position-control cycle, :func:`hil.sim.servo_trace_columns`), ``controller.npz`` (every
    recorded tick: :data:`FLOAT_COLUMNS`, :data:`INT_COLUMNS`, and the loop's
@@ -86,8 +92,12 @@ CTRL_SIGNALS = ("t", "x_set", "v_set", "a_set", "x_act", "v_act", "v_cmd", "w_se
 FLOAT_COLUMNS = ("t_s", *CTRL_SIGNALS[1:], "iq_meas", "motor_pos", "tick", "fb_time_s")
 #: integer columns: the loop's deadline index, 1 when new feedback came, the lag (ticks
 #: between the setpoint the feedback answers and the one sent last tick: 0 = lock-step
-#: timing), the feedback's round trip (ns, 0 without new feedback)
-INT_COLUMNS = ("k", "fb_new", "lag_ticks", "round_trip_ns")
+#: timing), the feedback's round trip (ns), and its stamps that pair it with the
+#: emulator's run.npz (``hil report RUN --controller DIR``): its sp_t_ns and t_ns (the
+#: setpoint it answers, its send on the drive's clock) and its rx_ns (this clock); the
+#: last four 0 without new feedback
+INT_COLUMNS = ("k", "fb_new", "lag_ticks", "round_trip_ns", "fb_sp_t_ns", "fb_t_ns",
+               "fb_rx_ns")
 
 
 @dataclass(frozen=True)
@@ -140,6 +150,8 @@ class ControllerProcess:
         self.feedback_timeout = rc.feedback_timeout_cycles or max(
             1, round(DEFAULT_FEEDBACK_TIMEOUT_S / self.period_s))
         self.sp, self.fb = Setpoint(), Feedback()
+        self.delay_ticks = 0        # the link's, set when it is opened (run)
+        self.lag_is_age = False
         self.floats = np.full((self.n_run, len(FLOAT_COLUMNS)), np.nan)
         self.ints = np.zeros((self.n_run, len(INT_COLUMNS)), dtype=np.int64)
         self._get = attrgetter(*CTRL_SIGNALS)
@@ -166,11 +178,13 @@ class ControllerProcess:
             self.adapter_errors += 1
         if new:
             self.silent = 0
+            if self.lag_is_age:
+                late = ((sp.seq - fb.seq) & U32) - self.delay_ticks
+                if 0 < late < self.feedback_timeout:
+                    self._extrapolate(late)
         else:
             self.silent += 1
-            fb.encoder_counts += fb.velocity_counts_s * self.period_s
-            fb.scale_counts += fb.velocity_counts_s * self.scale_per_count * self.period_s
-            fb.time_s += self.period_s
+            self._extrapolate(1)
         ctrl.tick(fb, sp)
         try:
             self.ep.send_setpoint(sp)
@@ -186,11 +200,19 @@ class ControllerProcess:
             i = self.rows
             self.floats[i] = self._get(ctrl) + (fb.iq_a, fb.encoder_counts * ctrl.rad_per_count,
                                                 ctrl.tick_count - 1, fb.time_s)
-            self.ints[i] = (k, new, (sp.seq - 1 - fb.seq) & U32,
-                            fb.round_trip_ns() if new else 0)
+            lag = (sp.seq - 1 - fb.seq) & U32
+            self.ints[i] = ((k, 1, lag, fb.round_trip_ns(), fb.sp_t_ns, fb.t_ns, fb.rx_ns)
+                            if new else (k, 0, lag, 0, 0, 0, 0))
             self.rows = i + 1
             if self.rows == self.n_run:
                 self.loop.request_stop()
+
+    def _extrapolate(self, ticks: int) -> None:
+        """The feedback moved on by ``ticks`` periods at the drive's speed actual value."""
+        fb, dt = self.fb, ticks * self.period_s
+        fb.encoder_counts += fb.velocity_counts_s * dt
+        fb.scale_counts += fb.velocity_counts_s * self.scale_per_count * dt
+        fb.time_s += dt
 
     def _start(self, k: int) -> None:
         ctrl = self.ctrl
@@ -214,6 +236,8 @@ class ControllerProcess:
         rc = self.rc
         self.ep = open_endpoint(rc.adapter_url, "controller")
         self.ep.drain = True
+        self.delay_ticks = getattr(self.ep, "feedback_delay_ticks", 0)
+        self.lag_is_age = getattr(self.ep, "lag_is_age", False)
         try:
             with scheduling(rc.realtime, rc.cpu, rc.priority) as granted:
                 alignment = align(self.ep, self.sp, self.fb, self.period_ns,
@@ -261,6 +285,8 @@ class ControllerProcess:
         fe = cols["following_error"] * self.k_cnc
         new = cols["fb_new"] == 1
         lag = cols["lag_ticks"]
+        delay = self.delay_ticks
+        drive_clock = getattr(self.ep, "drive_clock", True)
         u = self.unit
         summary = {
             "command": "hil controller", "result": self.result,
@@ -275,7 +301,9 @@ class ControllerProcess:
             f"program_end_{u}": self.program.end * self.k_cnc,
             "round_trip_us": Percentiles.of_ns_in_us(cols["round_trip_ns"][new]).as_dict(),
             "feedback": {"ticks_without_new": int(n - new.sum()),
-                         "ticks_in_step": int(in_step(cols, self.period_s).sum()),
+                         "ticks_in_step": int(in_step(cols, self.period_s, delay,
+                                                      drive_clock).sum()),
+                         "delay_ticks": delay, "drive_clock": drive_clock,
                          "lag_ticks": {"0": int((lag == 0).sum()), "1": int((lag == 1).sum()),
                                        "2+": int((lag >= 2).sum())}},
             "alignment": alignment.as_dict(),

@@ -7,11 +7,15 @@ loopback, then the following error beside the lock-step simulation and the timin
    with the part program, on the first CPU when there are two or more;
 3. when the controller is done, SIGTERM to the emulator (its clean stop: safe state,
    recording and report written);
-4. ``hil sim`` of the same program (:func:`hil.commands.run_sim`), and the comparison.
+4. ``hil sim`` of the same program (:func:`hil.commands.run_sim`), and the comparison;
+5. the latency report of the emulator's run with its round trips paired with the
+   controller's rows (``hil report emulator --controller controller``, no cyclictest
+   baseline; :mod:`hil.report.latency`), its round-trip split printed.
 
 Every child gets a timeout and is killed if still running when the demo leaves.  Files go
 to ``--out``: ``emulator/`` (run.npz, report.json), ``controller/`` (trace.csv,
-summary.json), ``lockstep/`` (trace.csv, sim.png), the two logs and ``demo.json``.
+controller.npz, summary.json), ``lockstep/`` (trace.csv, sim.png), the latency report
+(report.md, report_latency.json, latency_hist.png), the two logs and ``demo.json``.
 Exit status 0 when both processes finished cleanly, 1 otherwise, 2 when the machine file
 or the program is refused (before anything starts).
 """
@@ -33,6 +37,7 @@ import numpy as np
 from hil.commands import run_sim
 from hil.controller.config import load_controller
 from hil.controller.program import ProgramError, read_program
+from hil.report.latency import build_report, load_run, write_report
 from hil.runtime.common import EXIT_BAD_INPUT, EXIT_FAILED, EXIT_OK, eprint, write_json
 from hil.runtime.sync import settled_rows
 from hil.trace_file import read_trace
@@ -180,16 +185,29 @@ def _fe_rows(label: str, cmp: FollowingErrorComparison, k: float, rows: int) -> 
             + f"({share} of the lock-step maximum)"]
 
 
+def _round_trip_rows(rt: dict) -> list[str]:
+    """The round trip's parts (p50, p99) from the latency report's ``round_trip``."""
+    rows = [f"round trip setpoint → feedback, µs    p50      p99   ({rt['samples']} setpoints, "
+            f"{rt['pairing']['matched']} paired with the controller's rows)"]
+    for label, key in (("transport", "transport_us"), ("wait for tick", "wait_us"),
+                       ("compute", "compute_us"), ("total", "total_us")):
+        q = rt[key]
+        rows.append(f"  {label:<32}" + ("       —        —" if q is None else
+                                          f"{q['p50']:7.1f}  {q['p99']:7.1f}"))
+    return rows
+
+
 def _one_way(controller: dict) -> str:
     one_way = controller["alignment"]["one_way_us"]
     return "unknown (no shared clock)" if one_way is None else f"{one_way:.1f}"
 
 
 def summary_lines(every: FollowingErrorComparison, settled: FollowingErrorComparison,
-                  emulator: dict, controller: dict, unit: str) -> list[str]:
-    """The demo's printed summary (micrometres for the following error on mm axes)."""
+                  emulator: dict, controller: dict, unit: str,
+                  round_trip: dict) -> list[str]:
+    """The demo's printed summary (micrometres for the following error on mm axes);
+    ``round_trip`` is the latency report's."""
     k, shown = (1e3, "µm") if unit == "mm" else (1.0, unit)
-    rt = controller["round_trip_us"]
     fb = controller["feedback"]
     n = max(1, controller["ticks_recorded"])
     return [
@@ -199,8 +217,7 @@ def summary_lines(every: FollowingErrorComparison, settled: FollowingErrorCompar
         f"  final position: loopback {every.final_a:.4f} {unit}, lock-step "
         + f"{every.final_b:.4f} {unit}",
         *_timing_rows(emulator, controller),
-        "round trip (setpoint sent to its feedback read at the next tick), µs   p50 "
-        + f"{rt['p50']:.1f}   p99 {rt['p99']:.1f}   max {rt['max']:.1f}",
+        *_round_trip_rows(round_trip),
         f"transport one way (measured while aligning), µs   {_one_way(controller)}",
         f"controller ticks at lock-step timing: {100 * fb['ticks_in_step'] / n:.2f} %",
     ]
@@ -233,9 +250,12 @@ def run_demo(config: Path, program: Path, out: Path, realtime: bool) -> int:
     settled = compare_following_error(loopback, Path(sim["trace"]),
                                       settled_mask(out / "controller", controller))
     unit = "deg" if "following_error_max_deg" in controller else "mm"
+    latency = build_report(load_run(out / "emulator", controller=out / "controller"))
+    write_report(out, latency)
     print(f"hil demo: {emulator['machine']}, {program.name}, "
           f"{1e9 / controller['period_ns']:g} Hz over {emulator['adapter']['name']}")
-    print("\n".join(summary_lines(every, settled, emulator, controller, unit)))
+    print("\n".join(summary_lines(every, settled, emulator, controller, unit,
+                                  latency["round_trip"])))
     print(f"files in {out}/")
     write_json(out / "demo.json", {"following_error": asdict(every),
                                    "following_error_settled": asdict(settled), "unit": unit,

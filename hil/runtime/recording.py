@@ -14,8 +14,8 @@ a dropped tick's slot holds NaN, or 0 for integers), so ``lateness_ns``/``comput
 * ``lateness_ns``, ``compute_ns`` -- the loop's own measurements;
 * the round-trip stamps of :mod:`hil.report.latency` -- ``tick_start_ns``, ``sp_t_ns``,
   ``sp_rx_ns``, ``fb_t_ns``, ``fb_rx_ns`` -- only on ticks that used a newly received
-  setpoint, 0 elsewhere; ``fb_rx_ns`` is always 0 (the controller's clock is not known
-  here: its own summary has the round trip);
+  setpoint, 0 elsewhere; ``fb_rx_ns`` is always 0 (the controller's receive stamps are
+  in its own ``controller.npz``: ``hil report RUN --controller DIR`` pairs them in);
 * ``sp_new`` (1 on a tick that received a setpoint) and the setpoint the drive applied:
   ``sp_seq``, ``sp_controlword``, ``sp_mode``, ``sp_iq_ref_a``, ``sp_id_ref_a``,
   ``sp_ud_v``, ``sp_uq_v``, ``sp_target_position_counts``, ``sp_target_velocity_counts_s``,
