@@ -71,7 +71,8 @@ def cmd_bench_plant(args) -> int:
     configs = [Path(c) for c in args.config] or sorted(CONFIG_DIR.glob("*.toml"))
 
     def progress(row):
-        _eprint(f"  {row.config:<16} {row.ns_per_step:7.0f} ns/sub-step  x{row.realtime_factor:5.1f}"
+        _eprint(f"  {row.config:<16} {row.ns_per_step:7.0f} ns/sub-step  "
+                f"x{row.realtime_factor:5.1f}"
                 f" real time  {row.speedup_vs_reference:6.0f}x reference")
 
     rows = run(configs, args.seconds, args.ref_seconds, progress)
@@ -79,9 +80,11 @@ def cmd_bench_plant(args) -> int:
         print(json.dumps(rows, indent=1))
     else:
         for r in rows:
-            print(f"{r['config']:<16} {r['ns_per_step']:8.0f} ns/sub-step  dt {r['substep_s']*1e6:6.2f} µs  "
+            print(f"{r['config']:<16} {r['ns_per_step']:8.0f} ns/sub-step  "
+                  f"dt {r['substep_s'] * 1e6:6.2f} µs  "
                   f"real-time factor {r['realtime_factor']:6.1f}  reference "
-                  f"{r['reference_ns_per_step']:9.0f} ns  speed-up {r['speedup_vs_reference']:6.0f}x  "
+                  f"{r['reference_ns_per_step']:9.0f} ns  "
+                  f"speed-up {r['speedup_vs_reference']:6.0f}x  "
                   f"cold start {r['cold_start_s']:.1f} s")
     return 0
 

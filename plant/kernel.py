@@ -30,20 +30,19 @@ from plant.effects.pmsm import (dq_current_control, dq_substep, dq_torque, first
                                 freewheel, limit_voltage)
 from plant.effects.sensors import counts, measure_current
 from plant.effects.tlm import tlm_step
-from plant.layout import (I_ENABLE, I_ID_REF, I_IQ_REF, I_LOAD, I_MODE, I_UD, I_UQ,
-                          INPUT_VOLTAGE, MECH_SCREW, MOTOR_COMMUTATION, MOTOR_DQ,
-                          MOTOR_FIRST_ORDER, O_ENCODER, O_FRICTION, O_ID, O_ID_MEAS, O_IQ,
-                          O_IQ_MEAS, O_MOTOR_POS, O_MOTOR_VEL, O_NUT_FORCE, O_SCALE, O_STATUS,
-                          O_TABLE_POS, O_TABLE_VEL, O_TIME, O_TORQUE, O_UD, O_UQ,
-                          P_DIVERGE_LIMIT, P_DT, P_ENC_COUNTS_PER_RAD, P_LEAD_RATIO,
-                          P_MECH_MODEL, P_MOTOR_MODEL, P_N_AX, P_N_ROT, P_NUT_C, P_NUT_GAP,
-                          P_NUT_K, P_NUT_S0, P_OFF_AX, P_OFF_ROT, P_POLE_PAIRS,
-                          P_PRE_ENABLED, P_SCALE_RES, P_SEG_LEN, P_SOFF_AX, P_SOFF_ROT,
-                          P_SOLVER, P_SUB_PER_PWM, P_TABLE_M, P_UDC, P_LD, P_LQ, S_FRICTION, S_KM, S_ID,
-                          S_ID_MEAS, S_INT_D, S_INT_Q, S_IQ, S_IQ_MEAS, S_NUT_F, S_STUCK,
-                          S_SUB_COUNT, S_TABLE_V, S_TABLE_X, S_TIME, S_TORQUE, S_UD_APPLIED,
-                          S_UD_NEXT, S_UQ_APPLIED, S_UQ_NEXT, SOLVER_LUMPED, STATUS_DIVERGED,
-                          STATUS_NONFINITE, STATUS_OK)
+from plant.layout import (INPUT_VOLTAGE, I_ENABLE, I_ID_REF, I_IQ_REF, I_LOAD, I_MODE, I_UD, I_UQ,
+                          MECH_SCREW, MOTOR_COMMUTATION, MOTOR_DQ, MOTOR_FIRST_ORDER, O_ENCODER,
+                          O_FRICTION, O_ID, O_ID_MEAS, O_IQ, O_IQ_MEAS, O_MOTOR_POS, O_MOTOR_VEL,
+                          O_NUT_FORCE, O_SCALE, O_STATUS, O_TABLE_POS, O_TABLE_VEL, O_TIME,
+                          O_TORQUE, O_UD, O_UQ, P_DIVERGE_LIMIT, P_DT, P_ENC_COUNTS_PER_RAD, P_LD,
+                          P_LEAD_RATIO, P_LQ, P_MECH_MODEL, P_MOTOR_MODEL, P_NUT_C, P_NUT_GAP,
+                          P_NUT_K, P_NUT_S0, P_N_AX, P_N_ROT, P_OFF_AX, P_OFF_ROT, P_POLE_PAIRS,
+                          P_PRE_ENABLED, P_SCALE_RES, P_SEG_LEN, P_SOFF_AX, P_SOFF_ROT, P_SOLVER,
+                          P_SUB_PER_PWM, P_TABLE_M, P_UDC, SOLVER_LUMPED, STATUS_DIVERGED,
+                          STATUS_NONFINITE, STATUS_OK, S_FRICTION, S_ID, S_ID_MEAS, S_INT_D,
+                          S_INT_Q, S_IQ, S_IQ_MEAS, S_KM, S_NUT_F, S_STUCK, S_SUB_COUNT,
+                          S_TABLE_V, S_TABLE_X, S_TIME, S_TORQUE, S_UD_APPLIED, S_UD_NEXT,
+                          S_UQ_APPLIED, S_UQ_NEXT)
 
 
 @njit(cache=True, error_model="numpy")

@@ -18,9 +18,9 @@ import math
 
 from numba import njit
 
-from plant.layout import (P_DECOUPLE, P_EXP_D, P_EXP_Q, P_I_MAX, P_KI_I, P_KP_I, P_LD, P_LQ, P_POLE_PAIRS,
-                          P_PSI, P_R, P_SUB_PER_PWM, P_DT, P_UDC, S_ID, S_ID_MEAS, S_INT_D,
-                          S_INT_Q, S_IQ, S_IQ_MEAS, S_UD_NEXT, S_UQ_NEXT)
+from plant.layout import (P_DECOUPLE, P_DT, P_EXP_D, P_EXP_Q, P_I_MAX, P_KI_I, P_KP_I, P_LD, P_LQ,
+                          P_POLE_PAIRS, P_PSI, P_R, P_SUB_PER_PWM, P_UDC, S_ID, S_ID_MEAS,
+                          S_INT_D, S_INT_Q, S_IQ, S_IQ_MEAS, S_UD_NEXT, S_UQ_NEXT)
 
 
 @njit(cache=True, error_model="numpy", inline="always")
@@ -104,14 +104,16 @@ def dq_substep(p, s, ud, uq, omega_m):
 
 
 @njit(cache=True, error_model="numpy")
-def freewheel(i, u_link, l, dt):
-    """Current ``i`` (A) one sub-step later while the inverter's pulses are blocked: it
-    flows back through the freewheeling diodes against the link voltage ``u_link`` (V)
-    and stops at zero (the diodes block the reverse direction)."""
+def freewheel(i, u_link, inductance, dt):
+    """Current ``i`` (A) one sub-step of ``dt`` (s) later while the inverter's pulses are
+    blocked: it flows back through the freewheeling diodes against the link voltage
+    ``u_link`` (V) across ``inductance`` (H) and stops at zero (the diodes block the
+    reverse direction)."""
+    step = u_link / inductance * dt
     if i > 0.0:
-        return max(0.0, i - u_link / l * dt)
+        return max(0.0, i - step)
     if i < 0.0:
-        return min(0.0, i + u_link / l * dt)
+        return min(0.0, i + step)
     return 0.0
 
 
