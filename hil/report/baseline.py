@@ -7,16 +7,12 @@ percentiles; the percentiles are :func:`hil.rt.cyclictest.parse_histogram`'s (ne
 whole µs: a bin holds the latencies from its value up to the next µs).
 """
 
-import math
-import shutil
-import subprocess
-import tempfile
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 
-from hil.rt.cyclictest import DEFAULT_HISTOGRAM_US, CyclictestError, parse_histogram
+from hil.rt.cyclictest import (DEFAULT_HISTOGRAM_US, cyclictest_histogram,
+                               parse_histogram)
 from hil.rt.loop import Percentiles
 
 
@@ -84,19 +80,5 @@ def run_cyclictest_baseline(interval_us: int, seconds: float, cpu: int | None = 
     Raises:
         CyclictestError: it ran and failed (e.g. SCHED_FIFO refused to a non-root user).
     """
-    exe = shutil.which("cyclictest")
-    if exe is None:
-        return None
-    with tempfile.TemporaryDirectory(prefix="cyclictest-") as tmp:
-        histfile = Path(tmp) / "histogram.txt"
-        cmd = [exe, "-q", "-m", "-p", str(priority), "-i", str(int(interval_us)),
-               "-D", str(max(1, math.ceil(seconds))), "-h", str(DEFAULT_HISTOGRAM_US),
-               f"--histfile={histfile}"]
-        if cpu is not None:
-            cmd += ["-a", str(cpu)]
-        res = subprocess.run(cmd, capture_output=True, text=True, check=False,
-                             timeout=seconds + 60)
-        if res.returncode != 0 or not histfile.exists():
-            raise CyclictestError(f"{' '.join(cmd)} exited with {res.returncode}: "
-                                  f"{(res.stderr or res.stdout).strip()[-500:]}")
-        return CyclictestBaseline.from_histogram(histfile.read_text(), interval_us)
+    text = cyclictest_histogram(interval_us, seconds, priority, cpu, DEFAULT_HISTOGRAM_US)
+    return None if text is None else CyclictestBaseline.from_histogram(text, interval_us)

@@ -70,20 +70,12 @@ def parse_histogram(text: str) -> Percentiles:
                        p999=percentile_us(999), max=float(max_us))
 
 
-def run_cyclictest(interval_us: int, seconds: float, priority: int = 80,
-                   cpu: int | None = None,
-                   histogram_us: int = DEFAULT_HISTOGRAM_US) -> Percentiles | None:
-    """Run ``cyclictest -q -m -p <priority> -i <interval_us> -D <seconds> -h ...``.
-
-    Args:
-        interval_us: wake-up interval (µs).
-        seconds: duration, rounded up to whole seconds (cyclictest's resolution).
-        priority: SCHED_FIFO priority of the measuring thread.
-        cpu: pin the measuring thread to this CPU (``-a``), or leave it free.
-        histogram_us: histogram range (µs); later wake-ups count as overflows.
-
-    Returns:
-        The wake-up latency percentiles (µs), or ``None`` when cyclictest is not installed.
+def cyclictest_histogram(interval_us: int, seconds: float, priority: int = 80,
+                         cpu: int | None = None,
+                         histogram_us: int = DEFAULT_HISTOGRAM_US) -> str | None:
+    """Run ``cyclictest -q -m -p <priority> -i <interval_us> -D <seconds> -h <range>
+    [-a <cpu>]`` and return its histogram file's text (see :func:`run_cyclictest` for the
+    arguments), or ``None`` when cyclictest is not installed.
 
     Raises:
         CyclictestError: it ran and failed (e.g. SCHED_FIFO refused to a non-root user).
@@ -103,4 +95,26 @@ def run_cyclictest(interval_us: int, seconds: float, priority: int = 80,
         if res.returncode != 0 or not histfile.exists():
             raise CyclictestError(f"{' '.join(cmd)} exited with {res.returncode}: "
                                   f"{(res.stderr or res.stdout).strip()[-500:]}")
-        return parse_histogram(histfile.read_text())
+        return histfile.read_text()
+
+
+def run_cyclictest(interval_us: int, seconds: float, priority: int = 80,
+                   cpu: int | None = None,
+                   histogram_us: int = DEFAULT_HISTOGRAM_US) -> Percentiles | None:
+    """Run ``cyclictest -q -m -p <priority> -i <interval_us> -D <seconds> -h ...``.
+
+    Args:
+        interval_us: wake-up interval (µs).
+        seconds: duration, rounded up to whole seconds (cyclictest's resolution).
+        priority: SCHED_FIFO priority of the measuring thread.
+        cpu: pin the measuring thread to this CPU (``-a``), or leave it free.
+        histogram_us: histogram range (µs); later wake-ups count as overflows.
+
+    Returns:
+        The wake-up latency percentiles (µs), or ``None`` when cyclictest is not installed.
+
+    Raises:
+        CyclictestError: it ran and failed (e.g. SCHED_FIFO refused to a non-root user).
+    """
+    text = cyclictest_histogram(interval_us, seconds, priority, cpu, histogram_us)
+    return None if text is None else parse_histogram(text)
