@@ -187,8 +187,8 @@ def build_parser() -> argparse.ArgumentParser:
     bp.add_argument("--json", action="store_true")
     bp.add_argument("--config", action="append", default=[], help="machine file (repeatable; "
                     "default: every file in configs/)")
-    bp.add_argument("--seconds", type=float, default=1.0, help="timing per config, s")
-    bp.add_argument("--ref-seconds", type=float, default=2.0, help="reference timing, s")
+    bp.add_argument("--seconds", type=float, default=0.3, help="timing per config, s")
+    bp.add_argument("--ref-seconds", type=float, default=0.5, help="reference timing, s")
     bp.set_defaults(func=cmd_bench_plant)
 
     s = sub.add_parser("sim", help="controller and plant in lock-step on a part program")
