@@ -76,20 +76,31 @@ class SpeedLoop:
 
 
 class CurrentLoop:
-    """d and q current PI loops with the voltage vector limited to U_dc/2 (d first)."""
+    """d and q current PI loops with EMF and cross-coupling precontrol from the measured
+    speed (as a drive's own loop has) and the voltage vector limited to U_dc/2 (d first).
 
-    def __init__(self, sec: ControllerSection, period_s: float, u_max: float):
+    Args:
+        motor: (pole pairs or pi / pole pitch, psi in V·s, L_d in H, L_q in H) of the motor.
+    """
+
+    def __init__(self, sec: ControllerSection, period_s: float, u_max: float,
+                 motor: tuple[float, float, float, float]):
         self.d = PI(sec.current_kp_v_per_a, sec.current_ti_s, period_s, u_max)
         self.q = PI(sec.current_kp_v_per_a, sec.current_ti_s, period_s, u_max)
         self.u_max = u_max
+        self.poles, self.psi, self.ld, self.lq = motor
 
     def reset(self) -> None:
         """Clear both integrators."""
         self.d.reset()
         self.q.reset()
 
-    def step(self, id_set: float, iq_set: float, id_act: float, iq_act: float):
-        """(u_d, u_q) in V for this PWM period."""
-        ud = self.d.step(id_set - id_act)
-        self.q.limit = math.sqrt(max(self.u_max * self.u_max - ud * ud, 0.0))
-        return ud, self.q.step(iq_set - iq_act)
+    def step(self, id_set: float, iq_set: float, id_act: float, iq_act: float,
+             w_motor: float):
+        """(u_d, u_q) in V for this PWM period at motor speed ``w_motor`` (rad/s, or m/s)."""
+        we = self.poles * w_motor
+        ud = max(-self.u_max, min(self.u_max, self.d.step(id_set - id_act)
+                                  - we * self.lq * iq_act))
+        uq_max = math.sqrt(max(self.u_max * self.u_max - ud * ud, 0.0))
+        uq = self.q.step(iq_set - iq_act) + we * (self.psi + self.ld * id_act)
+        return ud, max(-uq_max, min(uq_max, uq))

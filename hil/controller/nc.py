@@ -56,8 +56,12 @@ class Controller:
         self.pos_loop = PositionLoop(sec, period_s * sec.position_cycle_ratio,
                                      self.limits.velocity)
         self.speed_loop = SpeedLoop(sec, period_s * sec.speed_cycle_ratio, kind, kt, i_max)
-        self.cur_loop = (CurrentLoop(sec, period_s, 0.5 * cfg.motor.dc_link_v)
-                         if sec.plant_input == "voltage" else None)
+        self.cur_loop = None
+        if sec.plant_input == "voltage":
+            mo = cfg.motor
+            poles = math.pi / mo.pole_pitch_m if kind == "linear" else mo.pole_pairs
+            motor = (poles, kt / (1.5 * poles), mo.inductance_d_h, mo.inductance_q_h)
+            self.cur_loop = CurrentLoop(sec, period_s, 0.5 * mo.dc_link_v, motor)
         self.i_ff_gain = reflected_inertia(cfg) / (self.ratio * kt) if sec.torque_ff else 0.0
         if kind == "linear":
             self.rad_per_count = cfg.sensors.encoder_resolution_m
@@ -186,5 +190,6 @@ class Controller:
             sp.id_ref_a = 0.0
         else:
             sp.mode = MODE_VOLTAGE
-            sp.ud_v, sp.uq_v = self.cur_loop.step(0.0, self.iq_set, fb.id_a, fb.iq_a)
+            sp.ud_v, sp.uq_v = self.cur_loop.step(0.0, self.iq_set, fb.id_a, fb.iq_a,
+                                                  self.w_act)
         self.t += self.period
