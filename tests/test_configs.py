@@ -7,19 +7,20 @@ writer for flat sections (round-trip checked below, so a refusal cannot come fro
 
 import json
 import math
-import tomllib
 from dataclasses import fields, replace
 from pathlib import Path
 
 import numpy as np
 import pytest
+import tomllib
 
 from plant import ConfigError, Plant, load_machine
 from plant import layout as L
 from plant.assemble import mechanics_matrices, natural_frequencies, transmission_ratio
-from plant.config import KINDS, SECTIONS, MotorSection, schema_rows
+from plant.config import schema_rows
 from plant.effects.cogging import cogging_torque
 from plant.effects.friction import sliding_friction
+from plant.sections import KINDS, SECTIONS, MotorSection
 
 CONFIG_DIR = Path(__file__).resolve().parent.parent / "configs"
 CONFIGS = sorted(CONFIG_DIR.glob("*.toml"))

@@ -1,0 +1,221 @@
+"""The sections of a machine file, each key declared with its unit, range and meaning.
+
+:mod:`plant.config` reads and checks a file against these declarations; ``hil
+config-keys`` prints them.
+"""
+
+from dataclasses import dataclass
+
+from plant.schema import key
+
+KINDS = ("screw", "linear", "rotary")
+
+
+@dataclass(frozen=True, kw_only=True)
+class MachineSection:
+    """What the machine is."""
+    name: str = key("-", "Human-readable name of the axis.")
+    source: str = key("-", "Where the values come from (paper, data sheet).")
+    kind: str = key("-", "screw: rotary motor and ball screw, table in m; linear: linear "
+                    "motor, table in m; rotary: direct-drive rotary axis, table in rad.",
+                    choices=KINDS)
+
+
+@dataclass(frozen=True, kw_only=True)
+class MotorSection:
+    """Motor and power stage."""
+    model: str = key("-", "dq: PMSM in d-q with FOC current PI loops; first_order: current "
+                     "loop as a first-order lag; commutation: torque motor with "
+                     "commutation-angle field weakening (seed 001).",
+                     choices=("dq", "first_order", "commutation"))
+    pole_pairs: float = key("1", "Pole pairs of a rotary motor.", 0.0, ge=0.0,
+                            only="kind=screw|rotary")
+    pole_pitch_m: float = key("m", "Pole pitch of a linear motor (north to south).", 0.0,
+                              ge=0.0, only="kind=linear")
+    resistance_ohm: float = key("ohm", "Phase resistance.", 0.0, ge=0.0)
+    inductance_d_h: float = key("H", "d-axis inductance (commutation model: coil inductance).",
+                                0.0, ge=0.0)
+    inductance_q_h: float = key("H", "q-axis inductance.", 0.0, ge=0.0, only="model=dq")
+    torque_constant_nm_per_a: float = key("N*m/A", "Torque constant K_t = 1.5 p psi "
+                                          "(commutation model: K_M at beta = 90 deg).", 0.0,
+                                          ge=0.0, only="kind=screw|rotary")
+    force_constant_n_per_a: float = key("N/A", "Force constant of a linear motor.", 0.0,
+                                        ge=0.0, only="kind=linear")
+    inertia_kgm2: float = key("kg*m^2", "Rotor inertia.", 0.0, ge=0.0,
+                              only="kind=screw|rotary")
+    mass_kg: float = key("kg", "Moving mass of a linear motor's thrust block.", 0.0, ge=0.0,
+                         only="kind=linear")
+    viscous_nms_per_rad: float = key("N*m*s/rad", "Viscous friction of the motor bearings.",
+                                     0.0, ge=0.0, only="kind=screw|rotary")
+    current_max_a: float = key("A", "Current limit I_max (peak).", gt=0.0)
+    dc_link_v: float = key("V", "DC-link voltage; the d-q voltage vector is limited to "
+                           "U_dc/2 (commutation model: |U| <= U_dc, seed 001 eq. 2).",
+                           0.0, ge=0.0)
+    pwm_frequency_hz: float = key("Hz", "PWM and current-controller frequency; the "
+                                  "inverter applies each voltage one period late.",
+                                  gt=0.0, le=1e6)
+
+
+@dataclass(frozen=True, kw_only=True)
+class CurrentLoopSection:
+    """Current controller held by the drive (the plant)."""
+    kp_v_per_a: float = key("V/A", "PI proportional gain.", 0.0, ge=0.0,
+                            only="model=dq|commutation")
+    ti_s: float = key("s", "PI integral time.", 0.0, ge=0.0, only="model=dq|commutation")
+    time_constant_s: float = key("s", "First-order current-loop time constant T_cl.", 0.0,
+                                 ge=0.0, only="model=first_order")
+    decoupling: bool = key("-", "EMF and cross-coupling precontrol (u_d -= w_e L_q i_q, "
+                           "u_q += w_e (psi + L_d i_d)), as drives have by default.", True,
+                           only="model=dq")
+
+
+@dataclass(frozen=True, kw_only=True)
+class FieldWeakeningSection:
+    """Commutation-angle field weakening (seed 001 eq. 6-10), commutation model only."""
+    enabled: bool = key("-", "Reduce the commutation angle above omega_Mmax.", False)
+    max_torque_nm: float = key("N*m", "M_max of seed 001 eq. 8.", 0.0, ge=0.0)
+
+
+@dataclass(frozen=True, kw_only=True)
+class CoggingSection:
+    """Cogging / reluctance torque as harmonics of the electrical angle."""
+    orders: tuple = key("1", "Harmonic orders in cycles per electrical revolution.", ())
+    amplitudes_nm: tuple = key("N*m", "Amplitudes (rotary motors).", (),
+                               only="kind=screw|rotary")
+    amplitudes_n: tuple = key("N", "Amplitudes (linear motors).", (), only="kind=linear")
+    phases_deg: tuple = key("deg", "Phases; empty means all zero.", ())
+
+
+@dataclass(frozen=True, kw_only=True)
+class MechanicsSection:
+    """Which mechanical model and solver."""
+    model: str = key("-", "rigid: one inertia; two_mass: motor-coupling-load; screw: "
+                     "distributed ball screw with moving nut and table.",
+                     choices=("rigid", "two_mass", "screw"))
+    solver: str = key("-", "Solver of the screw chains.", "lumped", choices=("lumped", "tlm"))
+    lead_m: float = key("m", "Ball-screw lead (table travel per screw revolution).", 0.0,
+                        ge=0.0, only="kind=screw")
+    load_inertia_kgm2: float = key("kg*m^2", "Load-side inertia besides the table (screw "
+                                   "and coupling in rigid/two_mass models; the rotary "
+                                   "table of a direct drive).", 0.0, ge=0.0)
+
+
+@dataclass(frozen=True, kw_only=True)
+class CouplingSection:
+    """Elastic coupling between motor and screw (two_mass and screw models)."""
+    stiffness_nm_per_rad: float = key("N*m/rad", "Torsional stiffness.", gt=0.0)
+    damping_nms_per_rad: float = key("N*m*s/rad", "Torsional damping.", 0.0, ge=0.0)
+    inertia_kgm2: float = key("kg*m^2", "Coupling inertia, split between its two sides.",
+                              0.0, ge=0.0)
+    backlash_rad: float = key("rad", "Backlash in the coupling (two_mass only).", 0.0, ge=0.0)
+
+
+@dataclass(frozen=True, kw_only=True)
+class ScrewSection:
+    """Distributed ball screw (screw model)."""
+    length_m: float = key("m", "Screw length between the bearings.", gt=0.0)
+    diameter_m: float = key("m", "Root diameter used for stiffness and inertia.", gt=0.0)
+    segments: int = key("1", "Number of screw segments N (N+1 nodes).", ge=1, le=64)
+    density_kg_m3: float = key("kg/m^3", "Screw material density.", 7850.0, gt=0.0)
+    youngs_modulus_pa: float = key("Pa", "Young's modulus E.", 2.1e11, gt=0.0)
+    shear_modulus_pa: float = key("Pa", "Shear modulus G.", 8.1e10, gt=0.0)
+    torsional_damping_nms_per_rad: float = key("N*m*s/rad", "Damper across each segment.",
+                                               0.0, ge=0.0)
+    axial_damping_ns_per_m: float = key("N*s/m", "Axial damper across each segment.", 0.0,
+                                        ge=0.0)
+    bearing_viscous_nms_per_rad: float = key("N*m*s/rad", "Rotational friction of each "
+                                             "support bearing.", 0.0, ge=0.0)
+    thrust_bearing_stiffness_n_per_m: float = key("N/m", "Axial stiffness of the fixed "
+                                                  "(thrust) bearing.", gt=0.0)
+    thrust_bearing_damping_ns_per_m: float = key("N*s/m", "Axial damping of the thrust "
+                                                 "bearing.", 0.0, ge=0.0)
+    support: str = key("-", "Axial support: the thrust bearing at the motor end only, or "
+                       "at both ends.", "fixed-supported",
+                       choices=("fixed-supported", "fixed-fixed"))
+    nut_stiffness_n_per_m: float = key("N/m", "Axial stiffness of the nut.", gt=0.0)
+    nut_damping_ns_per_m: float = key("N*s/m", "Axial damping of the nut.", 0.0, ge=0.0)
+    nut_offset_m: float = key("m", "Nut distance from the motor-end bearing at table "
+                              "position 0.", ge=0.0)
+    backlash_m: float = key("m", "Backlash between screw and nut (total lost motion).", 0.0,
+                            ge=0.0)
+
+
+@dataclass(frozen=True, kw_only=True)
+class TableSection:
+    """The moving table (screw and linear axes)."""
+    mass_kg: float = key("kg", "Table mass with workpiece (linear: payload besides the "
+                         "thrust block).", ge=0.0)
+    travel_m: float = key("m", "Usable travel from position 0.", gt=0.0)
+
+
+@dataclass(frozen=True, kw_only=True)
+class FrictionSection:
+    """Table friction: viscous, Coulomb, Stribeck and Karnopp stick-slip."""
+    viscous_ns_per_m: float = key("N*s/m", "Viscous coefficient.", 0.0, ge=0.0,
+                                  only="kind=screw|linear")
+    coulomb_n: float = key("N", "Coulomb (sliding) force F_C.", 0.0, ge=0.0,
+                           only="kind=screw|linear")
+    breakaway_n: float = key("N", "Breakaway force F_H >= F_C (0: equal to F_C).", 0.0,
+                             ge=0.0, only="kind=screw|linear")
+    stribeck_velocity_m_s: float = key("m/s", "Stribeck velocity (0: no Stribeck dip).",
+                                       0.0, ge=0.0, only="kind=screw|linear")
+    zero_velocity_band_m_s: float = key("m/s", "Karnopp zero-velocity band DV.", 0.0, ge=0.0,
+                                        only="kind=screw|linear")
+    viscous_nms_per_rad: float = key("N*m*s/rad", "Viscous coefficient.", 0.0, ge=0.0,
+                                     only="kind=rotary")
+    coulomb_nm: float = key("N*m", "Coulomb torque.", 0.0, ge=0.0, only="kind=rotary")
+    breakaway_nm: float = key("N*m", "Breakaway torque (0: equal to Coulomb).", 0.0, ge=0.0,
+                              only="kind=rotary")
+    stribeck_velocity_rad_s: float = key("rad/s", "Stribeck velocity.", 0.0, ge=0.0,
+                                         only="kind=rotary")
+    zero_velocity_band_rad_s: float = key("rad/s", "Karnopp zero-velocity band.", 0.0,
+                                          ge=0.0, only="kind=rotary")
+
+
+@dataclass(frozen=True, kw_only=True)
+class PreslidingSection:
+    """Presliding nonlinear spring dF/dx = k1 / (|x/x1|^a + 1), reset at reversals (seed 004)."""
+    enabled: bool = key("-", "Use the presliding spring instead of Karnopp stiction.", False)
+    stiffness_n_per_m: float = key("N/m", "Initial stiffness k1 (T1 / (lead/2pi)^2 for a "
+                                   "torque law).", 0.0, ge=0.0)
+    x1_m: float = key("m", "Displacement scale x1.", 0.0, ge=0.0)
+    exponent: float = key("1", "Shape exponent a.", 1.0, gt=0.0)
+
+
+@dataclass(frozen=True, kw_only=True)
+class SensorsSection:
+    """Encoders and current measurement."""
+    encoder_counts_per_rev: int = key("1", "Motor encoder counts per revolution "
+                                      "(17 bit: 131072).", 0, ge=0, only="kind=screw|rotary")
+    encoder_resolution_m: float = key("m", "Linear-motor encoder resolution.", 0.0, ge=0.0,
+                                      only="kind=linear")
+    scale_resolution_m: float = key("m", "Linear scale on the table (0: none).", 0.0, ge=0.0,
+                                    only="kind=screw|linear")
+    current_noise_a: float = key("A", "Standard deviation of current-measurement noise.",
+                                 0.0, ge=0.0)
+    current_lsb_a: float = key("A", "Current ADC quantization step (0: none).", 0.0, ge=0.0)
+    seed: int = key("1", "Seed of the measurement-noise generator.", 1, ge=0)
+
+
+@dataclass(frozen=True, kw_only=True)
+class SimulationSection:
+    """Integration settings."""
+    substep_s: float = key("s", "Integration sub-step; 0 picks the largest divisor of the "
+                           "PWM period with omega_max*dt <= max_omega_dt.", 0.0, ge=0.0)
+    max_omega_dt: float = key("1", "Bound on omega_max*dt for the automatic sub-step "
+                              "(relative frequency error (omega*dt)^2/24).", 0.5, gt=0.0,
+                              le=1.9)
+
+
+SECTIONS = {
+    "machine": MachineSection, "motor": MotorSection, "current_loop": CurrentLoopSection,
+    "field_weakening": FieldWeakeningSection, "cogging": CoggingSection,
+    "mechanics": MechanicsSection, "coupling": CouplingSection, "screw": ScrewSection,
+    "table": TableSection, "friction": FrictionSection, "presliding": PreslidingSection,
+    "sensors": SensorsSection, "simulation": SimulationSection,
+}
+# sections read by other packages (hil's controller): the plant keeps them as raw tables
+FOREIGN_SECTIONS = ("controller",)
+# sections that may be absent: they then take every default
+OPTIONAL_SECTIONS = {"field_weakening", "cogging", "friction", "presliding", "sensors",
+                     "simulation", "current_loop"}
