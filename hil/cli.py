@@ -150,7 +150,7 @@ def cmd_sim(args) -> int:
     from hil.commands import print_summary, run_sim
 
     summary = run_sim(Path(args.config), Path(args.program), Path(args.out), args.start,
-                      args.axis, args.every)
+                      args.axis, args.every, args.trigger, args.depth, args.pre_trigger)
     print_summary(summary, args.json)
     return 0
 
@@ -199,6 +199,12 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--axis", help="axis letter in the program (default X, or C if rotary)")
     s.add_argument("--every", type=int, help="trace row every n ticks (default: the "
                    "position-control cycle)")
+    s.add_argument("--trigger", help="servo trace with trigger: COLUMN:edge, "
+                   "COLUMN:LEVEL[:rising|falling|either] or immediate (columns of trace.csv, "
+                   "levels in their units) -> triggered.csv")
+    s.add_argument("--depth", type=int, default=1000, help="triggered trace: rows in all")
+    s.add_argument("--pre-trigger", type=int, default=100,
+                   help="triggered trace: rows kept before the trigger")
     s.add_argument("--json", action="store_true")
     s.set_defaults(func=cmd_sim)
 

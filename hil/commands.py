@@ -9,12 +9,15 @@ import math
 import sys
 from pathlib import Path
 
+import numpy as np
+
 from hil.controller.config import axis_limits, load_controller
 from hil.controller.interpolator import plan
 from hil.controller.program import read_program
 from hil.measure.frequency_response import bandwidth_hz, bode_plot, peaks, write_csv
 from hil.measure.runs import (bode, current_step, position_step, speed_step,
                               write_step_csv)
+from hil.measure.trace import TraceConfigError, TraceRecorder, Trigger
 from hil.figures import plot_sim, plot_step
 from hil.sim import LockStep, servo_trace_columns
 from hil.trace_file import write_trace
@@ -42,11 +45,49 @@ def _axis_letter(cfg: MachineConfig, axis: str | None) -> str:
     return axis or ("C" if cfg.machine.kind == "rotary" else "X")
 
 
+def parse_trigger(spec: str) -> Trigger:
+    """``COLUMN:edge``, ``COLUMN:LEVEL`` or ``COLUMN:LEVEL:rising|falling|either`` (a servo
+    trace column and a level in its unit), or ``immediate``."""
+    parts = spec.split(":")
+    try:
+        if parts == ["immediate"]:
+            return Trigger()
+        if len(parts) == 2 and parts[1] == "edge":
+            return Trigger.edge(parts[0])
+        if len(parts) in (2, 3):
+            return Trigger.level(parts[0], float(parts[1]), *parts[2:])
+    except (ValueError, TraceConfigError) as exc:
+        raise KeyError(f"trigger {spec!r}: {exc}") from exc
+    raise KeyError(f"trigger {spec!r}: expected COLUMN:edge, COLUMN:LEVEL[:rising|falling|"
+                   "either] or immediate")
+
+
+def triggered_trace(columns: dict, trigger: Trigger, depth: int, pre: int):
+    """Feed the servo-trace ``columns`` (t_s first) row by row through a triggered recorder,
+    as the NC's servo trace records while the program runs; the Recording, or None when
+    the trigger never fired or the run ended before ``depth`` samples."""
+    names = [n for n in columns if n != "t_s"]
+    dt = float(columns["t_s"][1] - columns["t_s"][0])
+    try:
+        rec = TraceRecorder(names, depth, pre, trigger, dt)
+    except TraceConfigError as exc:
+        raise KeyError(f"trace trigger: {exc} (columns: {', '.join(names)})") from exc
+    rows = np.column_stack([columns[n] for n in names])
+    for row in rows:
+        rec.record(row)
+        if rec.done:
+            return rec.result()
+    return None
+
+
 def run_sim(config: Path, program: Path, out: Path, start: float, axis: str | None,
-            every: int | None) -> dict:
+            every: int | None, trigger: str | None = None, depth: int = 1000,
+            pre: int = 100) -> dict:
     """Simulate ``program`` on ``config`` from table position ``start`` (mm or deg);
     write trace.csv (one row per ``every`` ticks, default the position-control cycle) and
-    sim.png into ``out``; return a summary (CNC units)."""
+    sim.png into ``out``, and with a ``trigger`` (see :func:`parse_trigger`) triggered.csv:
+    ``depth`` rows of which ``pre`` before the trigger; return a summary (CNC units)."""
+    trig = parse_trigger(trigger) if trigger else None
     cfg = load_machine(config)
     k, unit = _edge(cfg)
     x0 = start / k
@@ -61,10 +102,20 @@ def run_sim(config: Path, program: Path, out: Path, start: float, axis: str | No
     meta = {"machine": str(config), "program": str(program), "axis": prog.axis,
             "source": "hil sim (lock-step)"}
     every = every or ls.ctrl.sec.position_cycle_ratio
-    write_trace(out / "trace.csv", servo_trace_columns(res, every), meta)
+    columns = servo_trace_columns(res, every)
+    write_trace(out / "trace.csv", columns, meta)
     plot_sim(res, out / "sim.png", f"{cfg.machine.name}: {program.name}")
+    summary = {}
+    if trig is not None:
+        recording = triggered_trace(columns, trig, depth, pre)
+        if recording is None:
+            summary["triggered"] = f"trigger {trigger!r} did not complete a recording"
+        else:
+            write_trace(out / "triggered.csv", recording, {**meta, "trigger": trigger,
+                                                             "pre_trigger_samples": pre})
+            summary["triggered"] = str(out / "triggered.csv")
     fe = res["following_error"] * k
-    return {"duration_s": float(res["t_s"][-1] - res["t_s"][0]),
+    return {**summary, "duration_s": float(res["t_s"][-1] - res["t_s"][0]),
             f"following_error_max_{unit}": float(abs(fe).max()),
             f"following_error_rms_{unit}": float((fe ** 2).mean() ** 0.5),
             f"final_position_{unit}": float(res["x_act"][-1] * k),
