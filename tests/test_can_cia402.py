@@ -20,8 +20,6 @@ test checks that it leaves no thread behind.
 
 import json
 import math
-import secrets
-import shutil
 import socket
 import subprocess
 import sys
@@ -93,25 +91,6 @@ def no_leaked_threads():
 
 def virtual_channel() -> str:
     return f"hil-{uuid.uuid4().hex[:12]}"
-
-
-@pytest.fixture
-def multicast_group():
-    """A multicast group of its own, routed over lo for the test: (group, port)."""
-    if shutil.which("ip") is None:
-        pytest.skip("no `ip` command to route the multicast group over lo")
-    group = f"239.255.{secrets.randbelow(256)}.{1 + secrets.randbelow(254)}"
-    added = subprocess.run(["ip", "route", "add", f"{group}/32", "dev", "lo"],
-                           check=False, capture_output=True, text=True)
-    if added.returncode != 0:
-        pytest.skip(f"cannot route {group} over lo: {added.stderr.strip()}")
-    try:
-        route = subprocess.run(["ip", "route", "get", group], capture_output=True,
-                               text=True, check=True).stdout
-        assert " dev lo " in route, route
-        yield group, 40000 + secrets.randbelow(20000)
-    finally:
-        subprocess.run(["ip", "route", "del", f"{group}/32", "dev", "lo"], check=True)
 
 
 def socketcan_missing() -> str | None:

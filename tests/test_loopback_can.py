@@ -45,9 +45,6 @@ the quantisation and shifted noise; the loopback ended -5 to +3 counts from it.
 
 import json
 import os
-import secrets
-import shutil
-import subprocess
 import uuid
 from pathlib import Path
 
@@ -93,25 +90,6 @@ ATTEMPTS = 3
 WAIT_S = 5.0               # bound on one in-process bus exchange
 #: the in-process tests hold the drive between cycles: no free-running cycle
 LOCK_STEP = "&sync_timeout_ms=60000"
-
-
-@pytest.fixture
-def multicast_group():
-    """A multicast group of its own, routed over lo for the test: (group, port)."""
-    if shutil.which("ip") is None:
-        pytest.skip("no `ip` command to route the multicast group over lo")
-    group = f"239.255.{secrets.randbelow(256)}.{1 + secrets.randbelow(254)}"
-    added = subprocess.run(["ip", "route", "add", f"{group}/32", "dev", "lo"],
-                           check=False, capture_output=True, text=True)
-    if added.returncode != 0:
-        pytest.skip(f"cannot route {group} over lo: {added.stderr.strip()}")
-    try:
-        route = subprocess.run(["ip", "route", "get", group], capture_output=True,
-                               text=True, check=True).stdout
-        assert " dev lo " in route, route
-        yield group, 40000 + secrets.randbelow(20000)
-    finally:
-        subprocess.run(["ip", "route", "del", f"{group}/32", "dev", "lo"], check=True)
 
 
 @pytest.fixture(scope="module")

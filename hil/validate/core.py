@@ -15,6 +15,11 @@ from pathlib import Path
 
 from plant.errors import PlantError
 
+#: the repository's machine files and part programs, which the experiments run
+REPO = Path(__file__).resolve().parents[2]
+CONFIGS = REPO / "configs"
+PROGRAMS = REPO / "programs"
+
 
 @dataclass(frozen=True)
 class Result:

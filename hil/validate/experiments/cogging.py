@@ -14,11 +14,10 @@ from pathlib import Path
 import numpy as np
 
 from hil.validate import plots
-from hil.validate.core import Result, experiment, within
+from hil.validate.core import CONFIGS, Result, experiment, within
 from plant import Plant
 
-ROOT = Path(__file__).resolve().parents[3]
-LD386 = ROOT / "configs" / "ld386_linear.toml"
+LD386 = CONFIGS / "ld386_linear.toml"
 PAPER_HARMONICS = {1: 1.39, 2: 2.62, 4: 1.52}  # N, seed 002 Fig. 9
 PAPER_DC_N = 18.76  # N, seed 002 §5
 

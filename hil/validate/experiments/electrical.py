@@ -23,15 +23,14 @@ import scipy.signal
 from scipy.stats import norm
 
 from hil.validate import plots
-from hil.validate.core import Result, experiment, within
+from hil.validate.core import CONFIGS, Result, experiment, within
 from plant import Plant
 from plant import layout as L
 from plant.config import MachineConfig
 
-ROOT = Path(__file__).resolve().parents[3]
-ARROW = ROOT / "configs" / "arrow500_x.toml"
-GEISS = ROOT / "configs" / "geiss_c_axis.toml"
-XY_TABLE = ROOT / "configs" / "xy_table_004.toml"
+ARROW = CONFIGS / "arrow500_x.toml"
+GEISS = CONFIGS / "geiss_c_axis.toml"
+XY_TABLE = CONFIGS / "xy_table_004.toml"
 
 # Locked rotor (the analytic current loop has no back-EMF): this rotor inertia keeps
 # |omega| < 2e-7 rad/s over a 50 ms, 2.8 A step, a back-EMF below 2e-7 V that the PI

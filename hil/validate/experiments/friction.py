@@ -25,11 +25,10 @@ import numpy as np
 from scipy.special import hyp2f1
 
 from hil.validate import plots
-from hil.validate.core import Result, experiment, within
+from hil.validate.core import CONFIGS, Result, experiment, within
 from hil.validate.experiments.mechanics import series_compliance
 from hil.validate.experiments.variants import (
     ARROW,
-    ROOT,
     lumped_variant,
     machine_raw,
     plant_of,
@@ -41,8 +40,8 @@ from hil.validate.experiments.variants import (
 )
 from plant import Plant
 
-RIG = ROOT / "configs" / "tlm_rig.toml"
-XY = ROOT / "configs" / "xy_table_004.toml"
+RIG = CONFIGS / "tlm_rig.toml"
+XY = CONFIGS / "xy_table_004.toml"
 # seed 003 §4.1: F_C = 9.81 mu m with mu = 0.003, m = 850 kg; F_H = 1.5 F_C
 PAPER_F_C = 9.81 * 0.003 * 850.0
 PAPER_F_H = 1.5 * PAPER_F_C

@@ -11,13 +11,12 @@ from hil.controller.program import read_program
 from hil.measure.runs import position_step
 from hil.sim import LockStep, SimResult
 from hil.validate import plots
-from hil.validate.core import Result, experiment, within
+from hil.validate.core import CONFIGS, PROGRAMS, Result, experiment, within
 from plant.config import MachineConfig, load_machine
 
-ROOT = Path(__file__).resolve().parents[3]
-TLM_RIG = ROOT / "configs" / "tlm_rig.toml"
-LD386 = ROOT / "configs" / "ld386_linear.toml"
-TRAPEZOID = ROOT / "programs" / "seed003_trapezoid.nc"
+TLM_RIG = CONFIGS / "tlm_rig.toml"
+LD386 = CONFIGS / "ld386_linear.toml"
+TRAPEZOID = PROGRAMS / "seed003_trapezoid.nc"
 MM_MIN = 60000.0  # (mm/min) per (m/s)
 
 # --- seed 003: trapezoid on the TLM rig ------------------------------------------------

@@ -12,7 +12,7 @@ from hil.controller.config import kv_si, load_controller
 from hil.measure.frequency_response import bandwidth_hz, peaks
 from hil.measure.runs import bode, current_step, position_step, speed_step
 from hil.validate import plots
-from hil.validate.core import Result, experiment, within
+from hil.validate.core import CONFIGS, Result, experiment, within
 from hil.validate.experiments.electrical import (
     STEP_FRACTIONS,
     analytic_current_step,
@@ -21,8 +21,7 @@ from hil.validate.experiments.electrical import (
 from plant.assemble import natural_frequencies, reflected_inertia, transmission_ratio
 from plant.config import MachineConfig, load_machine
 
-ROOT = Path(__file__).resolve().parents[3]
-ARROW = ROOT / "configs" / "arrow500_x.toml"
+ARROW = CONFIGS / "arrow500_x.toml"
 MM_MIN = 60000.0  # (mm/min) per (m/s)
 ARROW_X0 = 0.25  # m, seed 000 §5: steps from 250 mm, the nut at mid travel
 

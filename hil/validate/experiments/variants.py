@@ -10,15 +10,14 @@ from pathlib import Path
 import numpy as np
 import tomllib
 
-from hil.validate.core import Result
+from hil.validate.core import CONFIGS, Result
 from plant import Plant
 from plant import layout as L
 from plant.config import load_machine, parse_machine
 from plant.effects.chain import chain_energy
 from plant.effects.tlm import tlm_init
 
-ROOT = Path(__file__).resolve().parents[3]
-ARROW = ROOT / "configs" / "arrow500_x.toml"
+ARROW = CONFIGS / "arrow500_x.toml"
 HELD_MOTOR_KGM2 = 1.0e4  # motor inertia that stands for a clamped rotor (10^7 x the real one)
 
 
