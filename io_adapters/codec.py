@@ -43,6 +43,24 @@ Feedback (kind 2), header then::
     16 tick_ns         int    ns, drive monotonic clock at the start of the tick that
                               produced it (0: not given)
 
+Version 2: several axes in one message (:class:`~io_adapters.messages.SetpointGroup`,
+:class:`~io_adapters.messages.FeedbackGroup`).  The same four-element header with version
+2, then the message's common fields and one array per axis, in the machine's axis order::
+
+    SetpointGroup (kind 1):  4 seq int u32    5 t_ns int ns
+                             6 axes: N arrays [controlword, mode, target_position_counts,
+                               target_velocity_counts_s, velocity_offset_counts_s,
+                               iq_ref_a, id_ref_a, ud_v, uq_v]   (types as in version 1)
+    FeedbackGroup (kind 2):  4 seq int u32    5 time_s float s    6 sp_t_ns   7 sp_rx_ns
+                             8 t_ns   9 tick_ns (int ns, as in version 1)
+                             10 axes: N arrays [statusword, fault, encoder_counts,
+                               scale_counts, velocity_counts_s, iq_a, id_a]
+
+A single-axis link keeps version 1 on the wire (plain records): a version-1 peer never
+meets a version-2 message, and a receiver drops a message whose version is not the one
+of the record it reads into (counted as malformed).  A group message with another
+number of axes than the receiver's is malformed too ("3 axes, expected 2").
+
 Decoding is strict: anything but an array of exactly this length, version,
 kind, element types and integer ranges raises :class:`FrameError` (NaN and
 infinite floats pass: a faulted plant reports them).  The receiver uses
@@ -61,9 +79,16 @@ from typing import NamedTuple
 import msgpack
 
 from io_adapters.base import Endpoint, FrameError, Role
-from io_adapters.messages import Feedback, Setpoint
+from io_adapters.messages import (
+    Feedback,
+    FeedbackGroup,
+    Setpoint,
+    SetpointGroup,
+    axis_records,
+)
 
 VERSION = 1
+VERSION_GROUP = 2
 KIND_SETPOINT = 1
 KIND_FEEDBACK = 2
 HEADER_LEN = 4
@@ -140,10 +165,118 @@ SCHEMAS = {Setpoint: Schema(Setpoint, KIND_SETPOINT, SETPOINT_FIELDS),
            Feedback: Schema(Feedback, KIND_FEEDBACK, FEEDBACK_FIELDS)}
 
 
-def encode(record: Setpoint | Feedback, session: int, frame: int) -> bytes:
-    """One message carrying ``record``.  Integers accept anything with ``__index__``
+def _explain(fields: tuple[Field, ...], values: tuple) -> str:
+    """Which element breaks ``fields``, for the error message."""
+    for f, value in zip(fields, values):
+        if type(value) is not f.type:
+            return f"{f.name}={value!r}: expected {f.type.__name__}"
+        if f.type is int and not f.lo <= value <= f.hi:
+            return f"{f.name}={value}: outside [{f.lo}, {f.hi}]"
+    return "no error"
+
+
+def _converted(fields: tuple[Field, ...], raw: tuple, what: str) -> tuple:
+    """``raw`` with ints as ints and floats as floats, range-checked; FrameError naming
+    the field otherwise."""
+    try:
+        out = tuple([operator.index(v) if f.type is int else float(v)
+                     for f, v in zip(fields, raw)])
+    except (TypeError, ValueError) as e:
+        bad = next(f for f, v in zip(fields, raw)
+                   if not _converts(operator.index if f.type is int else float, v))
+        raise FrameError(f"{what}.{bad.name}={raw[fields.index(bad)]!r} is not "
+                         f"{bad.type.__name__}") from e
+    for f, v in zip(fields, out):
+        if f.type is int and not f.lo <= v <= f.hi:
+            raise FrameError(f"{what} {f.name}={v}: outside [{f.lo}, {f.hi}]")
+    return out
+
+
+def _valid(fields: tuple[Field, ...], values: tuple) -> bool:
+    return all(type(v) is f.type and (f.type is float or f.lo <= v <= f.hi)
+               for f, v in zip(fields, values))
+
+
+class GroupSchema:
+    """The version-2 layout of a group message: common fields, then one array per axis
+    (see the module docstring)."""
+
+    def __init__(self, group_type: type, kind: int, common: tuple[Field, ...],
+                 axis: tuple[Field, ...], copied: tuple[str, ...]):
+        self.group_type, self.kind = group_type, kind
+        self.header = (_int("version", VERSION_GROUP, VERSION_GROUP),) + HEADER[1:]
+        self.common, self.axis = common, axis
+        self.get_common = operator.attrgetter(*(f.name for f in common))
+        self.get_axis = operator.attrgetter(*(f.name for f in axis))
+        self.common_names = tuple(f.name for f in common)
+        self.axis_names = tuple(f.name for f in axis)
+        self.copied = copied  # common fields also written into every axis's record
+        self.length = HEADER_LEN + len(common) + 1
+
+    def encode(self, group, session: int, frame: int) -> bytes:
+        name = self.group_type.__name__
+        common = _converted(self.common, self.get_common(group), name)
+        axes = tuple(_converted(self.axis, self.get_axis(rec), f"{name}.axes[{i}]")
+                     for i, rec in enumerate(group.axes))
+        return msgpack.packb((VERSION_GROUP, self.kind, session, frame) + common + (axes,))
+
+    def check(self, values: tuple, n_axes: int) -> None:
+        """Raise FrameError unless ``values`` (version and kind already checked) is a
+        well-formed group message of ``n_axes`` axes."""
+        name = self.group_type.__name__
+        if len(values) != self.length:
+            raise FrameError(f"{len(values)} elements, expected {self.length} for {name}")
+        head = HEADER_LEN + len(self.common)
+        fields = self.header + self.common
+        if not _valid(fields, values[:head]):
+            raise FrameError(f"{name} {_explain(fields, values[:head])}")
+        axes = values[head]
+        if type(axes) is not tuple:
+            raise FrameError(f"{name} axes={axes!r:.40}: expected an array")
+        if len(axes) != n_axes:
+            raise FrameError(f"{name}: {len(axes)} axes, expected {n_axes}")
+        for i, a in enumerate(axes):
+            if type(a) is not tuple or len(a) != len(self.axis):
+                raise FrameError(f"{name} axes[{i}]={a!r:.60}: expected an array of "
+                                 f"{len(self.axis)}")
+            if not _valid(self.axis, a):
+                raise FrameError(f"{name} axes[{i}] {_explain(self.axis, a)}")
+
+    def fill(self, into, values: tuple) -> None:
+        head = HEADER_LEN + len(self.common)
+        common = values[HEADER_LEN:head]
+        deque(map(setattr, repeat(into), self.common_names, common), 0)
+        copied = [(n, getattr(into, n)) for n in self.copied]
+        for rec, a in zip(into.axes, values[head]):
+            deque(map(setattr, repeat(rec), self.axis_names, a), 0)
+            for n, v in copied:
+                setattr(rec, n, v)
+
+
+_STAMP = (0, T_NS_MAX)
+GROUP_SCHEMAS = {
+    SetpointGroup: GroupSchema(
+        SetpointGroup, KIND_SETPOINT, (_int("seq", 0, U32), _int("t_ns", *_STAMP)),
+        SETPOINT_FIELDS[1:-1], ("seq", "t_ns")),
+    FeedbackGroup: GroupSchema(
+        FeedbackGroup, KIND_FEEDBACK,
+        (_int("seq", 0, U32), _float("time_s"), _int("sp_t_ns", *_STAMP),
+         _int("sp_rx_ns", *_STAMP), _int("t_ns", *_STAMP), _int("tick_ns", *_STAMP)),
+        tuple(f for f in FEEDBACK_FIELDS if f.name in (
+            "statusword", "fault", "encoder_counts", "scale_counts", "velocity_counts_s",
+            "iq_a", "id_a")),
+        ("seq", "time_s", "sp_t_ns", "sp_rx_ns", "t_ns", "tick_ns")),
+}
+
+
+def encode(record: Setpoint | Feedback | SetpointGroup | FeedbackGroup, session: int,
+           frame: int) -> bytes:
+    """One message carrying ``record`` (version 1 for a plain record, 2 for a group).  Integers accept anything with ``__index__``
     and floats anything ``float()`` takes (numpy scalars included); raises
     :class:`FrameError` naming the field if a value does not convert or is out of range."""
+    group = GROUP_SCHEMAS.get(type(record))
+    if group is not None:
+        return group.encode(record, session, frame)
     schema = SCHEMAS[type(record)]
     raw = schema.get(record)
     if tuple(map(type, raw)) != schema.field_types:
@@ -168,17 +301,26 @@ def _converts(conv, value) -> bool:
     return True
 
 
-def decode(data: bytes | memoryview, record_type: type) -> tuple:
-    """The checked array of one message for ``record_type`` (header first); raises
-    :class:`FrameError` saying what is wrong.  Nothing is written anywhere."""
+def decode(data: bytes | memoryview, record_type: type, n_axes: int = 1) -> tuple:
+    """The checked array of one message for ``record_type`` (header first; a group of
+    ``n_axes`` axes for the group types); raises :class:`FrameError` saying what is
+    wrong.  Nothing is written anywhere."""
     try:
         values = msgpack.unpackb(data, use_list=False, raw=False)
     except ValueError as e:  # msgpack's decoding errors are all ValueErrors
         raise FrameError(f"not a msgpack message: {e}") from e
     if type(values) is not tuple or len(values) < 2:
         raise FrameError(f"not a message array: {values!r:.60}")
-    if values[0] != VERSION:
-        raise FrameError(f"version {values[0]!r}, expected {VERSION}")
+    group = GROUP_SCHEMAS.get(record_type)
+    version = VERSION if group is None else VERSION_GROUP
+    if values[0] != version:
+        raise FrameError(f"version {values[0]!r}, expected {version}")
+    if group is not None:
+        if values[1] != group.kind:
+            raise FrameError(f"kind {values[1]!r}, expected {group.kind} "
+                             f"({record_type.__name__})")
+        group.check(values, n_axes)
+        return values
     schema = SCHEMAS[record_type]
     if values[1] != schema.kind:
         raise FrameError(f"kind {values[1]!r}, expected {schema.kind} ({record_type.__name__})")
@@ -190,8 +332,12 @@ def decode(data: bytes | memoryview, record_type: type) -> tuple:
     return values
 
 
-def fill(into: Setpoint | Feedback, values: tuple) -> None:
+def fill(into: Setpoint | Feedback | SetpointGroup | FeedbackGroup, values: tuple) -> None:
     """Write the record part of a decoded message into ``into`` (no new record)."""
+    group = GROUP_SCHEMAS.get(type(into))
+    if group is not None:
+        group.fill(into, values)
+        return
     # setattr for every field in one C-level pass; the zero-length deque just drains the map
     deque(map(setattr, repeat(into), SCHEMAS[type(into)].names, values[HEADER_LEN:]), 0)
 
@@ -239,7 +385,7 @@ class MsgpackEndpoint(Endpoint):
         stats = self.stats
         stats.bytes_received += len(data)
         try:
-            values = decode(data, type(into))
+            values = decode(data, type(into), len(axis_records(into)))
         except FrameError:
             stats.malformed += 1
             return False

@@ -104,3 +104,69 @@ class Feedback:
         controller sending it to the controller receiving this feedback, less the time
         the drive held it, ``(rx_ns - sp_t_ns) - (t_ns - sp_rx_ns)``."""
         return (self.rx_ns - self.sp_t_ns) - (self.t_ns - self.sp_rx_ns)
+
+
+@dataclass(slots=True)
+class SetpointGroup:
+    """Controller -> drives of several axes, one message per cycle (wire version 2).
+
+    ``axes`` holds one :class:`Setpoint` per axis, in the machine's axis order; of each only
+    the per-axis fields travel (controlword, mode, targets, offsets, currents, voltages).
+    The message's own ``seq``, ``t_ns`` and ``rx_ns`` mean what they mean on a
+    :class:`Setpoint`; decoding copies ``seq`` into every axis's record, so each drive sees
+    the cycle's number.  ``controlword`` reads axis 0's and sets every axis's (the whole
+    machine disabled or enabled at once, as the runtime's alignment and safe state do).
+    """
+    axes: tuple[Setpoint, ...]
+    seq: int = 0
+    t_ns: int = 0
+    rx_ns: int = 0
+
+    @property
+    def controlword(self) -> int:
+        return self.axes[0].controlword
+
+    @controlword.setter
+    def controlword(self, value: int) -> None:
+        for sp in self.axes:
+            sp.controlword = value
+
+
+@dataclass(slots=True)
+class FeedbackGroup:
+    """Drives -> controller for several axes, one message per cycle (wire version 2).
+
+    ``axes`` holds one :class:`Feedback` per axis; of each only the per-axis fields travel
+    (statusword, fault, encoder and scale counts, speed actual value, currents).  The
+    message's ``seq``, ``time_s`` and stamps mean what they mean on a :class:`Feedback`
+    (one drive cycle stepped every axis, so they are common); decoding copies ``seq``,
+    ``time_s`` and the stamps into every axis's record.
+    """
+    axes: tuple[Feedback, ...]
+    seq: int = 0
+    time_s: float = 0.0
+    sp_t_ns: int = 0
+    sp_rx_ns: int = 0
+    t_ns: int = 0
+    tick_ns: int = 0
+    rx_ns: int = 0
+
+    def round_trip_ns(self) -> int:
+        """As :meth:`Feedback.round_trip_ns`."""
+        return (self.rx_ns - self.sp_t_ns) - (self.t_ns - self.sp_rx_ns)
+
+
+def message_pair(n_axes: int) -> tuple[Setpoint | SetpointGroup, Feedback | FeedbackGroup]:
+    """A fresh setpoint and feedback message for ``n_axes`` axes: the plain records for one
+    axis (wire version 1, what every single-axis peer speaks), groups for more."""
+    if n_axes < 1:
+        raise ValueError(f"n_axes must be >= 1, got {n_axes}")
+    if n_axes == 1:
+        return Setpoint(), Feedback()
+    return (SetpointGroup(tuple(Setpoint() for _ in range(n_axes))),
+            FeedbackGroup(tuple(Feedback() for _ in range(n_axes))))
+
+
+def axis_records(message) -> tuple:
+    """The per-axis records of a message: ``(message,)`` for a plain record, else its axes."""
+    return message.axes if isinstance(message, (SetpointGroup, FeedbackGroup)) else (message,)
