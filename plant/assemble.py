@@ -22,8 +22,9 @@ import numpy as np
 import scipy.linalg
 
 from plant import layout as L
-from plant.config import MachineConfig
+from plant.config import MachineConfig, delay_periods
 from plant.effects.chain import params_size, state_size
+from plant.effects.delay import ring_size
 from plant.errors import ConfigError
 
 _MOTOR = {"dq": L.MOTOR_DQ, "first_order": L.MOTOR_FIRST_ORDER,
@@ -281,7 +282,12 @@ def build(cfg: MachineConfig) -> Built:
         p[L.P_NUT_GAP] = sc.backlash_m
         p[L.P_NUT_S0] = sc.nut_offset_m
         p[L.P_SEG_LEN] = sc.length_m / sc.segments
+    if cfg.table is not None:
         p[L.P_TABLE_M] = cfg.table.mass_kg
+        p[L.P_EXT_LOAD] = cfg.table.external_force_n
+    else:
+        p[L.P_EXT_LOAD] = cfg.mechanics.external_torque_nm
+    _pitch_error(cfg, p)
     _friction(cfg, p)
     # sensors
     se = cfg.sensors
@@ -293,6 +299,8 @@ def build(cfg: MachineConfig) -> Built:
     p[L.P_I_NOISE] = se.current_noise_a
     p[L.P_I_LSB] = se.current_lsb_a
     p[L.P_SEED] = se.seed
+    n_delay = delay_periods(cfg)
+    p[L.P_DELAY_N] = n_delay
     # chains
     p[L.P_N_ROT] = rot.n
     p[L.P_OFF_ROT] = L.P_COUNT
@@ -305,7 +313,19 @@ def build(cfg: MachineConfig) -> Built:
         p[L.P_SOFF_AX] = n_state
         p[int(p[L.P_OFF_AX]):] = ax.packed()
         n_state += state_size(ax.n)
+    p[L.P_SOFF_DELAY] = n_state
+    n_state += ring_size(n_delay)
     return Built(p, n_state, rot, ax, ratio, dt, n_sub, omega_max)
+
+
+def _pitch_error(cfg: MachineConfig, p: np.ndarray) -> None:
+    pe = cfg.pitch_error
+    p[L.P_PITCH_N] = len(pe.periods_m)
+    for k, (period, amp) in enumerate(zip(pe.periods_m, pe.amplitudes_m)):
+        p[L.P_PITCH_WAVENUMBER + k] = 2.0 * math.pi / period
+        p[L.P_PITCH_AMP + k] = amp
+        p[L.P_PITCH_PHASE + k] = math.radians(pe.phases_deg[k]) if pe.phases_deg else 0.0
+    p[L.P_PITCH_LINEAR] = pe.linear_ppm * 1e-6
 
 
 def _friction(cfg: MachineConfig, p: np.ndarray) -> None:

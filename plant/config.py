@@ -16,6 +16,7 @@ from pathlib import Path
 import tomllib
 
 from plant.errors import ConfigError
+from plant.layout import N_DELAY_MAX, N_PITCH
 from plant.schema import describe, is_required
 from plant.sections import (
     FOREIGN_SECTIONS,
@@ -29,6 +30,7 @@ from plant.sections import (
     MachineSection,
     MechanicsSection,
     MotorSection,
+    PitchErrorSection,
     PreslidingSection,
     ScrewSection,
     SensorsSection,
@@ -51,6 +53,7 @@ class MachineConfig:
     coupling: CouplingSection | None
     screw: ScrewSection | None
     table: TableSection | None
+    pitch_error: PitchErrorSection
     friction: FrictionSection
     presliding: PreslidingSection
     sensors: SensorsSection
@@ -104,7 +107,8 @@ def parse_machine(raw: dict, where: str) -> MachineConfig:
     motor = _need(sections, "motor", where)
     mech = _need(sections, "mechanics", where)
     context = {"kind": kind, "model": motor.model}
-    for sec in ("machine", "motor", "cogging", "friction", "sensors", "mechanics"):
+    for sec in ("machine", "motor", "cogging", "friction", "sensors", "mechanics",
+                "pitch_error"):
         if sections[sec] is not None:
             check_applies(sections[sec], raw.get(sec, {}), context, where, sec)
     if sections["current_loop"] is not None:
@@ -261,6 +265,8 @@ def _check_physics(cfg: MachineConfig) -> None:
                           f"{len(cog.phases_deg)})")
     if len(amps) > 6:
         raise ConfigError(f"{cfg.path}: [cogging] at most 6 harmonics (got {len(amps)})")
+    _check_pitch_error(cfg)
+    _check_delay(cfg)
     fr = cfg.friction
     f_c, f_h = (fr.coulomb_nm, fr.breakaway_nm) if kind == "rotary" else (fr.coulomb_n,
                                                                            fr.breakaway_n)
@@ -287,6 +293,51 @@ def _check_physics(cfg: MachineConfig) -> None:
                               f"= {sc.length_m:g} m")
         if tb.mass_kg <= 0:
             raise ConfigError(f"{cfg.path}: [table] mass_kg must be > 0 kg for the screw model")
+
+
+#: bound on the pitch error's slope |e'| (sum of 2 pi A/P, plus the linear part); real
+#: screws are near 1e-3.  Below 1 the nut position is monotone in the screw angle; the
+#: rigid and two-mass models keep the table's reflected inertia at m (lead/2pi)^2, a
+#: relative error of 2 |e'| in the table's share (see plant.kernel.lumped_mechanics).
+PITCH_SLOPE_MAX = 0.05
+
+
+def _check_pitch_error(cfg: MachineConfig) -> None:
+    pe = cfg.pitch_error
+    n = len(pe.periods_m)
+    if len(pe.amplitudes_m) != n or (pe.phases_deg and len(pe.phases_deg) != n):
+        raise ConfigError(f"{cfg.path}: [pitch_error] periods_m (m), amplitudes_m (m) and "
+                          f"phases_deg (deg) must have the same length (got {n}, "
+                          f"{len(pe.amplitudes_m)}, {len(pe.phases_deg)})")
+    if n > N_PITCH:
+        raise ConfigError(f"{cfg.path}: [pitch_error] at most {N_PITCH} harmonics (got {n})")
+    for period in pe.periods_m:
+        if not period > 0.0:
+            raise ConfigError(f"{cfg.path}: [pitch_error] periods_m = {list(pe.periods_m)}: "
+                              "every period must be > 0 m")
+    slope = abs(pe.linear_ppm) * 1e-6 + sum(
+        2.0 * math.pi * abs(a) / period for a, period in zip(pe.amplitudes_m, pe.periods_m))
+    if slope > PITCH_SLOPE_MAX:
+        raise ConfigError(f"{cfg.path}: [pitch_error] the error's largest slope, sum of 2 pi "
+                          f"amplitudes_m / periods_m + linear_ppm 1e-6 = {slope:.3g} m/m, "
+                          f"must be <= {PITCH_SLOPE_MAX:g} m/m")
+
+
+def delay_periods(cfg: MachineConfig) -> int:
+    """[sensors] delay_s in whole PWM periods (checked by the loader)."""
+    return round(cfg.sensors.delay_s * cfg.motor.pwm_frequency_hz)
+
+
+def _check_delay(cfg: MachineConfig) -> None:
+    delay, f_pwm = cfg.sensors.delay_s, cfg.motor.pwm_frequency_hz
+    n = delay_periods(cfg)
+    label = f"{cfg.path}: [sensors] delay_s = {delay:g} s"
+    if abs(delay * f_pwm - n) > 1e-6:
+        raise ConfigError(f"{label} must be a whole number of PWM periods "
+                          f"(1 / [motor] pwm_frequency_hz = {1.0 / f_pwm:g} s)")
+    if n > N_DELAY_MAX:
+        raise ConfigError(f"{label} is {n} PWM periods; at most {N_DELAY_MAX} "
+                          f"({N_DELAY_MAX / f_pwm:g} s) are supported")
 
 
 def schema_rows() -> list[dict]:

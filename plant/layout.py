@@ -89,7 +89,22 @@ P_NUT_C = next(_p)  # N·s/m, nut axial damping
 P_NUT_GAP = next(_p)  # m, total backlash in the nut (dead zone width)
 P_NUT_S0 = next(_p)  # m, nut distance from the screw's first node at table position 0
 P_SEG_LEN = next(_p)  # m, length of one screw segment
-P_TABLE_M = next(_p)  # kg, table mass (screw model)
+P_TABLE_M = next(_p)  # kg, table mass (every axis with a table; 0 for rotary tables)
+P_EXT_LOAD = next(_p)  # N (N·m for direct rotary), constant external force added to I_LOAD
+
+# ball-screw pitch (lead) error e(u) = sum A sin(k u + phi) + c u, u = nominal table position
+N_PITCH = 4
+P_PITCH_N = next(_p)  # number of harmonics in use
+P_PITCH_WAVENUMBER = next(_p)  # rad/m, 2 pi / period
+for _ in range(N_PITCH - 1):
+    next(_p)
+P_PITCH_AMP = next(_p)  # m
+for _ in range(N_PITCH - 1):
+    next(_p)
+P_PITCH_PHASE = next(_p)  # rad
+for _ in range(N_PITCH - 1):
+    next(_p)
+P_PITCH_LINEAR = next(_p)  # m/m, cumulative lead error c
 
 # table friction (acts on the table, or on the last torsional node reflected)
 P_FR_VISCOUS = next(_p)  # N·s/m (N·m·s/rad for direct rotary)
@@ -108,6 +123,8 @@ P_SCALE_RES = next(_p)  # m (rad for rotary), linear scale resolution; 0: no sca
 P_I_NOISE = next(_p)  # A, standard deviation of current-measurement noise
 P_I_LSB = next(_p)  # A, current-measurement quantization step; 0: none
 P_SEED = next(_p)  # noise generator seed
+N_DELAY_MAX = 32  # longest measurement delay in PWM periods
+P_DELAY_N = next(_p)  # measurement delay in whole PWM periods (0: none)
 
 # chain layout (offsets into params and state; counts)
 P_N_ROT = next(_p)  # number of torsional nodes (motor is node 0)
@@ -116,13 +133,15 @@ P_OFF_ROT = next(_p)  # params offset of the torsional chain block
 P_OFF_AX = next(_p)  # params offset of the axial chain block
 P_SOFF_ROT = next(_p)  # state offset of the torsional chain block
 P_SOFF_AX = next(_p)  # state offset of the axial chain block
+P_SOFF_DELAY = next(_p)  # state offset of the measurement-delay ring (plant.effects.delay)
 P_COUNT = next(_p)
 del _p
 
 # A chain of n nodes occupies 6n-3 params (inertias, ground dampers, ground
 # springs, link springs, link dampers, link backlash gaps) and 5n-2 state values
 # (positions, velocities, a force scratch area, TLM wave variables); the exact
-# order is in plant.effects.chain.
+# order is in plant.effects.chain.  With a measurement delay of N PWM periods the
+# state ends with a ring of 4 (N+1) values (plant.effects.delay).
 
 # --- scalar state ------------------------------------------------------------
 _s = iter(range(1000))
@@ -149,6 +168,7 @@ S_STUCK = next(_s)  # 1 while Karnopp stiction holds the friction body
 S_PRE_F = next(_s)  # N, presliding friction force
 S_PRE_XREV = next(_s)  # m, position at the last reversal
 S_PRE_DIR = next(_s)  # +1 / -1, present direction of motion
+S_DELAY_HEAD = next(_s)  # ring slot of the newest delayed sample
 S_COUNT = next(_s)
 del _s
 
@@ -172,6 +192,8 @@ O_MOTOR_POS = next(_o)  # rad (m for linear motors)
 O_MOTOR_VEL = next(_o)  # rad/s (m/s)
 O_TABLE_POS = next(_o)  # m (rad for direct rotary)
 O_TABLE_VEL = next(_o)
+# measured signals (encoder, scale, measured currents) lag by [sensors] delay_s; the true
+# ones (positions, velocities, currents, torque, forces) never do
 O_ENCODER = next(_o)  # motor encoder counts (whole number)
 O_SCALE = next(_o)  # linear-scale counts (whole number)
 O_ID = next(_o)  # A, true currents

@@ -20,6 +20,8 @@ import numpy as np
 from plant import layout as L
 from plant.assemble import Built, build
 from plant.config import MachineConfig, load_machine
+from plant.effects.delay import delay_fill
+from plant.effects.pitch import nominal_position
 from plant.effects.tlm import tlm_init
 from plant.kernel import axis_step_nb
 
@@ -85,13 +87,15 @@ class Plant:
 
     def reset(self, table_pos: float = 0.0) -> None:
         """Rest state with the table at ``table_pos`` (m, or rad for rotary tables),
-        springs relaxed, inputs cleared and the power stage enabled."""
+        springs relaxed, inputs cleared and the power stage enabled.  With a pitch error
+        the screw turns to the angle that puts the table there; the measurement-delay
+        ring holds the rest state's measured signals."""
         s = self.state
         s[:] = 0.0
         p = self.params
         ratio = self.built.ratio
         ro, nr = int(p[L.P_SOFF_ROT]), int(p[L.P_N_ROT])
-        s[ro:ro + nr] = table_pos / ratio
+        s[ro:ro + nr] = nominal_position(p, table_pos) / ratio
         s[L.S_TABLE_X] = table_pos
         s[L.S_PRE_XREV] = table_pos
         s[L.S_PRE_DIR] = 1.0
@@ -99,13 +103,16 @@ class Plant:
         if p[L.P_SOLVER] == L.SOLVER_TLM:
             tlm_init(p, int(p[L.P_OFF_ROT]), s, ro, nr, self.dt)
             tlm_init(p, int(p[L.P_OFF_AX]), s, int(p[L.P_SOFF_AX]), int(p[L.P_N_AX]), self.dt)
+        if p[L.P_DELAY_N] > 0:
+            delay_fill(p, s)
         self.inp[:] = 0.0
         self.inp[L.I_ENABLE] = 1.0
         self.step(0)
 
     def set_input(self, **values: float) -> None:
         """Set inputs by name: mode, enable, id_ref_a, iq_ref_a, ud_v, uq_v, load
-        (N, or N·m for rotary tables).  Unknown names raise KeyError."""
+        (N, or N·m for rotary tables; the machine file's constant external force or torque
+        adds to it).  Unknown names raise KeyError."""
         for name, value in values.items():
             if name not in INPUTS:
                 raise KeyError(f"unknown plant input {name!r}; known: {', '.join(INPUTS)}")

@@ -98,6 +98,9 @@ class MechanicsSection:
     load_inertia_kgm2: float = key("kg*m^2", "Load-side inertia besides the table (screw "
                                    "and coupling in rigid/two_mass models; the rotary "
                                    "table of a direct drive).", 0.0, ge=0.0)
+    external_torque_nm: float = key("N*m", "Constant external torque on the rotary table, "
+                                    "+ toward +angle (an unbalanced load); added to the "
+                                    "plant input 'load'.", 0.0, only="kind=rotary")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -146,6 +149,21 @@ class TableSection:
     mass_kg: float = key("kg", "Table mass with workpiece (linear: payload besides the "
                          "thrust block).", ge=0.0)
     travel_m: float = key("m", "Usable travel from position 0.", gt=0.0)
+    external_force_n: float = key("N", "Constant external force on the table, + pushing "
+                                  "toward +x (a vertical axis: -m g; a weight-compensation "
+                                  "offset); added to the plant input 'load'.", 0.0)
+
+
+@dataclass(frozen=True, kw_only=True)
+class PitchErrorSection:
+    """Ball-screw pitch (lead) error: the table stands at x = u + e(u), u = lead/2pi times
+    the screw angle at the nut, e(u) = sum A_k sin(2 pi u / P_k + phi_k) + c u."""
+    periods_m: tuple = key("m", "Periods P_k of the harmonics along the travel (> 0, at most "
+                           "4).", (), only="kind=screw")
+    amplitudes_m: tuple = key("m", "Amplitudes A_k, one per period.", (), only="kind=screw")
+    phases_deg: tuple = key("deg", "Phases phi_k; empty means all zero.", (), only="kind=screw")
+    linear_ppm: float = key("um/m", "Cumulative lead error c (table travel per nominal "
+                            "travel - 1, in 1e-6).", 0.0, only="kind=screw")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -195,6 +213,9 @@ class SensorsSection:
                                  0.0, ge=0.0)
     current_lsb_a: float = key("A", "Current ADC quantization step (0: none).", 0.0, ge=0.0)
     seed: int = key("1", "Seed of the measurement-noise generator.", 1, ge=0)
+    delay_s: float = key("s", "Measurement delay of the encoder and scale counts and the "
+                         "measured currents (the true states are not delayed); a whole "
+                         "number of PWM periods, at most 32.", 0.0, ge=0.0)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -211,11 +232,11 @@ SECTIONS = {
     "machine": MachineSection, "motor": MotorSection, "current_loop": CurrentLoopSection,
     "field_weakening": FieldWeakeningSection, "cogging": CoggingSection,
     "mechanics": MechanicsSection, "coupling": CouplingSection, "screw": ScrewSection,
-    "table": TableSection, "friction": FrictionSection, "presliding": PreslidingSection,
-    "sensors": SensorsSection, "simulation": SimulationSection,
+    "table": TableSection, "pitch_error": PitchErrorSection, "friction": FrictionSection,
+    "presliding": PreslidingSection, "sensors": SensorsSection, "simulation": SimulationSection,
 }
 # sections read by other packages (hil's controller): the plant keeps them as raw tables
 FOREIGN_SECTIONS = ("controller",)
 # sections that may be absent: they then take every default
 OPTIONAL_SECTIONS = {"field_weakening", "cogging", "friction", "presliding", "sensors",
-                     "simulation", "current_loop"}
+                     "simulation", "current_loop", "pitch_error"}
