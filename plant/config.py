@@ -97,10 +97,10 @@ def parse_machine(raw: dict, where: str) -> MachineConfig:
             raise ConfigError(f"{where}: unknown section [{sec}]{_suggest(sec, known)}")
     sections = {}
     for sec, cls in SECTIONS.items():
-        if sec in raw:
-            if not isinstance(raw[sec], dict):
-                raise ConfigError(f"{where}: [{sec}] must be a table of keys")
-            sections[sec] = build_section(cls, raw[sec], where, sec)
+        # the model's parts are built once the model says they belong: a [table] on a
+        # rotary axis is refused as such, not for a key it lacks
+        if sec in raw and sec not in _MODEL_PARTS:
+            sections[sec] = _build(cls, raw[sec], where, sec)
         else:
             sections[sec] = None
     kind = _need(sections, "machine", where).kind
@@ -117,18 +117,29 @@ def parse_machine(raw: dict, where: str) -> MachineConfig:
     wanted = {"coupling": mech.model in ("two_mass", "screw"), "screw": mech.model == "screw",
               "table": kind in ("screw", "linear")}
     for sec, needed in wanted.items():
-        if needed and sections[sec] is None:
+        if needed and sec not in raw:
             raise ConfigError(f"{where}: section [{sec}] is required for kind = '{kind}', "
                               f"mechanics.model = '{mech.model}'")
-        if not needed and sections[sec] is not None:
+        if not needed and sec in raw:
             raise ConfigError(f"{where}: section [{sec}] is not used by kind = '{kind}', "
                               f"mechanics.model = '{mech.model}'; remove it")
+        if needed:
+            sections[sec] = _build(SECTIONS[sec], raw[sec], where, sec)
     for sec in OPTIONAL_SECTIONS:
         if sections[sec] is None:
             sections[sec] = SECTIONS[sec]()
     cfg = MachineConfig(path=where, foreign=foreign, **sections)
     _check_physics(cfg)
     return cfg
+
+
+_MODEL_PARTS = ("coupling", "screw", "table")
+
+
+def _build(cls, values, where, sec):
+    if not isinstance(values, dict):
+        raise ConfigError(f"{where}: [{sec}] must be a table of keys")
+    return build_section(cls, values, where, sec)
 
 
 def _need(sections, sec, where):
