@@ -17,6 +17,9 @@ with the loop blocks and the ``[controller]`` machine data of the simulated
 NC (speed cycle, K_v, speed PI and filters).  Positions and speeds on the
 wire are motor-encoder increments (CiA 402 position factor 1).  The same
 object serves the lock-step simulator and the real-time loop.
+
+A machine of several axes is a :class:`DriveSet`: one drive per axis, each with its own
+CiA 402 state machine, fault and loops, all cycled once per message.
 """
 
 import math
@@ -24,7 +27,15 @@ import math
 from hil.cia402 import DriveStateMachine, State
 from hil.controller.config import ControllerSection, axis_limits, load_controller
 from hil.controller.loops import PositionLoop, SpeedLoop
-from io_adapters.messages import MODE_CSP, MODE_CSV, MODE_VOLTAGE, Feedback, Setpoint
+from io_adapters.messages import (
+    MODE_CSP,
+    MODE_CSV,
+    MODE_VOLTAGE,
+    Feedback,
+    FeedbackGroup,
+    Setpoint,
+    axis_records,
+)
 from plant import Plant
 from plant import layout as L
 
@@ -150,3 +161,32 @@ class EmulatedDrive:
         self.fault = 0
         self.counts_prev = math.nan
         self.velocity_counts_s = 0.0
+
+
+class DriveSet:
+    """The drives of a machine's axes behind one message pair (plain records on one axis,
+    :class:`~io_adapters.messages.SetpointGroup`/``FeedbackGroup`` on several).
+
+    One :meth:`cycle` runs every drive's cycle on its axis's setpoint, in axis order; on a
+    group the feedback's common fields take the cycle's ``seq`` and axis 0's time (every
+    plant advanced the same PWM period).
+    """
+
+    def __init__(self, drives: list[EmulatedDrive]):
+        if not drives:
+            raise ValueError("a DriveSet needs at least one drive")
+        self.drives = drives
+
+    def __len__(self) -> int:
+        return len(self.drives)
+
+    def __getitem__(self, i: int) -> EmulatedDrive:
+        return self.drives[i]
+
+    def cycle(self, sp, fb) -> None:
+        """Apply ``sp``, advance every plant one PWM period, write ``fb``."""
+        for drive, s, f in zip(self.drives, axis_records(sp), axis_records(fb)):
+            drive.cycle(s, f)
+        if isinstance(fb, FeedbackGroup):
+            fb.seq = sp.seq
+            fb.time_s = fb.axes[0].time_s

@@ -4,6 +4,7 @@ Each basic-clock tick the controller reads the last feedback and writes a
 setpoint, then the drive applies it and advances the plant one PWM period.
 The same Controller and EmulatedDrive objects run in real time over an
 adapter; here they are only called back to back, faster than real time.
+:class:`MachineLockStep` does the same for every axis of a machine at once.
 
 ``feedback_delay_ticks`` models a link whose feedback comes back later than the next
 tick: with d, controller tick k reads the feedback of drive cycle k-1-d (0: cycle k-1).
@@ -12,16 +13,19 @@ the cycle SYNC k-1 started, and the master reads them before its next SYNC.
 """
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
 
+from hil.controller.machine import MachineController
 from hil.controller.nc import Controller
-from hil.drive import EmulatedDrive
+from hil.drive import DriveSet, EmulatedDrive
 from hil.trace_file import si_factor
-from io_adapters.messages import Feedback, Setpoint
+from io_adapters.messages import Feedback, Setpoint, axis_records, message_pair
 from plant import Plant
 from plant.config import MachineConfig
+from plant.machines import MachineSet
 
 #: recorded signals: name -> unit (SI, table units; w_* are motor-side)
 SIGNALS = {
@@ -98,31 +102,101 @@ class LockStep:
     def run(self, duration_s: float, progress=None) -> SimResult:
         """Run ``duration_s`` of simulated time, recording every tick."""
         n = int(math.ceil(duration_s / self.plant.pwm_period))
-        rec = {name: np.empty(n) for name in SIGNALS}
-        ctrl, out = self.ctrl, self.plant
+        rec = _Recording(n, self.ctrl, self.plant)
         step_report = max(1, n // 20)
         for k in range(n):
             self.tick()
-            rec["t_s"][k] = ctrl.t
-            rec["x_set"][k] = ctrl.x_set
-            rec["v_set"][k] = ctrl.v_set
-            rec["a_set"][k] = ctrl.a_set
-            rec["x_act"][k] = ctrl.x_act
-            rec["v_act"][k] = ctrl.v_act
-            rec["v_cmd"][k] = ctrl.v_cmd
-            rec["w_set"][k] = ctrl.w_set
-            rec["w_act"][k] = ctrl.w_act
-            rec["iq_set"][k] = ctrl.iq_set
-            rec["iq_meas"][k] = self.fb.iq_a
-            rec["iq_true"][k] = out.output("iq_a")
-            rec["table_pos"][k] = out.output("table_pos")
-            rec["motor_pos"][k] = out.output("motor_pos")
-            rec["following_error"][k] = ctrl.following_error
-            rec["tick"][k] = ctrl.tick_count - 1
+            rec.take(k, self.fb)
             if progress is not None and k % step_report == 0:
                 progress(k / n)
-        return SimResult(rec, self.cfg.machine.kind, ctrl.ratio, self.plant.pwm_period,
-                         {"machine": self.cfg.path})
+        return rec.result(self.cfg)
+
+
+class _Recording:
+    """The :data:`SIGNALS` of one axis, one row per tick."""
+
+    def __init__(self, n: int, ctrl: Controller, plant: Plant):
+        self.rec = {name: np.empty(n) for name in SIGNALS}
+        self.ctrl, self.plant = ctrl, plant
+
+    def take(self, k: int, fb: Feedback) -> None:
+        rec, ctrl, out = self.rec, self.ctrl, self.plant
+        rec["t_s"][k] = ctrl.t
+        rec["x_set"][k] = ctrl.x_set
+        rec["v_set"][k] = ctrl.v_set
+        rec["a_set"][k] = ctrl.a_set
+        rec["x_act"][k] = ctrl.x_act
+        rec["v_act"][k] = ctrl.v_act
+        rec["v_cmd"][k] = ctrl.v_cmd
+        rec["w_set"][k] = ctrl.w_set
+        rec["w_act"][k] = ctrl.w_act
+        rec["iq_set"][k] = ctrl.iq_set
+        rec["iq_meas"][k] = fb.iq_a
+        rec["iq_true"][k] = out.output("iq_a")
+        rec["table_pos"][k] = out.output("table_pos")
+        rec["motor_pos"][k] = out.output("motor_pos")
+        rec["following_error"][k] = ctrl.following_error
+        rec["tick"][k] = ctrl.tick_count - 1
+
+    def result(self, cfg: MachineConfig) -> SimResult:
+        return SimResult(self.rec, cfg.machine.kind, self.ctrl.ratio, self.plant.pwm_period,
+                         {"machine": cfg.path})
+
+
+class MachineLockStep:
+    """Every axis of a machine: its controllers (:class:`MachineController`) and drives
+    (:class:`DriveSet`) stepped together through one message pair, as :class:`LockStep`
+    steps one axis (same ``feedback_delay_ticks``).  On one axis it is :class:`LockStep`
+    exactly.
+
+    Args:
+        machine: the machine.
+        x0: each axis's table position at start (SI; default all 0).
+        feedback_delay_ticks: as for :class:`LockStep`.
+    """
+
+    def __init__(self, machine: MachineSet, x0: Sequence[float] | None = None,
+                 feedback_delay_ticks: int = 0):
+        if feedback_delay_ticks < 0:
+            raise ValueError(f"feedback_delay_ticks must be >= 0, got {feedback_delay_ticks}")
+        self.machine = machine
+        x0 = tuple(x0) if x0 is not None else (0.0,) * len(machine.axes)
+        self.plants = tuple(Plant(a.config, table_pos=x) for a, x in zip(machine.axes, x0))
+        self.drives = DriveSet([EmulatedDrive(p) for p in self.plants])
+        self.period = self.plants[0].pwm_period
+        self.ctrl = MachineController(machine, self.period, x0)
+        n = len(machine.axes)
+        self.sp = message_pair(n)[0]
+        self._line = [message_pair(n)[1] for _ in range(feedback_delay_ticks + 1)]
+        self._slot = 0
+        self.fb = self._line[0]
+
+    def enable(self, max_ticks: int = 1000) -> None:
+        """Run every axis's CiA 402 enable sequence until all are OPERATION ENABLED."""
+        for _ in range(max_ticks):
+            if self.ctrl.enabled:
+                return
+            self.tick()
+        raise RuntimeError(f"drives not enabled after {max_ticks} ticks: "
+                           f"{self.ctrl.enable_reason()}")
+
+    def tick(self) -> None:
+        """One controller cycle and one PWM period of every plant."""
+        fb = self._line[self._slot]
+        self.ctrl.tick(fb, self.sp)
+        self.drives.cycle(self.sp, fb)
+        self.fb = fb
+        self._slot = (self._slot + 1) % len(self._line)
+
+    def run(self, duration_s: float) -> dict[str, SimResult]:
+        """Run ``duration_s`` of simulated time; axis letter -> its recording."""
+        n = math.ceil(duration_s / self.period)
+        recs = [_Recording(n, c, p) for c, p in zip(self.ctrl.ctrls, self.plants)]
+        for k in range(n):
+            self.tick()
+            for rec, fb in zip(recs, axis_records(self.fb)):
+                rec.take(k, fb)
+        return {a.name: rec.result(a.config) for a, rec in zip(self.machine.axes, recs)}
 
 
 #: servo-trace column (trace-format.md, linear-axis names) -> SimResult signal

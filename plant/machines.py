@@ -111,6 +111,13 @@ def default_axis_name(cfg: MachineConfig) -> str:
     return "C" if cfg.machine.kind == "rotary" else "X"
 
 
+def single_axis(cfg: MachineConfig, axis_name: str | None = None) -> MachineSet:
+    """A machine file as a machine of one axis (named :func:`default_axis_name` unless
+    ``axis_name`` is given)."""
+    axis = Axis(axis_name or default_axis_name(cfg), cfg)
+    return MachineSet(cfg.path, cfg.machine.name, cfg.machine.source, (axis,), False)
+
+
 def is_manifest(raw: dict) -> bool:
     """True when a parsed TOML file is a manifest (it has an ``[[axis]]`` array)."""
     return "axis" in raw
@@ -173,9 +180,7 @@ def load_machine_set(path: str | Path, axis_name: str | None = None) -> MachineS
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{path}: not valid TOML: {exc}") from exc
     if not is_manifest(raw):
-        cfg = load_machine(path)
-        axis = Axis(axis_name or default_axis_name(cfg), cfg)
-        return MachineSet(str(path), cfg.machine.name, cfg.machine.source, (axis,), False)
+        return single_axis(load_machine(path), axis_name)
     _unknown(str(path), raw, ("machine", "axis"))
     machine = raw.get("machine")
     if not isinstance(machine, dict):

@@ -18,6 +18,7 @@ from pathlib import Path
 
 from hil.rt.scheduling import SchedulingReport, SchedulingRequest, realtime_scheduling
 from plant.config import MachineConfig
+from plant.machines import MachineSet
 
 EXIT_OK = 0
 EXIT_FAILED = 1
@@ -37,6 +38,34 @@ def eprint(*args) -> None:
 def cnc_unit(cfg: MachineConfig) -> tuple[float, str]:
     """Factor from SI table units (m, rad) to the CNC's (mm, deg), and that unit."""
     return (180.0 / math.pi, "deg") if cfg.machine.kind == "rotary" else (1e3, "mm")
+
+
+def start_arg(text: str) -> float | dict[str, float]:
+    """``--start``: one number (mm, or deg on rotary tables) for every axis, or
+    ``X=10,Y=-5,C=90`` per axis (an axis not named starts at 0)."""
+    text = text.strip()
+    if "=" not in text:
+        return float(text)
+    starts = {}
+    for item in text.split(","):
+        name, sep, value = item.partition("=")
+        name = name.strip().upper()
+        if not sep or len(name) != 1 or not name.isalpha() or name in starts:
+            raise ValueError(f"--start {text!r}: expected a number or AXIS=VALUE,AXIS=VALUE")
+        starts[name] = float(value)
+    return starts
+
+
+def start_positions(machine: MachineSet, start: float | dict[str, float]) -> tuple[float, ...]:
+    """Each axis's start in SI (m, rad) from ``--start`` in CNC units (:func:`start_arg`);
+    refuses an axis letter the machine does not have."""
+    if not isinstance(start, dict):
+        return tuple(start / cnc_unit(a.config)[0] for a in machine.axes)
+    unknown = set(start) - set(machine.names)
+    if unknown:
+        raise RuntimeInputError(f"--start names axes {', '.join(sorted(unknown))}; "
+                                f"{machine.path} has {', '.join(machine.names)}")
+    return tuple(start.get(a.name, 0.0) / cnc_unit(a.config)[0] for a in machine.axes)
 
 
 def period_ns_of(rate_hz: float) -> int:

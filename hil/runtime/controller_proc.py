@@ -31,7 +31,13 @@ by a :class:`~hil.rt.loop.RealTimeLoop` instead of back to back with the drive:
 5. send disable voltage, close, write ``trace.csv`` (servo-trace format, one row per
    position-control cycle, :func:`hil.sim.servo_trace_columns`), ``controller.npz`` (every
    recorded tick: :data:`FLOAT_COLUMNS`, :data:`INT_COLUMNS`, and the loop's
-   ``lateness_ns``/``compute_ns`` per deadline) and ``summary.json``.
+   ``lateness_ns``/``compute_ns`` per deadline) and ``summary.json``
+   (:mod:`hil.runtime.controller_files`).
+
+**Several axes**: the machine file may be a manifest (:mod:`plant.machines`); then one
+Controller per axis (:class:`hil.controller.machine.MachineController`), a multi-axis
+program (:mod:`hil.controller.path`: ``G1 X10 Y5 F1000`` moves both on one line), one
+message carrying every axis per tick, one servo trace per axis (``trace_X.csv``).
 
 The run fails (exit 1, the reason in the summary and on stderr) when no drive answers
 within ``--connect-timeout``, the enable sequence fails, the drive leaves OPERATION
@@ -43,7 +49,7 @@ import argparse
 import math
 import sys
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from operator import attrgetter
 from pathlib import Path
 
@@ -51,13 +57,12 @@ import numpy as np
 
 from hil.cia402 import DISABLE_VOLTAGE
 from hil.commands import SETTLE_S
-from hil.controller.config import axis_limits, load_controller
 from hil.controller.interpolator import plan
-from hil.controller.nc import Controller
+from hil.controller.machine import MachineController
+from hil.controller.path import read_path_program
 from hil.controller.program import ProgramError, read_program
-from hil.report.host import host_fingerprint
 from hil.rt.clock import MonotonicClock
-from hil.rt.loop import OverrunPolicy, Percentiles, RealTimeLoop
+from hil.rt.loop import OverrunPolicy, RealTimeLoop
 from hil.runtime.common import (
     EXIT_BAD_INPUT,
     EXIT_FAILED,
@@ -69,16 +74,16 @@ from hil.runtime.common import (
     eprint,
     period_ns_of,
     scheduling,
-    scheduling_dict,
+    start_arg,
+    start_positions,
     stop_on_signals,
-    write_json,
 )
-from hil.runtime.sync import U32, Alignment, DriveNotAnswering, align, in_step
-from hil.sim import SimResult, servo_trace_columns
-from hil.trace_file import write_trace
-from io_adapters import AdapterError, Endpoint, Feedback, Setpoint, open_endpoint
-from plant.config import load_machine
+from hil.runtime.controller_files import FLOAT_COLUMNS, INT_COLUMNS, write_outputs
+from hil.runtime.sync import U32, DriveNotAnswering, align
+from io_adapters import AdapterError, Endpoint, open_endpoint
+from io_adapters.messages import axis_records, message_pair
 from plant.errors import ConfigError
+from plant.machines import load_machine_set
 
 #: the axis must be this close to the program's start when enabled: SINUMERIK exact stop
 #: coarse (MD36000), mm or deg
@@ -87,17 +92,22 @@ DEFAULT_FEEDBACK_TIMEOUT_S = 0.1
 #: controller attributes recorded each tick (SI, hil.sim.SIGNALS names; ``t`` is t_s)
 CTRL_SIGNALS = ("t", "x_set", "v_set", "a_set", "x_act", "v_act", "v_cmd", "w_set", "w_act",
                 "iq_set", "following_error")
-#: float columns of controller.npz: the signals, then the feedback's (motor_pos: the encoder
-#: angle, rad; fb_time_s: the drive's time stamp of the cycle read)
-FLOAT_COLUMNS = ("t_s", *CTRL_SIGNALS[1:], "iq_meas", "motor_pos", "tick", "fb_time_s")
-#: integer columns: the loop's deadline index, 1 when new feedback came, the lag (ticks
-#: between the setpoint the feedback answers and the one sent last tick: 0 = lock-step
-#: timing), the feedback's round trip (ns), and its stamps that pair it with the
-#: emulator's run.npz (``hil report RUN --controller DIR``): its sp_t_ns and t_ns (the
+#: FLOAT_COLUMNS and INT_COLUMNS of controller.npz: :mod:`hil.runtime.controller_files`.
+#: The integer columns: the loop's deadline index, 1 when new feedback came, the lag
+#: (ticks between the setpoint the feedback answers and the one sent last tick: 0 =
+#: lock-step timing), the feedback's round trip (ns), and its stamps that pair it with
+#: the emulator's run.npz (``hil report RUN --controller DIR``): its sp_t_ns and t_ns (the
 #: setpoint it answers, its send on the drive's clock) and its rx_ns (this clock); the
 #: last four 0 without new feedback
-INT_COLUMNS = ("k", "fb_new", "lag_ticks", "round_trip_ns", "fb_sp_t_ns", "fb_t_ns",
-               "fb_rx_ns")
+__all__ = [
+    "FLOAT_COLUMNS",
+    "INT_COLUMNS",
+    "ControllerProcess",
+    "ControllerRunConfig",
+    "add_arguments",
+    "main",
+    "run_from_args",
+]
 
 
 @dataclass(frozen=True)
@@ -107,7 +117,7 @@ class ControllerRunConfig:
     adapter_url: str
     program_file: Path
     out_dir: Path = Path("hil-controller")
-    start_cnc: float = 0.0
+    start_cnc: float | dict = 0.0
     axis: str | None = None
     realtime: bool = True
     cpu: int | None = None
@@ -129,36 +139,53 @@ class ControllerRunConfig:
 
 
 class ControllerProcess:
-    """The controller's life cycle: program, adapter, alignment, loop, files."""
+    """The controller's life cycle: program, adapter, alignment, loop, files.
+
+    On a machine of several axes (a manifest) every axis has its own
+    :class:`~hil.controller.nc.Controller` (:class:`~hil.controller.machine.MachineController`),
+    the program moves them on straight lines (:mod:`hil.controller.path`) and one message
+    pair per tick carries every axis (:class:`~io_adapters.messages.SetpointGroup`).
+    """
 
     def __init__(self, rc: ControllerRunConfig, stop: StopFlag):
         self.rc = rc
-        self.cfg = cfg = load_machine(rc.machine_file)
-        sec = load_controller(cfg)
-        self.k_cnc, self.unit = cnc_unit(cfg)
-        self.x0 = rc.start_cnc / self.k_cnc
-        axis = rc.axis or ("C" if cfg.machine.kind == "rotary" else "X")
-        self.program = read_program(rc.program_file, axis=axis, start=self.x0)
-        self.profile = plan(self.program, axis_limits(cfg, sec))
-        self.period_ns = period_ns_of(cfg.motor.pwm_frequency_hz)
+        self.machine = m = load_machine_set(rc.machine_file, rc.axis)
+        if m.manifest and rc.axis is not None:
+            raise RuntimeInputError(f"--axis {rc.axis}: {rc.machine_file} names its axes "
+                                    f"({', '.join(m.names)}); --axis is for a single machine file")
+        self.cfg = m.configs[0]
+        self.units = tuple(cnc_unit(c) for c in m.configs)
+        self.k_cnc, self.unit = self.units[0]
+        self.x0 = start_positions(m, rc.start_cnc)
+        self.period_ns = period_ns_of(m.pwm_frequency_hz)
         self.period_s = self.period_ns * 1e-9
-        self.ctrl = ctrl = Controller(cfg, self.period_s, self.x0, sec)
-        #: linear-scale counts per motor-encoder count, to extrapolate the scale too
-        self.scale_per_count = (ctrl.rad_per_count * ctrl.ratio / ctrl.scale_res
-                                if ctrl.scale_res else 0.0)
+        self.mctrl = MachineController(m, self.period_s, self.x0)
+        self.ctrl = self.mctrl.ctrls[0]
+        if m.multi_axis:
+            self.program = read_path_program(rc.program_file, m.names, self.x0)
+            self.profiles = self.mctrl.plan(self.program)
+            self.program_end = self.program.end
+        else:
+            self.program = read_program(rc.program_file, axis=m.names[0], start=self.x0[0])
+            self.profiles = (plan(self.program, self.mctrl.limits[0]),)
+            self.program_end = (self.program.end,)
+        self.profile = self.profiles[0]
+        #: linear-scale counts per motor-encoder count per axis, to extrapolate the scale too
+        self.scale_per_count = tuple(c.rad_per_count * c.ratio / c.scale_res
+                                     if c.scale_res else 0.0 for c in self.mctrl.ctrls)
         self.n_run = math.ceil((self.profile.duration_s + SETTLE_S) / self.period_s)
         self.feedback_timeout = rc.feedback_timeout_cycles or max(
             1, round(DEFAULT_FEEDBACK_TIMEOUT_S / self.period_s))
-        self.sp, self.fb = Setpoint(), Feedback()
+        self.sp, self.fb = message_pair(len(m.axes))
+        self.fbs = axis_records(self.fb)
         self.delay_ticks = 0        # the link's, set when it is opened (run)
         self.lag_is_age = False
-        self.floats = np.full((self.n_run, len(FLOAT_COLUMNS)), np.nan)
+        self.floats = np.full((self.n_run, len(m.axes), len(FLOAT_COLUMNS)), np.nan)
         self.ints = np.zeros((self.n_run, len(INT_COLUMNS)), dtype=np.int64)
         self._get = attrgetter(*CTRL_SIGNALS)
-        self.loop = RealTimeLoop(self.period_ns, self.step,
-                                 n_ticks=ctrl.enable_timeout_ticks + 2 + self.n_run,
-                                 policy=OverrunPolicy(rc.overrun,
-                                                      grace_ticks=ctrl.enable_timeout_ticks))
+        timeout = self.mctrl.enable_timeout_ticks
+        self.loop = RealTimeLoop(self.period_ns, self.step, n_ticks=timeout + 2 + self.n_run,
+                                 policy=OverrunPolicy(rc.overrun, grace_ticks=timeout))
         stop.attach(self.loop)
         self.stop = stop
         self.ep: Endpoint | None = None
@@ -170,7 +197,7 @@ class ControllerProcess:
 
     def step(self, k: int) -> None:
         """Newest feedback, one controller tick, the setpoint out; enable, then the program."""
-        ctrl, sp, fb = self.ctrl, self.sp, self.fb
+        mctrl, sp, fb = self.mctrl, self.sp, self.fb
         try:
             new = self.ep.recv_feedback(fb, 0.0)
         except AdapterError:
@@ -185,7 +212,7 @@ class ControllerProcess:
         else:
             self.silent += 1
             self._extrapolate(1)
-        ctrl.tick(fb, sp)
+        mctrl.tick(fb, sp)
         try:
             self.ep.send_setpoint(sp)
         except AdapterError:
@@ -194,12 +221,15 @@ class ControllerProcess:
             self._fail(f"no feedback for {self.silent} cycles at tick {k}")
         elif not self.running:
             self._start(k)
-        elif not ctrl.enabled:
-            self._fail(f"the drive left OPERATION ENABLED at tick {k}: {ctrl.enable.reason}")
+        elif not mctrl.enabled:
+            self._fail(f"the drive left OPERATION ENABLED at tick {k}: "
+                       f"{self._enable_reason()}")
         else:
             i = self.rows
-            self.floats[i] = self._get(ctrl) + (fb.iq_a, fb.encoder_counts * ctrl.rad_per_count,
-                                                ctrl.tick_count - 1, fb.time_s)
+            row = self.floats[i]
+            for a, (ctrl, f) in enumerate(zip(mctrl.ctrls, self.fbs)):
+                row[a] = self._get(ctrl) + (f.iq_a, f.encoder_counts * ctrl.rad_per_count,
+                                            ctrl.tick_count - 1, fb.time_s)
             lag = (sp.seq - 1 - fb.seq) & U32
             self.ints[i] = ((k, 1, lag, fb.round_trip_ns(), fb.sp_t_ns, fb.t_ns, fb.rx_ns)
                             if new else (k, 0, lag, 0, 0, 0, 0))
@@ -208,24 +238,31 @@ class ControllerProcess:
                 self.loop.request_stop()
 
     def _extrapolate(self, ticks: int) -> None:
-        """The feedback moved on by ``ticks`` periods at the drive's speed actual value."""
-        fb, dt = self.fb, ticks * self.period_s
-        fb.encoder_counts += fb.velocity_counts_s * dt
-        fb.scale_counts += fb.velocity_counts_s * self.scale_per_count * dt
-        fb.time_s += dt
+        """The feedback moved on by ``ticks`` periods at each drive's speed actual value."""
+        dt = ticks * self.period_s
+        for f, scale in zip(self.fbs, self.scale_per_count):
+            f.encoder_counts += f.velocity_counts_s * dt
+            f.scale_counts += f.velocity_counts_s * scale * dt
+        self.fb.time_s += dt
+
+    def _enable_reason(self) -> str:
+        return (self.mctrl.enable_reason() if self.machine.multi_axis
+                else self.ctrl.enable.reason)
 
     def _start(self, k: int) -> None:
-        ctrl = self.ctrl
-        if ctrl.enable.failed:
-            self._fail(f"enable failed: {ctrl.enable.reason}")
-        elif ctrl.enabled:
-            off = abs(ctrl.x_act - self.x0) * self.k_cnc
-            if off > START_WINDOW_CNC:
-                self._fail(f"the axis is at {ctrl.x_act * self.k_cnc:.4f} {self.unit}, the "
-                           f"program starts at {self.x0 * self.k_cnc:.4f} {self.unit} (--start)")
-            else:
-                ctrl.run_profile(self.profile)
-                self.running = True
+        mctrl = self.mctrl
+        if mctrl.enable_failed:
+            self._fail(f"enable failed: {self._enable_reason()}")
+        elif mctrl.enabled:
+            for name, ctrl, x0, (k_cnc, unit) in zip(self.machine.names, mctrl.ctrls,
+                                                     self.x0, self.units):
+                if abs(ctrl.x_act - x0) * k_cnc > START_WINDOW_CNC:
+                    axis = f"axis {name}" if self.machine.multi_axis else "the axis"
+                    self._fail(f"{axis} is at {ctrl.x_act * k_cnc:.4f} {unit}, the program "
+                               f"starts at {x0 * k_cnc:.4f} {unit} (--start)")
+                    return
+            mctrl.run_profiles(self.profiles)
+            self.running = True
 
     def _fail(self, reason: str) -> None:
         self.result = reason
@@ -254,7 +291,7 @@ class ControllerProcess:
         elif self.result == "completed" and self.rows < self.n_run:
             self.result = ("stopped by SIGTERM/SIGINT" if self.stop.requested
                            else f"the program did not finish in {stats.ticks} ticks")
-        return self._finish(stats, granted, alignment)
+        return write_outputs(self, stats, granted, alignment)
 
     def _disable(self) -> None:
         """Disable voltage, three times a period apart (the drive leaves torque on
@@ -268,64 +305,20 @@ class ControllerProcess:
                 self.adapter_errors += 1
             time.sleep(self.period_s)
 
-    def _finish(self, stats, granted, alignment: Alignment) -> dict:
-        rc, n = self.rc, self.rows
-        rc.out_dir.mkdir(parents=True, exist_ok=True)
-        cols = {name: self.floats[:n, i].copy() for i, name in enumerate(FLOAT_COLUMNS)}
-        cols.update({name: self.ints[:n, i].copy() for i, name in enumerate(INT_COLUMNS)})
-        np.savez(rc.out_dir / "controller.npz", **cols, lateness_ns=stats.lateness_ns,
-                 compute_ns=stats.compute_ns)
-        res = SimResult(cols, self.cfg.machine.kind, self.ctrl.ratio, self.period_s)
-        every = self.ctrl.sec.position_cycle_ratio
-        trace = None
-        if np.any(cols["tick"] % every == 0):
-            trace = write_trace(rc.out_dir / "trace.csv", servo_trace_columns(res, every), {
-                "machine": str(rc.machine_file), "program": str(rc.program_file),
-                "axis": self.program.axis, "source": f"hil controller over {rc.adapter_url}"})
-        fe = cols["following_error"] * self.k_cnc
-        new = cols["fb_new"] == 1
-        lag = cols["lag_ticks"]
-        delay = self.delay_ticks
-        drive_clock = getattr(self.ep, "drive_clock", True)
-        u = self.unit
-        summary = {
-            "command": "hil controller", "result": self.result,
-            "exit_status": EXIT_OK if self.result in ("completed", "stopped by SIGTERM/SIGINT")
-            else EXIT_FAILED,
-            "machine_file": str(rc.machine_file), "program": str(rc.program_file),
-            "period_ns": self.period_ns, "trace_every_ticks": every, "ticks_recorded": n,
-            "ticks_planned": self.n_run,
-            f"following_error_max_{u}": float(np.abs(fe).max()) if n else None,
-            f"following_error_rms_{u}": float(np.sqrt(np.mean(fe ** 2))) if n else None,
-            f"final_position_{u}": float(cols["x_act"][-1] * self.k_cnc) if n else None,
-            f"program_end_{u}": self.program.end * self.k_cnc,
-            "round_trip_us": Percentiles.of_ns_in_us(cols["round_trip_ns"][new]).as_dict(),
-            "feedback": {"ticks_without_new": int(n - new.sum()),
-                         "ticks_in_step": int(in_step(cols, self.period_s, delay,
-                                                      drive_clock).sum()),
-                         "delay_ticks": delay, "drive_clock": drive_clock,
-                         "lag_ticks": {"0": int((lag == 0).sum()), "1": int((lag == 1).sum()),
-                                       "2+": int((lag >= 2).sum())}},
-            "alignment": alignment.as_dict(),
-            "loop": stats.as_dict(), "scheduling": scheduling_dict(granted),
-            "adapter": {"name": rc.adapter_url, "stats": asdict(self.ep.stats),
-                        "errors": self.adapter_errors},
-            "trace": None if trace is None else str(trace), "host": host_fingerprint(),
-        }
-        write_json(rc.out_dir / "summary.json", summary)
-        return summary
-
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     """The options of ``hil controller``."""
-    p.add_argument("config", help="machine file (TOML) with a [controller] section")
+    p.add_argument("config", help="machine file (TOML) with a [controller] section, or a "
+                   "manifest of several axes (configs/machines/)")
     p.add_argument("--adapter", required=True, metavar="URL", help="the drive's adapter URL")
     p.add_argument("--program", required=True, help="part program (G-code subset)")
     p.add_argument("--out", default="hil-controller", help="folder for trace.csv, "
                    "controller.npz and summary.json (default %(default)s)")
-    p.add_argument("--start", type=float, default=0.0,
-                   help="table position at start, mm (deg on rotary tables)")
-    p.add_argument("--axis", help="axis letter in the program (default X, or C if rotary)")
+    p.add_argument("--start", type=start_arg, default=0.0,
+                   help="table position at start, mm (deg on rotary tables), or per axis: "
+                        "X=10,Y=-5")
+    p.add_argument("--axis", help="axis letter in the program of a single machine file "
+                   "(default X, or C if rotary)")
     p.add_argument("--no-rt", action="store_true", help="no SCHED_FIFO, pinning or locking")
     p.add_argument("--cpu", type=int, help="CPU to run the loop on (default: not pinned)")
     p.add_argument("--priority", type=int, default=70,

@@ -40,6 +40,15 @@ signal handlers that only set a flag, a fixed shutdown order):
 The run folder (``--record DIR``) is what ``hil report RUN`` reads: ``run.npz``
 (:mod:`hil.runtime.recording`) and ``report.json`` (:meth:`Emulator.report`).
 
+**Several axes**: the machine file may be a manifest (:mod:`plant.machines`,
+``configs/machines/``).  Then one plant and one CiA 402 drive per axis
+(:class:`hil.drive.DriveSet`), every tick cycles them all on one message carrying every
+axis's setpoint (:class:`~io_adapters.messages.SetpointGroup`, wire version 2 on
+``udp://`` and ``serial://``; ``can://`` is refused: one CiA 402 node per axis is not built
+yet), one watchdog faults every enabled drive, the recording has per-axis columns
+(:mod:`hil.runtime.recording`) and ``report.json`` an ``axes`` list and a safe state per
+axis.  A plain machine file runs exactly as before.
+
 The rate defaults to the plant's PWM frequency (one PWM period per tick); a lower rate must
 divide it, and each tick then runs that many PWM periods on the same setpoint, so the
 plant stays in real time for a controller with a longer cycle.
@@ -55,7 +64,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 from hil.cia402 import DISABLE_VOLTAGE
-from hil.drive import EmulatedDrive
+from hil.drive import DriveSet, EmulatedDrive
 from hil.report.host import host_fingerprint
 from hil.rt.loop import OverrunPolicy, RealTimeLoop
 from hil.rt.scheduling import last_cpu
@@ -66,23 +75,26 @@ from hil.runtime.common import (
     RuntimeInputError,
     StopFlag,
     check_cpu,
-    cnc_unit,
     eprint,
     period_ns_of,
     scheduling,
     scheduling_dict,
     served_url,
+    start_arg,
+    start_positions,
     stop_on_signals,
     write_json,
 )
-from hil.runtime.recording import RUN_NPZ, UNITS, Recorder, write_npz
+from hil.runtime.recording import RUN_NPZ, Recorder, units, write_npz
 from hil.runtime.sync import ShiftableClock, SyncLock
 from hil.runtime.watchdog import Watchdog
-from io_adapters import AdapterError, Endpoint, Feedback, Setpoint, open_endpoint
+from io_adapters import AdapterError, Endpoint, open_endpoint
+from io_adapters.messages import axis_records, message_pair
 from plant import Plant
 from plant import layout as L
-from plant.config import MachineConfig, load_machine
+from plant.config import MachineConfig
 from plant.errors import ConfigError
+from plant.machines import MachineSet, load_machine_set, single_axis
 
 #: drive cycles run on the plant before the clock starts (compiled code and caches warm)
 WARMUP_CYCLES = 2000
@@ -101,7 +113,7 @@ class RuntimeConfig:
     """The daemon's settings, from the command line (SI unless named).
 
     Attributes:
-        machine_file: the TOML machine file.
+        machine_file: the TOML machine file, or a manifest of several axes.
         adapter_url: where the controller talks to the drive (``udp://``, ``serial://``).
         run_dir: the run folder for ``run.npz`` and ``report.json``.
         duration_s: run this long, or None: until SIGTERM/SIGINT (at most ``max_duration_s``).
@@ -113,7 +125,8 @@ class RuntimeConfig:
         realtime: request SCHED_FIFO, affinity, locked memory (else run as started).
         cpu: the CPU to pin the loop to; None: the last CPU.
         priority: SCHED_FIFO priority, 1-99.
-        start_cnc: the table's position at start in the CNC's unit (mm; deg on rotary tables).
+        start_cnc: the table's position at start in the CNC's unit (mm; deg on rotary
+            tables), for every axis, or per axis letter (:func:`~hil.runtime.common.start_arg`).
     """
     machine_file: Path
     adapter_url: str
@@ -127,7 +140,7 @@ class RuntimeConfig:
     realtime: bool = True
     cpu: int | None = None
     priority: int = 80
-    start_cnc: float = 0.0
+    start_cnc: float | dict = 0.0
 
     def __post_init__(self):
         positive = {"--duration (s)": self.duration_s, "--max-duration (s)": self.max_duration_s,
@@ -220,22 +233,23 @@ class Emulator:
 
     Args:
         rc: the runtime settings.
-        cfg: the machine file, loaded and checked.
+        cfg: the machine file (one axis) or the machine of several axes, loaded and checked.
         stop: the flag the signal handlers set (a fresh one if not given).
         log: receives the log lines (stderr by default).
     """
 
-    def __init__(self, rc: RuntimeConfig, cfg: MachineConfig, stop: StopFlag | None = None,
-                 log=eprint):
-        self.rc, self.cfg, self.log = rc, cfg, log
-        self.timing = t = resolve_timing(rc, cfg)
-        self.x0 = rc.start_cnc / cnc_unit(cfg)[0]
-        self.plant = Plant(cfg, table_pos=self.x0)
-        self.drive = EmulatedDrive(self.plant)  # checks [controller] for the CSP/CSV loops
+    def __init__(self, rc: RuntimeConfig, cfg: MachineConfig | MachineSet,
+                 stop: StopFlag | None = None, log=eprint):
+        self.machine = m = cfg if isinstance(cfg, MachineSet) else single_axis(cfg)
+        self.rc, self.cfg, self.log = rc, m.configs[0], log
+        self.timing = t = resolve_timing(rc, self.cfg)  # one PWM period for all (manifest)
+        self.x0 = start_positions(m, rc.start_cnc)
+        self.plants = tuple(Plant(c, table_pos=x) for c, x in zip(m.configs, self.x0))
+        self.plant = self.plants[0]
         self._warm_up()
-        self.sp, self.fb = Setpoint(), Feedback()
+        self.sp, self.fb = message_pair(len(m.axes))
         self.watchdog = Watchdog(t.watchdog_cycles, t.period_ns * 1e-9, self._log)
-        self.recorder = Recorder(t.n_ticks)
+        self.recorder = Recorder(t.n_ticks, m.names if m.multi_axis else None)
         self.loop = RealTimeLoop(t.period_ns, self.step, n_ticks=t.n_ticks,
                                  policy=OverrunPolicy(rc.overrun, rc.stop_after, t.grace_ticks))
         self.stop = stop or StopFlag()
@@ -250,16 +264,25 @@ class Emulator:
         self.log(f"hil run: {message}")
 
     def _warm_up(self) -> None:
-        """Compile and warm the drive's path on the real arrays, then start afresh."""
-        sp, fb = Setpoint(), Feedback()
+        """Compile and warm the drives' path on the real arrays, then start afresh.
+        ``drives`` cycles every axis (:class:`DriveSet`); ``drive`` is axis 0's."""
+        # the drives check [controller] for the CSP/CSV loops
+        self.drives = DriveSet([EmulatedDrive(p) for p in self.plants])
+        sp, fb = message_pair(len(self.plants))
         for _ in range(WARMUP_CYCLES):
-            self.drive.cycle(sp, fb)
-        self.plant.reset(self.x0)
-        self.drive = EmulatedDrive(self.plant)
+            self.drives.cycle(sp, fb)
+        for p, x in zip(self.plants, self.x0):
+            p.reset(x)
+        self.drives = DriveSet([EmulatedDrive(p) for p in self.plants])
+        self.drive = self.drives[0]
 
     def open(self, endpoint: Endpoint | None = None) -> str:
         """Open the adapter (device role, draining), or take ``endpoint``; returns the URL
         served (with the bound port for ``udp://HOST:0``)."""
+        if self.machine.multi_axis and self.rc.adapter_url.startswith("can://"):
+            raise RuntimeInputError(f"--adapter {self.rc.adapter_url}: a machine of "
+                                    f"{len(self.machine.axes)} axes needs udp:// or serial:// "
+                                    "(one CiA 402 node per axis on can:// is not built yet)")
         self.endpoint = endpoint or open_endpoint(self.rc.adapter_url, "device")
         self.endpoint.drain = True
         if hasattr(self.endpoint, "last_sync_ns"):  # the cycle follows SYNC
@@ -272,7 +295,7 @@ class Emulator:
     def step(self, k: int) -> None:
         """Tick ``k``: newest setpoint, watchdog, drive cycles, feedback, record."""
         t_ns = time.monotonic_ns()
-        sp, fb, drive = self.sp, self.fb, self.drive
+        sp, fb, drives = self.sp, self.fb, self.drives
         try:
             heard = self.endpoint.recv_setpoint(
                 sp, 0.0 if self.sync_lock is None else self.sync_lock.wait_s)
@@ -281,16 +304,16 @@ class Emulator:
             self._adapter_error("receive", e)
         if self.sync_lock is not None:
             self.sync_lock.update(self.endpoint.last_sync_ns)
-        self.watchdog.update(heard, k, sp.seq, drive)
+        self.watchdog.update(heard, k, sp.seq, drives)
         for _ in range(self.timing.cycles_per_tick):
-            drive.cycle(sp, fb)
+            drives.cycle(sp, fb)
         fb.tick_ns = t_ns
         if self.watchdog.answering:
             try:
                 self.endpoint.send_feedback(fb)
             except AdapterError as e:
                 self._adapter_error("send", e)
-        self.recorder.record(k, heard, t_ns, sp, fb, drive)
+        self.recorder.record(k, heard, t_ns, sp, fb, drives)
 
     def _adapter_error(self, kind: str, err: AdapterError) -> None:
         count = getattr(self.errors, kind) + 1
@@ -302,17 +325,20 @@ class Emulator:
     def safe_state(self) -> dict:
         """One drive cycle with controlword 0 (disable voltage: transitions 7, 9, 10, 12 to
         SWITCH ON DISABLED; a drive in FAULT stays there), its feedback sent to a
-        controller still listening; returns the state reached."""
+        controller still listening; returns the state reached (per axis letter on a
+        machine of several axes)."""
         self.sp.controlword = DISABLE_VOLTAGE.value
-        self.drive.cycle(self.sp, self.fb)
+        self.drives.cycle(self.sp, self.fb)
         if self.watchdog.answering:
             try:
                 self.endpoint.send_feedback(self.fb)
             except AdapterError as e:
                 self._adapter_error("send", e)
-        return {"state": self.drive.sm.state.name,
-                "statusword": f"0x{self.fb.statusword:04X}",
-                "plant_enable": float(self.plant.inp[L.I_ENABLE]), "fault": self.drive.fault}
+        states = {name: {"state": d.sm.state.name, "statusword": f"0x{fb.statusword:04X}",
+                         "plant_enable": float(d.plant.inp[L.I_ENABLE]), "fault": d.fault}
+                  for name, d, fb in zip(self.machine.names, self.drives.drives,
+                                         axis_records(self.fb))}
+        return states if self.machine.multi_axis else states[self.machine.names[0]]
 
     def run(self) -> dict:
         """Run the loop, then shut down in the fixed order; returns the report (also written
@@ -340,7 +366,9 @@ class Emulator:
         heard = columns["sp_new"] == 1
         return {
             "command": "hil run", "machine_file": str(rc.machine_file),
-            "machine": self.cfg.machine.name, "exit_status": status,
+            "machine": self.machine.name, "exit_status": status,
+            "axes": [{"name": a.name, "machine_file": a.config.path,
+                      "machine": a.config.machine.name} for a in self.machine.axes],
             "runtime": {**{k: str(v) if isinstance(v, Path) else v
                            for k, v in asdict(rc).items()},
                         **asdict(t), "cpu_used": rc.cpu if rc.cpu is not None else last_cpu(),
@@ -354,14 +382,17 @@ class Emulator:
                           "last_seq": int(self.sp.seq)},
             "watchdog": self.watchdog.as_dict(), "safe_state": safe,
             "recording": {"file": RUN_NPZ, "slots": len(stats.lateness_ns),
-                          "ticks": stats.ticks, "columns": UNITS},
+                          "ticks": stats.ticks,
+                          "columns": units(self.machine.names if self.machine.multi_axis
+                                           else None)},
             "host": host_fingerprint(),
         }
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     """The options of ``hil run``."""
-    p.add_argument("config", help="machine file (TOML)")
+    p.add_argument("config", help="machine file (TOML), or a manifest of several axes "
+                   "(configs/machines/)")
     p.add_argument("--adapter", required=True, metavar="URL",
                    help="udp://HOST:PORT (port 0: any free one, printed) or serial://PATH")
     p.add_argument("--duration", type=float, metavar="S",
@@ -383,8 +414,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="no SCHED_FIFO, pinning or memory locking")
     p.add_argument("--cpu", type=int, help="CPU to run the loop on (default: the last)")
     p.add_argument("--priority", type=int, default=80, help="SCHED_FIFO priority (default 80)")
-    p.add_argument("--start", type=float, default=0.0,
-                   help="table position at start, mm (deg on rotary tables)")
+    p.add_argument("--start", type=start_arg, default=0.0,
+                   help="table position at start, mm (deg on rotary tables), or per axis: "
+                        "X=10,Y=-5")
 
 
 def run_from_args(args: argparse.Namespace) -> int:
@@ -393,7 +425,7 @@ def run_from_args(args: argparse.Namespace) -> int:
     with stop_on_signals(stop.request):
         try:
             rc = RuntimeConfig.from_args(args)
-            emulator = Emulator(rc, load_machine(rc.machine_file), stop)
+            emulator = Emulator(rc, load_machine_set(rc.machine_file), stop)
             url = emulator.open()
         except (ConfigError, RuntimeInputError, AdapterError) as e:
             eprint(f"hil run: {e}")

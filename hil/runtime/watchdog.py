@@ -22,12 +22,16 @@ first setpoint the controller is absent.
   (3) and enable operation 0x000F (4).  :class:`hil.cia402.EnableSequencer`'s
   ``enable()`` sends exactly this.  Setpoints are followed again from OPERATION ENABLED on.
 
+On a machine of several axes one message carries every axis's setpoint, so the controller
+is heard or silent for all of them at once; the trip faults every drive whose power stage
+is enabled (each its own CiA 402 FAULT), and the recovery releases each of those.
+
 Nothing here allocates per tick except the event record when a trip or recovery happens.
 """
 
 from dataclasses import asdict, dataclass
 
-from hil.drive import EmulatedDrive
+from hil.drive import DriveSet, EmulatedDrive
 
 #: the drive's fault code for a lost controller: CiA 301 emergency error code 8130h
 #: (life guard or heartbeat error), carried in Feedback.fault
@@ -90,21 +94,28 @@ class Watchdog:
         """The controller was heard within the limit: feedback goes out."""
         return self.silent < self.limit
 
-    def update(self, heard: bool, tick: int, seq: int, drive: EmulatedDrive) -> None:
-        """Call once per tick before the drive's cycle: ``heard`` a new setpoint (``seq``)."""
+    def update(self, heard: bool, tick: int, seq: int,
+               drive: EmulatedDrive | DriveSet) -> None:
+        """Call once per tick before the drives' cycle: ``heard`` a new setpoint (``seq``);
+        ``drive`` one drive or every axis's (:class:`~hil.drive.DriveSet`)."""
+        drives = drive.drives if isinstance(drive, DriveSet) else (drive,)
         if heard:
             self.silent = 0
             if self.tripped:
                 self.tripped = False
-                if drive.fault == FAULT_WATCHDOG:
-                    drive.fault = 0
+                for d in drives:
+                    if d.fault == FAULT_WATCHDOG:
+                        d.fault = 0
                 self._event("recovered", tick, seq)
             return
         if self.silent < self.limit:
             self.silent += 1
-        if self.silent >= self.limit and not self.tripped and drive.sm.power_enabled:
+        if self.silent >= self.limit and not self.tripped and any(
+                d.sm.power_enabled for d in drives):
             self.tripped = True
-            drive.fault = FAULT_WATCHDOG
+            for d in drives:
+                if d.sm.power_enabled:
+                    d.fault = FAULT_WATCHDOG
             self._event("tripped", tick, seq)
 
     def _event(self, kind: str, tick: int, seq: int) -> None:

@@ -1,0 +1,260 @@
+"""Multi-axis part programs: blocks that move several axes on one straight line.
+
+The words and rules of :mod:`hil.controller.program`, with any of the machine's axis
+letters in a block::
+
+    G90 G71
+    G1 X10 Y5 F1000      ; X and Y on one line to (10 mm, 5 mm), 1000 mm/min along it
+    G0 X0 Y0             ; rapid, on the straight line too
+    G4 F0.2              ; dwell, every axis holds
+    G91 Y-5 F500         ; one axis alone: the others hold
+    M30
+
+An axis a block does not name holds its position.  The feed ``F`` is the velocity along
+the path: in mm/min over the linear axes (X Y Z U V W; Euclidean length in mm) when any
+of them moves, and in deg/min over the rotary axes when only those move (a rotary axis in
+a block with linear motion follows in the same time, as SINUMERIK's FGROUP default does).
+``G0`` moves on the same straight line (linear interpolation of rapid traverse, RTLION) at
+the highest path velocity no axis's maximum velocity exceeds.
+
+Planning (:func:`plan_path`): the block runs one rest-to-rest profile in the path
+parameter s (length L, the one of :mod:`hil.controller.interpolator`), and axis i moves
+x_i = start_i + u_i s with u_i = (target_i - start_i) / L.  Every axis's velocity,
+acceleration and jerk are u_i times the path's, so the path's limits are the smallest
+v_max,i / |u_i|, a_max,i / |u_i|, j_max,i / |u_i| over the axes that move (the jerk over
+the axes that have a jerk limit; none: a trapezoid): every axis keeps its own limits, all
+axes start and stop together and stay on the line.  The per-axis profiles share their
+knots and are exact piecewise cubics, as a single axis's are.
+"""
+
+import functools
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from hil.controller.config import AxisLimits
+from hil.controller.interpolator import Profile, _check_limits, _move_phases
+from hil.controller.program import (
+    _END_CODES,
+    LINEAR_AXES,
+    ROTARY_AXES,
+    BlockKind,
+    ErrorFactory,
+    ProgramError,
+    _check_groups,
+    _g_code,
+    _scales,
+    _strip_comments,
+    _tokens,
+)
+
+
+@dataclass(frozen=True)
+class PathBlock:
+    """One block in SI units per axis (m, or rad on rotary axes).
+
+    ``start`` and ``target`` have one position per axis of the program (equal for a
+    dwell).  ``feed`` is the programmed path velocity in m/s (over the linear axes) or
+    rad/s (rotary axes only), ``inf`` for rapid, 0 for a dwell; ``dwell_s`` in s; ``line``
+    the 1-based line of the program text.
+    """
+    kind: BlockKind
+    line: int
+    start: tuple[float, ...]
+    target: tuple[float, ...]
+    feed: float = 0.0
+    rapid: bool = False
+    dwell_s: float = 0.0
+
+
+@dataclass(frozen=True)
+class PathProgram:
+    """A parsed multi-axis program: axis letters, which are rotary, start positions (SI)
+    and blocks."""
+    axes: tuple[str, ...]
+    rotary: tuple[bool, ...]
+    start: tuple[float, ...]
+    blocks: tuple[PathBlock, ...]
+
+    @property
+    def end(self) -> tuple[float, ...]:
+        """Positions after the last block."""
+        return self.blocks[-1].target if self.blocks else self.start
+
+
+@dataclass
+class _Modal:
+    pos: list[float]
+    absolute: bool = True
+    motion: int | None = None
+    feed: float | None = None  # as programmed: mm/min or deg/min
+    ended: bool = False
+
+
+def _words(code: str, axes: str, err: ErrorFactory):
+    """G codes, {axis letter: value}, F, end of one comment-free line."""
+    g, values, end = [], {}, False
+    for i, (word, letter, value) in enumerate(_tokens(code, err)):
+        if letter == "N":
+            if i != 0 or value != int(value) or value < 0:
+                raise err(f"block number '{word}' must come first and be a whole number")
+        elif letter == "G":
+            g.append(_g_code(word, value, err))
+        elif letter == "M" and value in _END_CODES:
+            end = True
+        elif letter in axes or letter == "F":
+            if letter in values:
+                raise err(f"word {letter} appears twice ('{word}')")
+            values[letter] = value
+        elif letter in LINEAR_AXES + ROTARY_AXES:
+            raise err(f"axis word '{word}': this machine has the axes {', '.join(axes)}")
+        else:
+            raise err(f"unknown word '{word}'")
+    f = values.pop("F", None)
+    return tuple(g), values, f, end
+
+
+def _block(g, moves: dict, f, st: _Modal, axes: str, rotary, line: int,
+           err: ErrorFactory) -> PathBlock | None:
+    _check_groups(g, err)
+    if 90 in g or 91 in g:
+        st.absolute = 90 in g
+    here = tuple(st.pos)
+    if 4 in g:
+        if moves:
+            raise err(f"G4 must stand in its own block (found {', '.join(moves)})")
+        if f is None or f < 0.0:
+            raise err(f"G4 needs F<seconds> >= 0 (Sinumerik dwell time), got "
+                      f"{'no F' if f is None else f'F{f:g}'}")
+        return PathBlock(BlockKind.DWELL, line, here, here, dwell_s=f)
+    for code in g:
+        if code in (0, 1):
+            st.motion = code
+    if f is not None:
+        if f <= 0.0:
+            raise err(f"feed 'F{f:g}' must be > 0")
+        st.feed = f
+    if not moves:
+        return None
+    named = " ".join(f"{a}{v:g}" for a, v in moves.items())
+    if st.motion is None:
+        raise err(f"'{named}' without a motion mode (program G0 or G1 first)")
+    if st.motion == 1 and st.feed is None:
+        raise err(f"G1 move '{named}' needs a feed: no F programmed yet")
+    for i, a in enumerate(axes):
+        if a in moves:
+            x = moves[a] * _scales(rotary[i])[0]
+            st.pos[i] = x if st.absolute else st.pos[i] + x
+    target = tuple(st.pos)
+    if st.motion == 0:
+        return PathBlock(BlockKind.MOVE, line, here, target, feed=math.inf, rapid=True)
+    linear = any(t != s and not r for s, t, r in zip(here, target, rotary))
+    feed = st.feed * _scales(not linear)[1]
+    return PathBlock(BlockKind.MOVE, line, here, target, feed=feed)
+
+
+def parse_path_program(text: str, axes: Sequence[str], start: Sequence[float] | None = None,
+                       source: str = "<program>") -> PathProgram:
+    """Parse a program for the axis letters ``axes`` (A, B, C rotary: degrees in the text,
+    rad here), starting at ``start`` (SI per axis; default all 0).  Raises
+    :class:`~hil.controller.program.ProgramError` on the first bad line, ValueError for
+    bad axis letters."""
+    axes = tuple(axes)
+    if not axes or len(set(axes)) != len(axes) or any(
+            len(a) != 1 or a not in LINEAR_AXES + ROTARY_AXES for a in axes):
+        raise ValueError(f"axis letters {axes!r} must be distinct letters of "
+                         f"{LINEAR_AXES + ROTARY_AXES}")
+    rotary = tuple(a in ROTARY_AXES for a in axes)
+    start = tuple(float(x) for x in (start if start is not None else [0.0] * len(axes)))
+    if len(start) != len(axes):
+        raise ValueError(f"{len(start)} start positions for {len(axes)} axes")
+    st = _Modal(pos=list(start))
+    letters = "".join(axes)
+    blocks = []
+    for line, raw in enumerate(text.splitlines(), start=1):
+        err = functools.partial(ProgramError, source, line)
+        code = _strip_comments(raw, err)
+        if not code.strip():
+            continue
+        if st.ended:
+            raise err(f"block '{code.strip()}' after the end of the program (M2/M30)")
+        g, moves, f, end = _words(code, letters, err)
+        block = _block(g, moves, f, st, letters, rotary, line, err)
+        if block is not None:
+            blocks.append(block)
+        st.ended = end
+    return PathProgram(axes, rotary, start, tuple(blocks))
+
+
+def read_path_program(path, axes: Sequence[str],
+                      start: Sequence[float] | None = None) -> PathProgram:
+    """Read and parse a program file (see :func:`parse_path_program`)."""
+    with open(path) as f:
+        return parse_path_program(f.read(), axes, start, source=str(path))
+
+
+def path_limits(direction: np.ndarray, limits: Sequence[AxisLimits]) -> AxisLimits:
+    """The path's limits for unit direction ``direction`` (axis travel per unit of path,
+    shape (n,)): the smallest axis limit over |u_i| among the axes that move; jerk among
+    those with a jerk limit (0: none has one)."""
+    v = a = j = math.inf
+    for u, lim in zip(np.abs(direction), limits):
+        if u == 0.0:
+            continue
+        v = min(v, lim.velocity / u)
+        a = min(a, lim.acceleration / u)
+        if 0.0 < lim.jerk < math.inf:
+            j = min(j, lim.jerk / u)
+    return AxisLimits(v, a, 0.0 if math.isinf(j) else j)
+
+
+def path_length(start: Sequence[float], target: Sequence[float],
+                rotary: Sequence[bool]) -> float:
+    """The block's path length: Euclidean over the linear axes when any moves (m), else
+    over the rotary axes (rad)."""
+    d = np.subtract(target, start)
+    lin = np.array([not r for r in rotary])
+    if np.any(d[lin] != 0.0):
+        return float(np.linalg.norm(d[lin]))
+    return float(np.linalg.norm(d[~lin]))
+
+
+def plan_path(program: PathProgram, limits: Sequence[AxisLimits]) -> tuple[Profile, ...]:
+    """One :class:`~hil.controller.interpolator.Profile` per axis (program order), all on
+    the same knots: each block a rest-to-rest move along its straight line (module
+    docstring), with ``limits`` per axis (SI, jerk 0 or inf: none)."""
+    if len(limits) != len(program.axes):
+        raise ValueError(f"{len(limits)} axis limits for {len(program.axes)} axes")
+    for lim in limits:
+        _check_limits(lim)
+    n = len(program.axes)
+    rows: list[list[tuple]] = [[] for _ in range(n)]
+    t = 0.0
+    for block in program.blocks:
+        length = path_length(block.start, block.target, program.rotary)
+        if block.kind is BlockKind.DWELL:
+            phases, u = ([(block.dwell_s, 0.0, 0.0)] if block.dwell_s > 0.0 else []), None
+        elif length == 0.0:
+            phases, u = [], None
+        else:
+            u = np.subtract(block.target, block.start) / length
+            phases = _move_phases(length, block.feed, path_limits(u, limits))
+        knots = []
+        for dur, _, _ in phases:
+            knots.append(t)
+            t += dur
+        for i in range(n):
+            p, v, ui = block.start[i], 0.0, (0.0 if u is None else float(u[i]))
+            for tk, (dur, acc, jerk) in zip(knots, phases):
+                a_i, j_i = ui * acc, ui * jerk
+                rows[i].append((tk, p, v, a_i, j_i))
+                p += dur * (v + dur * (0.5 * a_i + dur * j_i / 6.0))
+                v += dur * (a_i + 0.5 * dur * j_i)
+    profiles = []
+    for i in range(n):
+        rows[i].append((t, program.end[i], 0.0, 0.0, 0.0))
+        cols = [np.ascontiguousarray(c) for c in np.array(rows[i], dtype=float).T]
+        profiles.append(Profile(*cols, duration_s=t))
+    return tuple(profiles)
