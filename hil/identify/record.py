@@ -1,0 +1,243 @@
+"""A measured servo trace in SI on a uniform time grid, whatever file it came from.
+
+Two sources:
+
+* the servo-trace CSV of ``docs/trace-format.md`` (shared docs), read with
+  :func:`hil.trace_file.read_trace`: ``t_s``, ``pos_set_mm``, ``pos_mm`` and ``iq_a`` (or
+  ``force_n``) are required, ``_deg`` columns stand in for ``_mm`` on rotary tables;
+* the EMPS benchmark's ``.mat`` files (``/work/shared/data/EMPS/SOURCE.md``): ``qg`` is the
+  position setpoint, ``qm`` the motor encoder expressed at the load, and the force on the
+  load is ``gtau * vir``; the dSPACE PD loop that produced them is kept as
+  :class:`EmpsLoop` so that the replay can close the same loop.
+
+Every error is a :class:`~hil.trace_file.TraceFormatError` naming the file and what is
+wrong with it.
+"""
+
+import dataclasses
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from hil.trace_file import IDENTIFICATION, TIME_TOLERANCE, TraceFormatError, read_trace
+
+#: variables an EMPS ``.mat`` file must hold (``pulses_N`` is optional)
+EMPS_VARIABLES = ("t", "qm", "qg", "vir", "gtau", "kp", "kv")
+#: the EMPS loop's saturation of the controller output nu, V (SOURCE.md)
+EMPS_V_MAX = 10.0
+
+
+@dataclass(frozen=True)
+class EmpsLoop:
+    """The EMPS dSPACE PD loop (SOURCE.md): nu = kp kv (qr - q) - kv dq/dt, |nu| <= v_max,
+    then the pulse added and the force gtau * (nu + pulse) applied.
+
+    Attributes:
+        kp: outer position gain, 1/s.
+        kv: inner velocity gain, V/(m/s).
+        gtau: drive gain, N/V.
+        v_max: saturation of nu, V.
+        pulses_v: shape (n,), V added after the saturation (the PULSES record), or None.
+    """
+    kp: float
+    kv: float
+    gtau: float
+    v_max: float = EMPS_V_MAX
+    pulses_v: np.ndarray | None = None
+
+
+@dataclass(frozen=True)
+class Record:
+    """A measured servo trace in SI on a uniform time grid (all arrays shape (n,)).
+
+    Attributes:
+        source: the file it was read from.
+        t: s, k * dt from 0.
+        pos_set: position setpoint, m (rad on rotary tables).
+        pos: measured table position (linear scale, else the motor encoder in table
+            units), m or rad.
+        effort: measured q-current in A (``effort_kind == "iq"``) or force in N
+            (``"force"``).
+        effort_kind: "iq" or "force".
+        motor_pos: motor encoder in table units (m or rad), when recorded.
+        vel_set: speed command sent to the speed loop (feed-forward and excitation
+            included), m/s or rad/s, when recorded.
+        vel: measured table velocity, m/s or rad/s, when recorded.
+        iq_set: q-current setpoint, A, when recorded.
+        emps: for EMPS records, the loop that produced them.
+        meta: text metadata of the file (trace metadata, or the EMPS variable names), and
+            ``position_unit``: "m", or "rad" when the trace had ``_deg`` columns.
+    """
+    source: str
+    t: np.ndarray
+    pos_set: np.ndarray
+    pos: np.ndarray
+    effort: np.ndarray
+    effort_kind: str
+    motor_pos: np.ndarray | None = None
+    vel_set: np.ndarray | None = None
+    vel: np.ndarray | None = None
+    iq_set: np.ndarray | None = None
+    emps: EmpsLoop | None = None
+    meta: dict = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        if self.effort_kind not in ("iq", "force"):
+            raise ValueError(f"{self.source}: effort_kind {self.effort_kind!r} is not "
+                             "'iq' or 'force'")
+        n = self.t.shape
+        if len(n) != 1 or n[0] < 2:
+            raise ValueError(f"{self.source}: t has shape {n}, needs (n,) with n >= 2")
+        for name, value in self._arrays().items():
+            if value.shape != n:
+                raise ValueError(f"{self.source}: {name} has shape {value.shape}, t has {n}")
+
+    def _arrays(self) -> dict[str, np.ndarray]:
+        """Every array of shape (n,), by field name ('pulses_v' for the EMPS pulses)."""
+        names = ("pos_set", "pos", "effort", "motor_pos", "vel_set", "vel", "iq_set")
+        arrays = {k: getattr(self, k) for k in names if getattr(self, k) is not None}
+        if self.emps is not None and self.emps.pulses_v is not None:
+            arrays["pulses_v"] = self.emps.pulses_v
+        return arrays
+
+    @property
+    def dt(self) -> float:
+        """Sample time, s."""
+        return float(self.t[1] - self.t[0])
+
+    @property
+    def n(self) -> int:
+        """Number of samples."""
+        return int(self.t.size)
+
+    @property
+    def rotary(self) -> bool:
+        """True when the positions are angles (the trace had ``_deg`` columns)."""
+        return self.meta.get("position_unit") == "rad"
+
+    def slice(self, start: int, stop: int) -> "Record":
+        """Samples start..stop-1, time again from 0 (pulses sliced with them)."""
+        if not 0 <= start < stop - 1 < self.n:
+            raise ValueError(f"{self.source}: slice {start}:{stop} of {self.n} samples "
+                             "must keep at least 2")
+        cut = {k: v[start:stop] for k, v in self._arrays().items()}
+        pulses = cut.pop("pulses_v", None)
+        emps = None if self.emps is None else dataclasses.replace(self.emps, pulses_v=pulses)
+        return dataclasses.replace(self, t=self.t[start:stop] - self.t[start], emps=emps,
+                                   **cut)
+
+
+def load_record(path: str | Path) -> Record:
+    """Read a servo-trace ``.csv`` or an EMPS ``.mat`` file as a :class:`Record`.
+
+    Raises:
+        TraceFormatError: naming the file and the missing column or variable, a
+            non-uniform time axis, or a suffix that is neither.
+    """
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix == ".csv":
+        return _load_csv(path)
+    if suffix == ".mat":
+        return _load_mat(path)
+    raise TraceFormatError(f"{path}: unknown record type {path.suffix!r}; give a servo-trace "
+                           ".csv (trace-format.md) or an EMPS benchmark .mat file")
+
+
+def _load_csv(path: Path) -> Record:
+    """A servo-trace CSV; columns resolved to their rotary or force alternatives."""
+    trace = read_trace(path, require=IDENTIFICATION)
+    pos_set, pos = trace.resolve("pos_set_mm"), trace.resolve("pos_mm")
+    rotary = pos.endswith("_deg")
+    if pos_set.endswith("_deg") != rotary:
+        raise TraceFormatError(f"{path}: {pos_set!r} and {pos!r} mix degrees and mm")
+    effort = trace.resolve("iq_a")
+
+    def optional(name: str) -> np.ndarray | None:
+        try:
+            column = trace.resolve(name)
+        except KeyError:
+            return None
+        if ("_deg" in column) != rotary:
+            raise TraceFormatError(f"{path}: column {column!r} does not match the "
+                                   f"{'degrees' if rotary else 'mm'} of {pos!r}")
+        return trace.si(column)
+
+    meta = {**trace.metadata, "position_unit": "rad" if rotary else "m"}
+    return Record(source=str(path), t=np.arange(trace.n_samples) * trace.sample_time_s,
+                  pos_set=trace.si(pos_set), pos=trace.si(pos), effort=trace.si(effort),
+                  effort_kind="force" if effort == "force_n" else "iq",
+                  motor_pos=optional("motor_pos_mm"), vel_set=optional("vel_set_mm_min"),
+                  vel=optional("vel_mm_min"),
+                  iq_set=trace.si("iq_set_a") if "iq_set_a" in trace.data else None,
+                  meta=meta)
+
+
+def _load_mat(path: Path) -> Record:
+    """An EMPS benchmark file: qm -> pos and motor_pos, qg -> pos_set, gtau vir -> force."""
+    from scipy.io import loadmat  # only .mat records need scipy.io
+
+    try:
+        data = loadmat(path)
+    except (OSError, ValueError, TypeError) as exc:
+        raise TraceFormatError(f"{path}: not a readable MATLAB .mat file ({exc})") from None
+    names = sorted(k for k in data if not k.startswith("__"))
+    missing = [v for v in EMPS_VARIABLES if v not in data]
+    if missing:
+        raise TraceFormatError(f"{path}: an EMPS .mat record needs the variables "
+                               f"{', '.join(EMPS_VARIABLES)}; missing {', '.join(missing)} "
+                               f"(has {', '.join(names) or 'none'})")
+    t_raw = _column(path, data, "t")
+    n = t_raw.size
+    columns = {v: _column(path, data, v, n) for v in ("qm", "qg", "vir")}
+    scalars = {v: _scalar(path, data, v) for v in ("gtau", "kp", "kv")}
+    pulses = _column(path, data, "pulses_N", n) if "pulses_N" in data else None
+    t = _uniform_time(path, t_raw)
+    # SOURCE.md: vir already holds the pulse, and the pulse is added in volts before gtau
+    loop = EmpsLoop(kp=scalars["kp"], kv=scalars["kv"], gtau=scalars["gtau"], pulses_v=pulses)
+    qm = columns["qm"]
+    return Record(source=str(path), t=t, pos_set=columns["qg"], pos=qm,
+                  effort=scalars["gtau"] * columns["vir"], effort_kind="force",
+                  motor_pos=qm.copy(), emps=loop,
+                  meta={"format": "EMPS .mat", "variables": ", ".join(names),
+                        "position_unit": "m"})
+
+
+def _column(path: Path, data: dict, name: str, n: int | None = None) -> np.ndarray:
+    """Variable ``name`` as a finite float vector (of length ``n`` when given)."""
+    value = np.asarray(data[name], dtype=np.float64)
+    if value.ndim != 2 or min(value.shape) != 1 or (n is not None and value.size != n):
+        want = "a vector" if n is None else f"a vector of {n} values like t"
+        raise TraceFormatError(f"{path}: variable {name!r} has shape {value.shape}, "
+                               f"needs {want}")
+    value = np.ascontiguousarray(value.ravel())
+    if not np.all(np.isfinite(value)):
+        raise TraceFormatError(f"{path}: variable {name!r} holds a non-finite value at "
+                               f"index {int(np.flatnonzero(~np.isfinite(value))[0])}")
+    return value
+
+
+def _scalar(path: Path, data: dict, name: str) -> float:
+    """Variable ``name`` as one positive float."""
+    value = np.asarray(data[name], dtype=np.float64)
+    if value.size != 1 or not float(value.ravel()[0]) > 0.0:
+        raise TraceFormatError(f"{path}: variable {name!r} must be one positive number, "
+                               f"got shape {value.shape}")
+    return float(value.ravel()[0])
+
+
+def _uniform_time(path: Path, t: np.ndarray) -> np.ndarray:
+    """k * dt from 0 with dt = (t[-1] - t[0]) / (n - 1), after checking that every t
+    lies within TIME_TOLERANCE * dt of its grid instant (the EMPS times carry +-2e-8 s
+    of rounding)."""
+    if t.size < 2:
+        raise TraceFormatError(f"{path}: variable 't' has {t.size} sample(s), needs >= 2")
+    dt = (t[-1] - t[0]) / (t.size - 1)
+    grid = np.arange(t.size) * dt
+    off = np.abs(t - t[0] - grid)
+    if not dt > 0.0 or off.max() > TIME_TOLERANCE * dt:
+        k = int(np.argmax(off))
+        raise TraceFormatError(f"{path}: variable 't' is not uniform: t[{k}] = {t[k]!r} is "
+                               f"{off[k]:.3g} s off the grid of dt = {dt!r} s")
+    return grid

@@ -1,0 +1,235 @@
+"""Closed-loop replay: a machine file's answer to a record's setpoints.
+
+The setpoints of a measured :class:`~hil.identify.record.Record` run through the same
+closed loop that produced it, around the machine file's plant; what comes out is the
+model's prediction of the measured position and effort, on the record's time grid.  The
+replay runs with the current-measurement noise off (it is the prediction; noise belongs
+to the measurement) and keeps every quantisation (encoder, scale, current LSB).
+
+* **EMPS records** (``rec.emps`` set): the dSPACE PD loop of the EMPS benchmark
+  (``/work/shared/data/EMPS/SOURCE.md``).  Per 1 ms sample k the loop reads the plant's
+  encoder, q(k) = counts * lead / counts_per_rev; filters qf(k) = (q(k) + q(k-1)) / 2 and
+  differentiates q'(k) = (qf(k) - qf(k-1)) / dt; computes
+  nu(k) = sat_{v_max}(kp kv (qr(k) - q(k)) - kv q'(k)); and applies
+  u(k) = nu(k-1) + pulse(k) over [k, k+1) as the plant's q-current setpoint (the machine
+  file maps 1 A to the force gtau; ``configs/emps.toml``).  The unit delay is the
+  reference model's; the pulse is not delayed because the measured vir(k) already holds
+  pulse(k) at the sample where pulses_N switches.  The plant starts at rest at the record's
+  first measured position (the reference model starts at 0; the EMPS records start within
+  8 µm of it).  ``Replay.effort`` is gtau u(k), the measured one gtau vir(k).
+* **NC records** (servo-trace CSV of this project's controller): the machine file's
+  ``[controller]`` (:class:`~hil.controller.nc.Controller`) and the emulated drive in lock
+  step, the record's position setpoints fed to the position loop once per position cycle
+  (the record's sample time must be that cycle: ``hil sim`` writes its trace there).  The
+  speed feed-forward the NC sent is not a column of the trace; it is recovered exactly from
+  the recorded speed command, v_ff = (v_cmd - K_v e) / w_ff with e the record's own
+  position-loop error, or, without a ``vel_set`` column, estimated as the central
+  difference of the position setpoint (a few µm of following error on jerk-limited moves).
+  The acceleration for the torque feed-forward is the central difference of v_ff.  The
+  signals are taken where the trace takes them (:func:`hil.sim.servo_trace_columns`): the
+  position the controller read and the current measured at the start of the position
+  cycle's PWM period.
+"""
+
+import dataclasses
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from hil.controller.config import axis_limits, load_controller
+from hil.controller.interpolator import ProfileSamples
+from hil.controller.loops import PositionLoop
+from hil.controller.nc import Controller
+from hil.drive import EmulatedDrive
+from hil.identify.record import Record
+from io_adapters.messages import Feedback, Setpoint
+from plant import Plant
+from plant import layout as L
+from plant.config import MachineConfig
+from plant.kernel import axis_step_nb
+
+#: how far a record's sample time may be from a whole number of plant periods (relative)
+PERIOD_TOLERANCE = 1e-3
+#: default first sample of :func:`errors`: MATLAB's sample 50, the EMPS scripts' n_border
+ERROR_START = 49
+
+
+@dataclass(frozen=True)
+class Replay:
+    """The model's answer to the record's setpoints, on the record's time grid.
+
+    Attributes (arrays of shape (n,); NaN after a plant fault):
+        pos: m (rad), what the record's ``pos`` would be (same sensor: scale or encoder).
+        effort: same kind and unit as ``Record.effort`` (A or N).
+        motor_pos: motor position in table units (m or rad), as the trace's column.
+        vel: the model's table velocity, m/s (rad/s).
+        status: 0, or the plant's fault status (``plant.layout.STATUS_*``) that stopped it.
+    """
+    pos: np.ndarray
+    effort: np.ndarray
+    motor_pos: np.ndarray | None
+    vel: np.ndarray
+    status: int
+
+
+def replay(cfg: MachineConfig, rec: Record, progress=None) -> Replay:
+    """Run ``rec``'s setpoints through ``cfg``'s closed loop (see the module docstring).
+
+    Args:
+        cfg: the machine file (an EMPS record needs no ``[controller]``, an NC record does).
+        rec: the measured record.
+        progress: optional callable(fraction done), called about 20 times.
+    Raises:
+        ValueError: the record's sample time is no whole number of PWM periods (EMPS) or
+            not the position-control cycle (NC).
+        ConfigError: an NC record and a machine file without ``[controller]``.
+    """
+    quiet = dataclasses.replace(cfg, sensors=dataclasses.replace(cfg.sensors,
+                                                                 current_noise_a=0.0))
+    if rec.emps is not None:
+        return _replay_emps(quiet, rec, progress)
+    return _replay_nc(quiet, rec, progress)
+
+
+def errors(rec: Record, rep: Replay, start: int = ERROR_START) -> dict[str, float]:
+    """Error of the replay against the record over samples ``start`` .. n-1.
+
+    ``pos_rms_um`` (``pos_rms_urad`` on rotary tables) and ``pos_relerr_pct``, and
+    ``iq_rms_a``/``iq_relerr_pct`` or ``force_rms_n``/``force_relerr_pct``;
+    relerr = 100 ||y - y_hat|| / ||y||, the EMPS paper's measure (its scripts start at
+    MATLAB sample 50, index 49 here).
+    """
+    if not 0 <= start < rec.n:
+        raise ValueError(f"error start {start} outside the record's {rec.n} samples")
+    pos_name = "pos_rms_urad" if rec.rotary else "pos_rms_um"
+    effort_name, unit = ("iq", "a") if rec.effort_kind == "iq" else ("force", "n")
+    out = {}
+    for y, y_hat, rms_name, rel_name, scale in (
+            (rec.pos, rep.pos, pos_name, "pos_relerr_pct", 1e6),
+            (rec.effort, rep.effort, f"{effort_name}_rms_{unit}",
+             f"{effort_name}_relerr_pct", 1.0)):
+        e = y[start:] - y_hat[start:]
+        out[rms_name] = float(np.sqrt(np.mean(e * e)) * scale)
+        out[rel_name] = float(100.0 * np.linalg.norm(e) / np.linalg.norm(y[start:]))
+    return out
+
+
+def _periods(plant: Plant, dt: float, what: str) -> int:
+    """PWM periods per record sample of ``dt`` seconds; ValueError when not whole."""
+    n = round(dt / plant.pwm_period)
+    if n < 1 or abs(n * plant.pwm_period - dt) > PERIOD_TOLERANCE * dt:
+        raise ValueError(f"record sample time {dt:g} s is not a whole number of the plant's "
+                         f"PWM periods ({plant.pwm_period:g} s){what}")
+    return n
+
+
+def _replay_emps(cfg: MachineConfig, rec: Record, progress) -> Replay:
+    """The EMPS dSPACE PD loop around the plant, one kernel call per sample."""
+    loop = rec.emps
+    plant = Plant(cfg, table_pos=float(rec.pos[0]))
+    n_per = _periods(plant, rec.dt, "")
+    dt = n_per * plant.pwm_period
+    n_sub = n_per * plant.sub_per_pwm
+    p, s, inp, out = plant.params, plant.state, plant.inp, plant.out
+    m_per_count = plant.built.ratio / p[L.P_ENC_COUNTS_PER_RAD]
+    pulses = loop.pulses_v if loop.pulses_v is not None else np.zeros(rec.n)
+    gain, kv, v_max = loop.kp * loop.kv, loop.kv, loop.v_max
+    qr = rec.pos_set
+    n = rec.n
+    pos, vel, effort = np.full(n, math.nan), np.full(n, math.nan), np.full(n, math.nan)
+    q1 = q2 = out[L.O_ENCODER] * m_per_count
+    nu_prev = 0.0
+    every = max(1, n // 20)
+    status = L.STATUS_OK
+    for k in range(n):
+        q = out[L.O_ENCODER] * m_per_count
+        dq = 0.5 * (q - q2) / dt  # (qf(k) - qf(k-1)) / dt with qf(k) = (q(k) + q(k-1)) / 2
+        q2, q1 = q1, q
+        nu = gain * (qr[k] - q) - kv * dq
+        nu = v_max if nu > v_max else (-v_max if nu < -v_max else nu)
+        u = nu_prev + pulses[k]
+        nu_prev = nu
+        pos[k] = q
+        vel[k] = out[L.O_TABLE_VEL]
+        effort[k] = loop.gtau * u
+        inp[L.I_IQ_REF] = u
+        status = axis_step_nb(p, s, inp, out, n_sub)
+        if status != L.STATUS_OK:
+            break
+        if progress is not None and k % every == 0:
+            progress(k / n)
+    return Replay(pos=pos, effort=effort, motor_pos=pos.copy(), vel=vel, status=int(status))
+
+
+def _feed_forward(rec: Record, loop: PositionLoop) -> np.ndarray:
+    """The speed feed-forward v_set (m/s, shape (n,)) the NC added to the P path: exact
+    from the recorded speed command when there is one, else the setpoint's central
+    difference."""
+    if rec.vel_set is None or loop.ff == 0.0:
+        return np.gradient(rec.pos_set, rec.dt)
+    v_ff = np.empty(rec.n)
+    loop.reset(float(rec.pos[0]))
+    for k in range(rec.n):
+        loop.step(float(rec.pos_set[k]), 0.0, float(rec.pos[k]))
+        v_ff[k] = (rec.vel_set[k] - loop.kv * loop.error) / loop.ff
+    return v_ff
+
+
+def _replay_nc(cfg: MachineConfig, rec: Record, progress) -> Replay:
+    """The machine file's NC and drive in lock step, the record's setpoints fed once per
+    position-control cycle."""
+    sec = load_controller(cfg)
+    x0 = float(rec.pos_set[0])
+    plant = Plant(cfg, table_pos=x0)
+    ratio_pos = sec.position_cycle_ratio
+    every = _periods(plant, rec.dt, f"; an NC record must be sampled at the position-control "
+                                    f"cycle, {ratio_pos} PWM periods")
+    if every != ratio_pos:
+        raise ValueError(f"{rec.source}: sample time {rec.dt:g} s is {every} PWM periods, the "
+                         f"position-control cycle of {cfg.path} is {ratio_pos}; the replay "
+                         "needs one record sample per position cycle")
+    period_pos = ratio_pos * plant.pwm_period
+    # one "IPO point" per position cycle: the record's setpoints are the fine setpoints
+    section = dataclasses.replace(sec, ipo_cycle_ratio=ratio_pos)
+    ctrl = Controller(cfg, plant.pwm_period, x0, section=section)
+    drive = EmulatedDrive(plant)
+    sp, fb = Setpoint(), Feedback()
+    for _ in range(ctrl.enable_timeout_ticks * 2):
+        if ctrl.enabled:
+            break
+        ctrl.tick(fb, sp)
+        drive.cycle(sp, fb)
+    else:
+        raise RuntimeError(f"{cfg.path}: drive not enabled: {ctrl.enable.reason}")
+    v_lim = axis_limits(cfg, sec).velocity
+    v_set = _feed_forward(rec, PositionLoop(sec, period_pos, v_lim))
+    ctrl.run_points(ProfileSamples(rec.t, rec.pos_set, v_set, np.gradient(v_set, rec.dt)))
+    n = rec.n
+    pos, vel, effort = np.full(n, math.nan), np.full(n, math.nan), np.full(n, math.nan)
+    motor_pos = np.full(n, math.nan)
+    per_amp = _force_per_amp(cfg, ctrl.ratio) if rec.effort_kind == "force" else 1.0
+    out = plant.out
+    every_report = max(1, n // 20)
+    row = 0
+    while row < n:
+        ctrl.tick(fb, sp)
+        drive.cycle(sp, fb)
+        if drive.fault:
+            return Replay(pos, effort, motor_pos, vel, int(drive.fault))
+        if (ctrl.tick_count - 1) % ratio_pos == 0:
+            pos[row] = ctrl.x_act
+            effort[row] = fb.iq_a * per_amp
+            motor_pos[row] = out[L.O_MOTOR_POS] * ctrl.ratio
+            vel[row] = out[L.O_TABLE_VEL]
+            if progress is not None and row % every_report == 0:
+                progress(row / n)
+            row += 1
+    return Replay(pos, effort, motor_pos, vel, L.STATUS_OK)
+
+
+def _force_per_amp(cfg: MachineConfig, ratio: float) -> float:
+    """Table force per q-current ampere, N/A (N·m/A on rotary tables)."""
+    if cfg.machine.kind == "linear":
+        return cfg.motor.force_constant_n_per_a
+    return cfg.motor.torque_constant_nm_per_a / ratio
