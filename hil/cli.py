@@ -9,6 +9,7 @@
     hil bench adapters [--n N] [--adapter udp|serial] [--json]
     hil report RUN [--cyclictest] [--controller DIR]
     hil config-keys [--markdown]
+    hil identify TRACE --config CONFIG --out DIR [--validate TRACE2]
     hil sim CONFIG --program FILE --out DIR [--start MM] [--json]
     hil measure CONFIG step current|speed|position --amplitude X [--at MM] --out DIR
     hil measure CONFIG bode current|speed --amplitude X [--offset X] --out DIR
@@ -260,6 +261,12 @@ def build_parser() -> argparse.ArgumentParser:
                          "with the lock-step simulation")
     demo.add_arguments(dem)
     dem.set_defaults(func=demo.run_from_args)
+
+    from hil.identify import command as identify_command
+    idf = sub.add_parser("identify", help="find, fit and add the effects a machine file lacks "
+                         "from a measured trace")
+    identify_command.add_arguments(idf)
+    idf.set_defaults(func=identify_command.run_from_args)
 
     k = sub.add_parser("config-keys", help="every machine-file key with unit and meaning")
     k.add_argument("--markdown", action="store_true")

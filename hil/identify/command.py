@@ -1,0 +1,73 @@
+"""``hil identify TRACE --config CONFIG --out DIR [--validate TRACE2]``."""
+
+import sys
+import time
+from pathlib import Path
+
+from hil.identify.fit import Identification, record_errors
+from hil.identify.model import Model
+from hil.identify.record import load_record
+from hil.identify.report import write
+from hil.trace_file import TraceFormatError
+
+
+def add_arguments(p) -> None:
+    p.add_argument("trace", type=Path, help="servo-trace CSV, or an EMPS .mat record")
+    p.add_argument("--config", type=Path, required=True, help="machine file to start from")
+    p.add_argument("--out", type=Path, required=True, help="folder for the report")
+    p.add_argument("--validate", type=Path, metavar="TRACE2",
+                   help="a second record to replay with the parameters fitted on TRACE")
+    p.add_argument("--min-explained", type=float, default=0.05,
+                   help="share of a residual's energy an effect must explain (default 0.05)")
+    p.add_argument("--floor-factor", type=float, default=1.5,
+                   help="a residual within this factor of its noise floor is done (1.5)")
+    p.add_argument("--max-steps", type=int, default=6, help="most effects added (6)")
+    p.add_argument("--refine-nfev", type=int, default=15,
+                   help="iterations of the closed-loop refinement (0: off; default 15)")
+    p.add_argument("--cutoff-hz", type=float, default=None,
+                   help="inverse model's low-pass corner (default: a tenth of the sample rate)")
+    p.add_argument("--quiet", action="store_true", help="no progress lines")
+    p.add_argument("--json", action="store_true", help="print report.json to stdout")
+
+
+def validation(ident: Identification, path: Path) -> dict:
+    """Errors on a second record, before and after, with the parameters fitted on the
+    first (nothing is fitted on this one)."""
+    rec = load_record(path)
+    before = Model(ident.ctx, ident.config)
+    before.terms = []  # the config as given: no overrides
+    return {"trace": str(path), "error_before": record_errors(rec, before.replay(rec=rec)),
+            "error_after": record_errors(rec, ident.model.replay(rec=rec))}
+
+
+def identify(trace: Path, config: Path, out: Path, validate: Path | None = None,
+             log=None, **options) -> dict:
+    """Run the whole identification and write the report; returns report.json's content."""
+    t0 = time.monotonic()
+    rec = load_record(trace)
+    ident = Identification(config, rec, log=log, **options).fit()
+    val = None
+    if validate is not None:
+        if log:
+            log(f"[{time.monotonic() - t0:6.1f} s] validating on {validate.name}")
+        val = validation(ident, validate)
+    return write(ident, out, val, time.monotonic() - t0)
+
+
+def run_from_args(args) -> int:
+    log = None if args.quiet else (lambda text: print(text, file=sys.stderr, flush=True))
+    try:
+        rep = identify(args.trace, args.config, args.out, args.validate, log=log,
+                       min_explained=args.min_explained, floor_factor=args.floor_factor,
+                       max_steps=args.max_steps, refine_nfev=args.refine_nfev,
+                       cutoff_hz=args.cutoff_hz)
+    except (TraceFormatError, FileNotFoundError) as exc:
+        print(f"hil identify: {exc}", file=sys.stderr)
+        return 2
+    if args.json:
+        import json
+        print(json.dumps(rep, indent=2))
+    else:
+        print(f"effects added: {', '.join(rep['effects_added']) or 'none'}; report in "
+              f"{args.out / 'report.md'}")
+    return 0

@@ -1,0 +1,175 @@
+"""What every effect of the identification library provides, and the data they share.
+
+An effect lives in one *domain*, the residual it explains:
+
+``force``
+    the inverse model's force residual: measured force at the table minus
+    ``M a + friction + ...`` computed from the measured motion (N, or N·m on rotary tables);
+``position``
+    the difference between the table's measured position and the motor encoder's, in
+    table units (m), which the config's mechanics predicts (pitch error, backlash,
+    compliance); only when the record has both sensors;
+``replay``
+    the closed-loop replay's error, for what neither residual can show (a delay that
+    shifts position and current alike).
+
+Each effect is linear in its coefficients once its shape parameters are fixed (the
+Stribeck velocity, the cogging orders, the pitch periods, the presliding shape): it
+returns regressor columns, and :mod:`hil.identify.fit` solves every active effect of a
+domain jointly by bounded linear least squares.
+"""
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from hil.identify.motion import Drive, Motion
+from hil.identify.record import Record
+from plant.config import MachineConfig
+
+FORCE, POSITION, REPLAY = "force", "position", "replay"
+
+
+@dataclass(frozen=True)
+class Context:
+    """Everything an effect may look at.
+
+    Attributes:
+        cfg: the config as it was read (before any effect was added).
+        drive: its drive train in table units.
+        rec: the record.
+        m: the filtered motion.
+        moving: samples in use where |v| exceeds 1 % of the largest speed: the inverse
+            model's friction terms are sign(v) functions, undefined at rest.
+        direction: +1/-1, the direction of the last motion (held through standstill).
+    """
+    cfg: MachineConfig
+    drive: Drive
+    rec: Record
+    m: Motion
+    moving: np.ndarray
+    direction: np.ndarray
+
+    @classmethod
+    def of(cls, cfg: MachineConfig, drive: Drive, rec: Record, m: Motion) -> "Context":
+        v_eps = 0.01 * float(np.max(np.abs(m.v[m.use]))) if m.use.any() else 0.0
+        moving = m.use & (np.abs(m.v) > v_eps)
+        direction = np.empty(rec.n)
+        last = 1.0
+        for k, vk in enumerate(m.v):
+            if vk > v_eps:
+                last = 1.0
+            elif vk < -v_eps:
+                last = -1.0
+            direction[k] = last
+        return cls(cfg, drive, rec, m, moving, direction)
+
+
+@dataclass
+class Term:
+    """One effect in the model: its fixed shape and its fitted coefficients.
+
+    Attributes:
+        effect: the library entry.
+        shape: shape parameters, fixed during the linear fits (SI, names with units).
+        coef: coefficients of ``effect.columns``, shape (k,).
+        added: True when identification added it, False when the config declared it.
+        evidence: what pointed to it (numbers and a sentence), for the report.
+    """
+    effect: "Effect"
+    shape: dict
+    coef: np.ndarray
+    added: bool = False
+    evidence: dict = field(default_factory=dict)
+
+    def contribution(self, ctx: Context) -> np.ndarray:
+        """The term's part of its domain's prediction, shape (n,)."""
+        return self.effect.columns(ctx, self.shape) @ self.coef
+
+    def params(self, ctx: Context) -> dict:
+        return self.effect.params(ctx, self.shape, self.coef)
+
+
+class Effect:
+    """A physical effect the identification can name, fit and write into a machine file.
+
+    Subclasses set ``name``, ``domain``, ``n_params`` (what parsimony counts when two
+    effects explain about as much) and implement the methods below.
+    """
+    name = ""
+    domain = FORCE
+    n_params = 1
+    #: whether a declared term may still be proposed, as a correction of its coefficients
+    correctable = False
+
+    def unavailable(self, ctx: Context) -> str | None:
+        """Why the effect cannot be looked for in this record or config, or None."""
+        return None
+
+    def declared(self, ctx: Context) -> Term | None:
+        """The term the config already holds, or None."""
+        return None
+
+    def propose(self, ctx: Context, residual: np.ndarray, model) -> Term | None:
+        """Fit the effect alone to ``residual`` (its domain's, shape (n,)); the rest of
+        ``model`` stays fixed.  Returns the term with its evidence, or None."""
+        raise NotImplementedError
+
+    def columns(self, ctx: Context, shape: dict) -> np.ndarray:
+        """Regressors, shape (n, k)."""
+        raise NotImplementedError
+
+    def bounds(self, shape: dict) -> tuple[np.ndarray, np.ndarray]:
+        """Bounds of the coefficients for the joint fit, each shape (k,)."""
+        k = self.n_coef(shape)
+        return np.full(k, -np.inf), np.full(k, np.inf)
+
+    def n_coef(self, shape: dict) -> int:
+        return 1
+
+    def mask(self, ctx: Context) -> np.ndarray:
+        """Samples the fits of this effect use."""
+        return ctx.moving if self.domain == FORCE else ctx.m.use
+
+    def params(self, ctx: Context, shape: dict, coef: np.ndarray) -> dict:
+        """The physical parameters (SI, names with units) for the report."""
+        raise NotImplementedError
+
+    def overrides(self, ctx: Context, shape: dict, coef: np.ndarray, model) -> dict:
+        """What to write into the machine file: ``{"section": {"key": value}}``; ``model``
+        gives the other terms where a key depends on them."""
+        raise NotImplementedError
+
+
+def explained(residual: np.ndarray, fitted: np.ndarray, mask: np.ndarray) -> float:
+    """Fraction of the residual's energy on ``mask`` that ``fitted`` removes."""
+    r = residual[mask]
+    e0 = float(r @ r)
+    if e0 <= 0.0:
+        return 0.0
+    d = r - fitted[mask]
+    return max(0.0, 1.0 - float(d @ d) / e0)
+
+
+def lstsq(cols: np.ndarray, y: np.ndarray, mask: np.ndarray,
+          lo: np.ndarray | None = None, hi: np.ndarray | None = None) -> np.ndarray:
+    """Least squares of ``cols`` (n, k) on ``y`` (n,) over ``mask``, within bounds."""
+    from scipy.optimize import lsq_linear
+    a = cols[mask]
+    b = y[mask]
+    # scale columns so that bounds and conditioning do not depend on their units
+    scale = np.sqrt(np.mean(a * a, axis=0))
+    scale[scale == 0.0] = 1.0
+    k = a.shape[1]
+    lo = np.full(k, -np.inf) if lo is None else lo
+    hi = np.full(k, np.inf) if hi is None else hi
+    res = lsq_linear(a / scale, b, bounds=(lo * scale, hi * scale), method="bvls")
+    return res.x / scale
+
+
+def correlation(a: np.ndarray, b: np.ndarray) -> float:
+    """Pearson correlation of two signals (0 when either is constant)."""
+    sa, sb = float(np.std(a)), float(np.std(b))
+    if sa == 0.0 or sb == 0.0:
+        return 0.0
+    return float(np.mean((a - a.mean()) * (b - b.mean())) / (sa * sb))

@@ -1,0 +1,216 @@
+"""Effects of the drive train between motor and table: backlash, compliance, and the
+presliding spring of the guideways (seed 004).
+
+Backlash and compliance show in the difference between the table's measured position
+and the motor's (in table units): a jump of the gap's size when the direction of motion
+changes, and a deflection proportional to the force the train transmits.  Presliding
+shows in the force residual near reversals, where the Coulomb model jumps and the
+spring builds up over the first micrometres.
+"""
+
+import math
+
+import numpy as np
+from numba import njit
+from scipy.optimize import least_squares
+
+from hil.identify.effects.base import FORCE, POSITION, Effect, Term, correlation, explained, lstsq
+from plant import layout as L
+from plant.effects.friction import presliding_update
+
+
+class Backlash(Effect):
+    """A gap in the train: table minus motor position jumps by the gap at reversals."""
+    name = "backlash"
+    domain = POSITION
+
+    def unavailable(self, ctx):
+        if ctx.m.dx is None:
+            return "the record has no motor encoder column (motor_pos_mm) beside pos_mm"
+        if ctx.cfg.mechanics.model == "rigid":
+            return "the rigid model has no place for a gap (two_mass or screw has)"
+        return None
+
+    def _gap(self, ctx) -> float:
+        model = ctx.cfg.mechanics.model
+        if model == "two_mass":
+            return ctx.cfg.coupling.backlash_rad * ctx.drive.ratio
+        return ctx.cfg.screw.backlash_m if model == "screw" else 0.0
+
+    def declared(self, ctx):
+        b = self._gap(ctx)
+        return Term(self, {}, np.array([b])) if b > 0 else None
+
+    def propose(self, ctx, residual, model):
+        cols = self.columns(ctx, {})
+        mask = ctx.m.use
+        coef = lstsq(cols, residual, mask, np.zeros(1), np.full(1, np.inf))
+        base = model.term(self.name)
+        ev = {"explained": explained(residual, cols @ coef, mask),
+              "jump_at_reversal_m": float(coef[0]),
+              "text": f"table minus motor position jumps by {coef[0] * 1e6:.3g} um when the "
+                      f"direction of motion reverses"}
+        if base is not None:
+            coef = coef + base.coef
+        return Term(self, {}, coef, True, ev)
+
+    def columns(self, ctx, shape):
+        # moving +, the motor leads the table by half the gap
+        return (-0.5 * ctx.direction)[:, None]
+
+    def bounds(self, shape):
+        return np.zeros(1), np.full(1, np.inf)
+
+    def params(self, ctx, shape, coef):
+        return {"backlash_m": float(coef[0])}
+
+    def overrides(self, ctx, shape, coef, model):
+        if ctx.cfg.mechanics.model == "two_mass":
+            return {"coupling": {"backlash_rad": float(coef[0]) / ctx.drive.ratio}}
+        return {"screw": {"backlash_m": float(coef[0])}}
+
+
+class Compliance(Effect):
+    """An elastic train: table minus motor position proportional to the transmitted
+    force (the motor's force less what accelerates the motor side)."""
+    name = "compliance"
+    domain = POSITION
+
+    def unavailable(self, ctx):
+        if ctx.m.dx is None:
+            return "the record has no motor encoder column (motor_pos_mm) beside pos_mm"
+        if ctx.cfg.mechanics.model == "screw":
+            return ("the screw model's stiffness follows from its dimensions; "
+                    "adjust [screw] rather than one spring")
+        return None
+
+    def _force(self, ctx):
+        m, d = ctx.m, ctx.drive
+        return m.force - d.motor_mass * m.a - d.motor_viscous * m.v
+
+    def declared(self, ctx):
+        if ctx.cfg.mechanics.model != "two_mass":
+            return None
+        k = ctx.cfg.coupling.stiffness_nm_per_rad / ctx.drive.ratio ** 2
+        return Term(self, {}, np.array([1.0 / k]))
+
+    def propose(self, ctx, residual, model):
+        f = self._force(ctx)
+        mask = ctx.m.use
+        cols = self.columns(ctx, {})
+        coef = lstsq(cols, residual, mask, np.zeros(1), np.full(1, np.inf))
+        base = model.term(self.name)
+        ev = {"explained": explained(residual, cols @ coef, mask),
+              "corr_with_force": correlation(residual[mask], -f[mask])}
+        if base is not None:
+            coef = coef + base.coef
+        k = 1.0 / coef[0] if coef[0] > 0 else math.inf
+        ev["text"] = (f"motor minus table position follows the transmitted force (r = "
+                      f"{ev['corr_with_force']:.2f}): stiffness {k:.4g} at the table")
+        return Term(self, {}, coef, True, ev)
+
+    def columns(self, ctx, shape):
+        return -self._force(ctx)[:, None]
+
+    def bounds(self, shape):
+        return np.zeros(1), np.full(1, np.inf)
+
+    def params(self, ctx, shape, coef):
+        k = 1.0 / coef[0] if coef[0] > 0 else math.inf
+        unit = "stiffness_nm_per_rad" if ctx.drive.kind == "rotary" else "stiffness_n_per_m"
+        return {unit: k}
+
+    def overrides(self, ctx, shape, coef, model):
+        k_rad = ctx.drive.ratio ** 2 / coef[0] if coef[0] > 0 else 1e12
+        out = {"coupling": {"stiffness_nm_per_rad": float(k_rad)}}
+        if ctx.cfg.mechanics.model == "rigid":
+            out["mechanics"] = {"model": "two_mass"}
+        return out
+
+
+@njit(cache=True)
+def _presliding_force(x, k1, x1, a, fc):
+    """The plant's presliding law run along the position ``x`` (shape (n,)): the spring
+    force at every sample (N), starting relaxed and moving toward +x."""
+    p = np.zeros(L.P_COUNT)
+    s = np.zeros(L.S_COUNT)
+    p[L.P_PRE_K1] = k1
+    p[L.P_PRE_X1] = x1
+    p[L.P_PRE_A] = a
+    p[L.P_FR_COULOMB] = fc
+    s[L.S_PRE_DIR] = 1.0
+    s[L.S_PRE_XREV] = x[0]
+    out = np.empty(x.size)
+    out[0] = 0.0
+    for k in range(1, x.size):
+        presliding_update(p, s, x[k - 1], x[k])
+        out[k] = s[L.S_PRE_F]
+    return out
+
+
+class Presliding(Effect):
+    """The presliding spring dF/dx = k1 / (|x/x1|^a + 1) restarted at reversals (seed 004):
+    near reversals friction builds up over micrometres instead of jumping."""
+    name = "presliding_hysteresis"
+    domain = FORCE
+    n_params = 3
+
+    def declared(self, ctx):
+        pr = ctx.cfg.presliding
+        if not pr.enabled:
+            return None
+        fc = ctx.cfg.friction.coulomb_n
+        return Term(self, {"k1": pr.stiffness_n_per_m, "x1": pr.x1_m, "a": pr.exponent,
+                           "fc": fc}, np.array([1.0]))
+
+    def unavailable(self, ctx):
+        if ctx.drive.kind == "rotary":
+            return "the presliding law is written for linear table travel"
+        return None
+
+    def mask(self, ctx):
+        return ctx.m.use
+
+    def _column(self, ctx, shape):
+        f = _presliding_force(ctx.m.x, shape["k1"], shape["x1"], shape["a"], shape["fc"])
+        return f - shape["fc"] * np.sign(ctx.m.v)
+
+    def propose(self, ctx, residual, model):
+        coulomb = model.term("coulomb_friction")
+        if coulomb is None or coulomb.coef[0] <= 0:
+            return None
+        fc = float(coulomb.coef[0])
+        mask = ctx.m.use
+        r = residual[mask]
+
+        def cost(z):
+            shape = {"k1": math.exp(z[0]), "x1": math.exp(z[1]), "a": z[2], "fc": fc}
+            return self._column(ctx, shape)[mask] - r
+
+        best = None
+        for x1 in (1e-7, 1e-6, 1e-5):
+            z0 = [math.log(10 * fc / x1), math.log(x1), 1.0]
+            sol = least_squares(cost, z0, bounds=([-np.inf, -np.inf, 0.3], [np.inf, np.inf, 3.0]),
+                                x_scale=[1.0, 1.0, 0.5], max_nfev=60)
+            if best is None or sol.cost < best.cost:
+                best = sol
+        shape = {"k1": math.exp(best.x[0]), "x1": math.exp(best.x[1]), "a": float(best.x[2]),
+                 "fc": fc}
+        col = self._column(ctx, shape)
+        ex = explained(residual, col, mask)
+        rev = np.flatnonzero(np.diff(ctx.direction) != 0) + 1
+        ev = {"explained": ex, "reversals": int(rev.size),
+              "text": f"the force residual swings at the {rev.size} reversals of motion and "
+                      f"follows a presliding spring of initial stiffness {shape['k1']:.3g} "
+                      f"N/m over x1 = {shape['x1'] * 1e6:.3g} um"}
+        return Term(self, shape, np.array([1.0]), True, ev)
+
+    def columns(self, ctx, shape):
+        return self._column(ctx, shape)[:, None]
+
+    def params(self, ctx, shape, coef):
+        return {"stiffness_n_per_m": shape["k1"] * float(coef[0]), "x1_m": shape["x1"],
+                "exponent": shape["a"]}
+
+    def overrides(self, ctx, shape, coef, model):
+        return {"presliding": {"enabled": True, **self.params(ctx, shape, coef)}}

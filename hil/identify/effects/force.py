@@ -1,0 +1,236 @@
+"""Effects the inverse model's force residual shows: inertia, friction, a constant force.
+
+Force balance at the table, in the measured motion (SI; N·m and rad on rotary tables)::
+
+    F = M a + Fv v + Fc sign(v) + (Fs - Fc) exp(-(v/vs)^2) sign(v) - F_ext - cog(theta_e)/r
+
+Sign conventions follow the plant: friction opposes the motion, ``F_ext`` is the
+external force pushing toward +x (``[table] external_force_n``).
+"""
+
+import numpy as np
+
+from hil.identify.effects.base import FORCE, Context, Effect, Term, correlation, explained, lstsq
+
+
+def _linear_term(effect: Effect, ctx: Context, residual: np.ndarray,
+                 evidence: dict) -> Term | None:
+    cols = effect.columns(ctx, {})
+    lo, hi = effect.bounds({})
+    mask = effect.mask(ctx)
+    coef = lstsq(cols, residual, mask, lo, hi)
+    evidence["explained"] = explained(residual, cols @ coef, mask)
+    return Term(effect, {}, coef, True, evidence)
+
+
+def _rotary(ctx: Context) -> bool:
+    return ctx.drive.kind == "rotary"
+
+
+class Inertia(Effect):
+    """Moved mass (inertia) differs from the config's: residual proportional to a."""
+    name = "inertia"
+    correctable = True
+
+    def declared(self, ctx):
+        return Term(self, {}, np.array([ctx.drive.mass]))
+
+    def propose(self, ctx, residual, model):
+        ev = {"corr_with_a": correlation(residual[ctx.moving], ctx.m.a[ctx.moving])}
+        term = _linear_term(self, ctx, residual, ev)
+        base = model.term(self.name)
+        term.coef = term.coef + (base.coef if base is not None else 0.0)
+        ev["text"] = (f"residual correlates with acceleration (r = {ev['corr_with_a']:.2f}): "
+                      f"moved {'inertia' if _rotary(ctx) else 'mass'} off by "
+                      f"{term.coef[0] - ctx.drive.mass:+.4g}")
+        return term
+
+    def columns(self, ctx, shape):
+        return ctx.m.a[:, None]
+
+    def bounds(self, shape):
+        return np.zeros(1), np.full(1, np.inf)
+
+    def params(self, ctx, shape, coef):
+        return {"inertia_kgm2" if _rotary(ctx) else "mass_kg": float(coef[0])}
+
+    def overrides(self, ctx, shape, coef, model):
+        cfg = ctx.cfg
+        if _rotary(ctx):
+            other = ctx.drive.mass - cfg.mechanics.load_inertia_kgm2
+            return {"mechanics": {"load_inertia_kgm2": max(0.0, float(coef[0]) - other)}}
+        other = ctx.drive.mass - cfg.table.mass_kg
+        return {"table": {"mass_kg": max(0.0, float(coef[0]) - other)}}
+
+
+class ViscousFriction(Effect):
+    """Viscous friction: residual proportional to v."""
+    name = "viscous_friction"
+    correctable = True
+
+    def declared(self, ctx):
+        return Term(self, {}, np.array([ctx.drive.viscous])) if ctx.drive.viscous > 0 else None
+
+    def propose(self, ctx, residual, model):
+        ev = {"corr_with_v": correlation(residual[ctx.moving], ctx.m.v[ctx.moving])}
+        term = _linear_term(self, ctx, residual, ev)
+        base = model.term(self.name)
+        if base is not None:
+            term.coef = term.coef + base.coef
+        ev["text"] = f"residual correlates with velocity (r = {ev['corr_with_v']:.2f})"
+        return term
+
+    def columns(self, ctx, shape):
+        return ctx.m.v[:, None]
+
+    def bounds(self, shape):
+        return np.zeros(1), np.full(1, np.inf)
+
+    def params(self, ctx, shape, coef):
+        return {"viscous_nms_per_rad" if _rotary(ctx) else "viscous_ns_per_m": float(coef[0])}
+
+    def overrides(self, ctx, shape, coef, model):
+        key = "viscous_nms_per_rad" if _rotary(ctx) else "viscous_ns_per_m"
+        return {"friction": {key: max(0.0, float(coef[0]) - ctx.drive.motor_viscous)}}
+
+
+def _coulomb_key(ctx):
+    return "coulomb_nm" if _rotary(ctx) else "coulomb_n"
+
+
+class CoulombFriction(Effect):
+    """Coulomb friction: a step of the residual with the sign of v."""
+    name = "coulomb_friction"
+    correctable = True
+
+    def declared(self, ctx):
+        fc = getattr(ctx.cfg.friction, _coulomb_key(ctx))
+        return Term(self, {}, np.array([fc])) if fc > 0 else None
+
+    def propose(self, ctx, residual, model):
+        s = np.sign(ctx.m.v)
+        ev = {"corr_with_sign_v": correlation(residual[ctx.moving], s[ctx.moving])}
+        term = _linear_term(self, ctx, residual, ev)
+        base = model.term(self.name)
+        if base is not None:
+            term.coef = term.coef + base.coef
+        ev["text"] = (f"residual steps with the direction of motion (correlation with "
+                      f"sign(v) {ev['corr_with_sign_v']:.2f})")
+        return term
+
+    def columns(self, ctx, shape):
+        return np.sign(ctx.m.v)[:, None]
+
+    def bounds(self, shape):
+        return np.zeros(1), np.full(1, np.inf)
+
+    def params(self, ctx, shape, coef):
+        return {_coulomb_key(ctx): float(coef[0])}
+
+    def overrides(self, ctx, shape, coef, model):
+        return {"friction": {_coulomb_key(ctx): float(coef[0])}}
+
+
+class GravityOffset(Effect):
+    """A constant force on the table (weight of a vertical axis, a cable chain, an offset
+    in the current measurement): a constant residual whatever the motion."""
+    name = "gravity_offset"
+    correctable = True
+
+    def _where(self, ctx):
+        """(section, key, section values) of the constant force in the machine file."""
+        if _rotary(ctx):
+            return "mechanics", "external_torque_nm", ctx.cfg.mechanics
+        return "table", "external_force_n", ctx.cfg.table
+
+    def declared(self, ctx):
+        _, key, values = self._where(ctx)
+        f = getattr(values, key)
+        return Term(self, {}, np.array([-f])) if f != 0.0 else None
+
+    def propose(self, ctx, residual, model):
+        r = residual[ctx.moving]
+        s = np.sign(ctx.m.v[ctx.moving])
+        up, down = r[s > 0], r[s < 0]
+        ev = {"mean_residual": float(r.mean()),
+              "mean_moving_plus": float(up.mean()) if up.size else 0.0,
+              "mean_moving_minus": float(down.mean()) if down.size else 0.0}
+        term = _linear_term(self, ctx, residual, ev)
+        base = model.term(self.name)
+        if base is not None:
+            term.coef = term.coef + base.coef
+        ev["text"] = (f"the residual has the same offset in both directions of motion "
+                      f"({ev['mean_moving_plus']:+.3g} moving +, {ev['mean_moving_minus']:+.3g} "
+                      f"moving -)")
+        return term
+
+    def columns(self, ctx, shape):
+        return np.ones((ctx.rec.n, 1))
+
+    def params(self, ctx, shape, coef):
+        return {self._where(ctx)[1]: -float(coef[0])}
+
+    def overrides(self, ctx, shape, coef, model):
+        section, key, _ = self._where(ctx)
+        return {section: {key: -float(coef[0])}}
+
+
+class Stribeck(Effect):
+    """The Stribeck dip: friction above the Coulomb level at low speed,
+    (Fs - Fc) exp(-(v/vs)^2) sign(v)."""
+    name = "stribeck"
+    n_params = 2
+
+    def _keys(self, ctx):
+        if _rotary(ctx):
+            return "breakaway_nm", "stribeck_velocity_rad_s"
+        return "breakaway_n", "stribeck_velocity_m_s"
+
+    def declared(self, ctx):
+        k_fs, k_vs = self._keys(ctx)
+        fs, vs = getattr(ctx.cfg.friction, k_fs), getattr(ctx.cfg.friction, k_vs)
+        fc = getattr(ctx.cfg.friction, _coulomb_key(ctx))
+        if vs <= 0 or fs <= fc:
+            return None
+        return Term(self, {"vs": vs}, np.array([fs - fc]))
+
+    def propose(self, ctx, residual, model):
+        if model.term("coulomb_friction") is None:
+            return None
+        vmax = float(np.max(np.abs(ctx.m.v[ctx.moving])))
+        mask = ctx.moving
+        best = None
+        # a dip wider than a third of the top speed is no longer told apart from Coulomb
+        for vs in np.geomspace(vmax / 300.0, vmax / 3.0, 40):
+            col = self.columns(ctx, {"vs": vs})
+            coef = lstsq(col, residual, mask, np.zeros(1), np.full(1, np.inf))
+            ex = explained(residual, col @ coef, mask)
+            if best is None or ex > best[0]:
+                best = (ex, vs, coef)
+        ex, vs, coef = best
+        slow = mask & (np.abs(ctx.m.v) < 2 * vs)
+        ev = {"explained": ex, "vs": float(vs),
+              "mean_abs_residual_slow": float(np.mean(np.abs(residual[slow]))) if slow.any()
+              else 0.0,
+              "mean_abs_residual_fast": float(np.mean(np.abs(residual[mask & ~slow])))}
+        ev["text"] = (f"friction above the Coulomb level at low speed: mean |residual| "
+                      f"{ev['mean_abs_residual_slow']:.3g} below {2 * vs:.3g} against "
+                      f"{ev['mean_abs_residual_fast']:.3g} above")
+        return Term(self, {"vs": float(vs)}, coef, True, ev)
+
+    def columns(self, ctx, shape):
+        v = ctx.m.v
+        return (np.sign(v) * np.exp(-(v / shape["vs"]) ** 2))[:, None]
+
+    def bounds(self, shape):
+        return np.zeros(1), np.full(1, np.inf)
+
+    def params(self, ctx, shape, coef):
+        k_fs, k_vs = self._keys(ctx)
+        return {"static_minus_coulomb": float(coef[0]), k_vs: shape["vs"]}
+
+    def overrides(self, ctx, shape, coef, model):
+        k_fs, k_vs = self._keys(ctx)
+        fc = model.term("coulomb_friction")
+        level = float(fc.coef[0]) if fc is not None else 0.0
+        return {"friction": {k_vs: shape["vs"], k_fs: level + float(coef[0])}}

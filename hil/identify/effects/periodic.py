@@ -1,0 +1,193 @@
+"""Effects periodic in a position: cogging (motor angle) and the screw's pitch error
+(table position).
+
+Both are sums of harmonics ``A sin(k phi + phase)`` and fit linearly as sine and cosine
+columns once the orders (periods) are chosen; the orders come from the residual's
+position-domain spectrum (seed 002).
+"""
+
+import math
+
+import numpy as np
+
+from hil.identify.effects.base import POSITION, Effect, Term, explained, lstsq
+from hil.identify.spectrum import position_spectrum
+
+MAX_HARMONICS = 4
+
+
+def _sincos(phase: np.ndarray, orders) -> np.ndarray:
+    cols = []
+    for k in orders:
+        cols += [np.sin(k * phase), np.cos(k * phase)]
+    return np.stack(cols, axis=1) if cols else np.zeros((phase.size, 0))
+
+
+def _amp_phase(coef: np.ndarray, scale: float) -> tuple[list[float], list[float]]:
+    """(s, c) pairs of s sin + c cos -> amplitudes and phases (deg) of
+    scale * (s sin + c cos) = A sin(. + phase)."""
+    amps, phases = [], []
+    for s, c in coef.reshape(-1, 2):
+        amps.append(float(abs(scale) * math.hypot(s, c)))
+        phases.append(float(math.degrees(math.atan2(scale * c, scale * s))))
+    return amps, phases
+
+
+def _greedy_orders(cols_of, candidates, residual, mask, min_gain):
+    """Pick orders one at a time while each removes at least ``min_gain`` of the residual
+    energy; returns (orders, coef, explained)."""
+    chosen: list[float] = []
+    coef = np.zeros(0)
+    ex = 0.0
+    for _ in range(MAX_HARMONICS):
+        best = None
+        for k in candidates:
+            if k in chosen:
+                continue
+            cols = cols_of(chosen + [k])
+            c = lstsq(cols, residual, mask)
+            e = explained(residual, cols @ c, mask)
+            if best is None or e > best[0]:
+                best = (e, k, c)
+        if best is None or best[0] - ex < min_gain:
+            break
+        ex, k, coef = best
+        chosen.append(k)
+    return chosen, coef, ex
+
+
+class Cogging(Effect):
+    """Cogging: a force residual periodic in the motor's electrical angle."""
+    name = "cogging"
+    n_params = 2
+    #: electrical orders looked at
+    MAX_ORDER = 12
+
+    def declared(self, ctx):
+        cg = ctx.cfg.cogging
+        if not cg.orders:
+            return None
+        amps = cg.amplitudes_n if ctx.drive.kind == "linear" else cg.amplitudes_nm
+        phases = cg.phases_deg or (0.0,) * len(cg.orders)
+        coef = []
+        for a, ph in zip(amps, phases):
+            # torque A sin(k th + ph) at the motor is -A/r sin(...) in the force balance
+            s = -a / ctx.drive.ratio
+            coef += [s * math.cos(math.radians(ph)), s * math.sin(math.radians(ph))]
+        return Term(self, {"orders": [float(k) for k in cg.orders]}, np.array(coef))
+
+    def _resolvable(self, ctx, order):
+        """Fraction of the moving samples where this order's time frequency stays below the
+        low-pass corner (above it the filter has removed the line)."""
+        m = ctx.m
+        w_e = np.abs(np.gradient(m.theta_e, ctx.rec.dt))
+        f = order * w_e / (2 * math.pi)
+        return float(np.mean(f[ctx.moving] < 0.7 * m.cutoff_hz))
+
+    def propose(self, ctx, residual, model):
+        orders = [k for k in range(1, self.MAX_ORDER + 1) if self._resolvable(ctx, k) > 0.5]
+        if not orders:
+            return None
+        mask = ctx.moving
+        chosen, coef, ex = _greedy_orders(lambda ks: _sincos(ctx.m.theta_e, ks), orders,
+                                          residual, mask, 0.01)
+        if not chosen:
+            return None
+        amps, _ = _amp_phase(coef, 1.0)
+        ev = {"explained": ex, "orders_per_electrical_rev": chosen, "amplitudes": amps,
+              "text": "residual periodic in the motor angle: " + ", ".join(
+                  f"order {k:g} per electrical revolution, {a:.3g}" for k, a in
+                  zip(chosen, amps))}
+        return Term(self, {"orders": chosen}, coef, True, ev)
+
+    def columns(self, ctx, shape):
+        return _sincos(ctx.m.theta_e, shape["orders"])
+
+    def n_coef(self, shape):
+        return 2 * len(shape["orders"])
+
+    def params(self, ctx, shape, coef):
+        amps, phases = _amp_phase(coef, -ctx.drive.ratio)
+        unit = "amplitudes_n" if ctx.drive.kind == "linear" else "amplitudes_nm"
+        return {"orders": list(shape["orders"]), unit: amps, "phases_deg": phases}
+
+    def overrides(self, ctx, shape, coef, model):
+        return {"cogging": self.params(ctx, shape, coef)}
+
+
+class PitchError(Effect):
+    """Pitch (lead) error of the screw: table position minus motor position, periodic in
+    the table position."""
+    name = "pitch_error"
+    domain = POSITION
+    n_params = 2
+
+    def unavailable(self, ctx):
+        if ctx.drive.kind != "screw":
+            return "only a ball screw has a pitch error"
+        if ctx.m.dx is None:
+            return "the record has no motor encoder column (motor_pos_mm) beside pos_mm"
+        return None
+
+    def declared(self, ctx):
+        pe = getattr(ctx.cfg, "pitch_error", None)
+        if pe is None or not pe.periods_m:
+            return None
+        phases = pe.phases_deg or (0.0,) * len(pe.periods_m)
+        coef = []
+        for a, ph in zip(pe.amplitudes_m, phases):
+            coef += [a * math.cos(math.radians(ph)), a * math.sin(math.radians(ph))]
+        return Term(self, {"periods_m": list(pe.periods_m)}, np.array(coef))
+
+    def _cols(self, ctx, periods):
+        return _sincos(2 * math.pi * ctx.m.x, [1.0 / p for p in periods])
+
+    def propose(self, ctx, residual, model):
+        mask = ctx.moving
+        x = ctx.m.x[mask]
+        travel = float(x.max() - x.min()) if x.size else 0.0
+        if travel <= 0:
+            return None
+        # shortest period looked at: eight samples per period at the top speed
+        vmax = float(np.max(np.abs(ctx.m.v[mask])))
+        p_min = max(8 * vmax * ctx.rec.dt, travel / 2000)
+        spec = position_spectrum(residual, ctx.m.x, mask, p_min / 4)
+        peaks = spec.peaks(3 * MAX_HARMONICS, min_cycles=2.0 / travel)
+        periods = [1.0 / f for f, _ in peaks if 1.0 / f >= p_min]
+        if not periods:
+            return None
+        periods = [self._refine(ctx, residual, mask, p) for p in periods]
+        chosen, coef, ex = _greedy_orders(lambda ps: self._cols(ctx, ps), periods, residual,
+                                          mask, 0.01)
+        if not chosen:
+            return None
+        amps, _ = _amp_phase(coef, 1.0)
+        ev = {"explained": ex, "periods_m": chosen, "amplitudes_m": amps,
+              "text": "table position minus motor position is periodic in the table "
+                      "position: " + ", ".join(f"period {p * 1e3:.4g} mm, {a * 1e6:.3g} um"
+                                               for p, a in zip(chosen, amps))}
+        return Term(self, {"periods_m": chosen}, coef, True, ev)
+
+    def _refine(self, ctx, residual, mask, period):
+        """The period near a spectral line that explains most (the line sits on the
+        FFT's grid of 1/travel)."""
+        best = (0.0, period)
+        for p in period * np.linspace(0.97, 1.03, 61):
+            cols = self._cols(ctx, [p])
+            e = explained(residual, cols @ lstsq(cols, residual, mask), mask)
+            best = max(best, (e, float(p)))
+        return best[1]
+
+    def columns(self, ctx, shape):
+        return self._cols(ctx, shape["periods_m"])
+
+    def n_coef(self, shape):
+        return 2 * len(shape["periods_m"])
+
+    def params(self, ctx, shape, coef):
+        amps, phases = _amp_phase(coef, 1.0)
+        return {"periods_m": list(shape["periods_m"]), "amplitudes_m": amps,
+                "phases_deg": phases}
+
+    def overrides(self, ctx, shape, coef, model):
+        return {"pitch_error": self.params(ctx, shape, coef)}

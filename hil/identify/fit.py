@@ -1,0 +1,248 @@
+"""Greedy identification: find what the model lacks, one effect at a time.
+
+Each step computes the residuals the current model leaves (the inverse model's force
+residual from the measured motion, and the table-minus-motor position where both
+encoders were recorded), lets every effect of the library not yet in the model fit
+itself to its residual alone, and takes the one that explains the largest share of its
+residual's energy (the simplest when several explain within 10 % of the best).  The
+effect's parameters are then fitted jointly with every term of its domain — the base
+parameters (mass, viscous friction, ...) are freed again — and the config with the
+effects added is replayed in closed loop against the record.
+
+It stops when no effect explains ``min_explained`` of the residual, when every residual
+is at its noise floor (``floor_factor`` times the measurement noise estimated from the
+record's content above the filter corner), or after ``max_steps``.  A delay is looked
+for last, through the replay, because it is the expensive one and no residual shows it.
+"""
+
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from hil.identify.effects import FORCE, LIBRARY, POSITION, REPLAY, Context, Term
+from hil.identify.effects.base import correlation
+from hil.identify.model import Model
+from hil.identify.motion import Drive, motion
+from hil.identify.record import Record
+from hil.identify.replay import Replay, errors
+from hil.identify.spectrum import position_spectrum
+from plant.config import load_machine
+
+
+@dataclass
+class Step:
+    """One added effect: name, fitted parameters (SI), evidence and the replay's errors."""
+    effect: str
+    params: dict
+    evidence: dict
+    error: dict
+
+
+def record_errors(rec: Record, rep: Replay | None) -> dict:
+    """The replay's errors against the record (:func:`hil.identify.replay.errors`), with
+    the motor encoder's when both have one; {"status": ...} when the replay failed."""
+    if rep is None:
+        return {"status": "invalid machine file"}
+    if rep.status != 0:
+        return {"status": f"plant fault {rep.status}"}
+    out = errors(rec, rep)
+    if (rec.motor_pos is not None and rep.motor_pos is not None
+            and not np.array_equal(rec.motor_pos, rec.pos)):
+        d = rec.motor_pos[50:] - rep.motor_pos[50:]
+        out["motor_pos_rms_um"] = float(np.sqrt(np.mean(d * d)) * 1e6)
+    return out
+
+
+@dataclass
+class Identification:
+    """Identify the effects a machine file lacks from one record.
+
+    Args:
+        config: the machine file to start from.
+        rec: the record (see :func:`hil.identify.record.load_record`).
+        min_explained: smallest share of a residual's energy an effect must explain.
+        floor_factor: a residual within this factor of its noise floor is done.
+        max_steps: most effects added.
+        refine_nfev: closed-loop refinement's budget of least-squares iterations (0: off).
+        cutoff_hz: low-pass corner of the inverse model (None: a tenth of the sample rate).
+        log: optional callable(str) for progress lines.
+    """
+    config: str | Path
+    rec: Record
+    min_explained: float = 0.05
+    floor_factor: float = 1.5
+    max_steps: int = 6
+    refine_nfev: int = 15
+    cutoff_hz: float | None = None
+    log: object = None
+    steps: list[Step] = field(default_factory=list)
+    skipped: dict = field(default_factory=dict)
+    refinement: dict = field(default_factory=dict)
+
+    def _say(self, text: str) -> None:
+        if self.log is not None:
+            self.log(f"[{time.monotonic() - self._t0:6.1f} s] {text}")
+
+    def fit(self) -> "Identification":
+        """Run the greedy search; returns self."""
+        self._t0 = time.monotonic()
+        cfg = load_machine(self.config)
+        self.drive = Drive.of(cfg)
+        self.motion = motion(self.rec, self.drive, self.cutoff_hz)
+        self.ctx = Context.of(cfg, self.drive, self.rec, self.motion)
+        self.model = Model(self.ctx, self.config)
+        self._say(f"replaying {self.rec.n} samples through {Path(self.config).name}")
+        self.replay_before = self.model.replay()
+        self.error_before = record_errors(self.rec, self.replay_before)
+        self.residual_before = {d: self.model.residual(d) for d in self._domains()}
+        self.friction_before = friction_curve(self.model)
+        self.model_before_inertia = float(self.model.term("inertia").coef[0])
+        self._say(f"error before: {_fmt(self.error_before)}")
+        for _ in range(self.max_steps):
+            term = self._best()
+            if term is None:
+                break
+            self.model.add(term)
+            if term.effect.domain != REPLAY:
+                self.model.refit(term.effect.domain)
+            rep = self.model.replay()
+            err = record_errors(self.rec, rep)
+            self.steps.append(Step(term.effect.name, term.params(self.ctx), term.evidence, err))
+            self._say(f"added {term.effect.name} ({term.evidence.get('text', '')}); "
+                      f"error {_fmt(err)}")
+        if self.refine_nfev > 0 and self.steps:
+            self._refine()
+        self.replay_after = self.model.replay()
+        self.error_after = record_errors(self.rec, self.replay_after)
+        self.residual_after = {d: self.model.residual(d) for d in self._domains()}
+        self.friction_after = friction_curve(self.model)
+        self.unexplained = self._describe_rest()
+        self._say("done")
+        return self
+
+    def _refine(self) -> None:
+        """Closed-loop output error: adjust the single-coefficient force terms (mass,
+        viscous and Coulomb friction, constant force, Stribeck excess) so that the replay's
+        effort matches the record's (``scipy.optimize.least_squares``).  The inverse model
+        weighs every sample's force balance equally; the closed loop weighs them as the
+        controller does, which is the error the report measures."""
+        from scipy.optimize import least_squares
+        terms = [t for t in self.model.terms if t.effect.domain == FORCE
+                 and t.effect.n_coef(t.shape) == 1 and t.effect.name != "presliding_hysteresis"]
+        if not terms:
+            return
+        z0 = np.array([float(t.coef[0]) for t in terms])
+        lo = np.array([t.effect.bounds(t.shape)[0][0] for t in terms])
+        hi = np.array([t.effect.bounds(t.shape)[1][0] for t in terms])
+        z0 = np.clip(z0, lo + 1e-12 * np.abs(z0), hi)
+        rec = self.rec
+        count = [0]
+
+        def residual(z):
+            for t, value in zip(terms, z):
+                t.coef = np.array([value])
+            self.model.add(terms[0])  # forget the cached replay
+            rep = self.model.replay()
+            count[0] += 1
+            if rep is None or rep.status != 0:
+                return np.full(rec.n - 50, 1e6)
+            return rec.effort[50:] - rep.effort[50:]
+
+        before = {t.effect.name: float(t.coef[0]) for t in terms}
+        self._say(f"refining {', '.join(before)} on the closed-loop replay")
+        scale = np.maximum(np.abs(z0), 1e-3 * max(float(np.max(np.abs(z0))), 1e-9))
+        sol = least_squares(residual, z0, bounds=(lo, hi), x_scale=scale, diff_step=1e-3,
+                            max_nfev=self.refine_nfev)
+        residual(sol.x if sol.cost <= 0.5 * float(residual(z0) @ residual(z0)) else z0)
+        after = {t.effect.name: float(t.coef[0]) for t in terms}
+        self.refinement = {"coefficients_before": before, "coefficients_after": after,
+                           "replays": count[0]}
+        self._say(f"refined in {count[0]} replays")
+
+    def _domains(self) -> list[str]:
+        return [FORCE] + ([POSITION] if self.motion.dx is not None else [])
+
+    def noise_floor(self, domain: str) -> float:
+        return self.motion.noise_force if domain == FORCE else self.motion.noise_dx
+
+    def _at_floor(self, domain: str) -> bool:
+        return self.model.residual_rms(domain) <= self.floor_factor * self.noise_floor(domain)
+
+    def _candidates(self, domains) -> list[Term]:
+        out = []
+        for effect in LIBRARY:
+            if effect.domain not in domains:
+                continue
+            why = effect.unavailable(self.ctx)
+            if why is not None:
+                self.skipped[effect.name] = why
+                continue
+            have = self.model.term(effect.name)
+            if have is not None and (have.added or not effect.correctable):
+                continue
+            residual = self.model.residual(effect.domain) if effect.domain != REPLAY else None
+            self._say(f"  trying {effect.name}")
+            term = effect.propose(self.ctx, residual, self.model)
+            if term is not None:
+                out.append(term)
+        return out
+
+    def _best(self) -> Term | None:
+        domains = [d for d in self._domains() if not self._at_floor(d)]
+        cands = [t for t in self._candidates(domains)
+                 if t.evidence.get("explained", 0.0) >= self.min_explained]
+        if not cands:
+            # nothing in the residuals: a delay shows only in the closed loop
+            cands = [t for t in self._candidates([REPLAY])
+                     if t.evidence.get("explained", 0.0) >= self.min_explained]
+        if not cands:
+            return None
+        top = max(t.evidence["explained"] for t in cands)
+        near = [t for t in cands if t.evidence["explained"] >= 0.9 * top]
+        order = {e.name: i for i, e in enumerate(LIBRARY)}
+        return min(near, key=lambda t: (t.effect.n_params, order[t.effect.name]))
+
+    def _describe_rest(self) -> dict:
+        """The signature of what is left, whatever the library says about it."""
+        out = {}
+        m, ctx = self.motion, self.ctx
+        for domain in self._domains():
+            r = self.model.residual(domain)
+            mask = ctx.moving
+            rms = float(np.sqrt(np.mean(r[mask] ** 2))) if mask.any() else 0.0
+            info = {"rms": rms, "noise_floor": self.noise_floor(domain),
+                    "corr_sign_v": correlation(r[mask], np.sign(m.v[mask])),
+                    "corr_v": correlation(r[mask], m.v[mask]),
+                    "corr_a": correlation(r[mask], m.a[mask])}
+            travel = float(np.ptp(m.x[mask])) if mask.any() else 0.0
+            if travel > 0:
+                spec = position_spectrum(r, m.x, mask, travel / 4000)
+                peaks = spec.peaks(3, min_cycles=2.0 / travel)
+                info["periodic_in_table_position"] = [
+                    {"period_m": 1.0 / f, "amplitude": a,
+                     "per_motor_rev": self.drive.ratio * 2 * math.pi * f
+                     if self.drive.kind == "screw" else None} for f, a in peaks]
+            out[domain] = info
+        return out
+
+
+def friction_curve(model: Model):
+    """The model's sliding friction against velocity: a function of v (array, m/s or
+    rad/s) returning the force (N or N·m) the motor must overcome."""
+    def coef(name):
+        t = model.term(name)
+        return (float(t.coef[0]), t.shape) if t is not None else (0.0, {})
+
+    fv, _ = coef("viscous_friction")
+    fc, _ = coef("coulomb_friction")
+    fs, shape = coef("stribeck")
+    vs = shape.get("vs", 1.0)
+    return lambda v: fv * v + np.sign(v) * (fc + fs * np.exp(-(v / vs) ** 2))
+
+
+def _fmt(err: dict) -> str:
+    return ", ".join(f"{k} {v:.4g}" if isinstance(v, float) else f"{k} {v}"
+                     for k, v in err.items())

@@ -1,0 +1,217 @@
+"""What ``hil identify`` writes: report.json, report.md, the plots and the fitted config."""
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+
+from hil.identify.config_out import write_config
+from hil.identify.effects import FORCE, POSITION
+from hil.identify.fit import Identification
+from hil.identify.spectrum import position_spectrum
+
+#: EMPS reference model, closed-loop simulation vs measurement (SOURCE.md, Janot et al.
+#: 2019 §4.2): relative errors in % over samples 50..N
+EMPS_PUBLISHED = {
+    "DATA_EMPS": {"pos_relerr_pct": 0.013752, "force_relerr_pct": 5.848},
+    "DATA_EMPS_PULSES": {"pos_relerr_pct": 0.0080248, "force_relerr_pct": 8.9409},
+}
+METHOD = ("Inverse model on the measured motion (zero-phase low-pass, parallel filtering of "
+          "the force) to find and fit the effects, because it is linear in most parameters "
+          "and needs no simulation; errors before and after by closed-loop replay of the "
+          "recorded setpoints through the machine file's model and controller (the EMPS "
+          "records: the benchmark's PD loop), because that is how the emulator will be used.")
+
+
+def _clean(obj):
+    """JSON-ready: numpy scalars and arrays to Python, non-finite floats to None."""
+    if isinstance(obj, dict):
+        return {str(k): _clean(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple, np.ndarray)):
+        return [_clean(v) for v in obj]
+    if isinstance(obj, (np.floating, float)):
+        return float(obj) if math.isfinite(obj) else None
+    if isinstance(obj, np.integer):
+        return int(obj)
+    return obj
+
+
+def summary(ident: Identification, validation: dict | None, elapsed_s: float) -> dict:
+    """The content of report.json."""
+    rec = ident.rec
+    out = {
+        "trace": rec.source, "config": str(ident.config), "method": METHOD,
+        "samples": rec.n, "sample_time_s": rec.dt, "filter_cutoff_hz": ident.motion.cutoff_hz,
+        "effects_added": [s.effect for s in ident.steps],
+        "steps": [{"effect": s.effect, "params": s.params, "evidence": s.evidence,
+                   "error": s.error} for s in ident.steps],
+        "error_before": ident.error_before, "error_after": ident.error_after,
+        "validation": validation or {},
+        "noise_floor": {d: ident.noise_floor(d) for d in ident._domains()},
+        "unexplained": ident.unexplained, "not_looked_for": ident.skipped,
+        "thresholds": {"min_explained": ident.min_explained,
+                       "floor_factor": ident.floor_factor},
+        "elapsed_s": elapsed_s,
+    }
+    published = EMPS_PUBLISHED.get(Path(rec.source).stem)
+    if published is not None:
+        out["published_reference"] = {Path(rec.source).stem: published}
+        if validation:
+            stem = Path(validation["trace"]).stem
+            if stem in EMPS_PUBLISHED:
+                out["published_reference"][stem] = EMPS_PUBLISHED[stem]
+    return _clean(out)
+
+
+def _row(err: dict, keys) -> list[str]:
+    return [f"{err[k]:.4g}" if isinstance(err.get(k), float) else str(err.get(k, "-"))
+            for k in keys]
+
+
+def markdown(rep: dict) -> str:
+    """report.md from report.json's content."""
+    eff = "force" if "force_relerr_pct" in rep["error_before"] else "iq"
+    unit = "n" if eff == "force" else "a"
+    keys = ["pos_rms_um", "pos_relerr_pct", f"{eff}_rms_{unit}", f"{eff}_relerr_pct"]
+    if "motor_pos_rms_um" in rep["error_before"]:
+        keys.append("motor_pos_rms_um")
+    lines = [f"# Identification of `{Path(rep['trace']).name}`", "",
+             f"Start config: `{rep['config']}`; {rep['samples']} samples at "
+             f"{rep['sample_time_s'] * 1e3:.4g} ms; inverse-model low-pass "
+             f"{rep['filter_cutoff_hz']:.4g} Hz; {rep['elapsed_s']:.1f} s.", "",
+             f"Method: {rep['method']}", "",
+             "Effects added, in order: " + (", ".join(f"`{e}`" for e in rep["effects_added"])
+                                            or "none"), "",
+             "## Errors (closed-loop replay, from sample 50; relerr = 100 ||y - y^|| / ||y||)",
+             "", "| record | model | " + " | ".join(keys) + " |",
+             "|---" * (len(keys) + 2) + "|"]
+    name = Path(rep["trace"]).stem
+    lines.append(f"| {name} | config as given | " + " | ".join(_row(rep["error_before"], keys))
+                 + " |")
+    lines.append(f"| {name} | identified | " + " | ".join(_row(rep["error_after"], keys))
+                 + " |")
+    val = rep.get("validation") or {}
+    if val:
+        vname = Path(val["trace"]).stem
+        lines.append(f"| {vname} (validation) | config as given | "
+                     + " | ".join(_row(val["error_before"], keys)) + " |")
+        lines.append(f"| {vname} (validation) | identified | "
+                     + " | ".join(_row(val["error_after"], keys)) + " |")
+    for rname, pub in (rep.get("published_reference") or {}).items():
+        lines.append(f"| {rname} | published reference model (Janot et al. 2019) | - | "
+                     f"{pub['pos_relerr_pct']} | - | {pub['force_relerr_pct']} |"
+                     + (" - |" if len(keys) > 4 else ""))
+    lines += ["", "## Steps", ""]
+    for i, s in enumerate(rep["steps"], 1):
+        params = ", ".join(f"{k} = {_fmt(v)}" for k, v in s["params"].items())
+        lines += [f"{i}. **{s['effect']}** — {params}",
+                  f"   - evidence: {s['evidence'].get('text', '')} (explains "
+                  f"{100 * s['evidence'].get('explained', 0):.1f} % of its residual)",
+                  f"   - error after this step: " + ", ".join(
+                      f"{k} {_fmt(v)}" for k, v in s["error"].items())]
+    lines += ["", "## What is left", ""]
+    for domain, info in rep["unexplained"].items():
+        unit_d = "N" if domain == FORCE else "m"
+        text = (f"- {domain} residual: rms {_fmt(info['rms'])} {unit_d} (noise floor "
+                f"{_fmt(info['noise_floor'])} {unit_d}); correlation with sign(v) "
+                f"{info['corr_sign_v']:.2f}, v {info['corr_v']:.2f}, a {info['corr_a']:.2f}")
+        peaks = info.get("periodic_in_table_position") or []
+        if peaks:
+            p = peaks[0]
+            text += (f"; strongest periodic part: period {p['period_m'] * 1e3:.4g} mm in table "
+                     f"position, amplitude {_fmt(p['amplitude'])} {unit_d}")
+        lines.append(text)
+    if rep["not_looked_for"]:
+        lines += ["", "Not looked for: " + "; ".join(f"`{k}`: {v}" for k, v in
+                                                    rep["not_looked_for"].items())]
+    lines += ["", "Plots: `residual_time.png`, `spectrum.png`, `friction_map.png`; fitted "
+              "machine file: `config.toml`.", ""]
+    return "\n".join(lines)
+
+
+def _fmt(v) -> str:
+    if isinstance(v, float):
+        return f"{v:.4g}"
+    if isinstance(v, list):
+        return "[" + ", ".join(_fmt(x) for x in v) + "]"
+    return str(v)
+
+
+def plots(ident: Identification, out: Path) -> None:
+    """residual_time.png, spectrum.png and friction_map.png."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rec, m, ctx = ident.rec, ident.motion, ident.ctx
+    domains = ident._domains()
+    fig, axes = plt.subplots(len(domains) + 1, 1, figsize=(10, 3 * (len(domains) + 1)),
+                             sharex=True)
+    for ax, d in zip(axes, domains):
+        scale, unit = (1.0, "N") if d == FORCE else (1e6, "um")
+        ax.plot(rec.t, ident.residual_before[d] * scale, lw=0.6, label="before")
+        ax.plot(rec.t, ident.residual_after[d] * scale, lw=0.6, label="after")
+        ax.set_ylabel(f"{'force' if d == FORCE else 'table - motor'} residual ({unit})")
+        ax.legend(loc="upper right")
+    ax = axes[-1]
+    for name, rp in (("before", ident.replay_before), ("after", ident.replay_after)):
+        if rp is not None and rp.status == 0:
+            ax.plot(rec.t, rec.effort - rp.effort, lw=0.6, label=f"replay error {name}")
+    ax.set_ylabel("effort error (" + ("N" if rec.effort_kind == "force" else "A") + ")")
+    ax.set_xlabel("t (s)")
+    ax.legend(loc="upper right")
+    fig.suptitle("Residuals: inverse model (top), closed-loop replay (bottom)")
+    fig.tight_layout()
+    fig.savefig(out / "residual_time.png", dpi=110)
+    plt.close(fig)
+
+    fig, axes = plt.subplots(len(domains), 1, figsize=(10, 3.5 * len(domains)), squeeze=False)
+    travel = float(np.ptp(m.x[ctx.moving])) if ctx.moving.any() else 0.0
+    for ax, d in zip(axes[:, 0], domains):
+        if travel <= 0:
+            break
+        for name, r in (("before", ident.residual_before[d]), ("after", ident.residual_after[d])):
+            s = position_spectrum(r, m.x, ctx.moving, travel / 4000)
+            ax.semilogy(s.cycles_per_unit[1:] * 1e-3, s.amplitude[1:], lw=0.8, label=name)
+        if ident.drive.kind == "screw":
+            ax.axvline(1e-3 / (2 * math.pi * ident.drive.ratio), color="k", ls=":", lw=0.8,
+                       label="1 / lead")
+        ax.set_xlabel("spatial frequency (cycles per mm of table travel)")
+        ax.set_ylabel(f"{d} residual amplitude ({'N' if d == FORCE else 'm'})")
+        ax.legend()
+    fig.suptitle("Position-domain spectrum of the residuals")
+    fig.tight_layout()
+    fig.savefig(out / "spectrum.png", dpi=110)
+    plt.close(fig)
+
+    fig, ax = plt.subplots(figsize=(8, 5))
+    inertia_before = ident.model_before_inertia
+    inertia_after = ident.model.term("inertia").coef[0]
+    sel = ctx.m.use
+    ax.plot(m.v[sel], (m.force - inertia_after * m.a)[sel], ",", alpha=0.4,
+            label="measured F - M a")
+    v = np.linspace(float(m.v[sel].min()), float(m.v[sel].max()), 400)
+    for name, fr in (("before", ident.friction_before), ("after", ident.friction_after)):
+        ax.plot(v, fr(v), lw=1.5, label=f"model friction {name}")
+    ax.set_xlabel("table velocity (m/s)" if ident.drive.kind != "rotary" else "rad/s")
+    ax.set_ylabel("force (N)" if ident.drive.kind != "rotary" else "torque (N m)")
+    ax.set_title(f"Friction map (M before {inertia_before:.4g}, after {inertia_after:.4g})")
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(out / "friction_map.png", dpi=110)
+    plt.close(fig)
+
+
+def write(ident: Identification, out: str | Path, validation: dict | None,
+          elapsed_s: float) -> dict:
+    """Write every output into ``out``; returns report.json's content."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    rep = summary(ident, validation, elapsed_s)
+    (out / "report.json").write_text(json.dumps(rep, indent=2) + "\n")
+    (out / "report.md").write_text(markdown(rep))
+    write_config(ident.config, out / "config.toml", ident.model.overrides(),
+                 "identified by hil identify from " + Path(ident.rec.source).name)
+    plots(ident, out)
+    return rep
