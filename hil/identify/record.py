@@ -177,10 +177,11 @@ def _load_csv(path: Path) -> Record:
 def _load_mat(path: Path) -> Record:
     """An EMPS benchmark file: qm -> pos and motor_pos, qg -> pos_set, gtau vir -> force."""
     from scipy.io import loadmat  # only .mat records need scipy.io
+    from scipy.io.matlab import MatReadError
 
     try:
         data = loadmat(path)
-    except (OSError, ValueError, TypeError) as exc:
+    except (OSError, ValueError, TypeError, MatReadError) as exc:
         raise TraceFormatError(f"{path}: not a readable MATLAB .mat file ({exc})") from None
     names = sorted(k for k in data if not k.startswith("__"))
     missing = [v for v in EMPS_VARIABLES if v not in data]

@@ -51,6 +51,9 @@ from plant.kernel import axis_step_nb
 
 #: how far a record's sample time may be from a whole number of plant periods (relative)
 PERIOD_TOLERANCE = 1e-3
+#: relative margin below the velocity limit at which a recorded speed command counts as
+#: clipped (the mm/min round trip of the trace file changes the last digits)
+CLIP_TOLERANCE = 1e-9
 #: default first sample of :func:`errors`: MATLAB's sample 50, the EMPS scripts' n_border
 ERROR_START = 49
 
@@ -147,7 +150,7 @@ def _replay_emps(cfg: MachineConfig, rec: Record, progress) -> Replay:
         dq = 0.5 * (q - q2) / dt  # (qf(k) - qf(k-1)) / dt with qf(k) = (q(k) + q(k-1)) / 2
         q2, q1 = q1, q
         nu = gain * (qr[k] - q) - kv * dq
-        nu = v_max if nu > v_max else (-v_max if nu < -v_max else nu)
+        nu = min(v_max, max(-v_max, nu))
         u = nu_prev + pulses[k]
         nu_prev = nu
         pos[k] = q
@@ -164,15 +167,18 @@ def _replay_emps(cfg: MachineConfig, rec: Record, progress) -> Replay:
 
 def _feed_forward(rec: Record, loop: PositionLoop) -> np.ndarray:
     """The speed feed-forward v_set (m/s, shape (n,)) the NC added to the P path: exact
-    from the recorded speed command when there is one, else the setpoint's central
-    difference."""
+    from the recorded speed command where there is one and it is below the velocity limit
+    (a clipped command hides it), else the setpoint's central difference."""
+    v_est = np.gradient(rec.pos_set, rec.dt)
     if rec.vel_set is None or loop.ff == 0.0:
-        return np.gradient(rec.pos_set, rec.dt)
+        return v_est
     v_ff = np.empty(rec.n)
     loop.reset(float(rec.pos[0]))
     for k in range(rec.n):
         loop.step(float(rec.pos_set[k]), 0.0, float(rec.pos[k]))
         v_ff[k] = (rec.vel_set[k] - loop.kv * loop.error) / loop.ff
+    clipped = np.abs(rec.vel_set) >= loop.v_lim * (1.0 - CLIP_TOLERANCE)
+    v_ff[clipped] = v_est[clipped]
     return v_ff
 
 
