@@ -31,7 +31,7 @@ from plant.machines import MachineSet
 SIGNALS = {
     "t_s": "s", "x_set": "m", "v_set": "m/s", "a_set": "m/s^2", "x_act": "m",
     "v_act": "m/s", "v_cmd": "m/s", "w_set": "rad/s", "w_act": "rad/s", "iq_set": "A",
-    "iq_meas": "A", "iq_true": "A", "table_pos": "m", "motor_pos": "rad",
+    "iq_meas": "A", "iq_true": "A", "table_pos": "m", "motor_pos": "rad", "motor_pos_meas": "rad",
     "following_error": "m", "tick": "1",
 }
 
@@ -135,6 +135,7 @@ class _Recording:
         rec["iq_true"][k] = out.output("iq_a")
         rec["table_pos"][k] = out.output("table_pos")
         rec["motor_pos"][k] = out.output("motor_pos")
+        rec["motor_pos_meas"][k] = ctrl.theta_act
         rec["following_error"][k] = ctrl.following_error
         rec["tick"][k] = ctrl.tick_count - 1
 
@@ -203,7 +204,7 @@ class MachineLockStep:
 TRACE_COLUMNS = {
     "pos_set_mm": "x_set", "pos_mm": "x_act", "vel_set_mm_min": "v_cmd",
     "vel_mm_min": "v_act", "iq_set_a": "iq_set", "iq_a": "iq_meas",
-    "motor_pos_mm": "motor_pos",
+    "motor_pos_mm": "motor_pos_meas",
 }
 #: the same columns on a rotary table
 ROTARY_NAMES = {"pos_set_mm": "pos_set_deg", "pos_mm": "pos_deg", "vel_set_mm_min":
@@ -220,7 +221,7 @@ def servo_trace_columns(res: SimResult, every: int) -> dict[str, np.ndarray]:
     rows = np.flatnonzero(res["tick"] % every == 0)
     cols = {"t_s": res["t_s"][rows] - res["t_s"][rows[0]]}
     for name, sig in TRACE_COLUMNS.items():
-        values = res[sig] * (res.ratio if sig == "motor_pos" else 1.0)
+        values = res[sig] * (res.ratio if sig == "motor_pos_meas" else 1.0)
         if res.kind == "rotary":
             name = ROTARY_NAMES.get(name, name)
         factor, _ = si_factor(name)

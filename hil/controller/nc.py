@@ -37,7 +37,8 @@ class Controller:
     """Interpolation, position, speed and current control of one axis.
 
     Signals of the last tick (SI, table units unless named otherwise) are
-    attributes: ``x_set, v_set, a_set, x_act, v_act, v_cmd, w_set, w_act, iq_set`` and
+    attributes: ``x_set, v_set, a_set, x_act, theta_act (motor encoder, rad), v_act, v_cmd,
+    w_set, w_act, iq_set`` and
     ``following_error`` (x_set - x_act, taken at the position-control cycle like the
     NC's own, and held between cycles).
     """
@@ -82,6 +83,7 @@ class Controller:
         self.tick_count = 0
         self.t = 0.0
         self.x_set = self.x_act = x0
+        self.theta_act = x0 / self.ratio
         self.v_set = self.a_set = self.v_act = self.v_cmd = 0.0
         self.w_set = self.w_act = self.iq_set = self.i_ff = self.following_error = 0.0
         self.theta_prev = None
@@ -131,6 +133,7 @@ class Controller:
                 self.w_act = (theta - self.theta_prev) / (self.period * n_speed)
                 self.v_act = self.w_act * self.ratio
             self.theta_prev = theta
+        self.theta_act = theta
         self.x_act = fb.scale_counts * self.scale_res if self.scale_res else theta * self.ratio
 
     def _follow_up(self) -> None:
