@@ -27,8 +27,8 @@ to the measurement) and keeps every quantisation (encoder, scale, current LSB).
   difference of the position setpoint (a few µm of following error on jerk-limited moves).
   The acceleration for the torque feed-forward is the central difference of v_ff.  The
   signals are taken where the trace takes them (:func:`hil.sim.servo_trace_columns`): the
-  position the controller read and the current measured at the start of the position
-  cycle's PWM period.
+  position and motor encoder the controller read and the current measured at the start
+  of the position cycle's PWM period.
 """
 
 import dataclasses
@@ -65,7 +65,7 @@ class Replay:
     Attributes (arrays of shape (n,); NaN after a plant fault):
         pos: m (rad), what the record's ``pos`` would be (same sensor: scale or encoder).
         effort: same kind and unit as ``Record.effort`` (A or N).
-        motor_pos: motor position in table units (m or rad), as the trace's column.
+        motor_pos: motor encoder in table units (m or rad), read with ``pos``.
         vel: the model's table velocity, m/s (rad/s).
         status: 0, or the plant's fault status (``plant.layout.STATUS_*``) that stopped it.
     """
@@ -226,7 +226,7 @@ def _replay_nc(cfg: MachineConfig, rec: Record, progress) -> Replay:
         if (ctrl.tick_count - 1) % ratio_pos == 0:
             pos[row] = ctrl.x_act
             effort[row] = fb.iq_a * per_amp
-            motor_pos[row] = out[L.O_MOTOR_POS] * ctrl.ratio
+            motor_pos[row] = ctrl.theta_act * ctrl.ratio
             vel[row] = out[L.O_TABLE_VEL]
             if progress is not None and row % every_report == 0:
                 progress(row / n)
