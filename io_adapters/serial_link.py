@@ -59,6 +59,9 @@ from io_adapters.codec import MsgpackEndpoint
 
 SOF = b"\xa5\x5a"
 MAX_PAYLOAD = 255
+#: the most axes a group message (codec version 2) may carry here: with every integer at
+#: its widest, 3 axes take 232 bytes (setpoint) and 226 (feedback), 4 axes 300 and 280
+MAX_AXES = 3
 DEFAULT_BAUD = 115200
 #: bytes asked for per read of the port
 READ_CHUNK = 4096

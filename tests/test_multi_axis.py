@@ -22,7 +22,7 @@ from hil.controller.interpolator import plan
 from hil.controller.machine import MachineController
 from hil.controller.path import parse_path_program, path_limits, plan_path
 from hil.controller.program import ProgramError, parse_program
-from hil.runtime.common import RuntimeInputError, StopFlag
+from hil.runtime.common import RuntimeInputError, StopFlag, check_link
 from hil.runtime.controller_proc import ControllerProcess, ControllerRunConfig
 from hil.runtime.emulator import Emulator, RuntimeConfig
 from hil.runtime.recording import units
@@ -30,6 +30,7 @@ from hil.runtime.watchdog import FAULT_WATCHDOG
 from hil.sim import LockStep, MachineLockStep
 from io_adapters import FrameError, codec
 from io_adapters.messages import FeedbackGroup, Setpoint, SetpointGroup, message_pair
+from io_adapters.serial_link import MAX_AXES, MAX_PAYLOAD
 from io_adapters.udp import UdpEndpoint
 from plant import layout as L
 from plant.errors import ConfigError
@@ -318,3 +319,33 @@ def test_the_controller_refuses_axis_letters_with_a_manifest_and_start_of_unknow
         ControllerProcess(ControllerRunConfig(**base, axis="X"), StopFlag())
     with pytest.raises(RuntimeInputError, match="--start names axes Z"):
         ControllerProcess(ControllerRunConfig(**base, start_cnc={"Z": 1.0}), StopFlag())
+
+
+@pytest.mark.parametrize("url, n_axes, refused", [
+    ("can://virtual/x?node=1&rated_current_ma=28000", 2, "one CiA 402 node per axis"),
+    ("can://virtual/x?node=1&rated_current_ma=28000", 1, None),
+    ("serial:///dev/null", 4, "3 axes per message at most"),
+    ("serial:///dev/null", 3, None),
+    ("udp://127.0.0.1:0", 9, None),
+])
+def test_links_that_cannot_carry_the_axes_are_refused_before_start(url, n_axes, refused):
+    if refused is None:
+        check_link(url, n_axes)
+    else:
+        with pytest.raises(RuntimeInputError, match=refused):
+            check_link(url, n_axes)
+
+
+def test_serial_frames_hold_max_axes_at_their_widest():
+    """serial_link.MAX_AXES against the codec: every integer at its widest, the group of
+    MAX_AXES fits a 255-byte frame and one axis more does not."""
+    def widest(n):
+        sp, fb = message_pair(n)
+        sp.seq, sp.t_ns, fb.seq = 2**32 - 1, 2**63 - 1, 2**32 - 1
+        fb.sp_t_ns = fb.sp_rx_ns = fb.t_ns = fb.tick_ns = 2**63 - 1
+        for s, f in zip(sp.axes, fb.axes):
+            s.controlword, s.mode = 0xFFFF, -128
+            f.statusword, f.fault = 0xFFFF, -2**31
+        return max(len(codec.encode(m, 2**32 - 1, 2**32 - 1)) for m in (sp, fb))
+
+    assert widest(MAX_AXES) <= MAX_PAYLOAD < widest(MAX_AXES + 1)

@@ -68,6 +68,23 @@ def start_positions(machine: MachineSet, start: float | dict[str, float]) -> tup
     return tuple(start.get(a.name, 0.0) / cnc_unit(a.config)[0] for a in machine.axes)
 
 
+def check_link(url: str, n_axes: int) -> None:
+    """Refuse, before anything opens, a link that cannot carry ``n_axes`` axes per message:
+    ``can://`` carries one (one CiA 402 node per axis is not built yet), ``serial://`` at
+    most :data:`io_adapters.serial_link.MAX_AXES` (its frames hold 255 bytes)."""
+    if n_axes > 1 and url.startswith("can://"):
+        raise RuntimeInputError(f"--adapter {url}: a machine of {n_axes} axes needs udp:// or "
+                                "serial:// (one CiA 402 node per axis on can:// is not built "
+                                "yet)")
+    if url.startswith("serial://"):
+        from io_adapters.serial_link import MAX_AXES, MAX_PAYLOAD
+
+        if n_axes > MAX_AXES:
+            raise RuntimeInputError(f"--adapter {url}: serial frames hold {MAX_PAYLOAD} bytes, "
+                                    f"{MAX_AXES} axes per message at most; this machine has "
+                                    f"{n_axes} (use udp://)")
+
+
 def period_ns_of(rate_hz: float) -> int:
     """The loop period in whole ns for a rate in Hz (the same integer in every process, so
     two loops at one rate on one machine keep their phase)."""

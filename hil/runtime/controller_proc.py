@@ -70,6 +70,7 @@ from hil.runtime.common import (
     RuntimeInputError,
     StopFlag,
     check_cpu,
+    check_link,
     cnc_unit,
     eprint,
     period_ns_of,
@@ -153,6 +154,7 @@ class ControllerProcess:
         if m.manifest and rc.axis is not None:
             raise RuntimeInputError(f"--axis {rc.axis}: {rc.machine_file} names its axes "
                                     f"({', '.join(m.names)}); --axis is for a single machine file")
+        check_link(rc.adapter_url, len(m.axes))
         self.cfg = m.configs[0]
         self.units = tuple(cnc_unit(c) for c in m.configs)
         self.k_cnc, self.unit = self.units[0]

@@ -44,9 +44,10 @@ The run folder (``--record DIR``) is what ``hil report RUN`` reads: ``run.npz``
 ``configs/machines/``).  Then one plant and one CiA 402 drive per axis
 (:class:`hil.drive.DriveSet`), every tick cycles them all on one message carrying every
 axis's setpoint (:class:`~io_adapters.messages.SetpointGroup`, wire version 2 on
-``udp://`` and ``serial://``; ``can://`` is refused: one CiA 402 node per axis is not built
-yet), one watchdog faults every enabled drive, the recording has per-axis columns
-(:mod:`hil.runtime.recording`) and ``report.json`` an ``axes`` list and a safe state per
+``udp://`` and ``serial://``, three axes at most on ``serial://``; ``can://`` is refused:
+one CiA 402 node per axis is not built yet), one watchdog faults every enabled drive, the
+recording has per-axis columns (:mod:`hil.runtime.recording`) and ``report.json`` an
+``axes`` list and a safe state per
 axis.  A plain machine file runs exactly as before.
 
 The rate defaults to the plant's PWM frequency (one PWM period per tick); a lower rate must
@@ -75,6 +76,7 @@ from hil.runtime.common import (
     RuntimeInputError,
     StopFlag,
     check_cpu,
+    check_link,
     eprint,
     period_ns_of,
     scheduling,
@@ -279,10 +281,8 @@ class Emulator:
     def open(self, endpoint: Endpoint | None = None) -> str:
         """Open the adapter (device role, draining), or take ``endpoint``; returns the URL
         served (with the bound port for ``udp://HOST:0``)."""
-        if self.machine.multi_axis and self.rc.adapter_url.startswith("can://"):
-            raise RuntimeInputError(f"--adapter {self.rc.adapter_url}: a machine of "
-                                    f"{len(self.machine.axes)} axes needs udp:// or serial:// "
-                                    "(one CiA 402 node per axis on can:// is not built yet)")
+        if endpoint is None:
+            check_link(self.rc.adapter_url, len(self.machine.axes))
         self.endpoint = endpoint or open_endpoint(self.rc.adapter_url, "device")
         self.endpoint.drain = True
         if hasattr(self.endpoint, "last_sync_ns"):  # the cycle follows SYNC
