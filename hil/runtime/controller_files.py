@@ -57,7 +57,10 @@ def _trace(proc, a: int, cols: dict, name: str):
     every = ctrl.sec.position_cycle_ratio
     if not np.any(cols["tick"] % every == 0):
         return None
-    res = SimResult(cols, ctrl.cfg.machine.kind, ctrl.ratio, proc.period_s)
+    # the servo trace's motor position is the encoder the controller read in the tick
+    # (hil.sim's motor_pos_meas): this process's motor_pos column
+    res = SimResult({**cols, "motor_pos_meas": cols["motor_pos"]}, ctrl.cfg.machine.kind,
+                    ctrl.ratio, proc.period_s)
     return write_trace(rc.out_dir / name, servo_trace_columns(res, every), {
         "machine": str(rc.machine_file), "program": str(rc.program_file),
         "axis": proc.machine.names[a], "source": f"hil controller over {rc.adapter_url}"})
