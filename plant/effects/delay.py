@@ -8,7 +8,10 @@ ring of N+1 slots per signal in the state vector (at ``P_SOFF_DELAY``)::
 
 After a sample is written to slot ``head``, slot ``(head+1) mod (N+1)`` holds the
 sample of N periods earlier, which is what the outputs show.  The ring is filled with
-the present signals at reset, so the first N periods show the rest state.
+the present signals at reset, so the first N periods show the rest state.  The delay
+lives on the PWM grid: a kernel call that ends inside a period shows the sample of the
+last completed period, N periods back (a drive calls once per period, so it sees exactly
+N periods).
 """
 
 from numba import njit
