@@ -168,8 +168,10 @@ class Identification:
     def noise_floor(self, domain: str) -> float:
         return self.motion.noise_force if domain == FORCE else self.motion.noise_dx
 
-    def _at_floor(self, domain: str) -> bool:
-        return self.model.residual_rms(domain) <= self.floor_factor * self.noise_floor(domain)
+    def _at_floor(self, effect) -> bool:
+        """Whether the residual an effect would explain is already at its noise floor."""
+        rms = self.model.residual_rms(effect.domain, effect.mask(self.ctx))
+        return rms <= self.floor_factor * self.noise_floor(effect.domain)
 
     def _candidates(self, domains) -> list[Term]:
         out = []
@@ -183,6 +185,8 @@ class Identification:
             have = self.model.term(effect.name)
             if have is not None and (have.added or not effect.correctable):
                 continue
+            if effect.domain != REPLAY and self._at_floor(effect):
+                continue
             residual = self.model.residual(effect.domain) if effect.domain != REPLAY else None
             self._say(f"  trying {effect.name}")
             term = effect.propose(self.ctx, residual, self.model)
@@ -191,8 +195,7 @@ class Identification:
         return out
 
     def _best(self) -> Term | None:
-        domains = [d for d in self._domains() if not self._at_floor(d)]
-        cands = [t for t in self._candidates(domains)
+        cands = [t for t in self._candidates(self._domains())
                  if t.evidence.get("explained", 0.0) >= self.min_explained]
         if not cands:
             # nothing in the residuals: a delay shows only in the closed loop

@@ -49,8 +49,9 @@ class Model:
         return [t for t in self.terms if t.effect.domain == domain]
 
     def _mask(self, domain: str) -> np.ndarray:
-        if domain == FORCE and self.term("presliding_hysteresis") is None:
-            return self.ctx.moving
+        if domain == FORCE:
+            pre = self.term("presliding_hysteresis")
+            return self.ctx.moving if pre is None else pre.effect.mask(self.ctx)
         return self.ctx.m.use
 
     def residual(self, domain: str) -> np.ndarray:
@@ -66,8 +67,9 @@ class Model:
             return r - float(np.mean(r[m.use]))
         raise ValueError(f"no residual in domain {domain!r}")
 
-    def residual_rms(self, domain: str) -> float:
-        r = self.residual(domain)[self._mask(domain)]
+    def residual_rms(self, domain: str, mask: np.ndarray | None = None) -> float:
+        """rms of the domain's residual on ``mask`` (default: the samples its fits use)."""
+        r = self.residual(domain)[self._mask(domain) if mask is None else mask]
         return float(np.sqrt(np.mean(r * r))) if r.size else 0.0
 
     def refit(self, domain: str) -> None:

@@ -19,10 +19,13 @@ class PositionSpectrum:
         cycles_per_unit: spatial frequencies (cycles per m, or per rad), shape (k,).
         amplitude: amplitude of each line in the residual's unit, shape (k,).
         step: the bin width (m or rad).
+        resolution: the spacing of independent lines, 1 / (profile length), in cycles per
+            unit; the spectrum is zero-padded to a finer grid for locating peaks.
     """
     cycles_per_unit: np.ndarray
     amplitude: np.ndarray
     step: float
+    resolution: float = 0.0
 
     def peaks(self, count: int, min_cycles: float = 0.0) -> list[tuple[float, float]]:
         """The ``count`` highest local maxima above ``min_cycles``: (cycles/unit, amplitude)."""
@@ -43,7 +46,7 @@ def position_spectrum(residual: np.ndarray, position: np.ndarray, mask: np.ndarr
     x = position[mask]
     r = residual[mask]
     if x.size < 8:
-        return PositionSpectrum(np.zeros(0), np.zeros(0), step)
+        return PositionSpectrum(np.zeros(0), np.zeros(0), step, 0.0)
     lo = float(x.min())
     nb = max(8, int((float(x.max()) - lo) / step) + 1)
     idx = np.minimum(((x - lo) / step).astype(np.int64), nb - 1)
@@ -53,8 +56,10 @@ def position_spectrum(residual: np.ndarray, position: np.ndarray, mask: np.ndarr
     centres = lo + (np.arange(nb) + 0.5) * step
     profile = np.interp(centres, centres[seen], sums[seen] / counts[seen])
     profile = profile - np.polyval(np.polyfit(centres, profile, 1), centres)
-    spec = np.fft.rfft(profile * np.hanning(nb))
+    window = np.hanning(nb)
+    # zero-padding eightfold interpolates the spectrum: peaks fall between the lines
+    spec = np.fft.rfft(profile * window, 8 * nb)
     # the Hann window halves a line's amplitude: 2/sum(w) restores it
-    amp = 2.0 * np.abs(spec) / np.hanning(nb).sum()
-    freqs = np.fft.rfftfreq(nb, step)
-    return PositionSpectrum(freqs, amp, step)
+    amp = 2.0 * np.abs(spec) / window.sum()
+    freqs = np.fft.rfftfreq(8 * nb, step)
+    return PositionSpectrum(freqs, amp, step, 1.0 / (nb * step))

@@ -58,8 +58,10 @@ def commutation_control(p, s, iq_ref, omega):
 
 @njit(cache=True, error_model="numpy")
 def commutation_substep(p, s, u, omega):
-    """Advance the coil current one sub-step (exact decay); return the torque (N·m)."""
+    """Advance the coil current one sub-step (exact decay); return the torque (N·m) of the
+    current at the sub-step's start (see :func:`plant.kernel.motor_substep`)."""
     k = s[S_KM]
+    torque = k * s[S_IQ]
     i_inf = (u - k * omega) / p[P_R]
     s[S_IQ] = i_inf + (s[S_IQ] - i_inf) * p[P_EXP_D]
-    return k * s[S_IQ]
+    return torque

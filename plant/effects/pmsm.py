@@ -91,16 +91,18 @@ def limit_voltage(ud, uq, umax):
 
 @njit(cache=True, error_model="numpy")
 def dq_substep(p, s, ud, uq, omega_m):
-    """Advance i_d, i_q over one sub-step with the voltages held; return the torque."""
+    """Advance i_d, i_q over one sub-step with the voltages held; return the torque of the
+    currents at the sub-step's start (see :func:`plant.kernel.motor_substep`)."""
     r = p[P_R]
     we = p[P_POLE_PAIRS] * omega_m
     i_d = s[S_ID]
     i_q = s[S_IQ]
+    torque = dq_torque(p, i_d, i_q)
     d_inf = (ud + we * p[P_LQ] * i_q) / r
     q_inf = (uq - we * p[P_LD] * i_d - we * p[P_PSI]) / r
     s[S_ID] = d_inf + (i_d - d_inf) * p[P_EXP_D]
     s[S_IQ] = q_inf + (i_q - q_inf) * p[P_EXP_Q]
-    return dq_torque(p, s[S_ID], s[S_IQ])
+    return torque
 
 
 @njit(cache=True, error_model="numpy")

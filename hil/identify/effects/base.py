@@ -42,6 +42,8 @@ class Context:
         moving: samples in use where |v| exceeds 1 % of the largest speed: the inverse
             model's friction terms are sign(v) functions, undefined at rest.
         direction: +1/-1, the direction of the last motion (held through standstill).
+        resolution: the position measurement's step (m or rad): the smallest change of the
+            recorded position (its count), or 0 when it is not on a grid.
     """
     cfg: MachineConfig
     drive: Drive
@@ -49,6 +51,7 @@ class Context:
     m: Motion
     moving: np.ndarray
     direction: np.ndarray
+    resolution: float
 
     @classmethod
     def of(cls, cfg: MachineConfig, drive: Drive, rec: Record, m: Motion) -> "Context":
@@ -62,7 +65,11 @@ class Context:
             elif vk < -v_eps:
                 last = -1.0
             direction[k] = last
-        return cls(cfg, drive, rec, m, moving, direction)
+        steps = np.abs(np.diff(rec.pos))
+        steps = steps[steps > 0]
+        # the smallest step, read robustly: a sensor's count repeats, rounding noise does not
+        resolution = float(np.percentile(steps, 1)) if steps.size else 0.0
+        return cls(cfg, drive, rec, m, moving, direction, resolution)
 
 
 @dataclass

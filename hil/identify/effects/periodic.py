@@ -89,7 +89,7 @@ class Cogging(Effect):
         if not orders:
             return None
         mask = ctx.moving
-        chosen, coef, ex = _greedy_orders(lambda ks: _sincos(ctx.m.theta_e, ks), orders,
+        chosen, coef, ex = _greedy_orders(lambda ks: self.columns(ctx, {"orders": ks}), orders,
                                           residual, mask, 0.01)
         if not chosen:
             return None
@@ -101,7 +101,9 @@ class Cogging(Effect):
         return Term(self, {"orders": chosen}, coef, True, ev)
 
     def columns(self, ctx, shape):
-        return _sincos(ctx.m.theta_e, shape["orders"])
+        # the angle is raw (quantized but not delayed): filter its harmonics like the force
+        cols = _sincos(ctx.m.theta_e, shape["orders"])
+        return np.stack([ctx.m.lowpass(c) for c in cols.T], axis=1) if cols.size else cols
 
     def n_coef(self, shape):
         return 2 * len(shape["orders"])
@@ -152,11 +154,12 @@ class PitchError(Effect):
         vmax = float(np.max(np.abs(ctx.m.v[mask])))
         p_min = max(8 * vmax * ctx.rec.dt, travel / 2000)
         spec = position_spectrum(residual, ctx.m.x, mask, p_min / 4)
-        peaks = spec.peaks(3 * MAX_HARMONICS, min_cycles=2.0 / travel)
-        periods = [1.0 / f for f, _ in peaks if 1.0 / f >= p_min]
+        # a period must fit about one and a half times into the travel to tell it from a slope
+        peaks = spec.peaks(2 * MAX_HARMONICS, min_cycles=1.5 / travel)
+        periods = [self._refine(ctx, residual, mask, f, spec.resolution)
+                   for f, _ in peaks if 1.0 / f >= p_min]
         if not periods:
             return None
-        periods = [self._refine(ctx, residual, mask, p) for p in periods]
         chosen, coef, ex = _greedy_orders(lambda ps: self._cols(ctx, ps), periods, residual,
                                           mask, 0.01)
         if not chosen:
@@ -168,15 +171,19 @@ class PitchError(Effect):
                                                for p, a in zip(chosen, amps))}
         return Term(self, {"periods_m": chosen}, coef, True, ev)
 
-    def _refine(self, ctx, residual, mask, period):
-        """The period near a spectral line that explains most (the line sits on the
-        FFT's grid of 1/travel)."""
-        best = (0.0, period)
-        for p in period * np.linspace(0.97, 1.03, 61):
-            cols = self._cols(ctx, [p])
-            e = explained(residual, cols @ lstsq(cols, residual, mask), mask)
-            best = max(best, (e, float(p)))
-        return best[1]
+    def _refine(self, ctx, residual, mask, cycles, resolution):
+        """The period within one spectral line of ``cycles`` (cycles/m) that explains
+        most of the residual."""
+        from scipy.optimize import minimize_scalar
+
+        def unexplained(f):
+            cols = self._cols(ctx, [1.0 / f])
+            return -explained(residual, cols @ lstsq(cols, residual, mask), mask)
+
+        lo = max(cycles - resolution, 0.5 * cycles)
+        sol = minimize_scalar(unexplained, bounds=(lo, cycles + resolution), method="bounded",
+                              options={"xatol": 1e-4 * cycles})
+        return float(1.0 / sol.x)
 
     def columns(self, ctx, shape):
         return self._cols(ctx, shape["periods_m"])
