@@ -1,8 +1,13 @@
-"""``can://INTERFACE/CHANNEL``, controller side: a small CiA 402 master for one drive.
+"""``can://INTERFACE/CHANNEL``, controller side: a small CiA 402 master for one drive,
+or one per axis (``axes=N``: nodes ``node`` .. ``node + N - 1``, a
+:class:`~io_adapters.messages.SetpointGroup` and
+:class:`~io_adapters.messages.FeedbackGroup` of N axes, axis i on node ``node + i``).
 
 Plain python-can, no receive thread: :meth:`send_setpoint` sends the RPDOs of the
-setpoint's mode and then SYNC; :meth:`recv_feedback` reads the bus until TPDO1-3 have
-all arrived and turns them into a :class:`~io_adapters.messages.Feedback`.  The master
+setpoint's mode (of every axis, each node's in turn, after checking them all) and then
+one SYNC; :meth:`recv_feedback` reads the bus until TPDO1-3 of every node have arrived
+and turns them into a :class:`~io_adapters.messages.Feedback` (per axis; a group's
+common fields are axis 0's).  The master
 takes only the drive's TPDOs and heartbeat and skips every other frame, so it never takes
 its own RPDOs or SYNC for input (``udp_multicast`` hands every process its own frames).
 On ``socketcan`` the kernel filters for it; on the other buses it reads every frame and
@@ -73,7 +78,16 @@ from io_adapters.cia402_objects import (
     rpdo_layouts,
     tpdo_layouts,
 )
-from io_adapters.messages import MODE_CSP, MODE_CST, MODE_CSV, Feedback, Setpoint
+from io_adapters.messages import (
+    MODE_CSP,
+    MODE_CST,
+    MODE_CSV,
+    Feedback,
+    FeedbackGroup,
+    Setpoint,
+    SetpointGroup,
+    axis_records,
+)
 
 #: RPDOs (0-based) sent in each mode, RPDO1 first
 MODE_RPDOS = {MODE_CSP: (0, 1, 3), MODE_CSV: (0, 2, 3), MODE_CST: (0, 3)}
@@ -82,12 +96,13 @@ SYNC_COUNTER_MAX = 240
 STANDARD_ID_MASK = 0x7FF
 
 
-def _wire_int(sp: Setpoint, field: str, wire_value: float, obj: tuple[int, int]) -> int:
+def _wire_int(sp: Setpoint, name: str, field: str, wire_value: float,
+              obj: tuple[int, int]) -> int:
     """``wire_value`` (``sp.field`` in wire units) rounded into the type of ``obj``;
-    FrameError naming the field if it does not fit."""
+    FrameError naming the record ``name`` and the field if it does not fit."""
     lo, hi = INT_RANGE[PROCESS_OBJECTS[obj][1]]
     if not math.isfinite(wire_value) or not lo <= round(wire_value) <= hi:
-        raise FrameError(f"Setpoint.{field}={getattr(sp, field)!r} does not fit "
+        raise FrameError(f"{name}.{field}={getattr(sp, field)!r} does not fit "
                          f"{obj[0]:04X}h ({lo} to {hi} on the wire)")
     return round(wire_value)
 
@@ -122,29 +137,33 @@ class CanMasterEndpoint(Endpoint):
     def __init__(self, link: CanLink):
         super().__init__(Role.CONTROLLER)
         self.link = link
-        self._rpdos = rpdo_layouts(link.node)
-        self._rpdo_msgs = tuple(can.Message(arbitration_id=p.cob_id, is_extended_id=False,
-                                            data=bytearray(p.frame.size)) for p in self._rpdos)
+        self._rpdos = tuple(rpdo_layouts(n) for n in link.nodes)
+        self._rpdo_msgs = tuple(tuple(can.Message(arbitration_id=p.cob_id, is_extended_id=False,
+                                                  data=bytearray(p.frame.size)) for p in pdos)
+                                for pdos in self._rpdos)
         self._sync = can.Message(arbitration_id=SYNC_COB_ID, is_extended_id=False,
                                  data=bytearray(1))
         self._n = 0                    # SYNCs sent
         self._history = [(0, 0)] * 8   # (seq, t_ns) of SYNC n at n & 7
-        self._start = can.Message(arbitration_id=NMT_COB_ID, is_extended_id=False,
-                                  data=bytes((NMT_START, link.node)))
-        self._tpdos = tpdo_layouts(link.node)
+        self._starts = {n: can.Message(arbitration_id=NMT_COB_ID, is_extended_id=False,
+                                       data=bytes((NMT_START, n))) for n in link.nodes}
+        # TPDO1-3 of axis a are slots 3a .. 3a + 2
+        self._tpdos = tuple(p for n in link.nodes for p in tpdo_layouts(n))
         self._tpdo_slot = {p.cob_id: k for k, p in enumerate(self._tpdos)}
-        self._heartbeat_id = HEARTBEAT_BASE + link.node
+        self._per_axis = len(self._tpdos) // link.axes
+        self._heartbeats = {HEARTBEAT_BASE + n: n for n in link.nodes}
         self._values: list[tuple] = [()] * len(self._tpdos)
         self._got = 0
         self._all = (1 << len(self._tpdos)) - 1
         self._seq = [0, 0]      # seq of the setpoints sent with the last two SYNCs
         self._sync_ns = [0, 0]  # and when those SYNCs were sent
-        wanted = [*self._tpdo_slot, self._heartbeat_id]
+        wanted = [*self._tpdo_slot, *self._heartbeats]
         self.bus = open_bus(link, can_filters=[
             {"can_id": i, "can_mask": STANDARD_ID_MASK, "extended": False} for i in wanted]
             if link.interface == "socketcan" else None)
         try:
-            self._bus_send(self._start)
+            for start in self._starts.values():
+                self._bus_send(start)
         except AdapterError:
             self.bus.shutdown()
             raise
@@ -155,32 +174,51 @@ class CanMasterEndpoint(Endpoint):
         except can.CanError as e:
             raise AdapterError(f"{self!r}: send failed: {e}") from e
 
+    def _records(self, message, what: str) -> tuple:
+        records = axis_records(message)
+        if len(records) != self.link.axes:
+            raise FrameError(f"{what} of {len(records)} axes; this link has {self.link.axes} "
+                             f"(axes={self.link.axes})")
+        return records
+
     # -- setpoint to RPDOs + SYNC --------------------------------------------------------
-    def _write(self, sp: Setpoint) -> bool:
+    def _pack(self, sp: Setpoint, name: str, axis: int) -> tuple[int, ...]:
+        """Pack the RPDOs of ``sp`` for the node of ``axis``; returns which to send.
+        FrameError naming ``name`` and the field if the wire cannot carry it."""
         pdos = MODE_RPDOS.get(sp.mode)
         if pdos is None:
-            raise FrameError(f"Setpoint.mode={sp.mode}: a CiA 402 drive on CAN takes "
+            raise FrameError(f"{name}.mode={sp.mode}: a CiA 402 drive on CAN takes "
                              f"CSP ({MODE_CSP}), CSV ({MODE_CSV}) or CST ({MODE_CST})")
         if sp.id_ref_a != 0.0:
-            raise FrameError(f"Setpoint.id_ref_a={sp.id_ref_a!r}: no CiA 402 object "
+            raise FrameError(f"{name}.id_ref_a={sp.id_ref_a!r}: no CiA 402 object "
                              "carries a d-current setpoint")
         if not 0 <= sp.controlword <= 0xFFFF:
-            raise FrameError(f"Setpoint.controlword={sp.controlword!r} does not fit 6040h "
+            raise FrameError(f"{name}.controlword={sp.controlword!r} does not fit 6040h "
                              "(0 to 65535 on the wire)")
-        current = _wire_int(sp, "iq_ref_a", permille(sp.iq_ref_a, self.link.rated_current_ma),
-                            (0x6071, 0))
+        current = _wire_int(sp, name, "iq_ref_a",
+                            permille(sp.iq_ref_a, self.link.rated_current_ma), (0x6071, 0))
         torque, offset = (current, 0) if sp.mode == MODE_CST else (0, current)
         values = ((sp.controlword, sp.mode),
-                  (_wire_int(sp, "target_position_counts", sp.target_position_counts,
+                  (_wire_int(sp, name, "target_position_counts", sp.target_position_counts,
                              (0x607A, 0)),
-                   _wire_int(sp, "velocity_offset_counts_s", sp.velocity_offset_counts_s,
+                   _wire_int(sp, name, "velocity_offset_counts_s", sp.velocity_offset_counts_s,
                              (0x60B1, 0))),
-                  (_wire_int(sp, "target_velocity_counts_s", sp.target_velocity_counts_s,
+                  (_wire_int(sp, name, "target_velocity_counts_s", sp.target_velocity_counts_s,
                              (0x60FF, 0)),),
                   (torque, offset))
         for k in pdos:
-            self._rpdos[k].frame.pack_into(self._rpdo_msgs[k].data, 0, *values[k])
-            self._bus_send(self._rpdo_msgs[k])
+            self._rpdos[axis][k].frame.pack_into(self._rpdo_msgs[axis][k].data, 0, *values[k])
+        return pdos
+
+    def _write(self, sp: Setpoint | SetpointGroup) -> bool:
+        records = self._records(sp, "a setpoint")
+        names = (("Setpoint",) if len(records) == 1 and records[0] is sp
+                 else tuple(f"SetpointGroup.axes[{a}]" for a in range(len(records))))
+        # every axis checked and packed before the first frame goes out
+        sends = [self._pack(rec, name, a) for a, (rec, name) in enumerate(zip(records, names))]
+        for msgs, pdos in zip(self._rpdo_msgs, sends):
+            for k in pdos:
+                self._bus_send(msgs[k])
         self._sync.data[0] = self._n % SYNC_COUNTER_MAX + 1  # = n + 1 modulo 4
         self._bus_send(self._sync)
         self._n += 1
@@ -190,12 +228,13 @@ class CanMasterEndpoint(Endpoint):
         return True
 
     # -- TPDOs to feedback ---------------------------------------------------------------
-    def _read(self, into: Feedback, timeout_s: float | None) -> bool:
+    def _read(self, into: Feedback | FeedbackGroup, timeout_s: float | None) -> bool:
+        records = self._records(into, "feedback")
         deadline = None if timeout_s is None else time.monotonic() + timeout_s
         wait = timeout_s
         try:
             while (msg := self.bus.recv(wait)) is not None:
-                if self._accept(msg, into):
+                if self._accept(msg, into, records):
                     return True
                 if deadline is not None:
                     wait = max(0.0, deadline - time.monotonic())
@@ -203,12 +242,14 @@ class CanMasterEndpoint(Endpoint):
             raise AdapterError(f"{self!r}: receive failed: {e}") from e
         return False
 
-    def _accept(self, msg: can.Message, into: Feedback) -> bool:
-        """Take one frame; True once it completes a TPDO set written into ``into``."""
+    def _accept(self, msg: can.Message, into, records: tuple) -> bool:
+        """Take one frame; True once it completes the TPDO sets of every node, written
+        into ``into``."""
         can_id = msg.arbitration_id
-        if can_id == self._heartbeat_id:
+        node = self._heartbeats.get(can_id)
+        if node is not None:
             if msg.data and msg.data[0] & 0x7F in (NMT_BOOT_UP, NMT_PRE_OPERATIONAL):
-                self._bus_send(self._start)
+                self._bus_send(self._starts[node])
             return False
         slot = self._tpdo_slot.get(can_id)
         if slot is None:
@@ -226,12 +267,18 @@ class CanMasterEndpoint(Endpoint):
         if self._got != self._all:
             return False
         self._got = 0
-        self._fill(into)
+        for a, rec in enumerate(records):
+            self._fill(rec, self._values[a * self._per_axis:(a + 1) * self._per_axis])
+        if into is not records[0]:  # a group: the common fields are axis 0's
+            first = records[0]
+            into.seq, into.time_s = first.seq, first.time_s
+            into.sp_t_ns, into.sp_rx_ns, into.t_ns = first.sp_t_ns, first.sp_rx_ns, first.t_ns
+            into.tick_ns = 0
         self.stats.received += 1
         return True
 
-    def _fill(self, into: Feedback) -> None:
-        (statusword, _mode, error_code), (position, velocity), (current, _, scale) = self._values
+    def _fill(self, into: Feedback, values: list[tuple]) -> None:
+        (statusword, _mode, error_code), (position, velocity), (current, _, scale) = values
         if statusword & SW_ECHO:
             # the drive says which SYNC sent this set: the last one sent with that
             # counter modulo 4 (a set 4 or more SYNCs late is taken for a newer one)

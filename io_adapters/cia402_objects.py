@@ -3,7 +3,7 @@ object dictionary, its static PDO mapping and the unit conversions.
 
 URL::
 
-    can://INTERFACE/CHANNEL?node=N&rated_current_ma=I[&rated_torque_mnm=T]
+    can://INTERFACE/CHANNEL?node=N&rated_current_ma=I[&axes=A][&rated_torque_mnm=T]
                            [&sync_timeout_ms=S][&port=P]
 
 * INTERFACE/CHANNEL (python-can): ``virtual/NAME`` (any name; one process),
@@ -11,6 +11,11 @@ URL::
   default 239.74.163.2; between processes, every process also receives its own
   frames), ``socketcan/vcan0`` (a SocketCAN interface, where the kernel has one).
 * ``node`` (required): the drive's node-ID, 1-127.
+* ``axes`` (default 1): the drives of a machine of several axes, one CiA 402 node per
+  axis on the same bus, node-IDs ``node`` .. ``node + axes - 1`` in the machine's axis
+  order (each with its own object dictionary, PDOs and SDO server; one SYNC cycles them
+  all).  ``hil run`` and ``hil controller`` add it from the machine.  Every node takes
+  the same ``rated_current_ma`` and ``rated_torque_mnm``.
 * ``rated_current_ma`` (required): 6075h motor rated current, mA.  Currents on the
   wire are per mille of it (6071h, 60B2h, 6077h, 6078h), so one step is
   rated_current_ma / 1000 mA: 28 mA with ``rated_current_ma=28000``.
@@ -120,9 +125,15 @@ class CanLink:
     channel: str
     node: int
     rated_current_ma: int
+    axes: int = 1
     rated_torque_mnm: int = 0
     sync_timeout_ms: int = 20
     port: int | None = None
+
+    @property
+    def nodes(self) -> tuple[int, ...]:
+        """The node-IDs of the axes, in axis order."""
+        return tuple(range(self.node, self.node + self.axes))
 
 
 def _node_id(text: str) -> int:
@@ -146,7 +157,8 @@ def _u32(text: str) -> int:
     return value
 
 
-OPTIONS = {"node": _node_id, "rated_current_ma": _u32, "rated_torque_mnm": _u32,
+OPTIONS = {"node": _node_id, "axes": positive_int, "rated_current_ma": _u32,
+           "rated_torque_mnm": _u32,
            "sync_timeout_ms": positive_int, "port": _port}
 
 
@@ -165,6 +177,10 @@ def parse_can_url(url: str, role: Role) -> CanLink:
     for key in ("node", "rated_current_ma"):
         if key not in options:
             raise AdapterConfigError(f"{url!r}: option {key} is required")
+    last = options["node"] + options.get("axes", 1) - 1
+    if last > 127:
+        raise AdapterConfigError(f"{url!r}: axes={options['axes']} from node={options['node']} "
+                                 f"needs node-IDs up to {last}; the last is 127")
     if "port" in options and interface != "udp_multicast":
         raise AdapterConfigError(f"{url!r}: option port is for udp_multicast only")
     if "sync_timeout_ms" in options and role is not Role.DEVICE:

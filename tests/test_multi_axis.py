@@ -322,7 +322,9 @@ def test_the_controller_refuses_axis_letters_with_a_manifest_and_start_of_unknow
 
 
 @pytest.mark.parametrize("url, n_axes, refused", [
-    ("can://virtual/x?node=1&rated_current_ma=28000", 2, "one CiA 402 node per axis"),
+    ("can://virtual/x?node=1&rated_current_ma=28000&axes=3", 2, "axes=3, but the machine"),
+    ("can://virtual/x?node=1&rated_current_ma=28000&axes=2", 1, "axes=2, but the machine"),
+    ("can://virtual/x?node=1&rated_current_ma=28000", 2, None),
     ("can://virtual/x?node=1&rated_current_ma=28000", 1, None),
     ("serial:///dev/null", 4, "3 axes per message at most"),
     ("serial:///dev/null", 3, None),

@@ -15,6 +15,7 @@ import sys
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager, nullcontext
 from pathlib import Path
+from urllib.parse import parse_qsl, urlsplit
 
 from hil.rt.scheduling import SchedulingReport, SchedulingRequest, realtime_scheduling
 from plant.config import MachineConfig
@@ -68,14 +69,21 @@ def start_positions(machine: MachineSet, start: float | dict[str, float]) -> tup
     return tuple(start.get(a.name, 0.0) / cnc_unit(a.config)[0] for a in machine.axes)
 
 
-def check_link(url: str, n_axes: int) -> None:
-    """Refuse, before anything opens, a link that cannot carry ``n_axes`` axes per message:
-    ``can://`` carries one (one CiA 402 node per axis is not built yet), ``serial://`` at
-    most :data:`io_adapters.serial_link.MAX_AXES` (its frames hold 255 bytes)."""
-    if n_axes > 1 and url.startswith("can://"):
-        raise RuntimeInputError(f"--adapter {url}: a machine of {n_axes} axes needs udp:// or "
-                                "serial:// (one CiA 402 node per axis on can:// is not built "
-                                "yet)")
+def check_link(url: str, n_axes: int) -> str:
+    """Refuse, before anything opens, a link that cannot carry ``n_axes`` axes per message
+    (``serial://``: at most :data:`io_adapters.serial_link.MAX_AXES`, its frames hold 255
+    bytes); returns the URL to open.  On ``can://`` that is one CiA 402 node per axis:
+    the URL with ``axes=N`` added (node-IDs ``node`` .. ``node + N - 1``), or refused
+    when it names another number of axes."""
+    if url.startswith("can://"):
+        query = urlsplit(url).query
+        given = [v for k, v in parse_qsl(query, keep_blank_values=True) if k == "axes"]
+        if not given:
+            return url if n_axes == 1 else f"{url}{'&' if query else '?'}axes={n_axes}"
+        if given != [str(n_axes)]:
+            raise RuntimeInputError(f"--adapter {url}: axes={','.join(given)}, but the "
+                                    f"machine has {n_axes} (one CiA 402 node per axis; "
+                                    "leave axes out to take the machine's)")
     if url.startswith("serial://"):
         from io_adapters.serial_link import MAX_AXES, MAX_PAYLOAD
 
@@ -83,6 +91,7 @@ def check_link(url: str, n_axes: int) -> None:
             raise RuntimeInputError(f"--adapter {url}: serial frames hold {MAX_PAYLOAD} bytes, "
                                     f"{MAX_AXES} axes per message at most; this machine has "
                                     f"{n_axes} (use udp://)")
+    return url
 
 
 def period_ns_of(rate_hz: float) -> int:

@@ -154,7 +154,7 @@ class ControllerProcess:
         if m.manifest and rc.axis is not None:
             raise RuntimeInputError(f"--axis {rc.axis}: {rc.machine_file} names its axes "
                                     f"({', '.join(m.names)}); --axis is for a single machine file")
-        check_link(rc.adapter_url, len(m.axes))
+        self.url = check_link(rc.adapter_url, len(m.axes))  # can://: axes=N added
         self.cfg = m.configs[0]
         self.units = tuple(cnc_unit(c) for c in m.configs)
         self.k_cnc, self.unit = self.units[0]
@@ -273,7 +273,7 @@ class ControllerProcess:
     def run(self) -> dict:
         """Open, align, run, disable, write; returns the summary."""
         rc = self.rc
-        self.ep = open_endpoint(rc.adapter_url, "controller")
+        self.ep = open_endpoint(self.url, "controller")
         self.ep.drain = True
         self.delay_ticks = getattr(self.ep, "feedback_delay_ticks", 0)
         self.lag_is_age = getattr(self.ep, "lag_is_age", False)

@@ -44,8 +44,9 @@ The run folder (``--record DIR``) is what ``hil report RUN`` reads: ``run.npz``
 ``configs/machines/``).  Then one plant and one CiA 402 drive per axis
 (:class:`hil.drive.DriveSet`), every tick cycles them all on one message carrying every
 axis's setpoint (:class:`~io_adapters.messages.SetpointGroup`, wire version 2 on
-``udp://`` and ``serial://``, three axes at most on ``serial://``; ``can://`` is refused:
-one CiA 402 node per axis is not built yet), one watchdog faults every enabled drive, the
+``udp://`` and ``serial://``, three axes at most on ``serial://``; on ``can://`` one
+CiA 402 node per axis, node-IDs consecutive from ``node``, the URL's ``axes`` taken from
+the machine), one watchdog faults every enabled drive, the
 recording has per-axis columns (:mod:`hil.runtime.recording`) and ``report.json`` an
 ``axes`` list and a safe state per
 axis.  A plain machine file runs exactly as before.
@@ -281,15 +282,15 @@ class Emulator:
     def open(self, endpoint: Endpoint | None = None) -> str:
         """Open the adapter (device role, draining), or take ``endpoint``; returns the URL
         served (with the bound port for ``udp://HOST:0``)."""
-        if endpoint is None:
-            check_link(self.rc.adapter_url, len(self.machine.axes))
-        self.endpoint = endpoint or open_endpoint(self.rc.adapter_url, "device")
+        url = (self.rc.adapter_url if endpoint is not None
+               else check_link(self.rc.adapter_url, len(self.machine.axes)))
+        self.endpoint = endpoint or open_endpoint(url, "device")
         self.endpoint.drain = True
         if hasattr(self.endpoint, "last_sync_ns"):  # the cycle follows SYNC
             clock = ShiftableClock(self.loop.clock)
             self.loop.clock = clock
             self.sync_lock = SyncLock(clock, self.timing.period_ns)
-        self.url = served_url(self.rc.adapter_url, getattr(self.endpoint, "address", None))
+        self.url = served_url(url, getattr(self.endpoint, "address", None))
         return self.url
 
     def step(self, k: int) -> None:
