@@ -22,8 +22,8 @@ def add_arguments(p) -> None:
     p.add_argument("--floor-factor", type=float, default=1.5,
                    help="a residual within this factor of its noise floor is done (1.5)")
     p.add_argument("--max-steps", type=int, default=6, help="most effects added (6)")
-    p.add_argument("--refine-nfev", type=int, default=15,
-                   help="iterations of the closed-loop refinement (0: off; default 15)")
+    p.add_argument("--refine-nfev", type=int, default=10,
+                   help="iterations of the closed-loop refinement (0: off; default 10)")
     p.add_argument("--cutoff-hz", type=float, default=None,
                    help="inverse model's low-pass corner (default: a tenth of the sample rate)")
     p.add_argument("--quiet", action="store_true", help="no progress lines")

@@ -75,11 +75,12 @@ class Identification:
     min_explained: float = 0.05
     floor_factor: float = 1.5
     max_steps: int = 6
-    refine_nfev: int = 15
+    refine_nfev: int = 10
     cutoff_hz: float | None = None
     log: object = None
     steps: list[Step] = field(default_factory=list)
     skipped: dict = field(default_factory=dict)
+    rejected: dict = field(default_factory=dict)
     refinement: dict = field(default_factory=dict)
 
     def _say(self, text: str) -> None:
@@ -101,15 +102,25 @@ class Identification:
         self.friction_before = friction_curve(self.model)
         self.model_before_inertia = float(self.model.term("inertia").coef[0])
         self._say(f"error before: {_fmt(self.error_before)}")
-        for _ in range(self.max_steps):
+        err = self.error_before
+        for _ in range(self.max_steps + len(LIBRARY)):
+            if len(self.steps) >= self.max_steps:
+                break
             term = self._best()
             if term is None:
                 break
+            saved = self.model.snapshot()
             self.model.add(term)
             if term.effect.domain != REPLAY:
                 self.model.refit(term.effect.domain)
-            rep = self.model.replay()
-            err = record_errors(self.rec, rep)
+            new = record_errors(self.rec, self.model.replay())
+            why = _not_confirmed(err, new)
+            if why:
+                self.model.restore(saved)
+                self.rejected[term.effect.name] = why
+                self._say(f"rejected {term.effect.name}: {why}")
+                continue
+            err = new
             self.steps.append(Step(term.effect.name, term.params(self.ctx), term.evidence, err))
             self._say(f"added {term.effect.name} ({term.evidence.get('text', '')}); "
                       f"error {_fmt(err)}")
@@ -144,7 +155,7 @@ class Identification:
         def residual(z):
             for t, value in zip(terms, z):
                 t.coef = np.array([value])
-            self.model.add(terms[0])  # forget the cached replay
+            self.model.coefficients_changed()
             rep = self.model.replay()
             count[0] += 1
             if rep is None or rep.status != 0:
@@ -181,6 +192,8 @@ class Identification:
             why = effect.unavailable(self.ctx)
             if why is not None:
                 self.skipped[effect.name] = why
+                continue
+            if effect.name in self.rejected:
                 continue
             have = self.model.term(effect.name)
             if have is not None and (have.added or not effect.correctable):
@@ -230,6 +243,29 @@ class Identification:
                      if self.drive.kind == "screw" else None} for f, a in peaks]
             out[domain] = info
         return out
+
+
+#: a step must lower one replay error by this share ...
+CONFIRM_GAIN = 0.01
+#: ... and raise none by more than this share
+CONFIRM_LOSS = 0.10
+
+
+def _not_confirmed(before: dict, after: dict) -> str:
+    """Why the closed-loop replay does not confirm a step ('' when it does): an effect is
+    kept only when the replay gets better on some channel and not clearly worse on any —
+    the inverse model can mistake one effect for another, the closed loop settles it."""
+    if "status" in after:
+        return f"the replay failed ({after['status']})"
+    keys = [k for k in after if k.endswith("_rms_um") or k.endswith("_rms_urad")
+            or k in ("iq_rms_a", "force_rms_n")]
+    worse = [k for k in keys if after[k] > (1 + CONFIRM_LOSS) * before.get(k, math.inf)]
+    if worse:
+        return "the replay got worse: " + ", ".join(
+            f"{k} {before[k]:.4g} -> {after[k]:.4g}" for k in worse)
+    if not any(after[k] < (1 - CONFIRM_GAIN) * before.get(k, 0.0) for k in keys):
+        return "the replay did not get better"
+    return ""
 
 
 def friction_curve(model: Model):

@@ -2,6 +2,7 @@
 and the closed-loop replay of the config they make.
 """
 
+import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -45,6 +46,18 @@ class Model:
         self.terms = [t for t in self.terms if t.effect.name != term.effect.name] + [term]
         self._replay = None
 
+    def snapshot(self) -> list[Term]:
+        """A copy of the terms (coefficients copied) for :meth:`restore`."""
+        return [dataclasses.replace(t, coef=t.coef.copy()) for t in self.terms]
+
+    def restore(self, terms: list[Term]) -> None:
+        self.terms = terms
+        self._replay = None
+
+    def coefficients_changed(self) -> None:
+        """Forget the cached replay after a term's coefficients were set from outside."""
+        self._replay = None
+
     def _domain(self, domain: str) -> list[Term]:
         return [t for t in self.terms if t.effect.domain == domain]
 
@@ -52,7 +65,11 @@ class Model:
         if domain == FORCE:
             pre = self.term("presliding_hysteresis")
             return self.ctx.moving if pre is None else pre.effect.mask(self.ctx)
-        return self.ctx.m.use
+        # position: the samples every term can use (backlash leaves its flank changes out)
+        mask = self.ctx.m.use.copy()
+        for t in self._domain(domain):
+            mask &= t.effect.mask(self.ctx)
+        return mask
 
     def residual(self, domain: str) -> np.ndarray:
         """The domain's measured signal less the model's prediction, shape (n,): force (N)

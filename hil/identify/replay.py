@@ -36,6 +36,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 
 from hil.controller.config import axis_limits, load_controller
 from hil.controller.interpolator import ProfileSamples
@@ -128,41 +129,51 @@ def _periods(plant: Plant, dt: float, what: str) -> int:
 
 
 def _replay_emps(cfg: MachineConfig, rec: Record, progress) -> Replay:
-    """The EMPS dSPACE PD loop around the plant, one kernel call per sample."""
+    """The EMPS dSPACE PD loop around the plant (:func:`_emps_loop`)."""
     loop = rec.emps
     plant = Plant(cfg, table_pos=float(rec.pos[0]))
     n_per = _periods(plant, rec.dt, "")
-    dt = n_per * plant.pwm_period
-    n_sub = n_per * plant.sub_per_pwm
-    p, s, inp, out = plant.params, plant.state, plant.inp, plant.out
+    p = plant.params
     m_per_count = plant.built.ratio / p[L.P_ENC_COUNTS_PER_RAD]
     pulses = loop.pulses_v if loop.pulses_v is not None else np.zeros(rec.n)
-    gain, kv, v_max = loop.kp * loop.kv, loop.kv, loop.v_max
-    qr = rec.pos_set
     n = rec.n
     pos, vel, effort = np.full(n, math.nan), np.full(n, math.nan), np.full(n, math.nan)
-    q1 = q2 = out[L.O_ENCODER] * m_per_count
+    status = _emps_loop(p, plant.state, plant.inp, plant.out, n_per * plant.sub_per_pwm,
+                        n_per * plant.pwm_period, m_per_count,
+                        np.ascontiguousarray(rec.pos_set, dtype=np.float64),
+                        np.ascontiguousarray(pulses, dtype=np.float64), loop.kp * loop.kv,
+                        loop.kv, loop.v_max, loop.gtau, pos, vel, effort)
+    if progress is not None:
+        progress(1.0)
+    return Replay(pos=pos, effort=effort, motor_pos=pos.copy(), vel=vel, status=int(status))
+
+
+@njit(cache=True, error_model="numpy")
+def _emps_loop(p, s, inp, out, n_sub, dt, m_per_count, qr, pulses, gain, kv, v_max, gtau,
+               pos, vel, effort):
+    """The EMPS loop, one kernel call per sample, compiled: a replay is called tens of
+    times by the identification's refinement.  Fills pos, vel, effort (shape (n,));
+    returns the plant's status (samples after a fault stay NaN)."""
+    q1 = out[L.O_ENCODER] * m_per_count
+    q2 = q1
     nu_prev = 0.0
-    every = max(1, n // 20)
-    status = L.STATUS_OK
-    for k in range(n):
+    for k in range(qr.size):
         q = out[L.O_ENCODER] * m_per_count
         dq = 0.5 * (q - q2) / dt  # (qf(k) - qf(k-1)) / dt with qf(k) = (q(k) + q(k-1)) / 2
-        q2, q1 = q1, q
+        q2 = q1
+        q1 = q
         nu = gain * (qr[k] - q) - kv * dq
         nu = min(v_max, max(-v_max, nu))
         u = nu_prev + pulses[k]
         nu_prev = nu
         pos[k] = q
         vel[k] = out[L.O_TABLE_VEL]
-        effort[k] = loop.gtau * u
+        effort[k] = gtau * u
         inp[L.I_IQ_REF] = u
         status = axis_step_nb(p, s, inp, out, n_sub)
         if status != L.STATUS_OK:
-            break
-        if progress is not None and k % every == 0:
-            progress(k / n)
-    return Replay(pos=pos, effort=effort, motor_pos=pos.copy(), vel=vel, status=int(status))
+            return status
+    return L.STATUS_OK
 
 
 def _feed_forward(rec: Record, loop: PositionLoop) -> np.ndarray:

@@ -65,11 +65,7 @@ class Context:
             elif vk < -v_eps:
                 last = -1.0
             direction[k] = last
-        steps = np.abs(np.diff(rec.pos))
-        steps = steps[steps > 0]
-        # the smallest step, read robustly: a sensor's count repeats, rounding noise does not
-        resolution = float(np.percentile(steps, 1)) if steps.size else 0.0
-        return cls(cfg, drive, rec, m, moving, direction, resolution)
+        return cls(cfg, drive, rec, m, moving, direction, quantum(rec.pos))
 
 
 @dataclass
@@ -146,6 +142,19 @@ class Effect:
         """What to write into the machine file: ``{"section": {"key": value}}``; ``model``
         gives the other terms where a key depends on them."""
         raise NotImplementedError
+
+
+def quantum(x: np.ndarray) -> float:
+    """The step of a quantized signal (shape (n,)): the smallest change between samples
+    when nearly every change is a whole multiple of it, else 0 (not on a grid)."""
+    steps = np.abs(np.diff(x))
+    steps = steps[steps > 0]
+    if steps.size == 0:
+        return 0.0
+    q = float(steps.min())
+    ratio = steps / q
+    on_grid = np.abs(ratio - np.round(ratio)) < 0.01
+    return q if np.mean(on_grid) > 0.9 else 0.0
 
 
 def explained(residual: np.ndarray, fitted: np.ndarray, mask: np.ndarray) -> float:

@@ -19,8 +19,36 @@ from plant import layout as L
 from plant.effects.friction import presliding_update
 
 
+#: time either side of a flank change that a backlash fit leaves out (s)
+SETTLE_S = 0.03
+
+
+def transmitted_force(ctx) -> np.ndarray:
+    """Force through the drive train at the table (N), shape (n,): the motor's force less
+    what accelerates the motor side and its bearings' viscous drag."""
+    m, d = ctx.m, ctx.drive
+    return m.force - d.motor_mass * m.a - d.motor_viscous * m.v
+
+
+def contact_side(force: np.ndarray, band: float) -> np.ndarray:
+    """+1/-1: which flank of a gap carries the load, shape (n,).  It changes when the
+    transmitted ``force`` crosses the band +-``band`` and holds inside it (the gap is
+    crossed only when the force reverses, not the motion: a load braked hard presses on
+    the other flank before it stops)."""
+    side = np.empty(force.size)
+    last = 1.0
+    for k, f in enumerate(force):
+        if f > band:
+            last = 1.0
+        elif f < -band:
+            last = -1.0
+        side[k] = last
+    return side
+
+
 class Backlash(Effect):
-    """A gap in the train: table minus motor position jumps by the gap at reversals."""
+    """A gap in the train: table minus motor position jumps by the gap when the force
+    through the train reverses."""
     name = "backlash"
     domain = POSITION
 
@@ -41,22 +69,34 @@ class Backlash(Effect):
         b = self._gap(ctx)
         return Term(self, {}, np.array([b])) if b > 0 else None
 
+    def mask(self, ctx):
+        """Samples away from the flank changes: crossing the gap takes a while and the
+        low-pass smears it; the plateaus either side measure the gap."""
+        side = self.columns(ctx, {})[:, 0]
+        near = np.zeros(side.size, dtype=bool)
+        hold = max(1, int(round(SETTLE_S / ctx.rec.dt)))
+        for k in np.flatnonzero(np.diff(side) != 0):
+            near[max(0, k - hold):k + hold + 1] = True
+        return ctx.m.use & ~near
+
     def propose(self, ctx, residual, model):
         cols = self.columns(ctx, {})
-        mask = ctx.m.use
+        mask = self.mask(ctx)
         coef = lstsq(cols, residual, mask, np.zeros(1), np.full(1, np.inf))
         base = model.term(self.name)
         ev = {"explained": explained(residual, cols @ coef, mask),
               "jump_at_reversal_m": float(coef[0]),
               "text": f"table minus motor position jumps by {coef[0] * 1e6:.3g} um when the "
-                      f"direction of motion reverses"}
+                      f"force through the drive train reverses"}
         if base is not None:
             coef = coef + base.coef
         return Term(self, {}, coef, True, ev)
 
     def columns(self, ctx, shape):
-        # moving +, the motor leads the table by half the gap
-        return (-0.5 * ctx.direction)[:, None]
+        # pushing toward +, the motor leads the table by half the gap
+        f = transmitted_force(ctx)
+        band = 0.02 * float(np.max(np.abs(f[ctx.m.use])))
+        return (-0.5 * contact_side(f, band))[:, None]
 
     def bounds(self, shape):
         return np.zeros(1), np.full(1, np.inf)
@@ -84,10 +124,6 @@ class Compliance(Effect):
                     "adjust [screw] rather than one spring")
         return None
 
-    def _force(self, ctx):
-        m, d = ctx.m, ctx.drive
-        return m.force - d.motor_mass * m.a - d.motor_viscous * m.v
-
     def declared(self, ctx):
         if ctx.cfg.mechanics.model != "two_mass":
             return None
@@ -95,7 +131,7 @@ class Compliance(Effect):
         return Term(self, {}, np.array([1.0 / k]))
 
     def propose(self, ctx, residual, model):
-        f = self._force(ctx)
+        f = transmitted_force(ctx)
         mask = ctx.m.use
         cols = self.columns(ctx, {})
         coef = lstsq(cols, residual, mask, np.zeros(1), np.full(1, np.inf))
@@ -110,7 +146,7 @@ class Compliance(Effect):
         return Term(self, {}, coef, True, ev)
 
     def columns(self, ctx, shape):
-        return -self._force(ctx)[:, None]
+        return -transmitted_force(ctx)[:, None]
 
     def bounds(self, shape):
         return np.zeros(1), np.full(1, np.inf)
@@ -184,7 +220,8 @@ class Presliding(Effect):
 
     def propose(self, ctx, residual, model):
         coulomb = model.term("coulomb_friction")
-        if coulomb is None or coulomb.coef[0] <= 0:
+        # the plant's presliding spring replaces Karnopp and Stribeck sliding friction
+        if coulomb is None or coulomb.coef[0] <= 0 or model.term("stribeck") is not None:
             return None
         fc = float(coulomb.coef[0])
         mask = self.mask(ctx)

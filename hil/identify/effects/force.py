@@ -195,7 +195,9 @@ class Stribeck(Effect):
         return Term(self, {"vs": vs}, np.array([fs - fc]))
 
     def propose(self, ctx, residual, model):
-        if model.term("coulomb_friction") is None:
+        # Stribeck shapes sliding friction: it needs Coulomb's level and no presliding spring
+        if (model.term("coulomb_friction") is None
+                or model.term("presliding_hysteresis") is not None):
             return None
         vmax = float(np.max(np.abs(ctx.m.v[ctx.moving])))
         mask = ctx.moving
