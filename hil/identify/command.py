@@ -7,7 +7,7 @@ from pathlib import Path
 from hil.identify.fit import Identification, record_errors
 from hil.identify.model import Model
 from hil.identify.record import load_record
-from hil.identify.report import write
+from hil.identify.report import EMPS_PUBLISHED, EMPS_REFERENCE_KEYS, write
 from hil.trace_file import TraceFormatError
 
 
@@ -35,7 +35,7 @@ def validation(ident: Identification, path: Path) -> dict:
     first (nothing is fitted on this one)."""
     rec = load_record(path)
     before = Model(ident.ctx, ident.config)
-    before.terms = []  # the config as given: no overrides
+    before.restore([])  # the config as given: no overrides
     return {"trace": str(path), "error_before": record_errors(rec, before.replay(rec=rec)),
             "error_after": record_errors(rec, ident.model.replay(rec=rec))}
 
@@ -51,7 +51,18 @@ def identify(trace: Path, config: Path, out: Path, validate: Path | None = None,
         if log:
             log(f"[{time.monotonic() - t0:6.1f} s] validating on {validate.name}")
         val = validation(ident, validate)
-    return write(ident, out, val, time.monotonic() - t0)
+    reference = None
+    if Path(trace).stem in EMPS_PUBLISHED:
+        reference = {Path(p).stem: emps_reference(ident, load_record(p))
+                     for p in [trace] + ([validate] if validate is not None else [])}
+    return write(ident, out, val, time.monotonic() - t0, reference)
+
+
+def emps_reference(ident: Identification, rec) -> dict:
+    """Errors of the EMPS reference model's parameters replayed through our loop."""
+    model = Model(ident.ctx, ident.config)
+    model.restore([])
+    return record_errors(rec, model.replay(extra=EMPS_REFERENCE_KEYS, rec=rec))
 
 
 def run_from_args(args) -> int:

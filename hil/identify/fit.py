@@ -160,7 +160,11 @@ class Identification:
             count[0] += 1
             if rep is None or rep.status != 0:
                 return np.full(rec.n - 50, 1e6)
-            return rec.effort[50:] - rep.effort[50:]
+            d = rec.effort[50:] - rep.effort[50:]
+            if count[0] % 10 == 0:
+                self._say(f"  refinement: {count[0]} replays, effort rms "
+                          f"{float(np.sqrt(np.mean(d * d))):.4g}")
+            return d
 
         before = {t.effect.name: float(t.coef[0]) for t in terms}
         self._say(f"refining {', '.join(before)} on the closed-loop replay")

@@ -28,10 +28,13 @@ class PositionSpectrum:
     resolution: float = 0.0
 
     def peaks(self, count: int, min_cycles: float = 0.0) -> list[tuple[float, float]]:
-        """The ``count`` highest local maxima above ``min_cycles``: (cycles/unit, amplitude)."""
+        """The ``count`` highest local maxima between ``min_cycles`` and half the binning's
+        Nyquist frequency (above it the bins' averaging attenuates and aliases):
+        (cycles/unit, amplitude)."""
         f, a = self.cycles_per_unit, self.amplitude
+        top = 0.25 / self.step
         out = [(float(f[i]), float(a[i])) for i in range(1, len(a) - 1)
-               if a[i] >= a[i - 1] and a[i] >= a[i + 1] and f[i] > min_cycles]
+               if a[i] >= a[i - 1] and a[i] >= a[i + 1] and min_cycles < f[i] < top]
         return sorted(out, key=lambda p: -p[1])[:count]
 
 
