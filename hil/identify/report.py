@@ -62,6 +62,7 @@ def summary(ident: Identification, validation: dict | None, elapsed_s: float,
         "error_before": ident.error_before, "error_after": ident.error_after,
         "validation": validation or {},
         "noise_floor": {d: ident.noise_floor(d) for d in ident._domains()},
+        "refinement": ident.refinement, "rejected": ident.rejected,
         "unexplained": ident.unexplained, "not_looked_for": ident.skipped,
         "thresholds": {"min_explained": ident.min_explained,
                        "floor_factor": ident.floor_factor},
@@ -129,6 +130,15 @@ def markdown(rep: dict) -> str:
                   f"{100 * s['evidence'].get('explained', 0):.1f} % of its residual)",
                   f"   - error after this step: " + ", ".join(
                       f"{k} {_fmt(v)}" for k, v in s["error"].items())]
+    ref = rep.get("refinement") or {}
+    if ref:
+        lines += ["", f"Closed-loop refinement ({ref['replays']} replays, least squares on the "
+                  "replay's effort error): " + ", ".join(
+                      f"{k} coefficient {_fmt(ref['coefficients_before'][k])} -> "
+                      f"{_fmt(v)}" for k, v in ref["coefficients_after"].items())]
+    if rep.get("rejected"):
+        lines += ["", "Proposed but not confirmed by the closed-loop replay: " + "; ".join(
+            f"`{k}` ({v})" for k, v in rep["rejected"].items())]
     lines += ["", "## What is left", ""]
     for domain, info in rep["unexplained"].items():
         unit_d = "N" if domain == FORCE else "m"
