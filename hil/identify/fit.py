@@ -7,7 +7,10 @@ itself to its residual alone, and takes the one that explains the largest share 
 residual's energy (the simplest when several explain within 10 % of the best).  The
 effect's parameters are then fitted jointly with every term of its domain — the base
 parameters (mass, viscous friction, ...) are freed again — and the config with the
-effects added is replayed in closed loop against the record.
+effects added is replayed in closed loop against the record: a step that does not make
+the replay better on some channel, or makes it clearly worse on one, is undone (the
+inverse model can mistake one effect for another; the closed loop settles it).  At the
+end the single-coefficient force terms are refined on the replay itself.
 
 It stops when no effect explains ``min_explained`` of the residual, when every residual
 is at its noise floor (``floor_factor`` times the measurement noise estimated from the
@@ -27,7 +30,7 @@ from hil.identify.effects.base import correlation
 from hil.identify.model import Model
 from hil.identify.motion import Drive, motion
 from hil.identify.record import Record
-from hil.identify.replay import Replay, errors
+from hil.identify.replay import ERROR_START, Replay, errors
 from hil.identify.spectrum import position_spectrum
 from plant.config import load_machine
 
@@ -51,7 +54,7 @@ def record_errors(rec: Record, rep: Replay | None) -> dict:
     out = errors(rec, rep)
     if (rec.motor_pos is not None and rep.motor_pos is not None
             and not np.array_equal(rec.motor_pos, rec.pos)):
-        d = rec.motor_pos[50:] - rep.motor_pos[50:]
+        d = rec.motor_pos[ERROR_START:] - rep.motor_pos[ERROR_START:]
         out["motor_pos_rms_um"] = float(np.sqrt(np.mean(d * d)) * 1e6)
     return out
 
@@ -159,8 +162,8 @@ class Identification:
             rep = self.model.replay()
             count[0] += 1
             if rep is None or rep.status != 0:
-                return np.full(rec.n - 50, 1e6)
-            d = rec.effort[50:] - rep.effort[50:]
+                return np.full(rec.n - ERROR_START, 1e6)
+            d = rec.effort[ERROR_START:] - rep.effort[ERROR_START:]
             if count[0] % 10 == 0:
                 self._say(f"  refinement: {count[0]} replays, effort rms "
                           f"{float(np.sqrt(np.mean(d * d))):.4g}")
@@ -168,10 +171,12 @@ class Identification:
 
         before = {t.effect.name: float(t.coef[0]) for t in terms}
         self._say(f"refining {', '.join(before)} on the closed-loop replay")
+        r0 = residual(z0)
         scale = np.maximum(np.abs(z0), 1e-3 * max(float(np.max(np.abs(z0))), 1e-9))
         sol = least_squares(residual, z0, bounds=(lo, hi), x_scale=scale, diff_step=1e-3,
                             max_nfev=self.refine_nfev)
-        residual(sol.x if sol.cost <= 0.5 * float(residual(z0) @ residual(z0)) else z0)
+        # least_squares returns its best point; keep the start if even that is no better
+        residual(sol.x if sol.cost <= 0.5 * float(r0 @ r0) else z0)
         after = {t.effect.name: float(t.coef[0]) for t in terms}
         self.refinement = {"coefficients_before": before, "coefficients_after": after,
                            "replays": count[0]}

@@ -10,7 +10,7 @@ import numpy as np
 from hil.identify.effects import FORCE, LIBRARY, POSITION, Context, Term
 from hil.identify.effects.base import lstsq
 from hil.identify.record import Record
-from hil.identify.replay import Replay, replay
+from hil.identify.replay import ERROR_START, Replay, replay
 from plant.config import ConfigError, MachineConfig, load_machine
 
 
@@ -138,7 +138,7 @@ class Model:
             self._replay = rep
         return rep
 
-    def effort_error(self, rep: Replay, start: int = 50) -> float:
+    def effort_error(self, rep: Replay, start: int = ERROR_START) -> float:
         """rms of the effort's replay error from sample ``start`` on."""
         d = self.ctx.rec.effort[start:] - rep.effort[start:]
         return float(np.sqrt(np.mean(d * d)))

@@ -11,6 +11,7 @@ matches best.
 import numpy as np
 
 from hil.identify.effects.base import REPLAY, Effect, Term
+from hil.identify.replay import ERROR_START
 
 #: longest delay looked for, in PWM periods (the plant's ring holds 32)
 MAX_PERIODS = 32
@@ -48,7 +49,7 @@ class TimeDelay(Effect):
         pwm = model.pwm_period
         dt = ctx.rec.dt
         max_lag = max(1, int(np.ceil(MAX_PERIODS * pwm / dt)))
-        lag = xcorr_lag(ctx.rec.effort[50:], rep.effort[50:], max_lag)
+        lag = xcorr_lag(ctx.rec.effort[ERROR_START:], rep.effort[ERROR_START:], max_lag)
         base = ctx.cfg.sensors.delay_s
         guess = round(lag * dt / pwm)
         if guess < 1:

@@ -19,6 +19,7 @@ from plant import layout as L
 from plant.effects.friction import presliding_update
 
 
+NO_SECOND_SENSOR = "the record has no motor encoder column (motor_pos_mm) beside pos_mm"
 #: time either side of a flank change that a backlash fit leaves out (s)
 SETTLE_S = 0.03
 
@@ -54,7 +55,7 @@ class Backlash(Effect):
 
     def unavailable(self, ctx):
         if ctx.m.dx is None:
-            return "the record has no motor encoder column (motor_pos_mm) beside pos_mm"
+            return NO_SECOND_SENSOR
         if ctx.cfg.mechanics.model == "rigid":
             return "the rigid model has no place for a gap (two_mass or screw has)"
         return None
@@ -118,7 +119,7 @@ class Compliance(Effect):
 
     def unavailable(self, ctx):
         if ctx.m.dx is None:
-            return "the record has no motor encoder column (motor_pos_mm) beside pos_mm"
+            return NO_SECOND_SENSOR
         if ctx.cfg.mechanics.model == "screw":
             return ("the screw model's stiffness follows from its dimensions; "
                     "adjust [screw] rather than one spring")

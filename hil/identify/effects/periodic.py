@@ -11,6 +11,7 @@ import math
 import numpy as np
 
 from hil.identify.effects.base import POSITION, Effect, Term, explained, lstsq
+from hil.identify.effects.drivetrain import NO_SECOND_SENSOR
 from hil.identify.spectrum import position_spectrum
 
 MAX_HARMONICS = 4
@@ -128,7 +129,7 @@ class PitchError(Effect):
         if ctx.drive.kind != "screw":
             return "only a ball screw has a pitch error"
         if ctx.m.dx is None:
-            return "the record has no motor encoder column (motor_pos_mm) beside pos_mm"
+            return NO_SECOND_SENSOR
         return None
 
     def declared(self, ctx):
