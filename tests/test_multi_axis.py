@@ -17,13 +17,23 @@ import numpy as np
 import pytest
 
 from hil.cia402 import State
+from hil.commands import SETTLE_S
 from hil.controller.config import AxisLimits
 from hil.controller.interpolator import plan
 from hil.controller.machine import MachineController
-from hil.controller.path import parse_path_program, path_limits, plan_path
+from hil.controller.path import (
+    parse_path_program,
+    path_limits,
+    plan_path,
+    read_path_program,
+)
 from hil.controller.program import ProgramError, parse_program
 from hil.runtime.common import RuntimeInputError, StopFlag, check_link
-from hil.runtime.controller_proc import ControllerProcess, ControllerRunConfig
+from hil.runtime.controller_proc import (
+    START_WINDOW_CNC,
+    ControllerProcess,
+    ControllerRunConfig,
+)
 from hil.runtime.emulator import Emulator, RuntimeConfig
 from hil.runtime.recording import units
 from hil.runtime.watchdog import FAULT_WATCHDOG
@@ -33,6 +43,7 @@ from io_adapters.messages import FeedbackGroup, Setpoint, SetpointGroup, message
 from io_adapters.serial_link import MAX_AXES, MAX_PAYLOAD
 from io_adapters.udp import UdpEndpoint
 from plant import layout as L
+from plant.config import load_machine
 from plant.errors import ConfigError
 from plant.machines import load_machine_set
 from tests.conftest import CONFIGS
@@ -351,3 +362,63 @@ def test_serial_frames_hold_max_axes_at_their_widest():
         return max(len(codec.encode(m, 2**32 - 1, 2**32 - 1)) for m in (sp, fb))
 
     assert widest(MAX_AXES) <= MAX_PAYLOAD < widest(MAX_AXES + 1)
+
+
+# -- the five-axis machine of seed 001 ----------------------------------------------------------
+
+GEISS_5 = CONFIGS / "machines" / "geiss_5axis.toml"
+FIVE_AXIS_PROGRAM = CONFIGS.parent / "programs" / "geiss_5axis_moves.nc"
+
+
+def test_the_geiss_manifest_loads_five_axes_at_one_pwm_frequency():
+    """The manifest's own text: five letters, the overrides it states, C the seed-001 file
+    unchanged but for its [controller], one PWM frequency without any override."""
+    m = load_machine_set(GEISS_5)
+    assert m.names == ("X", "Y", "Z", "B", "C")
+    assert [c.machine.kind for c in m.configs] == ["screw"] * 3 + ["rotary"] * 2
+    assert [c.table.mass_kg for c in m.configs[:3]] == [350.0, 550.0, 250.0]
+    geiss = load_machine(GEISS)
+    assert [c.mechanics.load_inertia_kgm2 for c in m.configs[3:]] == [
+        6.0, geiss.mechanics.load_inertia_kgm2]
+    c = m.configs[4]
+    for sec in ("machine", "motor", "current_loop", "field_weakening", "cogging", "mechanics",
+                "friction", "sensors"):
+        assert getattr(c, sec) == getattr(geiss, sec), sec
+    assert {cfg.motor.pwm_frequency_hz for cfg in m.configs} == {8000.0}
+    assert len(MachineController(m, 1 / m.pwm_frequency_hz)) == 5  # every [controller] checks
+
+
+def test_the_machine_lockstep_steps_all_five_axes_through_the_program():
+    """programs/geiss_5axis_moves.nc on the five-axis machine: every axis's setpoint
+    reaches the program's positions, block N30 keeps all five on its straight line (the
+    program's geometry: B and C follow the linear path in the same time), block N40 moves C
+    alone, and every plant follows its setpoint and is home after the settling time
+    (SINUMERIK exact stop coarse, MD36000: 0.04 mm or deg)."""
+    m = load_machine_set(GEISS_5)
+    ls = MachineLockStep(m)
+    ls.enable()
+    profiles = ls.ctrl.plan(read_path_program(FIVE_AXIS_PROGRAM, m.names))
+    ls.ctrl.run_profiles(profiles)
+    res = ls.run(profiles[0].duration_s + SETTLE_S)
+    cnc = {a.name: 180.0 / math.pi if a.rotary else 1e3 for a in m.axes}
+    x = {n: res[n]["x_set"] * cnc[n] for n in m.names}
+    assert {n: (x[n].min(), x[n].max()) for n in m.names} == {
+        "X": (0.0, pytest.approx(20.0)), "Y": (pytest.approx(-5.0), 0.0),
+        "Z": (pytest.approx(-4.0), 0.0), "B": (0.0, pytest.approx(5.0)),
+        "C": (0.0, pytest.approx(60.0))}
+    n30_end = np.argmax(x["C"] >= 30.0 - 1e-9)  # the IPO points straddle the block ends
+    n30 = np.flatnonzero(x["X"][:n30_end] > 10.0 + 1e-6)
+    assert n30.size > 100
+    u = (x["X"][n30] - 10.0) / 10.0
+    for name, start, end in (("Y", -5.0, 0.0), ("Z", -4.0, 0.0), ("B", 0.0, 5.0),
+                             ("C", 0.0, 30.0)):
+        assert x[name][n30] == pytest.approx(start + (end - start) * u, abs=1e-9), name
+    n40_end = np.argmax(x["C"] >= 60.0 - 1e-9)
+    n40 = n30_end + np.flatnonzero(x["C"][n30_end:n40_end] > 30.01)
+    assert n40.size > 100
+    for name, held in (("X", 20.0), ("Y", 0.0), ("Z", 0.0), ("B", 5.0)):
+        assert x[name][n40] == pytest.approx(held, abs=1e-9), name
+    for name in m.names:
+        act = res[name]["x_act"] * cnc[name]
+        assert np.ptp(act) > 0.9 * np.ptp(x[name]), name    # the plant moved with its setpoint
+        assert abs(act[-1]) <= START_WINDOW_CNC, name   # and came home
