@@ -226,14 +226,19 @@ def test_canopen_masters_enable_and_move_both_nodes_in_csp():
             node.rpdo[2][0x60B1].raw = 0
         targets = {n: starts[n] + distances[n] for n in nodes}
 
-        def settled() -> bool:
-            tpdo2.wait_for_reception(WAIT_S)
-            return all(abs(nodes[n].tpdo_values[0x6064] - targets[n]) <= SETTLED_COUNTS
-                       for n in nodes)
-
-        wait_for(settled, f"both axes on their targets {targets}", 2 * WAIT_S)
+        settled = 0  # SYNCs in a row with both axes on their targets
+        for _ in range(1000):
+            assert tpdo2.wait_for_reception(WAIT_S) is not None
+            on = all(abs(nodes[n].tpdo_values[0x6064] - targets[n]) <= SETTLED_COUNTS
+                     for n in nodes)
+            settled = settled + 1 if on else 0
+            if settled == 10:
+                break
+        assert settled == 10, f"not settled on {targets}"
         for n, node in nodes.items():
-            assert abs(node.sdo[0x6064].raw - targets[n]) <= SETTLED_COUNTS
+            # read a few SYNCs later: the held axis dithers by a few increments (cogging and
+            # stiction at node 5's target; measured up to 7 = 17 nm)
+            assert abs(node.sdo[0x6064].raw - targets[n]) <= 3 * SETTLED_COUNTS
             assert node.sdo[0x6061].raw == MODE_CSP
     finally:
         network.sync.stop()
