@@ -72,6 +72,13 @@ class Identification:
         refine_nfev: closed-loop refinement's budget of least-squares iterations (0: off).
         cutoff_hz: low-pass corner of the inverse model (None: a tenth of the sample rate).
         log: optional callable(str) for progress lines.
+
+    After :meth:`fit`: ``steps`` (the effects added, in order), ``rejected`` and
+    ``skipped`` (effect -> why), ``refinement``, ``error_before``/``error_after`` (replay
+    errors), ``residual_before``/``residual_after`` (domain -> residual, shape (n,)),
+    ``replay_before``/``replay_after``, ``friction_before``/``friction_after`` (v -> force),
+    ``unexplained`` (the signature of what is left), and ``model`` (the terms; its
+    ``overrides()`` are the fitted machine-file keys).
     """
     config: str | Path
     rec: Record
@@ -101,7 +108,7 @@ class Identification:
         self._say(f"replaying {self.rec.n} samples through {Path(self.config).name}")
         self.replay_before = self.model.replay()
         self.error_before = record_errors(self.rec, self.replay_before)
-        self.residual_before = {d: self.model.residual(d) for d in self._domains()}
+        self.residual_before = {d: self.model.residual(d) for d in self.domains()}
         self.friction_before = friction_curve(self.model)
         self.model_before_inertia = float(self.model.term("inertia").coef[0])
         self._say(f"error before: {_fmt(self.error_before)}")
@@ -131,7 +138,7 @@ class Identification:
             self._refine()
         self.replay_after = self.model.replay()
         self.error_after = record_errors(self.rec, self.replay_after)
-        self.residual_after = {d: self.model.residual(d) for d in self._domains()}
+        self.residual_after = {d: self.model.residual(d) for d in self.domains()}
         self.friction_after = friction_curve(self.model)
         self.unexplained = self._describe_rest()
         self._say("done")
@@ -182,7 +189,8 @@ class Identification:
                            "replays": count[0]}
         self._say(f"refined in {count[0]} replays")
 
-    def _domains(self) -> list[str]:
+    def domains(self) -> list[str]:
+        """The residual domains this record has: force, and position with two sensors."""
         return [FORCE] + ([POSITION] if self.motion.dx is not None else [])
 
     def noise_floor(self, domain: str) -> float:
@@ -217,7 +225,7 @@ class Identification:
         return out
 
     def _best(self) -> Term | None:
-        cands = [t for t in self._candidates(self._domains())
+        cands = [t for t in self._candidates(self.domains())
                  if t.evidence.get("explained", 0.0) >= self.min_explained]
         if not cands:
             # nothing in the residuals: a delay shows only in the closed loop
@@ -234,7 +242,7 @@ class Identification:
         """The signature of what is left, whatever the library says about it."""
         out = {}
         m, ctx = self.motion, self.ctx
-        for domain in self._domains():
+        for domain in self.domains():
             r = self.model.residual(domain)
             mask = ctx.moving
             rms = float(np.sqrt(np.mean(r[mask] ** 2))) if mask.any() else 0.0

@@ -61,7 +61,7 @@ def summary(ident: Identification, validation: dict | None, elapsed_s: float,
                    "error": s.error} for s in ident.steps],
         "error_before": ident.error_before, "error_after": ident.error_after,
         "validation": validation or {},
-        "noise_floor": {d: ident.noise_floor(d) for d in ident._domains()},
+        "noise_floor": {d: ident.noise_floor(d) for d in ident.domains()},
         "refinement": ident.refinement, "rejected": ident.rejected,
         "unexplained": ident.unexplained, "not_looked_for": ident.skipped,
         "thresholds": {"min_explained": ident.min_explained,
@@ -174,7 +174,7 @@ def plots(ident: Identification, out: Path) -> None:
     import matplotlib.pyplot as plt
 
     rec, m, ctx = ident.rec, ident.motion, ident.ctx
-    domains = ident._domains()
+    domains = ident.domains()
     fig, axes = plt.subplots(len(domains) + 1, 1, figsize=(10, 3 * (len(domains) + 1)),
                              sharex=True)
     # the filter's edges are no residual: leave them out
@@ -206,8 +206,14 @@ def plots(ident: Identification, out: Path) -> None:
             s = position_spectrum(r, m.x, ctx.moving, travel / 4000)
             ax.semilogy(s.cycles_per_unit[1:] * 1e-3, s.amplitude[1:], lw=0.8, label=name)
         if ident.drive.kind == "screw":
-            ax.axvline(1e-3 / (2 * math.pi * ident.drive.ratio), color="k", ls=":", lw=0.8,
-                       label="1 / lead")
+            lead_mm = 2e3 * math.pi * ident.drive.ratio
+            ax.axvline(1.0 / lead_mm, color="k", ls=":", lw=0.8, label="once per motor rev")
+            # the same lines counted per motor revolution: where cogging and runout sit
+            top = ax.secondary_xaxis("top", functions=(lambda f: f * lead_mm,
+                                                       lambda k: k / lead_mm))
+            top.set_xlabel("cycles per motor revolution")
+        # above half the binning's Nyquist frequency the bins' averaging distorts the lines
+        ax.set_xlim(0.0, 0.25 / (travel / 4000) * 1e-3)
         ax.set_xlabel("spatial frequency (cycles per mm of table travel)")
         ax.set_ylabel(f"{d} residual amplitude ({'N' if d == FORCE else 'm'})")
         ax.legend()
