@@ -6,6 +6,13 @@ and central differences.  The force is filtered by the same low-pass ("parallel
 filtering") so that both sides of ``F = M a + ...`` see the same frequency response and
 the fit is not biased by the filter.  The first and last ``edge`` samples, where the
 zero-phase filter's start-up transients sit, are left out of every fit.
+
+A caveat of servo traces: they sample the current once per position cycle, at the same
+phase of it.  Where the speed loop's current ripples in step with that cycle (its speed
+setpoint a staircase of the position loop's outputs, without a setpoint filter), the
+samples see one phase of the ripple and the fitted mass and viscous friction carry a
+bias of a few per cent; a speed-setpoint filter in the drive, or a trace at the speed
+cycle, removes it.
 """
 
 import math
