@@ -332,16 +332,18 @@ def _friction(cfg: MachineConfig, p: np.ndarray) -> None:
     fr, pre = cfg.friction, cfg.presliding
     if cfg.machine.kind == "rotary":
         vals = (fr.viscous_nms_per_rad, fr.coulomb_nm, fr.breakaway_nm,
-                fr.stribeck_velocity_rad_s, fr.zero_velocity_band_rad_s)
+                fr.stribeck_velocity_rad_s, fr.zero_velocity_band_rad_s,
+                fr.viscous_asymmetry_nms_per_rad)
     else:
         vals = (fr.viscous_ns_per_m, fr.coulomb_n, fr.breakaway_n, fr.stribeck_velocity_m_s,
-                fr.zero_velocity_band_m_s)
-    viscous, coulomb, breakaway, v_s, dv = vals
+                fr.zero_velocity_band_m_s, fr.viscous_asymmetry_ns_per_m)
+    viscous, coulomb, breakaway, v_s, dv, asym = vals
     p[L.P_FR_VISCOUS] = viscous
     p[L.P_FR_COULOMB] = coulomb
     p[L.P_FR_STATIC] = max(breakaway, coulomb)
     p[L.P_FR_STRIBECK_V] = v_s
     p[L.P_FR_DV] = dv
+    p[L.P_FR_VISC_ASYM] = asym
     p[L.P_PRE_ENABLED] = 1.0 if pre.enabled else 0.0
     p[L.P_PRE_K1] = pre.stiffness_n_per_m
     p[L.P_PRE_X1] = pre.x1_m

@@ -285,6 +285,15 @@ def _check_physics(cfg: MachineConfig) -> None:
         sfx, unit = ("_nm", "N*m") if kind == "rotary" else ("_n", "N")
         raise ConfigError(f"{cfg.path}: [friction] breakaway{sfx} = {f_h:g} {unit} must be >= "
                           f"coulomb{sfx} = {f_c:g} {unit}")
+    if kind == "rotary":
+        b, db, sfx, unit = (fr.viscous_nms_per_rad, fr.viscous_asymmetry_nms_per_rad,
+                            "_nms_per_rad", "N*m*s/rad")
+    else:
+        b, db, sfx, unit = (fr.viscous_ns_per_m, fr.viscous_asymmetry_ns_per_m, "_ns_per_m",
+                            "N*s/m")
+    if abs(db) > b:
+        raise ConfigError(f"{cfg.path}: [friction] |viscous_asymmetry{sfx}| = {abs(db):g} "
+                          f"{unit} must be <= viscous{sfx} = {b:g} {unit} (friction would push)")
     pre = cfg.presliding
     if pre.enabled:
         _require(cfg, "presliding", "stiffness_n_per_m", "presliding friction")

@@ -112,6 +112,7 @@ P_FR_COULOMB = next(_p)  # N
 P_FR_STATIC = next(_p)  # N, breakaway force F_H
 P_FR_STRIBECK_V = next(_p)  # m/s, Stribeck velocity (0: no Stribeck curve)
 P_FR_DV = next(_p)  # m/s, Karnopp zero-velocity band half-width
+P_FR_VISC_ASYM = next(_p)  # N·s/m: viscous is P_FR_VISCOUS +- this, moving + / moving -
 P_PRE_ENABLED = next(_p)  # 1: presliding nonlinear spring (seed 004 eq. 1)
 P_PRE_K1 = next(_p)  # N/m, initial presliding stiffness T1 (table units)
 P_PRE_X1 = next(_p)  # m, x1

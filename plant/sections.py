@@ -171,6 +171,9 @@ class FrictionSection:
     """Table friction: viscous, Coulomb, Stribeck and Karnopp stick-slip."""
     viscous_ns_per_m: float = key("N*s/m", "Viscous coefficient.", 0.0, ge=0.0,
                                   only="kind=screw|linear")
+    viscous_asymmetry_ns_per_m: float = key("N*s/m", "Viscous coefficient's difference by "
+                                            "direction dB: B + dB moving +, B - dB moving -; "
+                                            "|dB| <= B.", 0.0, only="kind=screw|linear")
     coulomb_n: float = key("N", "Coulomb (sliding) force F_C.", 0.0, ge=0.0,
                            only="kind=screw|linear")
     breakaway_n: float = key("N", "Breakaway force F_H >= F_C (0: equal to F_C).", 0.0,
@@ -181,6 +184,9 @@ class FrictionSection:
                                         only="kind=screw|linear")
     viscous_nms_per_rad: float = key("N*m*s/rad", "Viscous coefficient.", 0.0, ge=0.0,
                                      only="kind=rotary")
+    viscous_asymmetry_nms_per_rad: float = key("N*m*s/rad", "Viscous coefficient's "
+                                               "difference by direction (see the linear key).",
+                                               0.0, only="kind=rotary")
     coulomb_nm: float = key("N*m", "Coulomb torque.", 0.0, ge=0.0, only="kind=rotary")
     breakaway_nm: float = key("N*m", "Breakaway torque (0: equal to Coulomb).", 0.0, ge=0.0,
                               only="kind=rotary")

@@ -108,3 +108,29 @@ def test_stribeck_law_limits():
     v = 100 * f.stribeck_velocity_m_s
     assert fr.stribeck_law(f, v) == pytest.approx(f.coulomb_n + f.viscous_ns_per_m * v)
     assert fr.stribeck_law(f, -v) == -fr.stribeck_law(f, v)
+
+
+@pytest.mark.parametrize("direction", [1.0, -1.0])
+def test_direction_dependent_viscous_friction_sets_the_steady_speed(direction):
+    """Constant force F on a rigid axis with viscous B +- dB and Coulomb F_C: the table
+    settles at v = (F - F_C) / (B + dB) moving + and (F - F_C) / (B - dB) moving -
+    (force balance at constant speed)."""
+    from plant import Plant
+    from tests.conftest import ROOT
+    over = {"friction": {"viscous_ns_per_m": 300.0, "viscous_asymmetry_ns_per_m": 60.0,
+                         "coulomb_n": 30.0}}
+    axis = Plant.from_file(ROOT / "tests" / "data" / "ident_screw.toml", 0.1, over)
+    kf = axis.config.motor.torque_constant_nm_per_a / axis.built.ratio
+    force = 60.0
+    axis.set_input(iq_ref_a=direction * force / kf)
+    axis.run(int(8.0 / axis.pwm_period), axis.sub_per_pwm)  # 14 time constants M / (B - dB)
+    expected = (force - 30.0) / (300.0 + direction * 60.0)
+    assert axis.output("table_vel") == pytest.approx(direction * expected, rel=1e-4)
+
+
+def test_viscous_asymmetry_beyond_the_coefficient_is_refused(tmp_path):
+    from plant.config import ConfigError
+    from tests.conftest import ROOT
+    with pytest.raises(ConfigError, match=r"viscous_asymmetry_ns_per_m.*N\*s/m"):
+        load_machine(ROOT / "tests" / "data" / "ident_screw.toml",
+                     {"friction": {"viscous_asymmetry_ns_per_m": -301.0}})

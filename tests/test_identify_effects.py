@@ -98,6 +98,7 @@ CASES = {
     "viscous_friction": ({}, {"friction": {"viscous_ns_per_m": 0.0}}),
     "coulomb_friction": ({}, {"friction": {"coulomb_n": 0.0}}),
     "gravity_offset": ({"table": {"external_force_n": -150.0}}, {}),
+    "viscous_asymmetry": ({"friction": {"viscous_asymmetry_ns_per_m": -60.0}}, {}),
     "stribeck": ({"friction": {"breakaway_n": 60.0, "stribeck_velocity_m_s": 0.008}}, {}),
     "cogging": ({"cogging": {"orders": [2.0], "amplitudes_nm": [0.02],
                              "phases_deg": [30.0]}}, {}),

@@ -4,6 +4,7 @@ import sys
 import time
 from pathlib import Path
 
+from hil.identify.effects import NAMES
 from hil.identify.fit import Identification, record_errors
 from hil.identify.model import Model
 from hil.identify.record import load_record
@@ -26,6 +27,8 @@ def add_arguments(p) -> None:
                    help="iterations of the closed-loop refinement (0: off; default 10)")
     p.add_argument("--cutoff-hz", type=float, default=None,
                    help="inverse model's low-pass corner (default: a tenth of the sample rate)")
+    p.add_argument("--exclude", nargs="+", default=(), choices=NAMES, metavar="EFFECT",
+                   help="library effects not to look for: " + ", ".join(NAMES))
     p.add_argument("--quiet", action="store_true", help="no progress lines")
     p.add_argument("--json", action="store_true", help="print report.json to stdout")
 
@@ -71,7 +74,7 @@ def run_from_args(args) -> int:
         rep = identify(args.trace, args.config, args.out, args.validate, log=log,
                        min_explained=args.min_explained, floor_factor=args.floor_factor,
                        max_steps=args.max_steps, refine_nfev=args.refine_nfev,
-                       cutoff_hz=args.cutoff_hz)
+                       cutoff_hz=args.cutoff_hz, exclude=tuple(args.exclude))
     except (TraceFormatError, FileNotFoundError) as exc:
         print(f"hil identify: {exc}", file=sys.stderr)
         return 2

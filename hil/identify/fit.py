@@ -71,6 +71,9 @@ class Identification:
         max_steps: most effects added.
         refine_nfev: closed-loop refinement's budget of least-squares iterations (0: off).
         cutoff_hz: low-pass corner of the inverse model (None: a tenth of the sample rate).
+        exclude: names of library effects not to look for (known absent, or to compare
+            models: on EMPS, without ``viscous_asymmetry`` the search takes the constant
+            offset of the paper's symmetric model instead).
         log: optional callable(str) for progress lines.
 
     After :meth:`fit`: ``steps`` (the effects added, in order), ``rejected`` and
@@ -87,6 +90,7 @@ class Identification:
     max_steps: int = 6
     refine_nfev: int = 10
     cutoff_hz: float | None = None
+    exclude: tuple = ()
     log: object = None
     steps: list[Step] = field(default_factory=list)
     skipped: dict = field(default_factory=dict)
@@ -206,7 +210,8 @@ class Identification:
         for effect in LIBRARY:
             if effect.domain not in domains:
                 continue
-            why = effect.unavailable(self.ctx)
+            why = ("excluded by the caller" if effect.name in self.exclude
+                   else effect.unavailable(self.ctx))
             if why is not None:
                 self.skipped[effect.name] = why
                 continue
@@ -293,10 +298,11 @@ def friction_curve(model: Model):
         return (float(t.coef[0]), t.shape) if t is not None else (0.0, {})
 
     fv, _ = coef("viscous_friction")
+    dfv, _ = coef("viscous_asymmetry")
     fc, _ = coef("coulomb_friction")
     fs, shape = coef("stribeck")
     vs = shape.get("vs", 1.0)
-    return lambda v: fv * v + np.sign(v) * (fc + fs * np.exp(-(v / vs) ** 2))
+    return lambda v: fv * v + dfv * np.abs(v) + np.sign(v) * (fc + fs * np.exp(-(v / vs) ** 2))
 
 
 def _fmt(err: dict) -> str:

@@ -5,13 +5,13 @@ from hil.identify.effects.base import FORCE, POSITION, REPLAY, Context, Effect, 
 from hil.identify.effects.delay import TimeDelay
 from hil.identify.effects.drivetrain import Backlash, Compliance, Presliding
 from hil.identify.effects.force import (CoulombFriction, GravityOffset, Inertia, Stribeck,
-                                        ViscousFriction)
+                                        ViscousAsymmetry, ViscousFriction)
 from hil.identify.effects.periodic import Cogging, PitchError
 
 #: every effect, simplest first: among effects that explain about as much, the earlier wins
 LIBRARY: tuple[Effect, ...] = (
-    Inertia(), ViscousFriction(), CoulombFriction(), GravityOffset(), Stribeck(), Cogging(),
-    Presliding(), PitchError(), Backlash(), Compliance(), TimeDelay(),
+    Inertia(), ViscousFriction(), CoulombFriction(), GravityOffset(), ViscousAsymmetry(),
+    Stribeck(), Cogging(), Presliding(), PitchError(), Backlash(), Compliance(), TimeDelay(),
 )
 NAMES = tuple(e.name for e in LIBRARY)
 

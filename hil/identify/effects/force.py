@@ -94,6 +94,45 @@ class ViscousFriction(Effect):
         return {"friction": {key: max(0.0, float(coef[0]) - ctx.drive.motor_viscous)}}
 
 
+class ViscousAsymmetry(Effect):
+    """Viscous friction that differs by direction (seals, preload, a lubricant film that
+    builds differently): residual proportional to |v|, B + dB moving +, B - dB moving -."""
+    name = "viscous_asymmetry"
+
+    def _key(self, ctx):
+        return ("viscous_asymmetry_nms_per_rad" if _rotary(ctx)
+                else "viscous_asymmetry_ns_per_m")
+
+    def declared(self, ctx):
+        db = getattr(ctx.cfg.friction, self._key(ctx))
+        return Term(self, {}, np.array([db])) if db != 0.0 else None
+
+    def propose(self, ctx, residual, model):
+        mov = ctx.moving
+        ev = {"corr_with_abs_v": correlation(residual[mov], np.abs(ctx.m.v[mov]))}
+        term = _linear_term(self, ctx, residual, ev)
+        visc = model.term("viscous_friction")
+        b = float(visc.coef[0]) if visc is not None else 0.0
+        db = float(term.coef[0])
+        # on a record with few speeds |v| and a constant look alike: say what it amounts to
+        ev["mean_residual"] = float(residual[mov].mean())
+        ev["as_constant"] = float(db * np.abs(ctx.m.v[mov]).mean())
+        ev["text"] = (f"residual grows with |v| (r = {ev['corr_with_abs_v']:.2f}): viscous "
+                      f"{b + db:.4g} moving +, {b - db:.4g} moving -; it carries "
+                      f"{ev['as_constant']:+.3g} of the residual's mean "
+                      f"{ev['mean_residual']:+.3g}")
+        return term
+
+    def columns(self, ctx, shape):
+        return np.abs(ctx.m.v)[:, None]
+
+    def params(self, ctx, shape, coef):
+        return {self._key(ctx): float(coef[0])}
+
+    def overrides(self, ctx, shape, coef, model):
+        return {"friction": {self._key(ctx): float(coef[0])}}
+
+
 def _coulomb_key(ctx):
     return "coulomb_nm" if _rotary(ctx) else "coulomb_n"
 
