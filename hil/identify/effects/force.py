@@ -2,7 +2,8 @@
 
 Force balance at the table, in the measured motion (SI; N·m and rad on rotary tables)::
 
-    F = M a + Fv v + Fc sign(v) + (Fs - Fc) exp(-(v/vs)^2) sign(v) - F_ext - cog(theta_e)/r
+    F = M a + Fv v + dFv |v| + Fc sign(v) + (Fs - Fc) exp(-(v/vs)^2) sign(v) - F_ext
+        - cog(theta_e)/r
 
 Sign conventions follow the plant: friction opposes the motion, ``F_ext`` is the
 external force pushing toward +x (``[table] external_force_n``).
