@@ -13,6 +13,7 @@ the cycle SYNC k-1 started, and the master reads them before its next SYNC.
 """
 
 import math
+from abc import ABC, abstractmethod
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
@@ -58,7 +59,44 @@ class SimResult:
         return self.signals[name]
 
 
-class LockStep:
+class _Stepper(ABC):
+    """What both lock-step runners share: the feedback in flight, one tick, the wait for
+    enable.  Subclasses set ``ctrl``, ``sp`` and ``_cycle`` (the drive side's step) and
+    call :meth:`_line_of`."""
+
+    def _line_of(self, feedbacks: list) -> None:
+        #: the feedback in flight: the controller reads slot i, the drive then rewrites it
+        self._line = feedbacks
+        self._slot = 0
+        self.fb = self._line[0]
+
+    @abstractmethod
+    def _enable_reason(self) -> str:
+        """Why the drives are not enabled yet."""
+
+    def enable(self, max_ticks: int = 1000) -> None:
+        """Run the CiA 402 enable sequence(s) until OPERATION ENABLED."""
+        for _ in range(max_ticks):
+            if self.ctrl.enabled:
+                return
+            self.tick()
+        raise RuntimeError(f"not enabled after {max_ticks} ticks: {self._enable_reason()}")
+
+    def tick(self) -> None:
+        """One controller cycle and one PWM period of the plant(s)."""
+        fb = self._line[self._slot]
+        self.ctrl.tick(fb, self.sp)
+        self._cycle(self.sp, fb)
+        self.fb = fb
+        self._slot = (self._slot + 1) % len(self._line)
+
+
+def _check_delay(feedback_delay_ticks: int) -> None:
+    if feedback_delay_ticks < 0:
+        raise ValueError(f"feedback_delay_ticks must be >= 0, got {feedback_delay_ticks}")
+
+
+class LockStep(_Stepper):
     """A controller and an emulated drive of one machine file, stepped together.
 
     Args:
@@ -69,35 +107,18 @@ class LockStep:
     """
 
     def __init__(self, cfg: MachineConfig, x0: float = 0.0, feedback_delay_ticks: int = 0):
-        if feedback_delay_ticks < 0:
-            raise ValueError(f"feedback_delay_ticks must be >= 0, got {feedback_delay_ticks}")
+        _check_delay(feedback_delay_ticks)
         self.cfg = cfg
         self.plant = Plant(cfg, table_pos=x0)
         self.drive = EmulatedDrive(self.plant)
+        self._cycle = self.drive.cycle
         self.ctrl = Controller(cfg, self.plant.pwm_period, x0)
         self.sp = Setpoint()
         self.feedback_delay_ticks = feedback_delay_ticks
-        #: the feedback in flight: the controller reads slot i, the drive then rewrites it
-        self._line = [Feedback() for _ in range(feedback_delay_ticks + 1)]
-        self._slot = 0
-        self.fb = self._line[0]
+        self._line_of([Feedback() for _ in range(feedback_delay_ticks + 1)])
 
-    def enable(self, max_ticks: int = 1000) -> None:
-        """Run the CiA 402 enable sequence until OPERATION ENABLED."""
-        for _ in range(max_ticks):
-            if self.ctrl.enabled:
-                return
-            self.tick()
-        raise RuntimeError(f"drive not enabled after {max_ticks} ticks: "
-                           f"{self.ctrl.enable.reason}")
-
-    def tick(self) -> None:
-        """One controller cycle and one plant PWM period."""
-        fb = self._line[self._slot]
-        self.ctrl.tick(fb, self.sp)
-        self.drive.cycle(self.sp, fb)
-        self.fb = fb
-        self._slot = (self._slot + 1) % len(self._line)
+    def _enable_reason(self) -> str:
+        return self.ctrl.enable.reason
 
     def run(self, duration_s: float, progress=None) -> SimResult:
         """Run ``duration_s`` of simulated time, recording every tick."""
@@ -144,7 +165,7 @@ class _Recording:
                          {"machine": cfg.path})
 
 
-class MachineLockStep:
+class MachineLockStep(_Stepper):
     """Every axis of a machine: its controllers (:class:`MachineController`) and drives
     (:class:`DriveSet`) stepped together through one message pair, as :class:`LockStep`
     steps one axis (same ``feedback_delay_ticks``).  On one axis it is :class:`LockStep`
@@ -158,8 +179,7 @@ class MachineLockStep:
 
     def __init__(self, machine: MachineSet, x0: Sequence[float] | None = None,
                  feedback_delay_ticks: int = 0):
-        if feedback_delay_ticks < 0:
-            raise ValueError(f"feedback_delay_ticks must be >= 0, got {feedback_delay_ticks}")
+        _check_delay(feedback_delay_ticks)
         self.machine = machine
         x0 = tuple(x0) if x0 is not None else (0.0,) * len(machine.axes)
         self.plants = tuple(Plant(a.config, table_pos=x) for a, x in zip(machine.axes, x0))
@@ -168,26 +188,11 @@ class MachineLockStep:
         self.ctrl = MachineController(machine, self.period, x0)
         n = len(machine.axes)
         self.sp = message_pair(n)[0]
-        self._line = [message_pair(n)[1] for _ in range(feedback_delay_ticks + 1)]
-        self._slot = 0
-        self.fb = self._line[0]
+        self._cycle = self.drives.cycle
+        self._line_of([message_pair(n)[1] for _ in range(feedback_delay_ticks + 1)])
 
-    def enable(self, max_ticks: int = 1000) -> None:
-        """Run every axis's CiA 402 enable sequence until all are OPERATION ENABLED."""
-        for _ in range(max_ticks):
-            if self.ctrl.enabled:
-                return
-            self.tick()
-        raise RuntimeError(f"drives not enabled after {max_ticks} ticks: "
-                           f"{self.ctrl.enable_reason()}")
-
-    def tick(self) -> None:
-        """One controller cycle and one PWM period of every plant."""
-        fb = self._line[self._slot]
-        self.ctrl.tick(fb, self.sp)
-        self.drives.cycle(self.sp, fb)
-        self.fb = fb
-        self._slot = (self._slot + 1) % len(self._line)
+    def _enable_reason(self) -> str:
+        return self.ctrl.enable_reason()
 
     def run(self, duration_s: float) -> dict[str, SimResult]:
         """Run ``duration_s`` of simulated time; axis letter -> its recording."""

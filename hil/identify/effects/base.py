@@ -19,6 +19,7 @@ returns regressor columns, and :mod:`hil.identify.fit` solves every active effec
 domain jointly by bounded linear least squares.
 """
 
+from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -93,7 +94,7 @@ class Term:
         return self.effect.params(ctx, self.shape, self.coef)
 
 
-class Effect:
+class Effect(ABC):
     """A physical effect the identification can name, fit and write into a machine file.
 
     Subclasses set ``name``, ``domain``, ``n_params`` (what parsimony counts when two
@@ -113,14 +114,14 @@ class Effect:
         """The term the config already holds, or None."""
         return None
 
+    @abstractmethod
     def propose(self, ctx: Context, residual: np.ndarray, model) -> Term | None:
         """Fit the effect alone to ``residual`` (its domain's, shape (n,)); the rest of
         ``model`` stays fixed.  Returns the term with its evidence, or None."""
-        raise NotImplementedError
 
+    @abstractmethod
     def columns(self, ctx: Context, shape: dict) -> np.ndarray:
         """Regressors, shape (n, k)."""
-        raise NotImplementedError
 
     def bounds(self, shape: dict) -> tuple[np.ndarray, np.ndarray]:
         """Bounds of the coefficients for the joint fit, each shape (k,)."""
@@ -134,14 +135,14 @@ class Effect:
         """Samples the fits of this effect use."""
         return ctx.moving if self.domain == FORCE else ctx.m.use
 
+    @abstractmethod
     def params(self, ctx: Context, shape: dict, coef: np.ndarray) -> dict:
         """The physical parameters (SI, names with units) for the report."""
-        raise NotImplementedError
 
+    @abstractmethod
     def overrides(self, ctx: Context, shape: dict, coef: np.ndarray, model) -> dict:
         """What to write into the machine file: ``{"section": {"key": value}}``; ``model``
         gives the other terms where a key depends on them."""
-        raise NotImplementedError
 
 
 def quantum(x: np.ndarray) -> float:
