@@ -91,7 +91,8 @@ def test_identify_writes_report_plots_and_a_loadable_config(tmp_path, cogging_tr
     for err in (rep["error_before"], rep["error_after"], rep["validation"]["error_after"]):
         assert {"pos_rms_um", "pos_relerr_pct", "iq_rms_a", "iq_relerr_pct"} <= set(err)
     assert rep["error_after"]["iq_rms_a"] < rep["error_before"]["iq_rms_a"] / 2
-    for name in ("report.md", "residual_time.png", "spectrum.png", "friction_map.png"):
+    for name in ("report.md", "residual_time.png", "spectrum.png", "friction_map.png",
+                 "reversals.png"):
         assert (out / name).stat().st_size > 0
     fitted = load_machine(out / "config.toml")
     assert fitted.cogging.orders == (2,)

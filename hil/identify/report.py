@@ -154,7 +154,8 @@ def markdown(rep: dict) -> str:
     if rep["not_looked_for"]:
         lines += ["", "Not looked for: " + "; ".join(f"`{k}`: {v}" for k, v in
                                                     rep["not_looked_for"].items())]
-    lines += ["", "Plots: `residual_time.png`, `spectrum.png`, `friction_map.png`; fitted "
+    lines += ["", "Plots: `residual_time.png`, `spectrum.png`, `friction_map.png`, "
+              "`reversals.png`; fitted "
               "machine file: `config.toml`.", ""]
     return "\n".join(lines)
 
@@ -168,7 +169,7 @@ def _fmt(v) -> str:
 
 
 def plots(ident: Identification, out: Path) -> None:
-    """residual_time.png, spectrum.png and friction_map.png."""
+    """residual_time.png, spectrum.png, friction_map.png and reversals.png."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -237,6 +238,42 @@ def plots(ident: Identification, out: Path) -> None:
     ax.legend()
     fig.tight_layout()
     fig.savefig(out / "friction_map.png", dpi=110)
+    plt.close(fig)
+    _reversals_plot(ident, out / "reversals.png", plt)
+
+
+#: displacement after a reversal the reversal plot shows (m, or rad on rotary tables)
+REVERSAL_SPAN = 50e-6
+
+
+def _reversals_plot(ident: Identification, path: Path, plt) -> None:
+    """Friction against the displacement since each reversal, every reversal overlaid
+    (signed by the new direction): presliding builds up over micrometres there, Coulomb
+    jumps, backlash and compliance shift it."""
+    m, ctx = ident.motion, ident.ctx
+    flips = np.flatnonzero(np.diff(ctx.direction) != 0) + 1
+    fig, ax = plt.subplots(figsize=(8, 5))
+    inertia = ident.model.term("inertia").coef[0]
+    measured = m.force - inertia * m.a
+    model = measured - ident.residual_after[FORCE]
+    for i, k in enumerate(flips):
+        d = ctx.direction[k]
+        dx = d * (m.x[k:] - m.x[k - 1])
+        end = k + int(np.argmax(dx > REVERSAL_SPAN)) if np.any(dx > REVERSAL_SPAN) else m.x.size
+        sl = slice(k - 1, end)
+        span = d * (m.x[sl] - m.x[k - 1]) * 1e6
+        ax.plot(span, d * measured[sl], ".", ms=2, color="C0",
+                label="measured F - M a" if i == 0 else None)
+        ax.plot(span, d * model[sl], lw=1, color="C1", label="model after" if i == 0 else None)
+    unit = "urad" if ident.drive.kind == "rotary" else "um"
+    ax.set_xlabel(f"displacement since the reversal ({unit}), in the new direction")
+    ax.set_ylabel("friction in the new direction (" +
+                  ("N m" if ident.drive.kind == "rotary" else "N") + ")")
+    ax.set_title(f"The {flips.size} reversals of motion overlaid")
+    if flips.size:
+        ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
     plt.close(fig)
 
 
