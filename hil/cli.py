@@ -278,7 +278,7 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return args.func(args)
-    except (ConfigError, KeyError, ProgramError, ReportError) as exc:
+    except (ConfigError, KeyError, ProgramError, ReportError, FileNotFoundError) as exc:
         _eprint(f"hil: {exc}")
         return 2
 

@@ -117,3 +117,30 @@ def test_identify_refuses_a_bad_config_naming_file_and_key(tmp_path, cogging_tra
     done = hil("identify", cogging_trace, "--config", bad, "--out", tmp_path / "out")
     assert done.returncode == 2
     assert "bad.toml" in done.stderr and "mass_kg" in done.stderr
+
+
+def test_identify_recovers_seed_002s_cogging_on_the_linear_motor(tmp_path):
+    """Seed 002 §5 Fig. 9 measured the LD386's cogging as 1.39, 2.62 and 1.52 N at 1, 2
+    and 4 cycles per electrical revolution (configs/ld386_linear.toml); a trace of that
+    machine file, identified from the same file without its [cogging], gives them back.
+    The file declares a breakaway level: refitting Coulomb must keep it valid."""
+    from hil.identify.config_out import patch_config
+    from hil.identify.fit import Identification
+    from hil.identify.record import load_record
+    program = tmp_path / "moves.nc"
+    program.write_text("N10 G90\nN20 G1 X100 F3000\nN30 G4 F0.1\nN40 G1 X0 F6000\n"
+                       "N50 G1 X150 F1500\nN60 G1 X0 F9000\nN70 M30\n")
+    truth = ROOT / "configs" / "ld386_linear.toml"
+    done = hil("sim", truth, "--program", program, "--out", tmp_path / "sim")
+    assert done.returncode == 0, done.stderr
+    start = tmp_path / "start.toml"
+    start.write_text(patch_config(truth.read_text(), {"cogging": {
+        "orders": [], "amplitudes_n": [], "phases_deg": []}}, "test: without cogging"))
+    ident = Identification(start, load_record(tmp_path / "sim" / "trace.csv"),
+                           refine_nfev=0).fit()
+    assert [s.effect for s in ident.steps][:1] == ["cogging"]
+    found = dict(zip(ident.steps[0].params["orders"], ident.steps[0].params["amplitudes_n"]))
+    assert set(found) == {1, 2, 4}
+    for order, amp in ((1, 1.39), (2, 2.62), (4, 1.52)):
+        assert found[order] == pytest.approx(amp, rel=0.03)
+    load_machine(start, ident.model.overrides())  # a valid machine file

@@ -168,7 +168,15 @@ class CoulombFriction(Effect):
         return {_coulomb_key(ctx): float(coef[0])}
 
     def overrides(self, ctx, shape, coef, model):
-        return {"friction": {_coulomb_key(ctx): float(coef[0])}}
+        key = _coulomb_key(ctx)
+        out = {key: float(coef[0])}
+        # a breakaway level the file declares keeps its ratio to Coulomb's (F_H >= F_C);
+        # a fitted Stribeck term writes its own
+        k_fh = "breakaway_nm" if _rotary(ctx) else "breakaway_n"
+        f_h, f_c = getattr(ctx.cfg.friction, k_fh), getattr(ctx.cfg.friction, key)
+        if f_h > 0.0:
+            out[k_fh] = f_h * float(coef[0]) / f_c if f_c > 0.0 else max(f_h, float(coef[0]))
+        return {"friction": out}
 
 
 class GravityOffset(Effect):
