@@ -88,3 +88,22 @@ def terminate(proc: subprocess.Popen) -> int:
     """SIGTERM, then the exit status (bounded wait)."""
     proc.send_signal(signal.SIGTERM)
     return proc.wait(timeout=EXIT_S)
+
+
+def machine_lockstep_traces(config: Path, program: Path, settle_s: float, folder: Path,
+                            feedback_delay_ticks: int = 0) -> dict[str, Path]:
+    """Each axis's trace.csv (in ``folder``) of the machine's lock-step simulation of
+    ``program``, run ``settle_s`` past its end: what a loopback run is compared with."""
+    from hil.controller.path import read_path_program
+    from hil.sim import MachineLockStep, servo_trace_columns
+    from hil.trace_file import write_trace
+    from plant.machines import load_machine_set
+    m = load_machine_set(config)
+    ls = MachineLockStep(m, feedback_delay_ticks=feedback_delay_ticks)
+    ls.enable()
+    profiles = ls.ctrl.plan(read_path_program(program, m.names))
+    ls.ctrl.run_profiles(profiles)
+    res = ls.run(profiles[0].duration_s + settle_s)
+    return {name: write_trace(folder / f"trace_{name}.csv", servo_trace_columns(
+        res[name], ctrl.sec.position_cycle_ratio), {})
+        for name, ctrl in zip(m.names, ls.ctrl.ctrls)}

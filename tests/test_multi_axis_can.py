@@ -29,13 +29,13 @@ from canopen.profiles.p402 import BaseNode402
 
 from hil.commands import SETTLE_S
 from hil.controller.machine import MachineController
-from hil.controller.path import parse_path_program, read_path_program
+from hil.controller.path import parse_path_program
 from hil.drive import DriveSet, EmulatedDrive
 from hil.runtime.common import check_link
 from hil.runtime.emulator import Emulator, RuntimeConfig
 from hil.runtime.sync import settled_rows
-from hil.sim import MachineLockStep, servo_trace_columns
-from hil.trace_file import read_trace, write_trace
+from hil.sim import MachineLockStep
+from hil.trace_file import read_trace
 from io_adapters import AdapterConfigError, FrameError, open_endpoint
 from io_adapters.cia402_objects import drive_object_dictionary
 from io_adapters.messages import MODE_CSP, MODE_CST, message_pair
@@ -43,7 +43,8 @@ from plant import Plant
 from plant.config import load_machine
 from plant.machines import load_machine_set
 from tests.conftest import ROOT
-from tests.runtime_helpers import EXIT_S, Children, python_module, terminate
+from tests.runtime_helpers import (EXIT_S, Children, machine_lockstep_traces, python_module,
+                                   terminate)
 from tests.test_can_cia402 import (
     ARROW,
     CYCLE_S,
@@ -258,16 +259,9 @@ def config(tmp_path_factory) -> Path:
 @pytest.fixture(scope="module")
 def lockstep(config, tmp_path_factory) -> dict[str, Path]:
     """Each axis's trace.csv of the machine's lock-step simulation with the CAN delay."""
-    m = load_machine_set(config)
-    ls = MachineLockStep(m, feedback_delay_ticks=FEEDBACK_DELAY_TICKS)
-    ls.enable()
-    profiles = ls.ctrl.plan(read_path_program(PROGRAM, m.names))
-    ls.ctrl.run_profiles(profiles)
-    res = ls.run(profiles[0].duration_s + SETTLE_S)
-    folder = tmp_path_factory.mktemp("lockstep")
-    return {name: write_trace(folder / f"trace_{name}.csv", servo_trace_columns(
-        res[name], ctrl.sec.position_cycle_ratio), {})
-        for name, ctrl in zip(m.names, ls.ctrl.ctrls)}
+    return machine_lockstep_traces(config, PROGRAM, SETTLE_S,
+                                   tmp_path_factory.mktemp("lockstep"),
+                                   FEEDBACK_DELAY_TICKS)
 
 
 def run_pair(link: str, config: Path, folder: Path) -> tuple[dict, dict] | str:

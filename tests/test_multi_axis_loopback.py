@@ -20,13 +20,12 @@ import numpy as np
 import pytest
 
 from hil.commands import SETTLE_S
-from hil.controller.path import read_path_program
 from hil.runtime.sync import settled_rows
-from hil.sim import MachineLockStep, servo_trace_columns
-from hil.trace_file import read_trace, write_trace
+from hil.trace_file import read_trace
 from plant.machines import load_machine_set
 from tests.conftest import ROOT
-from tests.runtime_helpers import EXIT_S, Children, python_module, terminate
+from tests.runtime_helpers import (EXIT_S, Children, machine_lockstep_traces, python_module,
+                                   terminate)
 from tests.test_multi_axis import ARROW, SLOW, write_manifest
 
 PROGRAM = ROOT / "programs" / "xy_moves.nc"
@@ -45,16 +44,8 @@ def config(tmp_path_factory) -> Path:
 @pytest.fixture(scope="module")
 def lockstep(config, tmp_path_factory) -> dict[str, Path]:
     """Each axis's trace.csv of the machine's lock-step simulation of PROGRAM."""
-    m = load_machine_set(config)
-    ls = MachineLockStep(m)
-    ls.enable()
-    profiles = ls.ctrl.plan(read_path_program(PROGRAM, m.names))
-    ls.ctrl.run_profiles(profiles)
-    res = ls.run(profiles[0].duration_s + SETTLE_S)
-    folder = tmp_path_factory.mktemp("lockstep")
-    return {name: write_trace(folder / f"trace_{name}.csv", servo_trace_columns(
-        res[name], ctrl.sec.position_cycle_ratio), {})
-        for name, ctrl in zip(m.names, ls.ctrl.ctrls)}
+    return machine_lockstep_traces(config, PROGRAM, SETTLE_S,
+                                   tmp_path_factory.mktemp("lockstep"))
 
 
 def run_pair(config: Path, folder: Path) -> tuple[dict, dict] | str:

@@ -37,17 +37,15 @@ import numpy as np
 from hil.controller.config import AxisLimits
 from hil.controller.interpolator import Profile, _check_limits, _move_phases
 from hil.controller.program import (
-    _END_CODES,
     LINEAR_AXES,
     ROTARY_AXES,
     BlockKind,
     ErrorFactory,
     ProgramError,
     _check_groups,
-    _g_code,
     _scales,
     _strip_comments,
-    _tokens,
+    sort_words,
 )
 
 
@@ -95,25 +93,11 @@ class _Modal:
 
 def _words(code: str, axes: str, err: ErrorFactory):
     """G codes, {axis letter: value}, F, end of one comment-free line."""
-    g, values, end = [], {}, False
-    for i, (word, letter, value) in enumerate(_tokens(code, err)):
-        if letter == "N":
-            if i != 0 or value != int(value) or value < 0:
-                raise err(f"block number '{word}' must come first and be a whole number")
-        elif letter == "G":
-            g.append(_g_code(word, value, err))
-        elif letter == "M" and value in _END_CODES:
-            end = True
-        elif letter in axes or letter == "F":
-            if letter in values:
-                raise err(f"word {letter} appears twice ('{word}')")
-            values[letter] = value
-        elif letter in LINEAR_AXES + ROTARY_AXES:
-            raise err(f"axis word '{word}': this machine has the axes {', '.join(axes)}")
-        else:
-            raise err(f"unknown word '{word}'")
+    g, values, _, end = sort_words(
+        code, axes, err, lambda word: f"axis word '{word}': this machine has the axes "
+                                      f"{', '.join(axes)}")
     f = values.pop("F", None)
-    return tuple(g), values, f, end
+    return g, values, f, end
 
 
 def _block(g, moves: dict, f, st: _Modal, axes: str, rotary, line: int,

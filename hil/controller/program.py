@@ -150,8 +150,10 @@ def _tokens(code: str, err: ErrorFactory) -> list[tuple[str, str, float]]:
     return out
 
 
-def _words(code: str, axis: str, err: ErrorFactory) -> _Words:
-    """Sort one line's words into G codes, axis, F and end; refuse anything else."""
+def sort_words(code: str, axes: str, err: ErrorFactory, foreign: Callable[[str], str]):
+    """Sort one comment-free line's words: (G codes, {letter: value} for the ``axes``
+    letters and F, {letter: word as written}, end of program).  An axis word of another
+    letter is refused with ``foreign(word)``, anything else unknown as such."""
     g: list[int] = []
     values: dict[str, float] = {}
     written: dict[str, str] = {}
@@ -164,17 +166,24 @@ def _words(code: str, axis: str, err: ErrorFactory) -> _Words:
             g.append(_g_code(word, value, err))
         elif letter == "M" and value in _END_CODES:
             end = True
-        elif letter in (axis, "F"):
+        elif letter in axes or letter == "F":
             if letter in values:
                 raise err(f"word {letter} appears twice ('{word}')")
             values[letter] = value
             written[letter] = word
         elif letter in LINEAR_AXES + ROTARY_AXES:
-            raise err(f"axis word '{word}' is not for this program's axis {axis} "
-                      f"(single-axis programs only)")
+            raise err(foreign(word))
         else:
             raise err(f"unknown word '{word}'")
-    return _Words(tuple(g), values.get(axis), written.get(axis, ""), values.get("F"), end)
+    return tuple(g), values, written, end
+
+
+def _words(code: str, axis: str, err: ErrorFactory) -> _Words:
+    """Sort one line's words into G codes, axis, F and end; refuse anything else."""
+    g, values, written, end = sort_words(
+        code, axis, err, lambda word: f"axis word '{word}' is not for this program's axis "
+                                      f"{axis} (single-axis programs only)")
+    return _Words(g, values.get(axis), written.get(axis, ""), values.get("F"), end)
 
 
 def _g_code(word: str, value: float, err: ErrorFactory) -> int:
