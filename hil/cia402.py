@@ -16,8 +16,11 @@ state automaton"; IEC 61800-7-201 § 6.3).  Options this drive implements:
   Codes 1-4 take transition 12 on that report; codes 5-8 stay in QUICK STOP ACTIVE, from
   where enable operation (16) or disable voltage (12) leave it.  Code 0 (coast at once) is
   not offered: the plant would lose torque while the state still claims a controlled stop.
-* fault reaction option code (605Eh) 0: disable the drive function, the motor coasts; the
-  reaction is complete at once, so transition 14 follows 13 on the next cycle.
+* fault reaction option code (605Eh, :class:`FaultReactionOption`): the state machine does
+  not brake either; the drive runs its reaction in FAULT REACTION ACTIVE (torque on while it
+  brakes, :attr:`DriveStateMachine.power_enabled`) and reports its end, after which
+  transition 14 leads to FAULT (torque off).  A caller that does not say (``reaction_done``
+  left True) gets code 0's behaviour: 14 follows 13 on the next cycle.
 
 Nothing here imports canopen; the tests compare against it as an independent reading.
 """
@@ -53,6 +56,24 @@ class ModeOfOperation(IntEnum):
     CST = 10  # cyclic synchronous torque
 
 
+class FaultReactionOption(IntEnum):
+    """Fault reaction option codes (605Eh): how the drive stops before it enters FAULT."""
+    DISABLE_DRIVE = 0          # torque off at once, the motor coasts
+    SLOW_DOWN_RAMP = 1         # brake on the slow down ramp (6084h), then torque off
+    QUICK_STOP_RAMP = 2        # brake on the quick stop ramp (6085h), then torque off
+    CURRENT_LIMIT = 3          # brake at the current limit, then torque off
+    VOLTAGE_LIMIT = 4          # brake at the voltage limit (this drive: its current limit)
+
+
+class AbortConnectionOption(IntEnum):
+    """Abort connection option codes (6007h): what a lost master (setpoint watchdog,
+    heartbeat, NMT stop or reset) does to a drive whose power stage is on."""
+    NO_ACTION = 0
+    FAULT = 1                  # a fault (then 605Eh's reaction)
+    DISABLE_VOLTAGE = 2        # as the disable voltage command: torque off
+    QUICK_STOP = 3             # as the quick stop command (then 605Ah's reaction)
+
+
 class QuickStopOption(IntEnum):
     """Quick stop option codes (605Ah) 1-8: how to stop, and whether to disable afterwards."""
     SLOW_DOWN_RAMP_DISABLE = 1
@@ -82,6 +103,11 @@ SW_WARNING = 1 << 7
 SW_REMOTE = 1 << 9              # the controlword is processed
 SW_TARGET_REACHED = 1 << 10
 SW_INTERNAL_LIMIT_ACTIVE = 1 << 11
+SW_FOLLOWS_COMMAND = 1 << 12    # CSP/CSV/CST: the drive follows the command value
+SW_FOLLOWING_ERROR = 1 << 13    # CSP: the following error is beyond its window (6065h)
+#: the statusword bits a caller of DriveStateMachine.update may set
+SW_CALLER_BITS = (SW_WARNING | SW_TARGET_REACHED | SW_INTERNAL_LIMIT_ACTIVE
+                  | SW_FOLLOWS_COMMAND | SW_FOLLOWING_ERROR)
 
 CW_FAULT_RESET = 1 << 7  # controlword (6040h) bit 7: fault reset, acts on its 0 -> 1 edge
 
@@ -130,7 +156,7 @@ class _Cond(IntEnum):
     COMMAND = 0     # the controlword alone
     FAULT = 1       # the fault input is set
     INIT_DONE = 2   # initialisation after power-up is over
-    ALWAYS = 3      # fault reaction complete (605Eh = 0: immediately)
+    REACTION_DONE = 3  # the fault reaction is complete (605Eh)
     RESET = 4       # rising edge of controlword bit 7 and no fault
     STOPPED = 5     # the caller reports the axis stopped
 
@@ -163,7 +189,7 @@ _TABLE = _FAULT_ROWS + (
     _Row(9, _S.OPERATION_ENABLED, _Cond.COMMAND, DISABLE_VOLTAGE, _S.SWITCH_ON_DISABLED),
     _Row(11, _S.OPERATION_ENABLED, _Cond.COMMAND, QUICK_STOP, _S.QUICK_STOP_ACTIVE),
     _Row(12, _S.QUICK_STOP_ACTIVE, _Cond.COMMAND, DISABLE_VOLTAGE, _S.SWITCH_ON_DISABLED),
-    _Row(14, _S.FAULT_REACTION_ACTIVE, _Cond.ALWAYS, _ANY, _S.FAULT),
+    _Row(14, _S.FAULT_REACTION_ACTIVE, _Cond.REACTION_DONE, _ANY, _S.FAULT),
     _Row(15, _S.FAULT, _Cond.RESET, _ANY, _S.SWITCH_ON_DISABLED),
 )
 # 12: quick stop complete -> SWITCH ON DISABLED, option codes 1-4 only.
@@ -251,23 +277,27 @@ class DriveStateMachine:
 
     def __init__(self, quick_stop_option: int = QuickStopOption.QUICK_STOP_RAMP_DISABLE,
                  init_cycles: int = 0, log_length: int = 64):
-        try:
-            self.quick_stop_option = QuickStopOption(quick_stop_option)
-        except ValueError as e:
-            raise Cia402Error(f"quick stop option code {quick_stop_option} not offered; "
-                              "605Ah must be 1-8") from e
         if init_cycles < 0:
             raise Cia402Error(f"init_cycles {init_cycles} must be >= 0")
-        extra = (_DISABLE_AFTER_STOP_ROWS if self.quick_stop_option.disables_after_stop
-                 else _STAY_AFTER_STOP_ROWS)
-        rows = _TABLE + extra
-        self._rows = tuple(tuple(r for r in rows if r.source == s) for s in State)
+        self.set_quick_stop_option(quick_stop_option)
         self._init_cycles = init_cycles
         self._cond = [False] * len(_Cond)
         self._cond[_Cond.COMMAND] = True
-        self._cond[_Cond.ALWAYS] = True
         self.log = TransitionLog(log_length)
         self.power_up()
+
+    def set_quick_stop_option(self, code: int) -> None:
+        """Take 605Ah ``code`` (1-8) from the next :meth:`update` on."""
+        try:
+            option = QuickStopOption(code)
+        except ValueError as e:
+            raise Cia402Error(f"quick stop option code {code} not offered; "
+                              "605Ah must be 1-8") from e
+        extra = (_DISABLE_AFTER_STOP_ROWS if option.disables_after_stop
+                 else _STAY_AFTER_STOP_ROWS)
+        rows = _TABLE + extra
+        self._rows = tuple(tuple(r for r in rows if r.source == s) for s in State)
+        self.quick_stop_option = option
 
     def power_up(self) -> None:
         """Transition 0: power on (or reset) -> NOT READY TO SWITCH ON, initialisation starts."""
@@ -289,12 +319,15 @@ class DriveStateMachine:
 
     @property
     def power_enabled(self) -> bool:
-        """The drive function is enabled: torque is on (OPERATION ENABLED, QUICK STOP ACTIVE).
+        """The drive function is enabled: torque may be on (OPERATION ENABLED, QUICK STOP
+        ACTIVE, FAULT REACTION ACTIVE).
 
         The standard keeps the drive function enabled in QUICK STOP ACTIVE so the axis can
-        be braked on the quick stop ramp (605Ah codes 1-8).
+        be braked on the quick stop ramp (605Ah codes 1-8), and in FAULT REACTION ACTIVE for
+        a braking fault reaction (605Eh codes 1-4); the drive decides whether it brakes.
         """
-        return self._state in (State.OPERATION_ENABLED, State.QUICK_STOP_ACTIVE)
+        return self._state in (State.OPERATION_ENABLED, State.QUICK_STOP_ACTIVE,
+                               State.FAULT_REACTION_ACTIVE)
 
     @property
     def quick_stop_active(self) -> bool:
@@ -302,8 +335,7 @@ class DriveStateMachine:
         return self._state == State.QUICK_STOP_ACTIVE
 
     def update(self, controlword: int, fault: bool, *, stopped: bool = False,
-               warning: bool = False, target_reached: bool = False,
-               internal_limit: bool = False) -> int:
+               reaction_done: bool = True, flags: int = 0) -> int:
         """One cycle: take at most one transition and return the statusword.
 
         Args:
@@ -311,7 +343,9 @@ class DriveStateMachine:
             fault: the drive detects a fault this cycle (13 from any non-fault state; no
                 fault reset while set).
             stopped: the axis has come to rest; completes a quick stop (12, codes 1-4).
-            warning, target_reached, internal_limit: copied to statusword bits 7, 10, 11.
+            reaction_done: the fault reaction is complete (14).
+            flags: statusword bits the drive sets this cycle, of :data:`SW_CALLER_BITS`
+                (warning 7, target reached 10, internal limit active 11, 12, 13).
 
         Returns:
             The statusword 6041h (16 bits).
@@ -322,6 +356,7 @@ class DriveStateMachine:
         cond[_Cond.RESET] = (not fault and bool(controlword & CW_FAULT_RESET)
                              and not self._previous_controlword & CW_FAULT_RESET)
         cond[_Cond.STOPPED] = stopped
+        cond[_Cond.REACTION_DONE] = reaction_done
         self._previous_controlword = controlword
         if self._init_left > 0 and self._state == State.NOT_READY_TO_SWITCH_ON:
             self._init_left -= 1
@@ -331,12 +366,8 @@ class DriveStateMachine:
                 self.log.record(row.number)
                 break
         statusword = _BASE_STATUSWORD[self._state]
-        if warning:
-            statusword |= SW_WARNING
-        if target_reached:
-            statusword |= SW_TARGET_REACHED
-        if internal_limit:
-            statusword |= SW_INTERNAL_LIMIT_ACTIVE
+        if flags:
+            statusword |= flags & SW_CALLER_BITS
         self._statusword = statusword
         return statusword
 

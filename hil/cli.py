@@ -7,6 +7,7 @@
     hil bench plant [--json] [--config FILE ...] [--seconds S]
     hil bench loop [--rate 1000,4000,8000] [--seconds S] [--with-plant] [--json]
     hil bench adapters [--n N] [--adapter udp|serial] [--json]
+    hil bench fuzz [--frames N] [--seed N] [--json]
     hil report RUN [--cyclictest] [--controller DIR]
     hil config-keys [--markdown]
     hil identify TRACE --config CONFIG --out DIR [--validate TRACE2]
@@ -14,9 +15,9 @@
     hil measure CONFIG step current|speed|position --amplitude X [--at MM] --out DIR
     hil measure CONFIG bode current|speed --amplitude X [--offset X] --out DIR
 
-Exit status: 0 on success, 1 when a validation row is not ok, 2 on bad input
-(a machine file that does not load, a part program that does not parse,
-an unknown experiment).
+Exit status: 0 on success, 1 when a validation row is not ok or the NC of ``hil sim``
+raised an alarm, 2 on bad input (a machine file that does not load, a part program that
+does not parse, an unknown experiment).
 """
 
 import argparse
@@ -132,9 +133,15 @@ def cmd_bench_adapters(args) -> int:
 
 
 def cmd_config_keys(args) -> int:
+    from hil.controller.config import ControllerSection
+    from hil.drive.config import DriveSection
     from plant.config import schema_rows
+    from plant.schema import describe
 
-    rows = schema_rows()
+    rows = schema_rows() + [{"section": name, **row}
+                            for name, cls in (("controller", ControllerSection),
+                                              ("drive", DriveSection))
+                            for row in describe(cls)]
     if args.markdown:
         print("| section | key | unit | range | default | applies to | meaning |")
         print("|---|---|---|---|---|---|---|")
@@ -153,7 +160,9 @@ def cmd_sim(args) -> int:
     summary = run_sim(Path(args.config), Path(args.program), Path(args.out), args.start,
                       args.axis, args.every, args.trigger, args.depth, args.pre_trigger)
     print_summary(summary, args.json)
-    return 0
+    for alarm in summary["alarms"]:
+        _eprint(f"hil sim: {alarm['message']}")
+    return 1 if summary["alarms"] else 0
 
 
 def cmd_measure(args) -> int:
@@ -192,7 +201,11 @@ def build_parser() -> argparse.ArgumentParser:
     bp.add_argument("--ref-seconds", type=float, default=0.5, help="reference timing, s")
     bp.set_defaults(func=cmd_bench_plant)
 
-    s = sub.add_parser("sim", help="controller and plant in lock-step on a part program")
+    s = sub.add_parser("sim", help="controller and plant in lock-step on a part program",
+                       description="The simulated NC and the emulated drive in lock-step on a "
+                       "part program.  Exit status 0, 1 when the NC raised an alarm (contour, "
+                       "standstill or clamping monitoring, encoder, drive fault: listed in the "
+                       "summary and on stderr; the axis was stopped), 2 on bad input.")
     s.add_argument("config", help="machine file (TOML)")
     s.add_argument("--program", required=True, help="part program (G-code subset)")
     s.add_argument("--out", required=True, help="folder for trace.csv and sim.png")
@@ -237,6 +250,12 @@ def build_parser() -> argparse.ArgumentParser:
                     help="repeatable; default: all")
     ba.add_argument("--json", action="store_true")
     ba.set_defaults(func=cmd_bench_adapters)
+
+    bf = bsub.add_parser("fuzz", help="N frames through every decoder into running drives: "
+                         "counts, faults, checks (exit 1 if a check fails)")
+    from hil.bench import fuzz
+    fuzz.add_arguments(bf)
+    bf.set_defaults(func=fuzz.run_from_args)
 
     r = sub.add_parser("report", help="latency and jitter report of a run folder")
     r.add_argument("run", help="run folder (run.npz + report.json)")

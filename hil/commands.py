@@ -5,20 +5,18 @@ tables); everything inside is SI.
 """
 
 import json
-import math
 import sys
 from pathlib import Path
 
 import numpy as np
 
-from hil.controller.config import axis_limits, load_controller
+from hil.controller.config import axis_limits, clamp_codes, cnc_unit, load_controller
 from hil.controller.interpolator import plan
 from hil.controller.program import read_program
-from hil.measure.frequency_response import bandwidth_hz, bode_plot, peaks, write_csv
-from hil.measure.runs import (bode, current_step, position_step, speed_step,
-                              write_step_csv)
-from hil.measure.trace import TraceConfigError, TraceRecorder, Trigger
 from hil.figures import plot_sim, plot_step
+from hil.measure.frequency_response import bandwidth_hz, bode_plot, peaks, write_csv
+from hil.measure.runs import bode, current_step, position_step, speed_step, write_step_csv
+from hil.measure.trace import TraceConfigError, TraceRecorder, Trigger
 from hil.sim import LockStep, servo_trace_columns
 from hil.trace_file import write_trace
 from plant.assemble import transmission_ratio
@@ -28,11 +26,6 @@ from plant.config import MachineConfig, load_machine
 SETTLE_S = 0.2
 #: resonance peaks are reported down to this far below the low-frequency gain, dB
 PEAK_RANGE_DB = 20.0
-
-
-def _edge(cfg: MachineConfig) -> tuple[float, str]:
-    """Factor from SI table units to the CNC's (mm or deg) and that unit."""
-    return (180.0 / math.pi, "deg") if cfg.machine.kind == "rotary" else (1e3, "mm")
 
 
 def _progress(label: str):
@@ -86,14 +79,16 @@ def run_sim(config: Path, program: Path, out: Path, start: float, axis: str | No
     """Simulate ``program`` on ``config`` from table position ``start`` (mm or deg);
     write trace.csv (one row per ``every`` ticks, default the position-control cycle) and
     sim.png into ``out``, and with a ``trigger`` (see :func:`parse_trigger`) triggered.csv:
-    ``depth`` rows of which ``pre`` before the trigger; return a summary (CNC units)."""
+    ``depth`` rows of which ``pre`` before the trigger; return a summary (CNC units) with
+    the NC's alarms (``alarms``, empty when none was raised)."""
     trig = parse_trigger(trigger) if trigger else None
     cfg = load_machine(config)
-    k, unit = _edge(cfg)
+    k, unit = cnc_unit(cfg)
     x0 = start / k
-    prog = read_program(program, axis=_axis_letter(cfg, axis), start=x0)
-    profile = plan(prog, axis_limits(cfg, load_controller(cfg)))
-    ls = LockStep(cfg, x0)
+    sec = load_controller(cfg)
+    prog = read_program(program, axis=_axis_letter(cfg, axis), start=x0, clamp=clamp_codes(sec))
+    profile = plan(prog, axis_limits(cfg, sec))
+    ls = LockStep(cfg, x0, axis=prog.axis)
     ls.enable()
     ls.ctrl.run_profile(profile)
     res = ls.run(profile.duration_s + SETTLE_S, _progress("simulating"))
@@ -118,15 +113,19 @@ def run_sim(config: Path, program: Path, out: Path, start: float, axis: str | No
     return {**summary, "duration_s": float(res["t_s"][-1] - res["t_s"][0]),
             f"following_error_max_{unit}": float(abs(fe).max()),
             f"following_error_rms_{unit}": float((fe ** 2).mean() ** 0.5),
+            f"contour_deviation_max_{unit}": float(abs(res["contour_deviation"]).max() * k),
             f"final_position_{unit}": float(res["x_act"][-1] * k),
+            "alarms": ls.ctrl.alarms.as_dicts(),
             "trace": str(out / "trace.csv"), "plot": str(out / "sim.png")}
 
 
 def run_step(config: Path, loop: str, amplitude: float, at: float, out: Path) -> dict:
     """A step of the current (A), speed (mm/min or deg/min) or position (mm or deg) loop
-    starting at table position ``at``; writes step_<loop>.png and .csv."""
+    starting at table position ``at``; writes step_<loop>.png and .csv.  The summary lists
+    the NC's alarms (the step runs without the axis monitoring of programs, so only a
+    bad feedback value, a drive fault or a non-finite loop state raises one)."""
     cfg = load_machine(config)
-    k, unit = _edge(cfg)
+    k, unit = cnc_unit(cfg)
     x0 = at / k
     if loop == "current":
         res, scale, shown = current_step(cfg, amplitude, x0=x0), 1.0, "A"
@@ -141,7 +140,8 @@ def run_step(config: Path, loop: str, amplitude: float, at: float, out: Path) ->
     write_step_csv(out / f"step_{loop}.csv", res)
     return {"loop": loop, "step": amplitude, "unit": shown,
             "rise_time_ms": res.rise_time_s * 1e3, "overshoot_pct": res.overshoot_pct,
-            "final": res.final * scale, "plot": str(out / f"step_{loop}.png")}
+            "final": res.final * scale, "alarms": [a.message() for a in res.sim.alarms],
+            "plot": str(out / f"step_{loop}.png")}
 
 
 def run_bode(config: Path, loop: str, amplitude: float, offset: float, order: int,
@@ -149,7 +149,7 @@ def run_bode(config: Path, loop: str, amplitude: float, offset: float, order: in
     """Frequency response of the current loop (A) or the speed loop (mm/min or deg/min at
     the table); writes bode_<loop>.png and .csv."""
     cfg = load_machine(config)
-    k, unit = _edge(cfg)
+    k, _ = cnc_unit(cfg)
     if loop == "speed":
         ratio = transmission_ratio(cfg)
         amplitude, offset = amplitude / k / 60.0 / ratio, offset / k / 60.0 / ratio
@@ -165,13 +165,18 @@ def run_bode(config: Path, loop: str, amplitude: float, offset: float, order: in
     floor_db = fr.magnitude_db[0] - PEAK_RANGE_DB
     return {"loop": loop, "bandwidth_hz": bandwidth_hz(fr),
             "peaks_hz": [round(p.freq_hz, 1) for p in peaks(fr) if p.magnitude_db > floor_db],
-            "plot": str(out / f"bode_{loop}.png")}
+            "alarms": [a.message() for a in m.sim.alarms], "plot": str(out / f"bode_{loop}.png")}
 
 
 def print_summary(summary: dict, as_json: bool) -> None:
-    """JSON, or one 'key: value' line per entry."""
+    """JSON, or one 'key: value' line per entry (the alarms one line each, as their
+    messages, or 'alarms: none')."""
     if as_json:
         print(json.dumps(summary, indent=1))
-    else:
-        for key, value in summary.items():
+        return
+    for key, value in summary.items():
+        if key == "alarms":
+            lines = [f"alarm: {a['message'] if isinstance(a, dict) else a}" for a in value]
+            print("\n".join(lines) or "alarms: none")
+        else:
             print(f"{key}: {value:.6g}" if isinstance(value, float) else f"{key}: {value}")

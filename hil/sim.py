@@ -4,7 +4,9 @@ Each basic-clock tick the controller reads the last feedback and writes a
 setpoint, then the drive applies it and advances the plant one PWM period.
 The same Controller and EmulatedDrive objects run in real time over an
 adapter; here they are only called back to back, faster than real time.
-:class:`MachineLockStep` does the same for every axis of a machine at once.
+:class:`MachineLockStep` does the same for every axis of a machine at once.  An alarm of
+the NC (:mod:`hil.controller.alarms`) does not end a run: the axes brake and are disabled
+as the NC does it, the run goes on to its end, and the alarms are in the result.
 
 ``feedback_delay_ticks`` models a link whose feedback comes back later than the next
 tick: with d, controller tick k reads the feedback of drive cycle k-1-d (0: cycle k-1).
@@ -19,6 +21,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from hil.controller.alarms import Alarm
 from hil.controller.machine import MachineController
 from hil.controller.nc import Controller
 from hil.drive import DriveSet, EmulatedDrive
@@ -33,7 +36,7 @@ SIGNALS = {
     "t_s": "s", "x_set": "m", "v_set": "m/s", "a_set": "m/s^2", "x_act": "m",
     "v_act": "m/s", "v_cmd": "m/s", "w_set": "rad/s", "w_act": "rad/s", "iq_set": "A",
     "iq_meas": "A", "iq_true": "A", "table_pos": "m", "motor_pos": "rad", "motor_pos_meas": "rad",
-    "following_error": "m", "tick": "1",
+    "following_error": "m", "contour_deviation": "m", "tick": "1",
 }
 
 
@@ -48,12 +51,15 @@ class SimResult:
         ratio: table travel per motor rad (1 when direct).
         period_s: tick period.
         meta: text metadata (machine file, program, ...).
+        alarms: the axis's alarms (:class:`~hil.controller.alarms.Alarm`) when the run
+            ended.
     """
     signals: dict
     kind: str
     ratio: float
     period_s: float
     meta: dict = field(default_factory=dict)
+    alarms: tuple[Alarm, ...] = ()
 
     def __getitem__(self, name: str) -> np.ndarray:
         return self.signals[name]
@@ -104,15 +110,17 @@ class LockStep(_Stepper):
         x0: the table's position at start.
         feedback_delay_ticks: extra ticks the feedback takes to reach the controller
             (see the module docstring); ``fb`` is always the drive's newest feedback.
+        axis: the axis name in the NC's alarms (default X, or C on a rotary table).
     """
 
-    def __init__(self, cfg: MachineConfig, x0: float = 0.0, feedback_delay_ticks: int = 0):
+    def __init__(self, cfg: MachineConfig, x0: float = 0.0, feedback_delay_ticks: int = 0,
+                 axis: str | None = None):
         _check_delay(feedback_delay_ticks)
         self.cfg = cfg
         self.plant = Plant(cfg, table_pos=x0)
         self.drive = EmulatedDrive(self.plant)
         self._cycle = self.drive.cycle
-        self.ctrl = Controller(cfg, self.plant.pwm_period, x0)
+        self.ctrl = Controller(cfg, self.plant.pwm_period, x0, axis=axis)
         self.sp = Setpoint()
         self.feedback_delay_ticks = feedback_delay_ticks
         self._line_of([Feedback() for _ in range(feedback_delay_ticks + 1)])
@@ -158,11 +166,12 @@ class _Recording:
         rec["motor_pos"][k] = out.output("motor_pos")
         rec["motor_pos_meas"][k] = ctrl.theta_act
         rec["following_error"][k] = ctrl.following_error
+        rec["contour_deviation"][k] = ctrl.contour_deviation
         rec["tick"][k] = ctrl.tick_count - 1
 
     def result(self, cfg: MachineConfig) -> SimResult:
         return SimResult(self.rec, cfg.machine.kind, self.ctrl.ratio, self.plant.pwm_period,
-                         {"machine": cfg.path})
+                         {"machine": cfg.path}, tuple(self.ctrl.alarms.alarms))
 
 
 class MachineLockStep(_Stepper):

@@ -8,17 +8,22 @@ closed checks, timeouts, draining stale records, timestamps, statistics,
 translating ``OSError`` into :class:`AdapterError`) and call a few private hooks
 that a backend fills, as python-can's ``BusABC`` does:
 
-* ``_write(record) -> bool``: send one record; False if there is nobody to send to yet.
+* ``_write(record) -> bool``: send one record without waiting for room; False if there
+  is nobody to send to yet or the transport has no room (counted in
+  ``stats.send_dropped``).
 * ``_read(into, timeout_s) -> bool``: wait up to ``timeout_s`` (None: forever) for
   one good record and write it into ``into``; a malformed frame is counted in
-  :attr:`Endpoint.stats` and dropped, never raised.
+  :attr:`Endpoint.stats` and dropped, never raised; a setpoint that
+  :attr:`Endpoint.setpoint_bounds` refuses is counted (:meth:`Endpoint._refuse`) and
+  dropped whole, ``into`` untouched.
 * ``_close()``: release the transport (called once).
 * ``_fileno()``: optional, the file descriptor a loop can ``select``/``poll`` on.
 
-Byte transports (UDP, serial) share :class:`io_adapters.codec.MsgpackEndpoint`,
-which fills ``_write``/``_read`` and leaves them byte-level hooks; a transport
-that maps records onto its own frames (CAN PDOs) subclasses :class:`Endpoint`
-directly.  Endpoints are not thread-safe: use each from one thread.
+Byte transports (UDP, serial) share
+:class:`io_adapters.msgpack_endpoint.MsgpackEndpoint`, which fills ``_write``/``_read``
+and leaves them byte-level hooks; a transport that maps records onto its own frames
+(CAN PDOs) subclasses :class:`Endpoint` directly.  Endpoints are not thread-safe: use
+each from one thread.
 """
 
 import io
@@ -29,7 +34,23 @@ from dataclasses import dataclass
 from enum import Enum
 from urllib.parse import parse_qsl
 
-from io_adapters.messages import Feedback, Setpoint
+from io_adapters.messages import (
+    REFUSED_MODE,
+    REFUSED_NONFINITE,
+    REFUSED_RANGE,
+    Feedback,
+    Setpoint,
+    SetpointBounds,
+)
+
+#: :meth:`Endpoint.link_conditions` bits: conditions of the link itself that the drive
+#: reacts to
+LINK_HEARTBEAT_LOST = 1  # the controller's heartbeat is overdue
+LINK_STOPPED = 2         # the controller stopped the node's communication
+LINK_RESET = 4           # the controller reset the node (an event, reported once)
+
+_REFUSAL_COUNTERS = {REFUSED_NONFINITE: "refused_nonfinite", REFUSED_MODE: "refused_mode",
+                     REFUSED_RANGE: "refused_range"}
 
 
 class AdapterError(Exception):
@@ -41,7 +62,8 @@ class AdapterConfigError(AdapterError, ValueError):
 
 
 class AdapterTimeout(AdapterError, TimeoutError):
-    """The transport could not complete an operation in time (a blocked serial write)."""
+    """The transport could not complete an operation in time (the built-in transports
+    never wait for a peer: a send without room is dropped and counted instead)."""
 
 
 class AdapterClosed(AdapterError, ConnectionError):
@@ -63,31 +85,62 @@ class Role(str, Enum):
 class AdapterStats:
     """Counters of one endpoint since it was opened (frames are whole messages).
 
+    On the msgpack transports (UDP, serial) the counters of received frames add up::
+
+        frames == received + malformed + refused_nonfinite + refused_mode + refused_range
+                  + duplicates + out_of_order + foreign + stale_session + handshakes
+
+    every frame counted in exactly one of them (a refused message in its reason's counter
+    only, a drained record in ``received`` too).
+
     Attributes:
-        sent: records sent.
+        frames: every message that reached the decoder: each datagram, whoever sent it;
+            on serial each candidate frame after a start of frame, good CRC or not.
+        sent: records sent (handshake messages are not records).
         received: good records accepted, including those superseded by draining.
         drained: accepted records overwritten by a newer one in the same ``recv_*`` call.
         timeouts: ``recv_*`` calls that returned False.
         malformed: frames dropped because they did not decode (bad CRC, bad msgpack,
             wrong version, kind, length, type or range).
+        refused_nonfinite: well-formed messages dropped for a NaN or infinite value in a
+            float field (setpoints and feedback).
+        refused_mode: setpoints dropped for a mode of operation the drive does not take
+            (:attr:`Endpoint.setpoint_bounds`).
+        refused_range: setpoints dropped for a value beyond the drive's bound.
         duplicates: frames dropped because they repeated the last sequence number.
         out_of_order: frames dropped because they were older than the last accepted one.
         lost: frames missing between accepted sequence numbers.
-        peer_restarts: times the peer's session changed (the peer was reopened).
-        foreign: datagrams dropped because they came from an address other than the peer.
+        peer_restarts: times the peer's session changed (the device: a handshake took the
+            link over for a new session; the controller: the device was reopened).
+        foreign: frames dropped because they came from someone other than the peer (a
+            datagram from another address, or one outside the loopback network without
+            ``allow_remote``), including a handshake the device refused.
+        stale_session: frames dropped because they came from the peer's address with
+            another session than the one the device is pinned to (not a handshake).
+        handshakes: handshake messages taken: a HELLO the device accepted, a WELCOME the
+            controller received.
+        send_dropped: messages not sent because the transport had no room (a full socket
+            buffer, a serial peer that does not read): the loop never waits for a peer.
         bytes_sent, bytes_received: encoded message bytes, transport framing excluded.
         bytes_skipped: stream bytes discarded while looking for a start of frame.
     """
+    frames: int = 0
     sent: int = 0
     received: int = 0
     drained: int = 0
     timeouts: int = 0
     malformed: int = 0
+    refused_nonfinite: int = 0
+    refused_mode: int = 0
+    refused_range: int = 0
     duplicates: int = 0
     out_of_order: int = 0
     lost: int = 0
     peer_restarts: int = 0
     foreign: int = 0
+    stale_session: int = 0
+    handshakes: int = 0
+    send_dropped: int = 0
     bytes_sent: int = 0
     bytes_received: int = 0
     bytes_skipped: int = 0
@@ -101,12 +154,19 @@ class Endpoint(ABC):
         drain: if true, every ``recv_*`` that gets a record also takes every record
             already waiting behind it, so the caller always works on the newest one
             (the skipped ones are counted in ``stats.drained``).
+
+    Attributes:
+        refused_axes: device side, a bit mask: bit ``a`` set when a setpoint (or axis
+            ``a``'s record of a group message) was refused during the last
+            :meth:`recv_setpoint` call (cleared at the start of each call).
     """
 
     def __init__(self, role: Role | str, *, drain: bool = False):
         self.role = Role(role)
         self.drain = drain
         self.stats = AdapterStats()
+        self.refused_axes = 0
+        self._setpoint_bounds = (SetpointBounds(),)
         self._closed = False
         self._sp_t_ns = 0   # device side: t_ns and arrival time of the latest setpoint
         self._sp_rx_ns = 0
@@ -117,10 +177,31 @@ class Endpoint(ABC):
         """Open an endpoint from its URL (see :func:`io_adapters.registry.open_endpoint`)."""
 
     # -- device side -------------------------------------------------------------------
+    @property
+    def setpoint_bounds(self) -> tuple[SetpointBounds, ...]:
+        """What the drive takes, one :class:`~io_adapters.messages.SetpointBounds` per
+        axis in the machine's axis order, or one for every axis (the default,
+        ``(SetpointBounds(),)``: finite values, the four modes, counts within 2**53).
+        A setpoint that its axis's bounds refuse is dropped whole (no field of it reaches
+        the record passed to :meth:`recv_setpoint`, which keeps the last good setpoint),
+        counted once in ``stats.refused_*`` by its reason, and named in
+        :attr:`refused_axes`; it still counts as heard from the peer (not lost)."""
+        return self._setpoint_bounds
+
+    @setpoint_bounds.setter
+    def setpoint_bounds(self, bounds: tuple[SetpointBounds, ...]) -> None:
+        bounds = tuple(bounds)
+        if not bounds or not all(isinstance(b, SetpointBounds) for b in bounds):
+            raise AdapterConfigError(f"setpoint_bounds={bounds!r}: expected one or more "
+                                     f"SetpointBounds (one per axis, or one for all)")
+        self._setpoint_bounds = bounds
+
     def recv_setpoint(self, into: Setpoint, timeout_s: float | None) -> bool:
         """Wait up to ``timeout_s`` seconds (0: poll, None: forever) for a setpoint and
-        write it into ``into``; False if none came.  ``into.rx_ns`` is stamped."""
+        write it into ``into``; False if none came.  ``into.rx_ns`` is stamped.
+        :attr:`refused_axes` names the axes whose setpoints this call refused."""
         self._check(Role.DEVICE, "recv_setpoint")
+        self.refused_axes = 0
         if not self._receive(into, timeout_s):
             return False
         self._sp_t_ns = into.t_ns
@@ -147,6 +228,12 @@ class Endpoint(ABC):
         write it into ``into``; False if none came.  ``into.rx_ns`` is stamped."""
         self._check(Role.CONTROLLER, "recv_feedback")
         return self._receive(into, timeout_s)
+
+    def link_conditions(self, axis: int) -> int:
+        """Conditions of the link itself that the drive reacts to, a bit mask of
+        LINK_HEARTBEAT_LOST = 1, LINK_STOPPED = 2, LINK_RESET = 4 (an event, reported
+        once); 0 on transports that have none (this base, UDP, serial)."""
+        return 0
 
     # -- life cycle --------------------------------------------------------------------
     @property
@@ -212,15 +299,24 @@ class Endpoint(ABC):
         into.rx_ns = time.monotonic_ns()
         return True
 
+    def _refuse(self, axes: int, reason: int) -> None:
+        """Count one refused message in its reason's counter (``REFUSED_*``) and add
+        ``axes`` (a bit mask, bit ``a`` for axis ``a``) to :attr:`refused_axes`."""
+        counter = _REFUSAL_COUNTERS[reason]
+        setattr(self.stats, counter, getattr(self.stats, counter) + 1)
+        self.refused_axes |= axes
+
     # -- hooks -------------------------------------------------------------------------
     @abstractmethod
     def _write(self, record: Setpoint | Feedback) -> bool:
-        """Send one record; False if there is nobody to send to yet."""
+        """Send one record without waiting; False if there is nobody to send to yet or
+        no room (counted in ``stats.send_dropped``)."""
 
     @abstractmethod
     def _read(self, into: Setpoint | Feedback, timeout_s: float | None) -> bool:
         """Wait up to ``timeout_s`` for one good record, write it into ``into``, count it
-        in ``stats.received``; count and drop bad frames; False on timeout."""
+        in ``stats.received``; count and drop bad frames and refused records; False on
+        timeout."""
 
     @abstractmethod
     def _close(self) -> None:

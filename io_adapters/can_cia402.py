@@ -28,32 +28,57 @@ say which SYNC sent it -- bit 8 (:data:`SW_ECHO`) and the counter's low two bits
 otherwise, and never in the 6041h that SDO reads.
 
 So the feedback of a setpoint reaches the master one SYNC later, as on a real CiA 402
-network.  :attr:`last_sync_ns` is when the newest SYNC was latched
-(``time.monotonic_ns``; 0 before the first): a loop that runs on its own clock locks
+network.  A cycle counts as *heard* (:meth:`recv_setpoint` returns True) only when a SYNC
+started it and new process data came since the cycle before (an RPDO taken in
+OPERATIONAL, or an SDO write to one of the inputs); a cycle the drive starts on its own
+clock, or a SYNC with nothing new before it, is run (the loop gets the latched setpoint)
+but returns False, so the drive's watchdog counts it as silence (SYNC/RPDO timeout).
+:attr:`last_sync_ns` is when the newest SYNC was latched (``time.monotonic_ns``; 0
+before the first): a loop that runs on its own clock locks
 its cycle to it (``hil run`` does, :class:`hil.runtime.sync.SyncLock`), as a CiA 402
 drive synchronises its control cycle to SYNC.  With no SYNC for ``sync_timeout_ms``
 the drive starts its cycle on its own clock, every ``sync_timeout_ms``, sending its
 TPDOs the same way (the newest values, however many cycles wrote them since): a master
 that has not started SYNC yet (or stopped it) still sees the statusword move.  SYNC is
-taken while a node is in PRE-OPERATIONAL or OPERATIONAL; SDO in every state.  The drive boots into
-PRE-OPERATIONAL and sends its boot-up message when opened.
+taken while a node is in PRE-OPERATIONAL or OPERATIONAL; SDO in every state.  The drive
+boots into PRE-OPERATIONAL and sends its boot-up message when opened.
+
+Network management and the lost master (:meth:`link_conditions`, which the drive's watchdog
+reads every tick): NMT stop puts a node in STOPPED (no PDO, no SYNC: LINK_STOPPED while
+it lasts); NMT reset node and reset communication are reported once (LINK_RESET), then
+the node boots again: boot-up message, PRE-OPERATIONAL, its communication objects (1016h,
+1017h) back to their start values, and for a reset node the drive's parameter objects too
+(:meth:`~io_adapters.cia402_objects.ObjectAccess.reset_application`).  A heartbeat
+consumer (1016h:01, the ``heartbeat_consumer`` option or an SDO write) watches the
+master's heartbeat from the first one on: none within the consumer time is
+LINK_HEARTBEAT_LOST until the next one.  What the drive does then is its abort connection
+option code 6007h.  An error code that changes in the feedback (603Fh) is sent as an EMCY
+(80h + node-ID: code, 1001h, five zero bytes) at the next cycle start; its clearing as the
+EMCY "error reset" (code 0).
 
 Setpoint from the latched objects: ``seq`` counts the cycles; ``controlword`` = 6040h;
 ``mode`` = 6060h (0, no mode, becomes MODE_CST with zero current); targets 607Ah,
 60FFh, 60B1h as floats; ``iq_ref_a`` = (6071h in CST + 60B2h) per mille of 6075h;
 ``id_ref_a``, ``ud_v``, ``uq_v`` and ``t_ns`` = 0 (not on this wire).  Feedback into
-the objects: 6041h statusword, 6061h = the mode of the cycle, 603Fh from ``fault``,
-6064h ``encoder_counts`` (wrapped into INTEGER32), 606Ch ``velocity_counts_s``, 6078h
-and 6077h ``iq_a`` in per mille (saturated), 60E4h:01 ``scale_counts``; 1001h bit 0
-while the statusword shows FAULT.  SDO reads of these objects return the newest values.
+the objects: 6041h statusword, 6061h = the mode of the cycle, 603Fh = ``fault`` (the
+drive's error code), 1001h from it, 6064h ``encoder_counts`` (wrapped into INTEGER32),
+606Ch ``velocity_counts_s``, 6078h and 6077h ``iq_a`` in per mille (saturated),
+60E4h:01 ``scale_counts``.  SDO reads of these objects return the newest values; the
+parameter objects are the drive's (:attr:`CanDriveEndpoint.objects`).
 
-Counted in :attr:`stats`: ``received`` cycles handed out, ``lost`` cycles that a newer
-SYNC overwrote before :meth:`recv_setpoint` took them, ``malformed`` RPDO frames
-dropped (a DLC other than the mapping's, stricter than CiA 301, which uses the first
-bytes of a longer one; or a mode the drive does not accept).  The bus's receive thread
-(python-can's ``Notifier``, run by canopen) is stopped by :meth:`close`.
+Refused, as on every transport (:attr:`~io_adapters.base.Endpoint.setpoint_bounds`): an
+RPDO or SDO write with a mode the drive does not take (``refused_mode``; SDO abort 0609
+0030h) or a current beyond its bound (``refused_range``; SDO abort 0609 0031h/0032h):
+the image keeps its last accepted values and :attr:`refused_axes` names the axis at the
+next :meth:`recv_setpoint`.  Counted in :attr:`stats`: ``received`` cycles heard,
+``timeouts`` the others, ``lost`` cycles that a newer SYNC overwrote before
+:meth:`recv_setpoint` took them, ``malformed`` RPDO frames dropped (a DLC other than the
+mapping's, stricter than CiA 301, which uses the first bytes of a longer one).  The bus's
+receive thread (python-can's ``Notifier``, run by canopen) is stopped by :meth:`close`.
 """
 
+import ipaddress
+import math
 import threading
 import time
 
@@ -61,18 +86,35 @@ import can
 import canopen
 from canopen.sdo import SdoAbortedError
 
-from io_adapters.base import AdapterClosed, AdapterError, Endpoint, Role
+from io_adapters.base import (
+    LINK_HEARTBEAT_LOST,
+    LINK_RESET,
+    LINK_STOPPED,
+    AdapterClosed,
+    AdapterError,
+    Endpoint,
+    Role,
+)
+from io_adapters.can_loopback import LoopbackMulticastBus
 from io_adapters.cia402_objects import (
-    ACCEPTED_MODES,
-    FAULT_CODE_BASE,
+    HEARTBEAT_BASE,
+    HEARTBEAT_CONSUMER,
     I16,
     I32,
+    NMT_COB_ID,
     NO_MODE,
+    PARAMETER_OBJECTS,
+    SDO_ABORT_NO_SUBINDEX,
+    SDO_ABORT_VALUE_HIGH,
+    SDO_ABORT_VALUE_LOW,
     SDO_ABORT_VALUE_RANGE,
     SYNC_COB_ID,
     CanLink,
+    ObjectAccess,
+    ObjectAccessError,
     amps,
     drive_object_dictionary,
+    error_register,
     parse_can_url,
     permille,
     rpdo_layouts,
@@ -81,35 +123,45 @@ from io_adapters.cia402_objects import (
     wrap_i32,
 )
 from io_adapters.messages import (
+    MODE_CSP,
     MODE_CST,
+    MODE_CSV,
+    REFUSED_MODE,
     Feedback,
     FeedbackGroup,
     Setpoint,
+    SetpointBounds,
     SetpointGroup,
     axis_records,
 )
 
-SW_FAULT = 1 << 3
-#: TPDO1 statusword: bit 8 set when bits 14-15 hold the low two bits of the counter of
-#: the SYNC that sent it (manufacturer-specific bits of CiA 402's 6041h)
 SW_ECHO = 1 << 8
 ECHO_SHIFT = 14
 SW_ECHO_MASK = SW_ECHO | 3 << ECHO_SHIFT
 U32_MASK = 0xFFFFFFFF
-#: objects written by the master, in the order :meth:`CanDriveEndpoint._fill` reads them
+#: objects written by the master, in the order :meth:`_DriveNode.fill` reads them
 INPUTS = ((0x6040, 0), (0x6060, 0), (0x607A, 0), (0x60B1, 0), (0x60FF, 0), (0x6071, 0),
           (0x60B2, 0))
+ERROR_CODE = (0x603F, 0)
 ERROR_REGISTER = (0x1001, 0)
 #: how long the receive thread waits in one bus read: the bound on :meth:`close`
 NOTIFIER_CYCLE_S = 0.05
+#: modes a CiA 402 node on this wire can run (the drive's own bounds narrow them)
+CAN_MODES = frozenset((MODE_CSP, MODE_CSV, MODE_CST))
+NMT_RESET_NODE, NMT_RESET_COMMUNICATION = 0x81, 0x82
 
 
 def open_bus(link: CanLink, **options) -> can.BusABC:
-    """The python-can bus of ``link`` (``options`` go to ``can.Bus``); raises
-    :class:`AdapterError` saying why it cannot be opened."""
+    """The python-can bus of ``link`` (``options`` go to ``can.Bus``); ``udp_multicast``
+    stays on the loopback interface unless ``multicast_if`` says otherwise
+    (:mod:`io_adapters.can_loopback`).  Raises :class:`AdapterError` saying why it cannot
+    be opened."""
     if link.port is not None:
         options["port"] = link.port
     try:
+        if link.interface == "udp_multicast" and link.multicast_if != "any":
+            address = link.multicast_if or ("::1" if ":" in link.channel else "127.0.0.1")
+            return LoopbackMulticastBus(link.channel, address, **options)
         return can.Bus(interface=link.interface, channel=link.channel, **options)
     except (can.CanError, OSError, ValueError) as e:
         raise AdapterError(f"{link.url!r}: cannot open the {link.interface} bus "
@@ -118,10 +170,15 @@ def open_bus(link: CanLink, **options) -> can.BusABC:
 
 class _DriveNode:
     """One CiA 402 node of the endpoint (one axis): its :class:`canopen.LocalNode`, PDO
-    frames and process image.  Its state is guarded by the endpoint's ``lock``."""
+    frames, process image and network management.  Its state is guarded by the
+    endpoint's ``lock``; the endpoint's ``objects`` and ``setpoint_bounds`` are read
+    through ``owner``."""
 
-    def __init__(self, node_id: int, link: CanLink, lock: threading.Lock):
-        self.lock = lock
+    def __init__(self, axis: int, node_id: int, link: CanLink, owner: "CanDriveEndpoint"):
+        self.axis = axis
+        self.owner = owner
+        self.lock = owner._lock
+        self.rated_ma = link.rated_current_ma
         self.rpdos = {p.cob_id: p for p in rpdo_layouts(node_id)}
         self.tpdos = tpdo_layouts(node_id)
         self.tpdo_msgs = tuple(can.Message(arbitration_id=p.cob_id, is_extended_id=False,
@@ -131,12 +188,19 @@ class _DriveNode:
         self.image[ERROR_REGISTER] = 0
         self.latched = (0,) * len(INPUTS)
         self.mode = NO_MODE
+        self.refused = False      # a refusal not yet reported to the loop
+        self.emcy_code = 0        # the error code the last EMCY announced
+        self.reset_event = False  # an NMT reset not yet reported to the loop
+        self.heartbeat_start = link.heartbeat_consumer
+        self.consumer: tuple[int, int] | None = None
+        self.heartbeat_s = math.nan  # monotonic time of the last consumed heartbeat
         self.local = canopen.LocalNode(node_id, drive_object_dictionary(
-            node_id, link.rated_current_ma, link.rated_torque_mnm))
+            node_id, link.rated_current_ma, link.rated_torque_mnm, link.heartbeat_consumer))
         self.local.add_read_callback(self.on_sdo_read)
         self.local.add_write_callback(self.on_sdo_write)
 
-    def fill(self, into: Setpoint, seq: int, rated_ma: int) -> None:
+    # -- the loop's side (lock held) -------------------------------------------------------
+    def fill(self, into: Setpoint, seq: int) -> None:
         """The latched objects as a setpoint (the lock is held)."""
         controlword, mode, position, velocity_offset, velocity, torque, torque_offset = \
             self.latched
@@ -150,22 +214,27 @@ class _DriveNode:
             into.mode, into.iq_ref_a = MODE_CST, 0.0
         else:
             into.mode = mode
-            into.iq_ref_a = amps((torque if mode == MODE_CST else 0) + torque_offset, rated_ma)
+            # the bound itself for a current beyond it by the wire's rounding (refusal())
+            limit = self.bounds().current_a
+            into.iq_ref_a = min(max(self._amps(mode, torque, torque_offset), -limit), limit)
         into.id_ref_a = into.ud_v = into.uq_v = 0.0
         into.t_ns = 0
 
-    def stage(self, fb: Feedback, rated_ma: int) -> None:
+    def _amps(self, mode: int, torque: int, torque_offset: int) -> float:
+        return amps((torque if mode == MODE_CST else 0) + torque_offset, self.rated_ma)
+
+    def stage(self, fb: Feedback) -> None:
         """Pack ``fb`` into the TPDO frames and the image (the lock is held)."""
-        current = saturate(permille(fb.iq_a, rated_ma), I16)
-        fault_code = FAULT_CODE_BASE + fb.fault if fb.fault else 0
-        values = ((fb.statusword, self.mode, fault_code),
+        current = saturate(permille(fb.iq_a, self.rated_ma), I16)
+        values = ((fb.statusword, self.mode, fb.fault),
                   (wrap_i32(fb.encoder_counts), saturate(fb.velocity_counts_s, I32)),
                   (current, current, wrap_i32(fb.scale_counts)))
         for layout, staged, vals in zip(self.tpdos, self.staged, values):
             layout.frame.pack_into(staged, 0, *vals)
             self.image.update(zip(layout.objects, vals))
-        self.image[ERROR_REGISTER] = 1 if fb.statusword & SW_FAULT else 0
+        self.image[ERROR_REGISTER] = error_register(fb.fault)
 
+    # -- the bus's side --------------------------------------------------------------------
     def send_tpdos(self, bus: can.BusABC, counter: int | None) -> None:
         """Send the staged TPDO1-3, TPDO1 with the SYNC echo when ``counter`` is given."""
         for msg, staged in zip(self.tpdo_msgs, self.staged):
@@ -177,30 +246,131 @@ class _DriveNode:
         for msg in self.tpdo_msgs:
             bus.send(msg)
 
+    def emcy_due(self) -> tuple[int, int] | None:
+        """(code, 1001h) of an EMCY to send now, if the error code changed (lock held)."""
+        code = self.image[ERROR_CODE]
+        if code == self.emcy_code or self.local.nmt.state not in ("PRE-OPERATIONAL",
+                                                                 "OPERATIONAL"):
+            return None
+        self.emcy_code = code
+        return code, self.image[ERROR_REGISTER]
+
+    def bounds(self) -> SetpointBounds:
+        b = self.owner.setpoint_bounds
+        return b[self.axis] if self.axis < len(b) else b[0]
+
+    def refusal(self, values: dict) -> int:
+        """Why ``values`` (index -> value, merged over the image) cannot be taken, or 0:
+        the axis's :class:`~io_adapters.messages.SetpointBounds` on the setpoint they make
+        (no mode, the power-up value, counts as CST), a current beyond its bound by less
+        than half a per-mille step (the wire's rounding) taken at the bound."""
+        def get(key):
+            return values.get(key, self.image[key])
+
+        mode = get((0x6060, 0))
+        if mode not in CAN_MODES and mode != NO_MODE:
+            return REFUSED_MODE
+        torque, offset = get((0x6071, 0)), get((0x60B2, 0))
+        current = amps(max(abs(torque), abs(offset), abs(torque + offset)), self.rated_ma)
+        bounds = self.bounds()
+        if bounds.current_a < current <= bounds.current_a + 0.5e-6 * self.rated_ma:
+            current = bounds.current_a
+        return bounds.refusal(MODE_CST if mode == NO_MODE else mode, get((0x607A, 0)),
+                              get((0x60FF, 0)), get((0x60B1, 0)), current, 0.0, 0.0, 0.0)
+
+    def refuse(self, reason: int) -> None:
+        """Count a refusal and keep it for the loop (the lock is held)."""
+        stats = self.owner.stats
+        if reason == REFUSED_MODE:
+            stats.refused_mode += 1
+        else:
+            stats.refused_range += 1
+        self.refused = True
+
     def on_rpdo(self, data: bytearray, layout) -> bool:
-        """Take one RPDO into the image; False (malformed) on a wrong DLC or mode."""
+        """Take one RPDO into the image; False (malformed) on a wrong DLC."""
         if len(data) != layout.frame.size:
             return False
         update = dict(zip(layout.objects, layout.frame.unpack(data)))
-        if update.get((0x6060, 0), NO_MODE) not in ACCEPTED_MODES:
-            return False
         with self.lock:
-            self.image.update(update)
+            reason = self.refusal(update)
+            if reason:
+                self.refuse(reason)
+            else:
+                self.image.update(update)
+                self.owner._fresh = True
         return True
 
     def on_sdo_read(self, index: int, subindex: int, od) -> int | None:
+        if subindex != od.subindex:
+            raise SdoAbortedError(SDO_ABORT_NO_SUBINDEX)
+        key = (index, subindex)
+        objects = self.owner.objects
+        if key in PARAMETER_OBJECTS and objects is not None:
+            return objects.read(self.axis, index, subindex)
         with self.lock:
-            return self.image.get((index, subindex))
+            return self.image.get(key)
 
     def on_sdo_write(self, index: int, subindex: int, od, data: bytes) -> None:
+        if subindex != od.subindex:
+            raise SdoAbortedError(SDO_ABORT_NO_SUBINDEX)
         key = (index, subindex)
-        if key not in INPUTS:
-            return
         value = od.decode_raw(data)
-        if key == (0x6060, 0) and value not in ACCEPTED_MODES:
-            raise SdoAbortedError(SDO_ABORT_VALUE_RANGE)
+        if key in INPUTS:
+            self._write_input(key, value)
+        elif key in PARAMETER_OBJECTS and self.owner.objects is not None:
+            try:
+                self.owner.objects.write(self.axis, index, subindex, value)
+            except ObjectAccessError as e:
+                raise SdoAbortedError(e.abort_code) from e
+        elif key == HEARTBEAT_CONSUMER:
+            self.consume_heartbeat(value)
+
+    def _write_input(self, key: tuple[int, int], value: int) -> None:
         with self.lock:
+            reason = self.refusal({key: value})
+            if reason:
+                self.refuse(reason)
+                if reason == REFUSED_MODE:
+                    raise SdoAbortedError(SDO_ABORT_VALUE_RANGE)
+                raise SdoAbortedError(SDO_ABORT_VALUE_HIGH if value > 0 else SDO_ABORT_VALUE_LOW)
             self.image[key] = value
+            self.owner._fresh = True
+
+    # -- network management ----------------------------------------------------------------
+    def consume_heartbeat(self, entry: int) -> None:
+        """1016h:01 = ``entry``: watch node (bits 16-22)'s heartbeat for (bits 0-15) ms;
+        0 in either: no consumer."""
+        network = self.owner.network
+        if self.consumer is not None:
+            network.unsubscribe(HEARTBEAT_BASE + self.consumer[0], self.on_heartbeat)
+        node_id, ms = entry >> 16 & 0x7F, entry & 0xFFFF
+        self.consumer = (node_id, ms) if node_id and ms else None
+        self.heartbeat_s = math.nan
+        if self.consumer is not None:
+            network.subscribe(HEARTBEAT_BASE + node_id, self.on_heartbeat)
+
+    def on_heartbeat(self, can_id: int, data: bytearray, timestamp: float) -> None:
+        self.heartbeat_s = time.monotonic()
+
+    def heartbeat_lost(self, now_s: float) -> bool:
+        """The consumed heartbeat is overdue (monitoring starts with the first one)."""
+        consumer = self.consumer
+        return consumer is not None and now_s - self.heartbeat_s > consumer[1] * 1e-3
+
+    def boot(self, application: bool) -> None:
+        """NMT reset: communication objects back to their start values (and the drive's
+        parameters for a reset node), boot-up message, PRE-OPERATIONAL."""
+        objects = self.owner.objects
+        if application and objects is not None:
+            objects.reset_application(self.axis)
+        entry = self.heartbeat_start
+        self.consume_heartbeat(0 if entry is None else entry[0] << 16 | entry[1])
+        self.local.data_store.clear()
+        nmt = self.local.nmt
+        nmt.stop_heartbeat()
+        nmt.state = "RESET"             # boot-up message
+        nmt.state = "PRE-OPERATIONAL"   # heartbeat producer from 1017h (0: none)
 
 
 class CanDriveEndpoint(Endpoint):
@@ -211,6 +381,15 @@ class CanDriveEndpoint(Endpoint):
     :class:`~io_adapters.messages.SetpointGroup` and
     :class:`~io_adapters.messages.FeedbackGroup` of N axes, axis i on node ``node + i``;
     one SYNC starts the cycle of every node.
+
+    Attributes:
+        objects: the drive's parameter objects (:class:`~io_adapters.cia402_objects.
+            ObjectAccess`), set by the drive's owner; None: the dictionary's defaults,
+            stored as written.
+        cycles: cycles started so far (by SYNC or on the drive's own clock).
+        taken: cycles handed to the loop by :meth:`recv_setpoint`, heard or not (a loop
+            that runs its drive on every cycle, rather than on its own clock, counts them).
+        rated_current_a: 6075h in A, the reference of the per-mille currents.
     """
 
     @classmethod
@@ -225,16 +404,22 @@ class CanDriveEndpoint(Endpoint):
     def __init__(self, link: CanLink):
         super().__init__(Role.DEVICE)
         self.link = link
+        self.objects: ObjectAccess | None = None
+        self.rated_current_a = link.rated_current_ma / 1e3
         self._free_run_s = link.sync_timeout_ms / 1e3
         self._lock = threading.Lock()
         self._cycle = threading.Condition(self._lock)
-        self._nodes = tuple(_DriveNode(n, link, self._lock) for n in link.nodes)
+        self._nodes = tuple(_DriveNode(a, n, link, self) for a, n in enumerate(link.nodes))
+        self._by_id = {n.local.id: n for n in self._nodes}
         self._rpdo_of = {cob_id: (node, layout) for node in self._nodes
                          for cob_id, layout in node.rpdos.items()}
         self._ready = False
-        self._written = 0  # send_feedback calls since the last cycle started
+        self._heard = False   # the cycle ready for the loop was heard
+        self._fresh = False   # process data taken since the last cycle started
+        self._written = 0     # send_feedback calls since the last cycle started
         self.last_sync_ns = 0
-        self._cycles = 0
+        self.cycles = 0
+        self.taken = 0
         self._last_cycle_s = time.monotonic()
         #: the canopen LocalNode of each axis; ``node`` is the first
         self.nodes = tuple(n.local for n in self._nodes)
@@ -245,20 +430,42 @@ class CanDriveEndpoint(Endpoint):
             for node in self.nodes:
                 self.network.add_node(node)
             self.network.subscribe(SYNC_COB_ID, self._on_sync)
+            self.network.subscribe(NMT_COB_ID, self._on_nmt)  # after canopen's own
             for cob_id in self._rpdo_of:
                 self.network.subscribe(cob_id, self._on_rpdo)
             self.network.connect()
-            for node in self.nodes:
-                node.nmt.state = "RESET"            # sends the boot-up message
-                node.nmt.state = "PRE-OPERATIONAL"
+            for n in self._nodes:
+                n.boot(application=False)
         except (can.CanError, OSError) as e:
             self.network.disconnect()
             raise AdapterError(f"{link.url!r}: cannot start the CANopen node: {e}") from e
 
     @property
+    def exposed(self) -> bool:
+        """The bus reaches beyond this machine (``udp_multicast`` with ``multicast_if`` not
+        a loopback address)."""
+        link = self.link
+        if link.interface != "udp_multicast" or link.multicast_if is None:
+            return False
+        return link.multicast_if == "any" or not ipaddress.ip_address(
+            link.multicast_if).is_loopback
+
+    @property
     def nmt_state(self) -> str:
         """The (first) node's NMT state ("PRE-OPERATIONAL", "OPERATIONAL", ...)."""
         return self.node.nmt.state
+
+    def link_conditions(self, axis: int) -> int:
+        """LINK_STOPPED while the node is in NMT STOPPED, LINK_RESET once after an NMT
+        reset, LINK_HEARTBEAT_LOST while the consumed heartbeat is overdue."""
+        node = self._nodes[axis]
+        conditions = LINK_STOPPED if node.local.nmt.state == "STOPPED" else 0
+        if node.reset_event:
+            node.reset_event = False
+            conditions |= LINK_RESET
+        if node.consumer is not None and node.heartbeat_lost(time.monotonic()):
+            conditions |= LINK_HEARTBEAT_LOST
+        return conditions
 
     def _records(self, message, what: str) -> tuple:
         records = axis_records(message)
@@ -285,18 +492,24 @@ class CanDriveEndpoint(Endpoint):
                     return False
                 self._cycle.wait((due if deadline is None else min(due, deadline)) - now)
             self._ready = False
-            seq = self._cycles & U32_MASK
-            for rec, node in zip(records, self._nodes):
-                node.fill(rec, seq, self.link.rated_current_ma)
+            seq = self.cycles & U32_MASK
+            for a, (rec, node) in enumerate(zip(records, self._nodes)):
+                node.fill(rec, seq)
+                if node.refused:
+                    node.refused = False
+                    self.refused_axes |= 1 << a
             into.seq, into.t_ns = seq, 0
-        self.stats.received += 1
-        return True
+            heard = self._heard
+            self.taken += 1
+        if heard:
+            self.stats.received += 1
+        return heard
 
     def _write(self, fb: Feedback | FeedbackGroup) -> bool:
         records = self._records(fb, "feedback")
         with self._lock:
             for rec, node in zip(records, self._nodes):
-                node.stage(rec, self.link.rated_current_ma)
+                node.stage(rec)
             self._written += 1
         return True
 
@@ -315,13 +528,19 @@ class CanDriveEndpoint(Endpoint):
                 for node in self._nodes:
                     if node.local.nmt.state == "OPERATIONAL":
                         node.send_tpdos(self.network.bus, counter)
+        for node in self._nodes:
+            due = node.emcy_due()
+            if due is not None:
+                node.local.emcy.send(*due)
         self._written = 0
         if self._ready:
             self.stats.lost += 1
         for node in self._nodes:
             node.latched = tuple(node.image[obj] for obj in INPUTS)
+        self._heard = by_sync and self._fresh
+        self._fresh = False
         self._ready = True
-        self._cycles += 1
+        self.cycles += 1
         self._last_cycle_s = now
         self._cycle.notify_all()
 
@@ -336,3 +555,12 @@ class CanDriveEndpoint(Endpoint):
         node, layout = self._rpdo_of[can_id]
         if node.local.nmt.state == "OPERATIONAL" and not node.on_rpdo(data, layout):
             self.stats.malformed += 1
+
+    def _on_nmt(self, can_id: int, data: bytearray, timestamp: float) -> None:
+        """After canopen's own NMT handling: a reset boots the node again."""
+        if len(data) != 2 or data[0] not in (NMT_RESET_NODE, NMT_RESET_COMMUNICATION):
+            return
+        for node in self._nodes if data[1] == 0 else (self._by_id.get(data[1]),):
+            if node is not None:
+                node.reset_event = True
+                node.boot(application=data[0] == NMT_RESET_NODE)

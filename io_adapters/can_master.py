@@ -28,21 +28,22 @@ Positions and speeds are rounded to whole increments; currents to per mille of
 (MODE_VOLTAGE), a non-zero ``id_ref_a``, a non-finite value or one outside its object's
 range.
 
-TPDOs to Feedback: ``statusword`` 6041h, ``fault`` from 603Fh (FF00h + s gives s; any
-other non-zero code is passed on), ``encoder_counts`` 6064h, ``velocity_counts_s``
-606Ch, ``iq_a`` 6078h per mille, ``scale_counts`` 60E4h:01; ``time_s`` and ``id_a`` are
-0 (not on this wire).  The drive sends at SYNC k the feedback of the cycle SYNC k-1
-started, so ``seq`` is the seq of the setpoint sent with SYNC k-1.  Each SYNC carries a
-counter byte (CiA 301, 1-240) and the drive echoes which SYNC sent a TPDO set
-(:data:`io_adapters.can_cia402.SW_ECHO`, bits 8, 14-15 of the statusword, removed
-here), so a set that comes late is labelled with the SYNC it answers, not taken for the
-answer to the last one; without the echo (another drive) the set is taken for the
-answer to the last SYNC sent.  The drive's clock is not on the wire either:
-``sp_t_ns`` = ``sp_rx_ns`` and ``t_ns`` are the ``t_ns`` of the setpoints sent with SYNC
-k-1 and SYNC k (stamped as their RPDOs and SYNC went out), so
+TPDOs to Feedback: ``statusword`` 6041h, ``fault`` the drive's error code 603Fh,
+``encoder_counts`` 6064h, ``velocity_counts_s`` 606Ch, ``iq_a`` 6078h per mille,
+``scale_counts`` 60E4h:01; ``time_s`` and ``id_a`` are 0 (not on this wire).  The drive
+sends at SYNC k the feedback of the cycle SYNC k-1 started, so ``seq`` is the seq of the
+setpoint sent with SYNC k-1.  Each SYNC carries a counter byte (CiA 301, 1-240) and the
+drive echoes which SYNC sent a TPDO set (:data:`io_adapters.can_cia402.SW_ECHO`, bits 8,
+14-15 of the statusword, removed here), so a set that comes late is labelled with the
+SYNC it answers, not taken for the answer to the last one; without the echo (another
+drive) the set is taken for the answer to the last SYNC sent.  The drive's clock is not
+on the wire either: ``sp_t_ns`` = ``sp_rx_ns`` and ``t_ns`` are the ``t_ns`` of the
+setpoints sent with SYNC k-1 and SYNC k (stamped as their RPDOs and SYNC went out), so
 :meth:`~io_adapters.messages.Feedback.round_trip_ns` is the time from sending SYNC k to
 taking the TPDO set it brought back.
 
+With ``heartbeat=ID:MS`` the master produces a heartbeat (700h + ID, state OPERATIONAL)
+at most every MS ms, sent after a SYNC, for a drive that consumes it (1016h).
 The master sends NMT "start remote node" when opened and again whenever the drive
 reports boot-up or PRE-OPERATIONAL (its heartbeat), so either side may start first.
 Counted in :attr:`stats`: ``malformed`` TPDOs (wrong DLC, remote frames), ``lost`` TPDO
@@ -63,11 +64,11 @@ from io_adapters.can_cia402 import (
     open_bus,
 )
 from io_adapters.cia402_objects import (
-    FAULT_CODE_BASE,
     HEARTBEAT_BASE,
     INT_RANGE,
     NMT_BOOT_UP,
     NMT_COB_ID,
+    NMT_OPERATIONAL,
     NMT_PRE_OPERATIONAL,
     NMT_START,
     PROCESS_OBJECTS,
@@ -152,6 +153,11 @@ class CanMasterEndpoint(Endpoint):
         self._tpdo_slot = {p.cob_id: k for k, p in enumerate(self._tpdos)}
         self._per_axis = len(self._tpdos) // link.axes
         self._heartbeats = {HEARTBEAT_BASE + n: n for n in link.nodes}
+        self._heartbeat = None if link.heartbeat is None else can.Message(
+            arbitration_id=HEARTBEAT_BASE + link.heartbeat[0], is_extended_id=False,
+            data=bytes((NMT_OPERATIONAL,)))
+        self._heartbeat_s = 0.0 if link.heartbeat is None else link.heartbeat[1] * 1e-3
+        self._heartbeat_due = 0.0
         self._values: list[tuple] = [()] * len(self._tpdos)
         self._got = 0
         self._all = (1 << len(self._tpdos)) - 1
@@ -221,6 +227,9 @@ class CanMasterEndpoint(Endpoint):
                 self._bus_send(msgs[k])
         self._sync.data[0] = self._n % SYNC_COUNTER_MAX + 1  # = n + 1 modulo 4
         self._bus_send(self._sync)
+        if self._heartbeat is not None and (now := time.monotonic()) >= self._heartbeat_due:
+            self._bus_send(self._heartbeat)
+            self._heartbeat_due = now + self._heartbeat_s
         self._n += 1
         self._seq[:] = self._seq[1], sp.seq
         self._sync_ns[:] = self._sync_ns[1], sp.t_ns
@@ -289,7 +298,7 @@ class CanMasterEndpoint(Endpoint):
             into.seq, into.sp_t_ns, into.t_ns = self._seq[0], self._sync_ns[0], self._sync_ns[1]
         into.sp_rx_ns = into.sp_t_ns
         into.statusword = statusword & ~SW_ECHO_MASK
-        into.fault = error_code - FAULT_CODE_BASE if error_code > FAULT_CODE_BASE else error_code
+        into.fault = error_code
         into.time_s = 0.0
         into.encoder_counts = float(position)
         into.velocity_counts_s = float(velocity)

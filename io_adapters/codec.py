@@ -1,4 +1,5 @@
-"""The msgpack wire format of Setpoint and Feedback, shared by the UDP and serial adapters.
+"""The msgpack wire format of Setpoint and Feedback and the handshake, shared by the UDP
+and serial adapters.
 
 Every message is one msgpack array: a four-element header, then the record's
 fields in a fixed order.  Integers are msgpack ints, floats are float64.
@@ -6,7 +7,7 @@ fields in a fixed order.  Integers are msgpack ints, floats are float64.
 Header (version 1)::
 
     0  version   int  1 (a receiver drops any other version)
-    1  kind      int  1 = Setpoint, 2 = Feedback
+    1  kind      int  1 = Setpoint, 2 = Feedback, 3 = HELLO, 4 = WELCOME (handshake)
     2  session   int  u32, drawn at random when the sending endpoint opens
     3  frame     int  u32, the sender's frame counter: 0, 1, 2, ... (wraps at 2**32)
 
@@ -61,38 +62,67 @@ meets a version-2 message, and a receiver drops a message whose version is not t
 of the record it reads into (counted as malformed).  A group message with another
 number of axes than the receiver's is malformed too ("3 axes, expected 2").
 
+Handshake (kinds 3 and 4, version 1 on every link, single- or multi-axis: they carry no
+axis data)::
+
+    HELLO (kind 3, controller -> device):    the header only
+    WELCOME (kind 4, device -> controller):  the header, then
+        4  accepted  int  1: the device takes this controller's setpoints now; 0: it
+                          serves another one (try again later)
+
+A handshake message carries its sender's frame counter without advancing it and is no
+part of the sequence check: the frame after it has the same number.
+
+Who may talk to a device (:mod:`io_adapters.msgpack_endpoint`): the device pins the first
+peer that sends it a well-formed setpoint or HELLO, its session and (UDP) its address,
+and drops everything else: frames from another address (``foreign``), frames of another
+session from that address (``stale_session``).  A HELLO is accepted (the device re-pins to
+its sender's address and session, resets the sequence check and answers WELCOME
+accepted=1) when the device has no peer, when it comes from the pinned peer itself (same
+address and session), or when the pinned peer has sent nothing valid for ``takeover_ms``;
+otherwise the device answers WELCOME accepted=0 and counts the HELLO as foreign.  A
+controller sends a HELLO when it opens and again, at most every
+:data:`HELLO_INTERVAL_NS`, before its setpoints until a WELCOME accepted=1 arrives, so a
+restarted controller gets back in once its dead predecessor has been silent for
+``takeover_ms``.
+
 Decoding is strict: anything but an array of exactly this length, version,
-kind, element types and integer ranges raises :class:`FrameError` (NaN and
-infinite floats pass: a faulted plant reports them).  The receiver uses
-session and frame to drop duplicates and older frames and to count lost ones
-(:class:`MsgpackEndpoint`).
+kind, element types and integer ranges raises :class:`FrameError`.  NaN and infinite
+floats decode (they are well-formed); the receiving endpoint refuses them, and setpoints
+beyond the drive's bounds, as values: counted apart from malformed frames
+(``stats.refused_*``), dropped whole (:class:`~io_adapters.messages.SetpointBounds`).  The
+receiver uses session and frame to drop duplicates and older frames and to count lost
+ones.
 """
 
+import math
 import operator
-import secrets
-import time
-from abc import abstractmethod
 from collections import deque
+from collections.abc import Callable
 from itertools import repeat
 from typing import NamedTuple
 
 import msgpack
 
-from io_adapters.base import Endpoint, FrameError, Role
+from io_adapters.base import FrameError
 from io_adapters.messages import (
     Feedback,
     FeedbackGroup,
     Setpoint,
     SetpointGroup,
-    axis_records,
 )
 
 VERSION = 1
 VERSION_GROUP = 2
+HANDSHAKE_VERSION = 1
 KIND_SETPOINT = 1
 KIND_FEEDBACK = 2
+KIND_HELLO = 3
+KIND_WELCOME = 4
 HEADER_LEN = 4
 U32 = 0xFFFFFFFF
+#: a controller not yet welcomed repeats its HELLO at most this often, ns
+HELLO_INTERVAL_NS = 100_000_000
 
 
 class Field(NamedTuple):
@@ -128,6 +158,15 @@ FEEDBACK_FIELDS = (
     _int("t_ns", 0, T_NS_MAX), _int("tick_ns", 0, T_NS_MAX))
 
 
+def _float_getter(fields: tuple[Field, ...]) -> Callable[[tuple], tuple]:
+    """A function returning the float elements of an array laid out as ``fields``, as a
+    tuple (``itemgetter`` of one index returns the element itself)."""
+    floats = [i for i, f in enumerate(fields) if f.type is float]
+    if len(floats) > 1:
+        return operator.itemgetter(*floats)
+    return lambda values: tuple(values[i] for i in floats)
+
+
 class Schema:
     """The message layout of one record type, with the checks precomputed so that a
     good message costs a few C-level calls (about 2 us each way)."""
@@ -146,19 +185,19 @@ class Schema:
         self.get_ints = operator.itemgetter(*ints)
         self.ranges = tuple(range(self.all_fields[i].lo, self.all_fields[i].hi + 1)
                             for i in ints)
+        self.get_floats = _float_getter(self.all_fields)
 
     def in_range(self, values: tuple) -> bool:
         """True if every integer of a full message (header first) is in its range."""
         return all(map(operator.contains, self.ranges, self.get_ints(values)))
 
+    def finite(self, values: tuple) -> bool:
+        """True if every float of a decoded message is finite."""
+        return all(map(math.isfinite, self.get_floats(values)))
+
     def explain(self, values: tuple) -> str:
         """Which element of a full message breaks the schema, for the error message."""
-        for f, value in zip(self.all_fields, values):
-            if type(value) is not f.type:
-                return f"{f.name}={value!r}: expected {f.type.__name__}"
-            if f.type is int and not f.lo <= value <= f.hi:
-                return f"{f.name}={value}: outside [{f.lo}, {f.hi}]"
-        return "no error"
+        return _explain(self.all_fields, values)
 
 
 SCHEMAS = {Setpoint: Schema(Setpoint, KIND_SETPOINT, SETPOINT_FIELDS),
@@ -212,6 +251,8 @@ class GroupSchema:
         self.axis_names = tuple(f.name for f in axis)
         self.copied = copied  # common fields also written into every axis's record
         self.length = HEADER_LEN + len(common) + 1
+        self.get_common_floats = _float_getter(self.header + common)
+        self.get_axis_floats = _float_getter(axis)
 
     def encode(self, group, session: int, frame: int) -> bytes:
         name = self.group_type.__name__
@@ -242,6 +283,11 @@ class GroupSchema:
             if not _valid(self.axis, a):
                 raise FrameError(f"{name} axes[{i}] {_explain(self.axis, a)}")
 
+    def finite(self, values: tuple) -> bool:
+        """True if every float of a decoded group message is finite."""
+        return all(map(math.isfinite, self.get_common_floats(values))) and all(
+            all(map(math.isfinite, self.get_axis_floats(a))) for a in values[-1])
+
     def fill(self, into, values: tuple) -> None:
         head = HEADER_LEN + len(self.common)
         common = values[HEADER_LEN:head]
@@ -269,11 +315,28 @@ GROUP_SCHEMAS = {
 }
 
 
+def _span(fields: tuple[Field, ...], names: tuple[str, ...], offset: int) -> slice:
+    """Where the consecutive fields ``names`` are in an array laid out as ``fields``."""
+    first = [f.name for f in fields].index(names[0]) + offset
+    return slice(first, first + len(names))
+
+
+#: the setpoint fields :meth:`~io_adapters.messages.SetpointBounds.refusal` takes, in its
+#: order; they are consecutive on the wire
+REFUSAL_ARGS = ("mode", "target_position_counts", "target_velocity_counts_s",
+                "velocity_offset_counts_s", "iq_ref_a", "id_ref_a", "ud_v", "uq_v")
+#: where they are in a decoded version-1 setpoint, and in an axis array of version 2
+SETPOINT_REFUSAL_ARGS = _span(SETPOINT_FIELDS, REFUSAL_ARGS, HEADER_LEN)
+GROUP_REFUSAL_ARGS = _span(GROUP_SCHEMAS[SetpointGroup].axis, REFUSAL_ARGS, 0)
+
+
 def encode(record: Setpoint | Feedback | SetpointGroup | FeedbackGroup, session: int,
            frame: int) -> bytes:
-    """One message carrying ``record`` (version 1 for a plain record, 2 for a group).  Integers accept anything with ``__index__``
-    and floats anything ``float()`` takes (numpy scalars included); raises
-    :class:`FrameError` naming the field if a value does not convert or is out of range."""
+    """One message carrying ``record`` (version 1 for a plain record, 2 for a group).
+    Integers accept anything with ``__index__`` and floats anything ``float()`` takes
+    (numpy scalars included; NaN and infinities too, which a receiving endpoint refuses);
+    raises :class:`FrameError` naming the field if a value does not convert or is out of
+    range."""
     group = GROUP_SCHEMAS.get(type(record))
     if group is not None:
         return group.encode(record, session, frame)
@@ -301,17 +364,63 @@ def _converts(conv, value) -> bool:
     return True
 
 
-def decode(data: bytes | memoryview, record_type: type, n_axes: int = 1) -> tuple:
-    """The checked array of one message for ``record_type`` (header first; a group of
-    ``n_axes`` axes for the group types); raises :class:`FrameError` saying what is
-    wrong.  Nothing is written anywhere."""
+def encode_hello(session: int, frame: int) -> bytes:
+    """A HELLO (controller -> device): the header only."""
+    return msgpack.packb((HANDSHAKE_VERSION, KIND_HELLO, session, frame))
+
+
+def encode_welcome(session: int, frame: int, accepted: bool) -> bytes:
+    """A WELCOME (device -> controller): the header and whether the HELLO was accepted."""
+    return msgpack.packb((HANDSHAKE_VERSION, KIND_WELCOME, session, frame, int(accepted)))
+
+
+def _handshake_fields(kind: int) -> tuple[Field, ...]:
+    head = (_int("version", HANDSHAKE_VERSION, HANDSHAKE_VERSION), _int("kind", kind, kind),
+            _int("session", 0, U32), _int("frame", 0, U32))
+    return head + ((_int("accepted", 0, 1),) if kind == KIND_WELCOME else ())
+
+
+HANDSHAKE_FIELDS = {KIND_HELLO: _handshake_fields(KIND_HELLO),
+                    KIND_WELCOME: _handshake_fields(KIND_WELCOME)}
+#: the handshake message a receiver of each record kind takes besides the records
+HANDSHAKE_TAKEN = {KIND_SETPOINT: KIND_HELLO, KIND_FEEDBACK: KIND_WELCOME}
+
+
+def _unpack(data: bytes | memoryview) -> tuple:
     try:
         values = msgpack.unpackb(data, use_list=False, raw=False)
     except ValueError as e:  # msgpack's decoding errors are all ValueErrors
         raise FrameError(f"not a msgpack message: {e}") from e
     if type(values) is not tuple or len(values) < 2:
         raise FrameError(f"not a message array: {values!r:.60}")
+    return values
+
+
+def _check_handshake(values: tuple, kind: int) -> tuple:
+    fields = HANDSHAKE_FIELDS[kind]
+    name = "HELLO" if kind == KIND_HELLO else "WELCOME"
+    if len(values) != len(fields):
+        raise FrameError(f"{len(values)} elements, expected {len(fields)} for {name}")
+    if not _valid(fields, values):
+        raise FrameError(f"{name} {_explain(fields, values)}")
+    return values
+
+
+def decode_hello(data: bytes | memoryview) -> tuple:
+    """The checked array of a HELLO; raises :class:`FrameError` for anything else."""
+    return _check_handshake(_unpack(data), KIND_HELLO)
+
+
+def decode(data: bytes | memoryview, record_type: type, n_axes: int = 1) -> tuple:
+    """The checked array of one message for ``record_type`` (header first; a group of
+    ``n_axes`` axes for the group types), or of the handshake message its receiver takes
+    (``values[1]`` says which: a HELLO where setpoints are read, a WELCOME where feedback
+    is); raises :class:`FrameError` saying what is wrong.  Nothing is written anywhere."""
+    values = _unpack(data)
     group = GROUP_SCHEMAS.get(record_type)
+    handshake = HANDSHAKE_TAKEN[(group or SCHEMAS[record_type]).kind]
+    if values[1] == handshake:
+        return _check_handshake(values, handshake)
     version = VERSION if group is None else VERSION_GROUP
     if values[0] != version:
         raise FrameError(f"version {values[0]!r}, expected {version}")
@@ -340,78 +449,3 @@ def fill(into: Setpoint | Feedback | SetpointGroup | FeedbackGroup, values: tupl
         return
     # setattr for every field in one C-level pass; the zero-length deque just drains the map
     deque(map(setattr, repeat(into), SCHEMAS[type(into)].names, values[HEADER_LEN:]), 0)
-
-
-class MsgpackEndpoint(Endpoint):
-    """An :class:`Endpoint` over a transport that moves whole messages (datagrams,
-    serial frames): encodes with this module, numbers the frames, and on receipt drops
-    malformed frames, duplicates and older frames, counting each in ``stats``.
-
-    A backend fills ``_send_bytes(payload) -> bool`` (False: nobody to send to yet),
-    ``_recv_bytes(timeout_s) -> bytes | None`` (one message, or None if none came in
-    ``timeout_s``; returning None early is allowed), ``_close()`` and optionally
-    ``_fileno()``.
-    """
-
-    def __init__(self, role: Role | str, *, drain: bool = False):
-        super().__init__(role, drain=drain)
-        self.session = secrets.randbits(32)
-        self._frame = 0
-        self._peer_session = None
-        self._peer_frame = 0
-
-    def _write(self, record: Setpoint | Feedback) -> bool:
-        payload = encode(record, self.session, self._frame)
-        if not self._send_bytes(payload):
-            return False
-        self._frame = (self._frame + 1) & U32
-        self.stats.bytes_sent += len(payload)
-        return True
-
-    def _read(self, into: Setpoint | Feedback, timeout_s: float | None) -> bool:
-        deadline = None if timeout_s is None else time.monotonic() + timeout_s
-        wait = timeout_s
-        while True:
-            data = self._recv_bytes(wait)
-            if data is not None and self._accept(data, into):
-                return True
-            if deadline is not None:
-                if data is None and wait <= 0.0:
-                    return False
-                wait = max(0.0, deadline - time.monotonic())
-
-    def _accept(self, data: bytes | memoryview, into: Setpoint | Feedback) -> bool:
-        """Decode one message into ``into`` if it is good and new; count it either way."""
-        stats = self.stats
-        stats.bytes_received += len(data)
-        try:
-            values = decode(data, type(into), len(axis_records(into)))
-        except FrameError:
-            stats.malformed += 1
-            return False
-        session, frame = values[2], values[3]
-        if session != self._peer_session:
-            if self._peer_session is not None:
-                stats.peer_restarts += 1
-            self._peer_session = session
-        else:
-            ahead = (frame - self._peer_frame) & U32
-            if ahead == 0:
-                stats.duplicates += 1
-                return False
-            if ahead > U32 // 2:
-                stats.out_of_order += 1
-                return False
-            stats.lost += ahead - 1
-        self._peer_frame = frame
-        fill(into, values)
-        stats.received += 1
-        return True
-
-    @abstractmethod
-    def _send_bytes(self, payload: bytes) -> bool:
-        """Send one message; False if there is nobody to send to yet."""
-
-    @abstractmethod
-    def _recv_bytes(self, timeout_s: float | None) -> bytes | memoryview | None:
-        """One received message (valid until the next call), or None if none came."""

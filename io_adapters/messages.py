@@ -16,6 +16,7 @@ differences of two stamps from the same machine mean anything, which is why
 are stamped by the receiving adapter and never sent.
 """
 
+import math
 from dataclasses import dataclass
 
 #: CiA 402 modes of operation used on the wire (6060h values)
@@ -25,6 +26,11 @@ MODE_CST = 10  # cyclic synchronous torque: here the q-current setpoint in A
 #: manufacturer-specific mode (negative values are reserved for vendors in CiA 402):
 #: d-q voltage setpoints, for controllers that close the current loop themselves
 MODE_VOLTAGE = -1
+
+#: why an adapter refused a setpoint (:meth:`SetpointBounds.refusal`; 0: taken)
+REFUSED_NONFINITE = 1  # a NaN or infinite value in any float field
+REFUSED_MODE = 2       # a mode (6060h) the drive does not take
+REFUSED_RANGE = 3      # a value beyond the drive's bound
 
 
 @dataclass(slots=True)
@@ -73,7 +79,7 @@ class Feedback:
         velocity_counts_s: the drive's speed actual value, increments/s (606Ch): the
             encoder difference over the drive's speed cycle.
         iq_a, id_a: sampled currents in A.
-        fault: the plant's fault status (0 = none; plant.layout STATUS_*).
+        fault: the drive's error code, CiA 402 603Fh (0 = none; hil.drive.faults).
         sp_t_ns: ``t_ns`` of the latest setpoint the drive's adapter received
             (controller clock, ns; set by ``send_feedback``).
         sp_rx_ns: drive clock when that setpoint arrived, ns (set by ``send_feedback``).
@@ -104,6 +110,62 @@ class Feedback:
         controller sending it to the controller receiving this feedback, less the time
         the drive held it, ``(rx_ns - sp_t_ns) - (t_ns - sp_rx_ns)``."""
         return (self.rx_ns - self.sp_t_ns) - (self.t_ns - self.sp_rx_ns)
+
+
+@dataclass(frozen=True, slots=True)
+class SetpointBounds:
+    """What one drive takes, wire units; ``SetpointBounds()`` = finite values, any mode of
+    MODE_CSP/CSV/CST/VOLTAGE, counts within 2**53 (beyond, increments are not exact in
+    float64).  Every bound is inclusive (``|v| <= bound`` is taken) and holds for its
+    fields whatever the mode, so a bad value in a field the mode does not use is refused
+    too.  An adapter refuses a setpoint that :meth:`refusal` does not take (see
+    :attr:`io_adapters.base.Endpoint.setpoint_bounds`).
+
+    Attributes:
+        position_counts: bound of ``|target_position_counts|``, increments.
+        velocity_counts_s: bound of ``|target_velocity_counts_s|`` and
+            ``|velocity_offset_counts_s|``, increments/s.
+        current_a: bound of ``|iq_ref_a|`` and ``|id_ref_a|``, A.
+        voltage_v: bound of ``|ud_v|`` and ``|uq_v|``, V.
+        modes: the modes of operation (6060h values, ``MODE_*``) taken.
+    """
+    position_counts: float = 2.0**53
+    velocity_counts_s: float = 2.0**53
+    current_a: float = math.inf
+    voltage_v: float = math.inf
+    modes: frozenset = frozenset((MODE_CSP, MODE_CSV, MODE_CST, MODE_VOLTAGE))
+
+    def __post_init__(self):
+        for name in ("position_counts", "velocity_counts_s", "current_a", "voltage_v"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and value >= 0.0):  # NaN fails too
+                raise ValueError(f"SetpointBounds.{name}={value!r}: expected a number >= 0 "
+                                 f"(inf: no bound)")
+        if not all(type(m) is int for m in self.modes):
+            raise ValueError(f"SetpointBounds.modes={self.modes!r}: expected 6060h values "
+                             f"(int, MODE_*)")
+        object.__setattr__(self, "modes", frozenset(self.modes))
+
+    def refusal(self, mode: int, position: float, velocity: float, velocity_offset: float,
+                iq: float, id_: float, ud: float, uq: float) -> int:
+        """0 when taken, else REFUSED_NONFINITE (checked first, every field, whatever the
+        mode), REFUSED_MODE, REFUSED_RANGE (every field, whatever the mode).  The values
+        are a setpoint's fields in wire units (:class:`Setpoint`): mode of operation,
+        position (increments), velocity and velocity offset (increments/s), q and d
+        current (A), d and q voltage (V)."""
+        # x * 0.0 is 0.0 for every finite x and NaN for NaN and +-inf, so one sum tests
+        # all seven (a sum of the values themselves could overflow to inf)
+        if (position * 0.0 + velocity * 0.0 + velocity_offset * 0.0 + iq * 0.0 + id_ * 0.0
+                + ud * 0.0 + uq * 0.0) != 0.0:
+            return REFUSED_NONFINITE
+        if mode not in self.modes:
+            return REFUSED_MODE
+        if (abs(position) > self.position_counts or abs(velocity) > self.velocity_counts_s
+                or abs(velocity_offset) > self.velocity_counts_s or abs(iq) > self.current_a
+                or abs(id_) > self.current_a or abs(ud) > self.voltage_v
+                or abs(uq) > self.voltage_v):
+            return REFUSED_RANGE
+        return 0
 
 
 @dataclass(slots=True)

@@ -4,11 +4,13 @@ Built in:
 
 * ``udp://HOST:PORT[?options]`` — :class:`io_adapters.udp.UdpEndpoint`.  HOST:PORT is
   the device's address for both sides: the device binds it, the controller sends
-  to it from an ephemeral port and the device answers the last controller that
-  sent it a good setpoint.
+  to it from an ephemeral port and the device takes and answers the one controller
+  it has pinned (the first to speak; another after a handshake, once the pinned one
+  has been silent for ``takeover_ms``).
 * ``serial://PORT[?options]`` — :class:`io_adapters.serial_link.SerialEndpoint`;
   PORT is a device path (``serial:///dev/ttyUSB0``), an open file descriptor
-  (``serial://fd/5``) or a pyserial URL (``serial://loop://``).
+  (``serial://fd/5``) or a pyserial URL (``serial://loop://``); the same pinning
+  by session.
 * ``can://INTERFACE/CHANNEL?node=N&rated_current_ma=I`` — CANopen CiA 402 through
   python-can: :class:`io_adapters.can_cia402.CanDriveEndpoint` (device) and
   :class:`io_adapters.can_master.CanMasterEndpoint` (controller).

@@ -11,9 +11,9 @@ Frame on the wire::
 
 The receiver skips bytes up to the next SOF (``stats.bytes_skipped``).  A
 candidate whose length is 0 or whose CRC does not match is counted in
-``stats.malformed`` and the search resumes one byte after its SOF, so a frame
-hidden behind garbage is still found.  While a candidate is incomplete the
-receiver waits for more bytes, unless a complete frame with a good CRC already
+``stats.malformed`` (and ``stats.frames``) and the search resumes one byte after its
+SOF, so a frame hidden behind garbage is still found.  While a candidate is incomplete
+the receiver waits for more bytes, unless a complete frame with a good CRC already
 follows it in the buffer: the candidate was then garbage holding a SOF, and is
 dropped at once rather than delaying the good frame.
 
@@ -25,13 +25,29 @@ URL: ``serial://PORT[?option=value&...]`` where PORT is
   which pyserial cannot open by name.  A terminal is switched to raw mode.
 
 Options: ``baud=N`` (bit/s; default 115200 for pyserial ports, unchanged for a
-descriptor), ``drain=1`` (see :class:`~io_adapters.base.Endpoint`),
-``write_timeout_s=S`` (how long a send may wait for room in the output buffer,
-default 0.1 s, then :class:`~io_adapters.base.AdapterTimeout`).
+descriptor), ``drain=1`` (see :class:`~io_adapters.base.Endpoint`), ``takeover_ms=MS``
+(device side, a controller ignores it: how long the pinned controller must have been
+silent before another one's HELLO is accepted, default 500 ms; the same session pinning
+and handshake as on UDP, :mod:`io_adapters.codec`, without addresses).
+
+A send never waits for the peer.  Writes are non-blocking; a frame the port takes only
+in part stays pending, and is finished (by the next send or receive) before another
+frame is started, so the stream stays framed.  While it cannot be finished, every
+further frame is dropped whole (``stats.send_dropped``, the send returns False).
+Descriptors and pyserial ports that have one are written with ``os.write`` on the
+non-blocking descriptor: pyserial 3.5's own ``write`` does not do this (with
+``write_timeout=0`` it retries EAGAIN in a busy loop until the peer reads, and with
+a timeout it waits).  A pyserial URL without a descriptor (``loop://``)
+is opened with ``write_timeout=0`` and taken at its word: ``write`` returns the bytes it
+took, and ``SerialTimeoutException`` means none (pyserial 3.5's ``loop://`` raises it
+for every write then: over ``loop://`` an endpoint only receives what is written into
+the port).
 
 In code, :class:`SerialEndpoint` also takes a descriptor (int) or an open
 Serial-like object (``read``, ``write``, ``close``, ``in_waiting``, ``timeout``;
-``fileno`` if it has one).  Either way the endpoint owns the port and closes it.
+``fileno`` if it has one).  Either way the endpoint owns the port and closes it.  An
+object without a descriptor is written as it is configured: give it ``write_timeout=0``
+for writes that never wait.
 """
 
 import binascii
@@ -47,7 +63,6 @@ from io_adapters.base import (
     AdapterConfigError,
     AdapterError,
     AdapterStats,
-    AdapterTimeout,
     FrameError,
     Role,
     flag,
@@ -55,7 +70,7 @@ from io_adapters.base import (
     positive_float,
     positive_int,
 )
-from io_adapters.codec import MsgpackEndpoint
+from io_adapters.msgpack_endpoint import DEFAULT_TAKEOVER_MS, MsgpackEndpoint
 
 SOF = b"\xa5\x5a"
 MAX_PAYLOAD = 255
@@ -114,6 +129,7 @@ class FrameReader:
                 if drop < 0:
                     return None
             self.stats.malformed += 1
+            self.stats.frames += 1
             self._skip(drop)
 
     def _check(self, i: int) -> int:
@@ -145,9 +161,8 @@ class FrameReader:
 class _FdPort:
     """The part of pyserial's Serial the endpoint uses, on an open file descriptor."""
 
-    def __init__(self, fd: int, baud: int | None, write_timeout_s: float):
+    def __init__(self, fd: int, baud: int | None):
         self.fd = fd
-        self.write_timeout_s = write_timeout_s
         if os.isatty(fd):
             tty.setraw(fd)
             if baud is not None:
@@ -171,16 +186,6 @@ class _FdPort:
             raise AdapterClosed(f"end of stream on descriptor {self.fd}")
         return data
 
-    def write(self, data: bytes) -> None:
-        view = memoryview(data)
-        while view:
-            try:
-                view = view[os.write(self.fd, view):]
-            except BlockingIOError:
-                if not select.select((), (self.fd,), (), self.write_timeout_s)[1]:
-                    raise AdapterTimeout(f"descriptor {self.fd}: no room to write for "
-                                         f"{self.write_timeout_s} s") from None
-
     def close(self) -> None:
         os.close(self.fd)
 
@@ -194,39 +199,43 @@ class SerialEndpoint(MsgpackEndpoint):
             an open Serial-like object; the endpoint closes it.
         baud: bit/s (None: 115200 for a path or URL, unchanged for a descriptor or object).
         drain: see :class:`~io_adapters.base.Endpoint`.
-        write_timeout_s: longest wait for room in the output buffer, s.
+        takeover_ms: see :class:`~io_adapters.msgpack_endpoint.MsgpackEndpoint`.
     """
 
     def __init__(self, role: Role | str, port, *, baud: int | None = None,
-                 drain: bool = False, write_timeout_s: float = 0.1):
-        super().__init__(role, drain=drain)
+                 drain: bool = False, takeover_ms: float = DEFAULT_TAKEOVER_MS):
+        super().__init__(role, drain=drain, takeover_ms=takeover_ms)
         self.name = f"fd/{port}" if isinstance(port, int) else str(getattr(port, "port", port))
         if isinstance(port, int):
             try:
-                port = _FdPort(port, baud, write_timeout_s)
+                port = _FdPort(port, baud)
             except (OSError, termios.error) as e:  # the descriptor stays the caller's
                 raise AdapterError(f"cannot use descriptor {port} as a serial port: {e}") from e
         elif isinstance(port, str):
             try:
                 port = serial.serial_for_url(port, baudrate=baud or DEFAULT_BAUD, timeout=0,
-                                             write_timeout=write_timeout_s)
+                                             write_timeout=0)
             except (serial.SerialException, ValueError) as e:
                 raise AdapterError(f"cannot open serial port {port!r}: {e}") from e
         self._port = port
         self._reader = FrameReader(self.stats)
+        self._pending = b""  # the unwritten rest of a frame the port took in part
         try:
             self._fd = port.fileno()
         except (AttributeError, OSError, ValueError):  # loop:// and other fd-less ports
             self._fd = None
-        if self._fd is not None and not isinstance(port, _FdPort):
-            port.timeout = 0  # select() waits; read takes what is there
+        if self._fd is not None:
+            if not isinstance(port, _FdPort):
+                port.timeout = 0  # select() waits; read takes what is there
+            os.set_blocking(self._fd, False)  # writes go to it (module docstring)
+        self._greet()
 
     @classmethod
     def from_url(cls, url: str, role: Role | str) -> "SerialEndpoint":
         """``serial://PORT?options`` (see the module docstring)."""
         target, _, query = url.partition("://")[2].partition("?")
         options = parse_options(url, query, {
-            "baud": positive_int, "drain": flag, "write_timeout_s": positive_float})
+            "baud": positive_int, "drain": flag, "takeover_ms": positive_float})
         if target.startswith("fd/"):
             if not target[3:].isdigit():
                 raise AdapterConfigError(f"{url!r}: expected serial://fd/N, N a descriptor")
@@ -240,14 +249,38 @@ class SerialEndpoint(MsgpackEndpoint):
         return (f"<SerialEndpoint {self.role.value} {self.name}"
                 f"{' closed' * self._closed}>")
 
-    def _send_bytes(self, payload: bytes) -> bool:
-        try:
-            self._port.write(frame(payload))
-        except serial.SerialTimeoutException as e:
-            raise AdapterTimeout(f"{self!r}: write timed out: {e}") from e
+    def _send_bytes(self, payload: bytes, to) -> bool:
+        data = frame(payload)
+        if self._pending and not self._finish_pending():
+            self.stats.send_dropped += 1
+            return False
+        n = self._write_some(data)
+        if n == 0:
+            self.stats.send_dropped += 1
+            return False
+        self._pending = memoryview(data)[n:]
         return True
 
+    def _finish_pending(self) -> bool:
+        """Write what the port takes of the pending frame; True once nothing is left."""
+        self._pending = self._pending[self._write_some(self._pending):]
+        return not self._pending
+
+    def _write_some(self, data: bytes | memoryview) -> int:
+        """Write what the port takes now of ``data`` without waiting; the bytes written."""
+        if self._fd is not None:
+            try:
+                return os.write(self._fd, data)
+            except BlockingIOError:
+                return 0
+        try:
+            return self._port.write(data) or 0
+        except serial.SerialTimeoutException:
+            return 0
+
     def _recv_bytes(self, timeout_s: float | None) -> bytes | None:
+        if self._pending:
+            self._finish_pending()
         payload = self._reader.next_payload()
         if payload is None:
             chunk = self._read_chunk(timeout_s)

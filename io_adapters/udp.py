@@ -3,26 +3,38 @@
 URL: ``udp://HOST:PORT[?option=value&...]``.  HOST:PORT is the device's address
 on both sides, so both can be given the same URL:
 
-* the device binds HOST:PORT (port 0 picks a free one; see :attr:`UdpEndpoint.address`)
-  and answers the sender of the latest good setpoint, or a fixed ``peer``;
+* the device binds HOST:PORT (port 0 picks a free one; see :attr:`UdpEndpoint.address`),
+  pins the address and session of the first controller that sends it a well-formed
+  setpoint or HELLO, takes datagrams from that address only (others: ``stats.foreign``)
+  and answers it, or a fixed ``peer``; another controller gets in through the handshake
+  once the pinned one has been silent for ``takeover_ms`` (:mod:`io_adapters.codec`);
 * the controller binds an ephemeral port on the same loopback address (or ``bind``),
-  sends to HOST:PORT and drops datagrams from any other address (``stats.foreign``).
+  sends a HELLO when it opens, sends to HOST:PORT and drops datagrams from any other
+  address (``stats.foreign``).
 
 Options:
 
 * ``bind=HOST:PORT`` — controller only: its own address.
 * ``peer=HOST:PORT`` — device only: always send feedback there.
-* ``allow_remote=1`` — allow addresses outside the loopback network (refused otherwise).
+* ``allow_remote=1`` — allow addresses outside the loopback network (refused otherwise,
+  and so are datagrams from such a source address); :attr:`UdpEndpoint.exposed` then
+  says whether the endpoint is reachable from the network.
 * ``drain=1`` — each receive also takes every datagram already queued behind the
   first, so the loop works on the newest record (see :class:`~io_adapters.base.Endpoint`).
 * ``rcvbuf=BYTES`` — the socket's receive buffer (SO_RCVBUF; the kernel doubles it).
+* ``takeover_ms=MS`` — device side (a controller ignores it, so both can share a URL):
+  how long the pinned controller must have been silent before another one's HELLO is
+  accepted, default 500 ms.
 
 The socket is non-blocking; waits use ``select``, which keeps microsecond timeouts
-(``poll`` rounds up to milliseconds).  SO_REUSEADDR is deliberately not set: on
-Linux it lets a second UDP socket bind the same port and take its datagrams, so a
-second emulator on a busy port is refused instead of silently splitting the
-setpoints.  A device has nobody to answer before the first setpoint arrives (no
-``peer``): ``send_feedback`` then returns False.
+(``poll`` rounds up to milliseconds); a send that finds the socket buffer full
+(``BlockingIOError``, ``ENOBUFS``) drops the datagram, counts ``stats.send_dropped`` and
+returns False (on Linux loopback a receiver that does not read never fills the sender's
+buffer: the kernel drops the datagram at the receiving socket).  SO_REUSEADDR is
+deliberately not set: on Linux it lets a second UDP socket bind the same port and take
+its datagrams, so a second emulator on a busy port is refused instead of silently
+splitting the setpoints.  A device has nobody to answer before the first setpoint or
+HELLO arrives (no ``peer``): ``send_feedback`` then returns False.
 
 Arrival stamps: ``Setpoint.rx_ns`` and ``Feedback.rx_ns`` are the kernel's receive time of
 the datagram (``SO_TIMESTAMPNS``, read from ``recvmsg``'s ancillary data), not the time the
@@ -41,6 +53,7 @@ without the stamp, ``rx_ns`` is the user-space stamp of :class:`~io_adapters.bas
 says which).
 """
 
+import errno
 import ipaddress
 import select
 import socket
@@ -54,9 +67,10 @@ from io_adapters.base import (
     Role,
     flag,
     parse_options,
+    positive_float,
     positive_int,
 )
-from io_adapters.codec import MsgpackEndpoint
+from io_adapters.msgpack_endpoint import DEFAULT_TAKEOVER_MS, MsgpackEndpoint
 
 #: receive buffer, bytes: far above any message (about 100 bytes)
 MAX_DATAGRAM = 2048
@@ -142,12 +156,14 @@ class UdpEndpoint(MsgpackEndpoint):
         allow_remote: allow non-loopback addresses.
         drain: see :class:`~io_adapters.base.Endpoint`.
         rcvbuf: SO_RCVBUF in bytes (None: the system default).
+        takeover_ms: see :class:`~io_adapters.msgpack_endpoint.MsgpackEndpoint`.
     """
 
     def __init__(self, role: Role | str, address: tuple[str, int], *,
                  bind: tuple[str, int] | None = None, peer: tuple[str, int] | None = None,
-                 allow_remote: bool = False, drain: bool = False, rcvbuf: int | None = None):
-        super().__init__(role, drain=drain)
+                 allow_remote: bool = False, drain: bool = False, rcvbuf: int | None = None,
+                 takeover_ms: float = DEFAULT_TAKEOVER_MS):
+        super().__init__(role, drain=drain, takeover_ms=takeover_ms)
         device = self.role is Role.DEVICE
         if device and bind is not None:
             raise AdapterConfigError("bind= is for the controller side; the device binds "
@@ -164,14 +180,15 @@ class UdpEndpoint(MsgpackEndpoint):
             local = _sockaddr(*bind)[1]
         else:
             local = (target[0] if _is_loopback(target) else "", 0) + target[2:]
-        self._peer = _sockaddr(*peer)[1] if peer is not None else (None if device else target)
-        for addr in (target, local, self._peer):
+        self._fixed_peer = _sockaddr(*peer)[1] if peer is not None else (
+            None if device else target)
+        for addr in (target, local, self._fixed_peer):
             if addr is not None and addr[0] and not allow_remote and not _is_loopback(addr):
                 raise AdapterConfigError(f"{addr[0]} is not a loopback address; add "
                                          f"allow_remote=1 to use the network")
-        self._device = device
-        self._answer_sender = device and peer is None
-        self._from = None
+        self._allow_remote = allow_remote
+        if not device:
+            self._peer_origin = target  # a controller hears its device only
         self._from_ns = self._arrival_ns = 0  # kernel stamps (monotonic) or 0: none
         self._buf = bytearray(MAX_DATAGRAM)
         self._bufs = (self._buf,)
@@ -187,6 +204,7 @@ class UdpEndpoint(MsgpackEndpoint):
             raise AdapterError(f"cannot bind UDP {local[0]}:{local[1]}: {e}") from e
         self._clock = self._kernel_stamps_on()
         self._ancillary = socket.CMSG_SPACE(TIMESPEC.size) if self._clock else 0
+        self._greet()
 
     def _kernel_stamps_on(self) -> RealtimeToMonotonic | None:
         """Ask for SO_TIMESTAMPNS; the clock converting its stamps, None if refused."""
@@ -209,7 +227,7 @@ class UdpEndpoint(MsgpackEndpoint):
             raise AdapterConfigError(f"{url!r}: expected udp://HOST:PORT ({e})") from e
         options = parse_options(url, query, {
             "bind": host_port, "peer": host_port, "allow_remote": flag, "drain": flag,
-            "rcvbuf": positive_int})
+            "rcvbuf": positive_int, "takeover_ms": positive_float})
         return cls(role, address, **options)
 
     @property
@@ -230,32 +248,51 @@ class UdpEndpoint(MsgpackEndpoint):
     @property
     def peer(self) -> tuple | None:
         """Where the next message goes (None: a device that has not heard from anyone)."""
-        return self._peer
+        return self._fixed_peer or self._peer_origin
+
+    @property
+    def exposed(self) -> bool:
+        """True when the endpoint is bound to or sends to an address outside the loopback
+        network (possible with ``allow_remote=1`` only): a daemon warns about it."""
+        if self._closed:
+            return False
+        peer = self.peer
+        return not _is_loopback(self.address) or (peer is not None and not _is_loopback(peer))
 
     def __repr__(self) -> str:
         host, port = self._sock.getsockname()[:2] if not self._closed else ("-", "-")
         return f"<UdpEndpoint {self.role.value} {host}:{port}{' closed' * self._closed}>"
 
-    def _send_bytes(self, payload: bytes) -> bool:
-        if self._peer is None:
+    def _send_bytes(self, payload: bytes, to) -> bool:
+        to = to or self.peer
+        if to is None:
             return False
-        self._sock.sendto(payload, self._peer)
+        try:
+            self._sock.sendto(payload, to)
+        except BlockingIOError:
+            self.stats.send_dropped += 1
+            return False
+        except OSError as e:
+            if e.errno != errno.ENOBUFS:
+                raise
+            self.stats.send_dropped += 1
+            return False
         return True
 
     def _recv_bytes(self, timeout_s: float | None) -> memoryview | None:
         sock = self._sock
         if timeout_s != 0.0 and not select.select((sock,), (), (), timeout_s)[0]:
             return None
-        while True:
-            try:
-                n, ancillary, _, addr = sock.recvmsg_into(self._bufs, self._ancillary)
-            except BlockingIOError:
-                return None
-            if self._device or addr == self._peer:
-                self._from = addr
-                self._from_ns = self._kernel_ns(ancillary)
-                return self._view[:n]
-            self.stats.foreign += 1
+        try:
+            n, ancillary, _, addr = sock.recvmsg_into(self._bufs, self._ancillary)
+        except BlockingIOError:
+            return None
+        self._origin = addr
+        self._from_ns = self._kernel_ns(ancillary)
+        return self._view[:n]
+
+    def _admissible(self, origin: tuple) -> bool:
+        return self._allow_remote or _is_loopback(origin)
 
     def _kernel_ns(self, ancillary: list) -> int:
         """The kernel's receive stamp in ``ancillary``, monotonic ns; 0 if it has none."""
@@ -270,8 +307,6 @@ class UdpEndpoint(MsgpackEndpoint):
         ok = super()._accept(data, into)
         if ok:
             self._arrival_ns = self._from_ns
-            if self._answer_sender:
-                self._peer = self._from
         return ok
 
     def _receive(self, into, timeout_s: float | None) -> bool:

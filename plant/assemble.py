@@ -12,7 +12,8 @@ stable for omega_max*dt < 2 and with a relative frequency error of about
 smallest whole number n with omega_max*dt <= max_omega_dt (default 0.5: the
 stiffest mode is off by at most 1 %, the modes a controller sees, far below
 it, by much less).  The electrical states use exact exponential decay and
-impose no limit.
+impose no limit.  A table with a stroke adds its end stops: the chains' modes with a stop
+in contact and the contact's own rate (:mod:`plant.end_stops`) count toward omega_max.
 """
 
 import math
@@ -25,6 +26,7 @@ from plant import layout as L
 from plant.config import MachineConfig, delay_periods
 from plant.effects.chain import params_size, state_size
 from plant.effects.delay import ring_size
+from plant.end_stops import EndStops, check_substep, end_stops
 from plant.errors import ConfigError
 
 _MOTOR = {"dq": L.MOTOR_DQ, "first_order": L.MOTOR_FIRST_ORDER,
@@ -64,7 +66,9 @@ class Built:
         ratio: table travel per motor-side unit (m/rad for screws, 1 otherwise).
         dt: sub-step in s.
         sub_per_pwm: sub-steps per PWM period.
-        omega_max: highest mechanical natural frequency in rad/s.
+        omega_max: highest mechanical natural frequency in rad/s (end-stop contact
+            included).
+        end_stops: the table's end stops and limit switches, or None (rotary table).
     """
     params: np.ndarray
     state_size: int
@@ -74,6 +78,7 @@ class Built:
     dt: float
     sub_per_pwm: int
     omega_max: float
+    end_stops: EndStops | None
 
 
 def _uniform_rod(n_seg, node_mass, link_k, link_c):
@@ -156,17 +161,20 @@ def _chain_matrices(ch: Chain):
     return M, K, C
 
 
-def mechanics_matrices(cfg: MachineConfig, table_pos: float = 0.0):
+def mechanics_matrices(cfg: MachineConfig, table_pos: float = 0.0, end_stop_k: float = 0.0):
     """Linearised mechanics M q'' + C q' + K q = f about table position ``table_pos`` (m).
 
     Coordinates q: torsional nodes (rad; m for linear motors), then for the
     screw model the axial screw nodes (m) and the table (m).  Backlash gaps
-    and friction are left out (linear model in contact).
+    and friction are left out (linear model in contact); ``end_stop_k`` (N/m) ties
+    the table to the ground, an end stop in contact (its damper left out).
     Returns (M, C, K), each of shape (n, n).
     """
     rot, ax = build_chains(cfg)
     Mr, Kr, Cr = _chain_matrices(rot)
     if ax is None:
+        # the table moves with the last node: the contact reaches it through the lead
+        Kr[-1, -1] += end_stop_k * transmission_ratio(cfg) ** 2
         return Mr, Cr, Kr
     Ma, Ka, Ca = _chain_matrices(ax)
     nr, na = rot.n, ax.n
@@ -191,12 +199,15 @@ def mechanics_matrices(cfg: MachineConfig, table_pos: float = 0.0):
     g[-1] = -1.0
     K += sc.nut_stiffness_n_per_m * np.outer(g, g)
     C += sc.nut_damping_ns_per_m * np.outer(g, g)
+    K[-1, -1] += end_stop_k
     return M, C, K
 
 
-def natural_frequencies(cfg: MachineConfig, table_pos: float = 0.0) -> np.ndarray:
-    """Undamped natural frequencies (rad/s), ascending, rigid-body modes included as 0."""
-    M, _, K = mechanics_matrices(cfg, table_pos)
+def natural_frequencies(cfg: MachineConfig, table_pos: float = 0.0,
+                        end_stop_k: float = 0.0) -> np.ndarray:
+    """Undamped natural frequencies (rad/s), ascending, rigid-body modes included as 0;
+    ``end_stop_k`` (N/m): an end stop of that stiffness in contact."""
+    M, _, K = mechanics_matrices(cfg, table_pos, end_stop_k)
     lam = scipy.linalg.eigh(K, M, eigvals_only=True)
     return np.sqrt(np.clip(lam, 0.0, None))
 
@@ -206,6 +217,33 @@ def _omega_max(cfg: MachineConfig) -> float:
         travel = cfg.table.travel_m
         return max(natural_frequencies(cfg, x)[-1] for x in np.linspace(0.0, travel, 5))
     return natural_frequencies(cfg)[-1]
+
+
+def _contact_mass(cfg: MachineConfig, rot: Chain) -> float:
+    """kg: the table in the screw model, else the last node's inertia through the lead."""
+    if cfg.mechanics.model == "screw":
+        return cfg.table.mass_kg
+    return float(rot.m[-1]) / transmission_ratio(cfg) ** 2
+
+
+def _contact_omega(cfg: MachineConfig, stops: EndStops, chains: bool = True) -> float:
+    """rad/s: the contact's rate and (``chains``) the highest mode with a stop in contact."""
+    if not chains:
+        return stops.rate
+    return max(stops.rate, *(natural_frequencies(cfg, x, stops.stiffness)[-1]
+                             for x in (stops.stop_neg, stops.stop_pos)))
+
+
+def _substep_with_stops(cfg: MachineConfig, stops: EndStops, omega_chains: float, dt: float,
+                        n: int) -> tuple[float, int, float]:
+    """(dt, n, omega_max) once the end stops count; an explicit sub-step they make
+    unstable is refused (:func:`plant.end_stops.check_substep`)."""
+    omega = max(omega_chains, _contact_omega(cfg, stops))
+    if cfg.simulation.substep_s <= 0.0:
+        return *choose_substep(cfg, omega), omega
+    lumped = cfg.mechanics.solver == "lumped"
+    check_substep(cfg.path, cfg.table, stops, dt, lambda st: _contact_omega(cfg, st, lumped))
+    return dt, n, omega
 
 
 def choose_substep(cfg: MachineConfig, omega_max: float) -> tuple[float, int]:
@@ -233,6 +271,10 @@ def build(cfg: MachineConfig) -> Built:
     rot, ax = build_chains(cfg)
     omega_max = _omega_max(cfg)
     dt, n_sub = choose_substep(cfg, omega_max)
+    stops = None
+    if cfg.table is not None:
+        stops = end_stops(cfg.table, _contact_mass(cfg, rot), cfg.simulation.max_omega_dt / dt)
+        dt, n_sub, omega_max = _substep_with_stops(cfg, stops, omega_max, dt, n_sub)
     ratio = transmission_ratio(cfg)
     p = np.zeros(L.P_COUNT + params_size(rot.n) + (params_size(ax.n) if ax else 0))
     p[L.P_MOTOR_MODEL] = _MOTOR[mo.model]
@@ -289,6 +331,14 @@ def build(cfg: MachineConfig) -> Built:
         p[L.P_EXT_LOAD] = cfg.mechanics.external_torque_nm
     _pitch_error(cfg, p)
     _friction(cfg, p)
+    if stops is not None:
+        p[L.P_STROKE] = 1.0
+        p[L.P_STOP_NEG] = stops.stop_neg
+        p[L.P_STOP_POS] = stops.stop_pos
+        p[L.P_STOP_K] = stops.stiffness
+        p[L.P_STOP_C] = stops.damping
+        p[L.P_LIMIT_NEG] = stops.limit_neg
+        p[L.P_LIMIT_POS] = stops.limit_pos
     # sensors
     se = cfg.sensors
     if kind == "linear":
@@ -315,7 +365,7 @@ def build(cfg: MachineConfig) -> Built:
         n_state += state_size(ax.n)
     p[L.P_SOFF_DELAY] = n_state
     n_state += ring_size(n_delay)
-    return Built(p, n_state, rot, ax, ratio, dt, n_sub, omega_max)
+    return Built(p, n_state, rot, ax, ratio, dt, n_sub, omega_max, stops)
 
 
 def _pitch_error(cfg: MachineConfig, p: np.ndarray) -> None:

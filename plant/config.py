@@ -305,6 +305,12 @@ def _check_physics(cfg: MachineConfig) -> None:
                           "the screw model takes [screw] backlash_m")
     if mech != "screw" and cfg.mechanics.solver == "tlm":
         raise ConfigError(f"{cfg.path}: [mechanics] solver = 'tlm' needs model = 'screw'")
+    tb = cfg.table
+    if tb is not None and not tb.limit_switch_overtravel_m < tb.end_stop_overtravel_m:
+        raise ConfigError(f"{cfg.path}: [table] limit_switch_overtravel_m = "
+                          f"{tb.limit_switch_overtravel_m:g} m must be < end_stop_overtravel_m "
+                          f"= {tb.end_stop_overtravel_m:g} m: the limit switches trip before "
+                          "the table reaches the end stops")
     if cfg.screw is not None:
         sc, tb = cfg.screw, cfg.table
         if sc.nut_offset_m + tb.travel_m > sc.length_m:

@@ -16,8 +16,8 @@ One sub-step, in order:
    torque + cogging;
 3. mechanics: chain forces (springs, dampers, bearings), the nut coupling the
    torsional and axial screw chains to the table at the nut's present
-   location, table friction with stiction, then a symplectic Euler (or TLM)
-   update;
+   location, the end stops' contact on the table, table friction with stiction,
+   then a symplectic Euler (or TLM) update;
 4. at the end of a PWM period: the measured signals enter the delay ring (if any).
 
 The outputs give the true states (positions, velocities, currents, forces) as they are
@@ -30,24 +30,103 @@ from plant.effects.chain import chain_clear_forces, chain_internal_forces, chain
 from plant.effects.cogging import cogging_torque
 from plant.effects.commutation import commutation_control, commutation_substep
 from plant.effects.delay import delay_push, measured_delayed
+from plant.effects.end_stop import end_stop_force, limit_switches
 from plant.effects.friction import presliding_update, table_friction
 from plant.effects.pitch import pitch_error
-from plant.effects.pmsm import (dq_current_control, dq_substep, dq_torque, first_order_substep,
-                                freewheel, limit_voltage)
+from plant.effects.pmsm import (
+    dq_current_control,
+    dq_substep,
+    dq_torque,
+    first_order_substep,
+    freewheel,
+    limit_voltage,
+)
 from plant.effects.sensors import measure_current
 from plant.effects.tlm import tlm_step
-from plant.layout import (INPUT_VOLTAGE, I_ENABLE, I_ID_REF, I_IQ_REF, I_LOAD, I_MODE, I_UD, I_UQ,
-                          MECH_SCREW, MOTOR_COMMUTATION, MOTOR_DQ, MOTOR_FIRST_ORDER, O_ENCODER,
-                          O_FRICTION, O_ID, O_ID_MEAS, O_IQ, O_IQ_MEAS, O_MOTOR_POS, O_MOTOR_VEL,
-                          O_NUT_FORCE, O_SCALE, O_STATUS, O_TABLE_POS, O_TABLE_VEL, O_TIME,
-                          O_TORQUE, O_UD, O_UQ, P_DELAY_N, P_DIVERGE_LIMIT, P_DT, P_EXT_LOAD, P_LD,
-                          P_LEAD_RATIO, P_LQ, P_MECH_MODEL, P_MOTOR_MODEL, P_NUT_C, P_NUT_GAP,
-                          P_NUT_K, P_NUT_S0, P_N_AX, P_N_ROT, P_OFF_AX, P_OFF_ROT, P_POLE_PAIRS,
-                          P_PRE_ENABLED, P_SEG_LEN, P_SOFF_AX, P_SOFF_ROT, P_SOLVER, P_SUB_PER_PWM,
-                          P_TABLE_M, P_UDC, SOLVER_LUMPED, STATUS_DIVERGED, STATUS_NONFINITE,
-                          STATUS_OK, S_FRICTION, S_ID, S_ID_MEAS, S_INT_D, S_INT_Q, S_IQ,
-                          S_IQ_MEAS, S_KM, S_NUT_F, S_STUCK, S_SUB_COUNT, S_TABLE_V, S_TABLE_X,
-                          S_TIME, S_TORQUE, S_UD_APPLIED, S_UD_NEXT, S_UQ_APPLIED, S_UQ_NEXT)
+from plant.layout import (
+    I_ENABLE,
+    I_ID_REF,
+    I_IQ_REF,
+    I_LOAD,
+    I_MODE,
+    I_UD,
+    I_UQ,
+    INPUT_VOLTAGE,
+    MECH_SCREW,
+    MOTOR_COMMUTATION,
+    MOTOR_DQ,
+    MOTOR_FIRST_ORDER,
+    O_ENCODER,
+    O_END_STOP_F,
+    O_FRICTION,
+    O_ID,
+    O_ID_MEAS,
+    O_IQ,
+    O_IQ_MEAS,
+    O_LIMIT_NEG,
+    O_LIMIT_POS,
+    O_MOTOR_POS,
+    O_MOTOR_VEL,
+    O_NUT_FORCE,
+    O_SCALE,
+    O_STATUS,
+    O_TABLE_POS,
+    O_TABLE_VEL,
+    O_TIME,
+    O_TORQUE,
+    O_UD,
+    O_UQ,
+    P_DELAY_N,
+    P_DIVERGE_LIMIT,
+    P_DT,
+    P_EXT_LOAD,
+    P_LD,
+    P_LEAD_RATIO,
+    P_LQ,
+    P_MECH_MODEL,
+    P_MOTOR_MODEL,
+    P_N_AX,
+    P_N_ROT,
+    P_NUT_C,
+    P_NUT_GAP,
+    P_NUT_K,
+    P_NUT_S0,
+    P_OFF_AX,
+    P_OFF_ROT,
+    P_POLE_PAIRS,
+    P_PRE_ENABLED,
+    P_SEG_LEN,
+    P_SOFF_AX,
+    P_SOFF_ROT,
+    P_SOLVER,
+    P_SUB_PER_PWM,
+    P_TABLE_M,
+    P_UDC,
+    S_FRICTION,
+    S_ID,
+    S_ID_MEAS,
+    S_INT_D,
+    S_INT_Q,
+    S_IQ,
+    S_IQ_MEAS,
+    S_KM,
+    S_NUT_F,
+    S_STOP_F,
+    S_STUCK,
+    S_SUB_COUNT,
+    S_TABLE_V,
+    S_TABLE_X,
+    S_TIME,
+    S_TORQUE,
+    S_UD_APPLIED,
+    S_UD_NEXT,
+    S_UQ_APPLIED,
+    S_UQ_NEXT,
+    SOLVER_LUMPED,
+    STATUS_DIVERGED,
+    STATUS_NONFINITE,
+    STATUS_OK,
+)
 
 
 @njit(cache=True, error_model="numpy")
@@ -166,7 +245,11 @@ def screw_mechanics(p, s, load, dt, lumped):
     s[S_NUT_F] = f_nut
     v = s[S_TABLE_V]
     m = p[P_TABLE_M]
-    f_app = f_nut + load
+    # the stop's reaction reaches the screw through the nut: a table held by the wall
+    # loads the nut, the screw and its thrust bearing with the motor's force
+    f_stop = end_stop_force(p, s[S_TABLE_X], v)
+    s[S_STOP_F] = f_stop
+    f_app = f_nut + load + f_stop
     ff, stuck = table_friction(p, s, v, f_app, m, dt)
     s[S_FRICTION] = ff
     s[S_STUCK] = 1.0 if stuck else 0.0
@@ -194,6 +277,7 @@ def lumped_mechanics(p, s, load, dt):
     the node as a force -m e'' u_dot^2 on the table.  The table's reflected inertia stays
     m ratio^2 (the node's constant inertia) instead of m g^2: a relative error of 2 e' in
     the table's share, below 1e-1 by the loader's slope bound and ~1e-3 for real screws.
+    The end stops act on the table like the load does.
     """
     ro = int(p[P_SOFF_ROT])
     nr = int(p[P_N_ROT])
@@ -205,7 +289,9 @@ def lumped_mechanics(p, s, load, dt):
     _, e1, e2 = pitch_error(p, ratio * s[ro + last])
     g = ratio * (1.0 + e1)
     v = (1.0 + e1) * u_dot
-    f_tab = load - p[P_TABLE_M] * e2 * u_dot * u_dot
+    f_stop = end_stop_force(p, s[S_TABLE_X], v)
+    s[S_STOP_F] = f_stop
+    f_tab = load + f_stop - p[P_TABLE_M] * e2 * u_dot * u_dot
     f_app = s[fr + last] / g + f_tab
     m_eff = p[por + last] / (g * g)
     ff, stuck = table_friction(p, s, v, f_app, m_eff, dt)
@@ -293,6 +379,8 @@ def write_outputs(p, s, out, status):
     out[O_UQ] = s[S_UQ_APPLIED]
     out[O_NUT_FORCE] = s[S_NUT_F]
     out[O_FRICTION] = s[S_FRICTION]
+    out[O_LIMIT_NEG], out[O_LIMIT_POS] = limit_switches(p, s[S_TABLE_X])
+    out[O_END_STOP_F] = s[S_STOP_F]
 
 
 @njit(cache=True, error_model="numpy")

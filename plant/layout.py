@@ -118,6 +118,15 @@ P_PRE_K1 = next(_p)  # N/m, initial presliding stiffness T1 (table units)
 P_PRE_X1 = next(_p)  # m, x1
 P_PRE_A = next(_p)  # exponent a
 
+# end stops and limit switches of a table with a stroke (screw and linear axes)
+P_STROKE = next(_p)  # 1: the table has end stops and limit switches; 0: none (rotary table)
+P_STOP_NEG = next(_p)  # m, hard stop at the start of travel (-overtravel)
+P_STOP_POS = next(_p)  # m, hard stop at the end of travel (travel + overtravel)
+P_STOP_K = next(_p)  # N/m, contact stiffness
+P_STOP_C = next(_p)  # N·s/m, contact damping (it only ever pushes the table out)
+P_LIMIT_NEG = next(_p)  # m, the negative limit switch is on below this position
+P_LIMIT_POS = next(_p)  # m, the positive limit switch is on above this position
+
 # sensors
 P_ENC_COUNTS_PER_RAD = next(_p)  # motor encoder counts per motor rad (or per m, linear)
 P_SCALE_RES = next(_p)  # m (rad for rotary), linear scale resolution; 0: no scale
@@ -169,6 +178,7 @@ S_STUCK = next(_s)  # 1 while Karnopp stiction holds the friction body
 S_PRE_F = next(_s)  # N, presliding friction force
 S_PRE_XREV = next(_s)  # m, position at the last reversal
 S_PRE_DIR = next(_s)  # +1 / -1, present direction of motion
+S_STOP_F = next(_s)  # N, end-stop force on the table of the last sub-step, + toward +x
 S_DELAY_HEAD = next(_s)  # ring slot of the newest delayed sample
 S_COUNT = next(_s)
 del _s
@@ -206,5 +216,8 @@ O_UD = next(_o)  # V, applied voltages
 O_UQ = next(_o)
 O_NUT_FORCE = next(_o)  # N
 O_FRICTION = next(_o)  # N (N·m), table friction
+O_LIMIT_NEG = next(_o)  # 1.0 while the table is beyond the negative limit switch, else 0.0
+O_LIMIT_POS = next(_o)  # 1.0 while the table is beyond the positive limit switch, else 0.0
+O_END_STOP_F = next(_o)  # N, end-stop force on the table, + pushing toward +x
 O_COUNT = next(_o)
 del _o

@@ -32,6 +32,7 @@ OUTPUTS = {
     "encoder_counts": L.O_ENCODER, "scale_counts": L.O_SCALE, "id_a": L.O_ID, "iq_a": L.O_IQ,
     "id_meas_a": L.O_ID_MEAS, "iq_meas_a": L.O_IQ_MEAS, "torque": L.O_TORQUE, "ud_v": L.O_UD,
     "uq_v": L.O_UQ, "nut_force_n": L.O_NUT_FORCE, "friction": L.O_FRICTION,
+    "limit_neg": L.O_LIMIT_NEG, "limit_pos": L.O_LIMIT_POS, "end_stop_force_n": L.O_END_STOP_F,
 }
 INPUTS = {
     "mode": L.I_MODE, "enable": L.I_ENABLE, "id_ref_a": L.I_ID_REF, "iq_ref_a": L.I_IQ_REF,

@@ -64,6 +64,8 @@ def describe(section_cls: type) -> list[dict]:
             default = "required"
         elif f.default_factory is not MISSING:
             default = repr(list(f.default_factory()))
+        elif f.default is None:  # the loader derives it from other keys (the doc says how)
+            default = "derived"
         else:
             default = repr(f.default)
         rows.append({"key": f.name, "unit": m.get("unit", ""), "range": ", ".join(bounds),

@@ -152,6 +152,24 @@ class TableSection:
     external_force_n: float = key("N", "Constant external force on the table, + pushing "
                                   "toward +x (a vertical axis: -m g; a weight-compensation "
                                   "offset); added to the plant input 'load'.", 0.0)
+    end_stop_overtravel_m: float = key("m", "Mechanical end stops at -x and travel_m + x: a "
+                                       "stiff, damped contact that only pushes the table "
+                                       "back (output end_stop_force_n).  Default: 15 mm "
+                                       "beyond the limit switches, what a table at 30 "
+                                       "m/min needs to brake at 10 m/s^2.", 0.025, gt=0.0)
+    limit_switch_overtravel_m: float = key("m", "Limit switches on beyond -x and travel_m + "
+                                           "x (outputs limit_neg, limit_pos); < "
+                                           "end_stop_overtravel_m.  Default: 10 mm, just "
+                                           "beyond the usable travel.", 0.01, ge=0.0)
+    end_stop_stiffness_n_per_m: float = key("N/m", "End-stop contact stiffness, on the "
+                                            "table's mass; 0: automatic, a contact frequency "
+                                            "of omega dt = max_omega_dt/4 on the chains' "
+                                            "sub-step, which it leaves as it is "
+                                            "(plant.end_stops).", 0.0, ge=0.0)
+    end_stop_damping_ns_per_m: float = key("N*s/m", "End-stop contact damping; 0: "
+                                           "automatic, damping ratio 0.5 on the table's "
+                                           "mass (rebound at 30 % of the impact speed).", 0.0,
+                                           ge=0.0)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -241,8 +259,9 @@ SECTIONS = {
     "table": TableSection, "pitch_error": PitchErrorSection, "friction": FrictionSection,
     "presliding": PreslidingSection, "sensors": SensorsSection, "simulation": SimulationSection,
 }
-# sections read by other packages (hil's controller): the plant keeps them as raw tables
-FOREIGN_SECTIONS = ("controller",)
+# sections read by other packages (hil's controller and drive): the plant keeps them as raw
+# tables
+FOREIGN_SECTIONS = ("controller", "drive")
 # sections that may be absent: they then take every default
 OPTIONAL_SECTIONS = {"field_weakening", "cogging", "friction", "presliding", "sensors",
                      "simulation", "current_loop", "pitch_error"}

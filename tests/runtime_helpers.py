@@ -5,6 +5,7 @@ Every wait is bounded; every child started through :class:`Children` is killed a
 when the block ends, and the block checks that none is left running.
 """
 
+import json
 import os
 import re
 import signal
@@ -12,6 +13,9 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
+
+from hil.cia402 import EnableSequencer
 from hil.runtime.demo import wait_ready
 from tests.conftest import CONFIGS, ROOT
 
@@ -25,6 +29,8 @@ SLOW_2KHZ = {"pwm_frequency_hz": "2000.0", "kp_v_per_a": "3.0", "position_cycle_
 READY_S = 120.0
 #: longest wait for a child to finish once it should
 EXIT_S = 60.0
+#: longest wait for one answer of an emulator in another process
+ANSWER_S = 5.0
 
 
 def machine_variant(path: Path, values: dict[str, str], source: Path = ARROW) -> Path:
@@ -90,6 +96,13 @@ def terminate(proc: subprocess.Popen) -> int:
     return proc.wait(timeout=EXIT_S)
 
 
+def read_run(run_dir: Path) -> tuple[dict, dict]:
+    """``hil run``'s report.json and its recording's columns (name -> array)."""
+    report = json.loads((run_dir / "report.json").read_text())
+    with np.load(run_dir / "run.npz") as npz:
+        return report, {k: npz[k] for k in npz.files}
+
+
 def machine_lockstep_traces(config: Path, program: Path, settle_s: float, folder: Path,
                             feedback_delay_ticks: int = 0) -> dict[str, Path]:
     """Each axis's trace.csv (in ``folder``) of the machine's lock-step simulation of
@@ -107,3 +120,27 @@ def machine_lockstep_traces(config: Path, program: Path, settle_s: float, folder
     return {name: write_trace(folder / f"trace_{name}.csv", servo_trace_columns(
         res[name], ctrl.sec.position_cycle_ratio), {})
         for name, ctrl in zip(m.names, ls.ctrl.ctrls)}
+
+
+def exchange(ep, sp, fb, n: int, seq=None, iq: float = 0.0) -> None:
+    """``n`` feedbacks, each answered at once by a setpoint (controlword from ``seq``)."""
+    for _ in range(n):
+        assert ep.recv_feedback(fb, ANSWER_S), "the emulator stopped answering"
+        sp.seq += 1
+        if seq is not None:
+            sp.controlword = seq.next_controlword(fb.statusword)
+        sp.iq_ref_a = iq
+        ep.send_setpoint(sp)
+
+
+def enable(ep, sp, fb) -> EnableSequencer:
+    """The CiA 402 enable sequence (a fault reset first if the drive is in FAULT) over
+    ``ep``, answering each feedback; the sequencer once OPERATION ENABLED."""
+    seq = EnableSequencer(timeout_cycles=50)
+    seq.enable()
+    exchange(ep, sp, fb, 1, seq)
+    for _ in range(50):
+        exchange(ep, sp, fb, 1, seq)
+        if seq.done:
+            return seq
+    raise AssertionError(seq.reason)

@@ -3,11 +3,15 @@ round trip with a device in another process.
 
 Links: ``udp`` — two sockets on 127.0.0.1, ephemeral ports; ``serial`` — a real
 ``os.openpty`` pair, the device on the master (``serial://fd/N``), the controller on
-the slave opened by path with pyserial.  Each link can also hand the device one raw
-message as one transport frame (a datagram, or a frame with a good CRC), so malformed
-and out-of-sequence messages reach the codec.  Timing: a receive that should succeed
-waits up to WAIT_S and returns as soon as the message is there; only "returned False"
-is asserted for one that should not.
+the slave opened by path with pyserial.  Each link can also hand the device raw
+messages as the controller, one transport frame each (a datagram from the controller's
+own socket, or a frame with a good CRC on the controller's line), so malformed and
+out-of-sequence messages reach the codec from the peer the device has pinned; a link
+opened with ``controller=False`` has a raw peer only, which the device pins when its
+first good message arrives.  Timing: a receive that should succeed waits up to WAIT_S
+and returns as soon as the message is there; only "returned False" is asserted for one
+that should not.  Every test that counts frames also checks that the counters add up
+(:func:`assert_counts_add_up`, the identity of the AdapterStats docstring).
 """
 
 import gc
@@ -42,8 +46,8 @@ from io_adapters import (
     open_endpoint,
     register,
     registry,
+    udp,
 )
-from io_adapters import udp
 from io_adapters.serial_link import frame
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -55,18 +59,31 @@ FB_WIRE = codec.SCHEMAS[Feedback].names
 
 @dataclass
 class Link:
-    """A device and a controller endpoint joined by one transport."""
+    """A device and a controller endpoint joined by one transport (controller None: a raw
+    peer only)."""
     device: Endpoint
-    controller: Endpoint
+    controller: Endpoint | None
     inject: Callable[[list[bytes]], None]  # raw messages to the device, one frame each
     close: Callable[[], None]
 
+    @property
+    def session(self) -> int:
+        """The session of the peer that ``inject`` speaks for."""
+        return RAW_SESSION if self.controller is None else self.controller.session
 
-def udp_link(query: str = "") -> Link:
+
+RAW_SESSION = 7
+
+
+def udp_link(query: str = "", controller: bool = True) -> Link:
     device = open_endpoint(f"udp://127.0.0.1:0{query}", "device")
-    controller = open_endpoint(f"udp://127.0.0.1:{device.address[1]}{query}", "controller")
-    raw = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    raw.bind(("127.0.0.1", 0))
+    ctl = (open_endpoint(f"udp://127.0.0.1:{device.address[1]}{query}", "controller")
+           if controller else None)
+    if ctl is None:
+        raw = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        raw.bind(("127.0.0.1", 0))
+    else:  # the controller's own socket: its address, which the device pins
+        raw = socket.socket(fileno=os.dup(ctl.fileno()))
 
     def inject(messages):
         for m in messages:
@@ -74,24 +91,27 @@ def udp_link(query: str = "") -> Link:
 
     def close():
         device.close()
-        controller.close()
+        if ctl is not None:
+            ctl.close()
         raw.close()
-    return Link(device, controller, inject, close)
+    return Link(device, ctl, inject, close)
 
 
-def serial_link(query: str = "") -> Link:
+def serial_link(query: str = "", controller: bool = True) -> Link:
     master, slave = os.openpty()
     device = open_endpoint(f"serial://fd/{master}{query}", "device")
-    controller = open_endpoint(f"serial://{os.ttyname(slave)}{query}", "controller")
+    ctl = (open_endpoint(f"serial://{os.ttyname(slave)}{query}", "controller")
+           if controller else None)
 
     def inject(messages):  # one write: the pty hands it over in one piece
         os.write(slave, b"".join(frame(m) for m in messages))
 
     def close():
         device.close()
-        controller.close()
+        if ctl is not None:
+            ctl.close()
         os.close(slave)
-    return Link(device, controller, inject, close)
+    return Link(device, ctl, inject, close)
 
 
 LINKS = {"udp": udp_link, "serial": serial_link}
@@ -101,8 +121,8 @@ LINKS = {"udp": udp_link, "serial": serial_link}
 def make_link(request):
     made = []
 
-    def make(query=""):
-        made.append(LINKS[request.param](query))
+    def make(query="", controller=True):
+        made.append(LINKS[request.param](query, controller))
         return made[-1]
     yield make
     for link in made:
@@ -114,13 +134,25 @@ def link(make_link):
     return make_link()
 
 
-def setpoint_msg(session=7, frame_no=0, **values) -> bytes:
+def setpoint_msg(session=RAW_SESSION, frame_no=0, **values) -> bytes:
     return codec.encode(Setpoint(**values), session, frame_no)
 
 
 def assert_same_wire_fields(a, b, names):
     for name in names:  # repr: exact floats, the sign of -0.0, int vs float
         assert repr(getattr(a, name)) == repr(getattr(b, name)), name
+
+
+COUNTED = ("received", "malformed", "refused_nonfinite", "refused_mode", "refused_range",
+           "duplicates", "out_of_order", "foreign", "stale_session", "handshakes")
+
+
+def assert_counts_add_up(stats, frames=None):
+    """Every frame in exactly one counter (the AdapterStats docstring); ``frames``: the
+    number the test knows reached the endpoint."""
+    assert stats.frames == sum(getattr(stats, name) for name in COUNTED), stats
+    if frames is not None:
+        assert stats.frames == frames, stats
 
 
 # -- the behaviour suite --------------------------------------------------------------
@@ -135,15 +167,19 @@ def test_setpoint_and_feedback_round_trip_exactly(link):
     assert 0 < sp.t_ns <= got_sp.rx_ns  # one machine, one monotonic clock
 
     fb = Feedback(seq=got_sp.seq, statusword=0x0637, time_s=12.5, encoder_counts=-123456789.0,
-                  scale_counts=float(2**53), iq_a=-3.25, id_a=float("nan"), fault=-3)
+                  scale_counts=float(2**53), iq_a=-3.25, id_a=-5e-324, fault=-3)
     got_fb = Feedback()
+    assert not link.controller.welcomed
     assert link.device.send_feedback(fb)
     assert link.controller.recv_feedback(got_fb, WAIT_S)
     assert_same_wire_fields(got_fb, fb, FB_WIRE)
     assert (got_fb.sp_t_ns, got_fb.sp_rx_ns) == (sp.t_ns, got_sp.rx_ns)
     assert got_fb.round_trip_ns() == (got_fb.rx_ns - sp.t_ns) - (fb.t_ns - got_sp.rx_ns) >= 0
+    assert link.controller.welcomed  # the device answered the HELLO sent when it opened
     for ep in (link.device, link.controller):
-        assert (ep.stats.sent, ep.stats.received, ep.stats.malformed) == (1, 1, 0)
+        s = ep.stats  # one HELLO and its WELCOME, one record each way
+        assert (s.sent, s.received, s.malformed, s.handshakes) == (1, 1, 0, 1)
+        assert_counts_add_up(s, frames=2)
 
 
 def test_frames_in_order_and_counted(link):
@@ -160,23 +196,27 @@ def test_frames_in_order_and_counted(link):
     for ep in (link.device, link.controller):
         s = ep.stats
         assert (s.received, s.lost, s.duplicates, s.out_of_order) == (50, 0, 0, 0)
+        assert_counts_add_up(s, frames=51)  # and the handshake
 
 
 def test_duplicate_older_and_missing_frames_are_counted(link):
-    link.inject([setpoint_msg(frame_no=f, iq_ref_a=v) for f, v in
-                 [(5, 1.0), (5, 2.0), (4, 3.0), (8, 4.0), (9, 5.0)]])
+    """As the controller, after its HELLO (which carried frame 0 without using it up)."""
+    link.inject([setpoint_msg(link.session, f, iq_ref_a=v) for f, v in
+                 [(0, 1.0), (0, 2.0), (codec.U32, 3.0), (3, 4.0), (4, 5.0)]])
     got, sp = [], Setpoint()
     while link.device.recv_setpoint(sp, WAIT_S if not got else QUIET_S):
         got.append(sp.iq_ref_a)
     s = link.device.stats
     assert got == [1.0, 4.0, 5.0]
     assert (s.duplicates, s.out_of_order, s.lost, s.received) == (1, 1, 2, 3)
-    link.inject([setpoint_msg(session=8, frame_no=0, iq_ref_a=6.0)])  # the peer reopened
-    assert link.device.recv_setpoint(sp, WAIT_S) and sp.iq_ref_a == 6.0
-    assert s.peer_restarts == 1
+    link.inject([setpoint_msg(link.session ^ 1, 5, iq_ref_a=6.0)])  # not the pinned session
+    assert not link.device.recv_setpoint(sp, QUIET_S) and sp.iq_ref_a == 5.0
+    assert (s.stale_session, s.peer_restarts) == (1, 0)
+    assert_counts_add_up(s, frames=7)
 
 
-def test_frame_counter_wraps(link):
+def test_frame_counter_wraps(make_link):
+    link = make_link(controller=False)  # the raw peer is pinned by its first frame
     link.inject([setpoint_msg(frame_no=0xFFFFFFFF, seq=1), setpoint_msg(frame_no=0, seq=2)])
     sp = Setpoint()
     assert link.device.recv_setpoint(sp, WAIT_S) and sp.seq == 1
@@ -214,6 +254,7 @@ def test_malformed_frame_is_counted_and_dropped(link, bad):
     link.controller.send_setpoint(Setpoint(controlword=6, iq_ref_a=1.5))
     assert link.device.recv_setpoint(sp, WAIT_S)
     assert (sp.controlword, sp.iq_ref_a) == (6, 1.5)
+    assert_counts_add_up(link.device.stats, frames=3)  # the HELLO, the bad one, the good one
 
 
 def test_timeouts_return_false(link):
@@ -226,7 +267,7 @@ def test_timeouts_return_false(link):
 
 def test_drain_keeps_the_newest(make_link):
     link = make_link("?drain=1")
-    link.inject([setpoint_msg(frame_no=k, seq=k) for k in range(3)])
+    link.inject([setpoint_msg(link.session, k, seq=k) for k in range(3)])
     sp = Setpoint()
     assert link.device.recv_setpoint(sp, WAIT_S)
     assert sp.seq == 2
@@ -357,10 +398,10 @@ def test_udp_arrival_is_the_kernels_receive_stamp():
 def test_udp_draining_keeps_the_newest_records_arrival():
     link = udp_link("?drain=1")
     try:
-        link.inject([setpoint_msg(frame_no=0, seq=0)])
+        link.inject([setpoint_msg(link.session, 0, seq=0)])
         time.sleep(QUIET_S)
         newest_sent = time.monotonic_ns()
-        link.inject([setpoint_msg(frame_no=1, seq=1)])
+        link.inject([setpoint_msg(link.session, 1, seq=1)])
         sp = Setpoint()
         assert link.device.recv_setpoint(sp, WAIT_S) and sp.seq == 1
         assert newest_sent - link.device.clock.window_ns <= sp.rx_ns <= time.monotonic_ns()

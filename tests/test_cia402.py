@@ -148,11 +148,13 @@ def test_16_is_refused_with_option_2():
 
 @pytest.mark.parametrize("source", [NR, SOD, RTSO, SO, OE, QSA])
 def test_fault_in_every_state_takes_13_then_14(source):
-    """13: a fault -> FAULT REACTION ACTIVE; 14: reaction complete -> FAULT (605Eh = 0)."""
+    """13: a fault -> FAULT REACTION ACTIVE (the drive function stays enabled for a braking
+    reaction); 14: reaction complete -> FAULT, not before."""
     drive = drive_in(source)
     held = PATHS[source][-1][0] if PATHS[source] else 0x00
     assert_took(drive, drive.update(held, True), 13, FRA)
-    assert not drive.power_enabled
+    assert drive.power_enabled
+    assert in_state(drive.update(held, True, reaction_done=False), FRA)
     assert_took(drive, drive.update(held, True), 14, FLT)
     assert in_state(drive.update(held, True), FLT)
     assert drive.log.recent()[-2:] == (13, 14)
@@ -216,11 +218,12 @@ def test_statusword_extra_bits_and_decoding(name):
 
 @pytest.mark.parametrize("name,held", [(OE, ENABLE_OPERATION), (FLT, 0x00)])
 def test_statusword_flags_follow_the_inputs(name, held):
-    """Bits 7 (warning), 10 (target reached) and 11 (internal limit) copy the inputs."""
+    """Bits 7 (warning), 10 (target reached), 11 (internal limit), 12 and 13 copy the
+    drive's flags; other bits of the flags never reach the statusword."""
     drive = drive_in(name)
-    assert drive.update(held, name == FLT, warning=True) & 0x0C80 == 0x0080
-    assert drive.update(held, name == FLT, target_reached=True) & 0x0C80 == 0x0400
-    assert drive.update(held, name == FLT, internal_limit=True) & 0x0C80 == 0x0800
+    for bit in (0x0080, 0x0400, 0x0800, 0x1000, 0x2000):
+        assert drive.update(held, name == FLT, flags=bit) & 0x3C80 == bit
+    assert drive.update(held, name == FLT, flags=0x006F) == drive.update(held, name == FLT)
     assert in_state(drive.statusword, name)
 
 
@@ -253,10 +256,11 @@ def test_undefined_statusword_is_refused():
 
 
 def test_power_and_quick_stop_flags():
-    """The drive function is enabled in OPERATION ENABLED and QUICK STOP ACTIVE only."""
+    """The drive function is enabled in OPERATION ENABLED, QUICK STOP ACTIVE and FAULT
+    REACTION ACTIVE only (the last two to brake)."""
     for name in STANDARD_STATUSWORD:
         drive = drive_in(name)
-        assert drive.power_enabled == (name in (OE, QSA)), name
+        assert drive.power_enabled == (name in (OE, QSA, FRA)), name
         assert drive.quick_stop_active == (name == QSA), name
 
 

@@ -430,11 +430,11 @@ def test_enable_sequence_reaches_operation_enabled_with_torque_off_before():
     assert ls.ctrl.enabled and ls.plant.inp[L.I_ENABLE] == 1.0
 
 
-def test_plant_fault_latches_drive_fault_until_cleared():
-    """A NaN in the plant's state: the drive reports FAULT (statusword bit 3, the plant's
-    status on the wire) with the power stage off, and the controller's sequencer gives up.
-    After EmulatedDrive.clear_fault and a new enable request, the sequencer's fault-reset
-    pulse (transition 15) and 2, 3, 4 enable the axis again, and it holds its position."""
+def test_plant_fault_faults_the_drive_the_nc_disables_it_and_its_reset_re_enables():
+    """A NaN in the plant's state: the drive reports FAULT (statusword bit 3, its error
+    code FF01h on the wire) with the power stage off, and the NC raises alarm 25201 and
+    disables it.  The NC's RESET then takes it through the fault-reset edge (transition
+    15) and 2, 3, 4 to OPERATION ENABLED again, and the axis holds its position."""
     x0 = 0.25
     ls = LockStep(load_machine(ARROW), x0)
     ls.enable()
@@ -444,14 +444,18 @@ def test_plant_fault_latches_drive_fault_until_cleared():
         ls.tick()
     assert drive_state(ls) == State.FAULT
     assert ls.fb.statusword & SW_FAULT
-    assert ls.fb.fault == L.STATUS_NONFINITE
+    assert ls.fb.fault == 0xFF01
     assert_torque_off(ls)
-    assert ls.ctrl.enable.failed and not ls.ctrl.enabled
-    ls.drive.clear_fault(x0)
-    ls.ctrl.enable.enable()
-    ls.enable()
-    assert drive_state(ls) == State.OPERATION_ENABLED
-    assert ls.drive.sm.log.recent()[-4:] == (15, 2, 3, 4)
+    assert [a.number for a in ls.ctrl.alarms.alarms] == [25201] and not ls.ctrl.enabled
+    ls.ctrl.reset_alarms()
+    seen = []
+    for _ in range(20):
+        ls.tick()
+        if not seen or seen[-1] != drive_state(ls):
+            seen.append(drive_state(ls))
+    assert ls.ctrl.enabled
+    assert seen == [State.SWITCH_ON_DISABLED, State.READY_TO_SWITCH_ON, State.SWITCHED_ON,
+                    State.OPERATION_ENABLED]
     hold = ls.run(0.05)
     assert ls.fb.fault == 0
     assert np.abs(hold["x_act"] - x0).max() < 1e-6

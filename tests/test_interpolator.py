@@ -11,9 +11,18 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from hil.controller.config import AxisLimits
-from hil.controller.interpolator import FineInterpolator, plan
-from hil.controller.program import (Block, BlockKind, Program, ProgramError, format_program,
-                                    parse_program, read_program)
+from hil.controller.interpolator import ClampEvent, FineInterpolator, plan
+from hil.controller.path import parse_path_program, plan_path
+from hil.controller.program import (
+    Block,
+    BlockKind,
+    ClampCodes,
+    Program,
+    ProgramError,
+    format_program,
+    parse_program,
+    read_program,
+)
 
 PROGRAMS = Path(__file__).resolve().parent.parent / "programs"
 INF = math.inf
@@ -85,6 +94,7 @@ _op = st.one_of(
     st.tuples(st.just("G1"), st.integers(-500_000, 500_000), st.integers(1, 30_000)),
     st.tuples(st.just("G4"), st.integers(0, 5000)),
     st.tuples(st.just("G91 G1"), st.integers(-1000, 1000), st.integers(1, 30_000)),
+    st.tuples(st.just("M10 M11")),
 )
 
 
@@ -97,6 +107,8 @@ def test_format_then_parse_round_trips(ops, start_um):
     for op in ops:
         if op[0] == "G4":
             lines.append(f"G4 F{op[1] / 1000}")
+        elif op[0] == "M10 M11":
+            lines += ["M10", "M11"]  # clamp and unclamp, each alone in its block
         else:
             mode = op[0] if op[0].startswith("G91") else "G90 " + op[0]
             lines.append(f"{mode} X{op[1] / 1000}" + (f" F{op[2]}" if len(op) > 2 else ""))
@@ -139,6 +151,11 @@ def test_example_programs_parse_within_travel(name):
     ("G0 X1\nM30\nG0 X2", 3, "G0 X2"),
     ("G0 X1 M3", 1, "M3"),
     ("G64 G1 X1 F10", 1, "G64"),
+    ("M10\nG4 F1\nG0 X5", 3, "'X5' moves axis X, clamped since line 1 (M10)"),
+    ("M10\nG91 G1 X0 F100", 2, "unclamp it with M11 first"),
+    ("G0 X1 M10", 1, "M10 (clamping) must stand alone"),
+    ("M10 M11", 1, "M10 (clamping) must stand alone"),
+    ("M12", 1, "unknown word 'M12'"),
 ])
 def test_errors_name_line_and_word(text, line, fragment):
     """Each refused program raises ProgramError (a ValueError) with the source, the line
@@ -150,6 +167,37 @@ def test_errors_name_line_and_word(text, line, fragment):
     assert err.line == line
     assert f"part.nc line {line}:" in str(err)
     assert fragment in str(err)
+
+
+def test_clamp_blocks_parse_and_plan_at_their_times():
+    """M10 and M11 (the default clamp M functions) become clamp and unclamp blocks at the
+    axis's position, and the profile has them at the time the blocks before them end
+    (hand-computed: dwells of 0.5 s and 1 s); a machine's own M functions work alike."""
+    p = parse_program("G0 X10\nG4 F0.5\nM10\nG4 F1\nM11\nM30", start=0.01)
+    assert p.blocks[2] == Block(BlockKind.CLAMP, 3, 0.01, 0.01, m_code=10)
+    assert p.blocks[4] == Block(BlockKind.UNCLAMP, 5, 0.01, 0.01, m_code=11)
+    assert plan(p, AxisLimits(0.5, 2.0, 0.0)).clamps == (ClampEvent(0.5, True),
+                                                         ClampEvent(1.5, False))
+    own = parse_program("M12\nG4 F0.25\nM13", clamp=ClampCodes(12, 13))
+    assert [b.kind for b in own.blocks] == [BlockKind.CLAMP, BlockKind.DWELL, BlockKind.UNCLAMP]
+    with pytest.raises(ValueError, match="two M functions"):
+        ClampCodes(12, 12)
+
+
+def test_a_path_clamp_acts_on_the_axes_it_is_the_m_function_of():
+    """X clamps with M10, Y with M12: M10 clamps X only, so Y may move and X may not; the
+    clamp is in X's profile alone.  One M function clamping one axis and unclamping another
+    is refused."""
+    codes = (ClampCodes(10, 11), ClampCodes(12, 13))
+    p = parse_path_program("M10\nG1 Y5 F1000\nM11", "XY", clamp=codes)
+    assert p.blocks[0].clamp_axes == (True, False)
+    limits = [AxisLimits(0.5, 2.0, 0.0)] * 2
+    x, y = plan_path(p, limits)
+    assert x.clamps == (ClampEvent(0.0, True), ClampEvent(x.duration_s, False)) and not y.clamps
+    with pytest.raises(ProgramError, match="line 2: 'X5' moves axis X, clamped since line 1"):
+        parse_path_program("M10\nG1 X5 Y5 F1000", "XY", clamp=codes)
+    with pytest.raises(ValueError, match="M11 clamps one axis and unclamps another"):
+        parse_path_program("", "XY", clamp=(ClampCodes(10, 11), ClampCodes(11, 12)))
 
 
 def test_unknown_axis_letter_is_refused():

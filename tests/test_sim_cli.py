@@ -21,6 +21,7 @@ from hil.controller.program import read_program
 from hil.trace_file import IDENTIFICATION, read_trace, write_trace
 from plant.config import load_machine
 from tests.conftest import CONFIGS, ROOT
+from tests.runtime_helpers import machine_variant
 
 ARROW = CONFIGS / "arrow500_x.toml"
 PROGRAM = ROOT / "programs" / "seed000_moves.nc"
@@ -126,6 +127,34 @@ def test_measure_bode_current_bandwidth(capsys, tmp_path):
     expected = current_loop_bandwidth_hz(load_machine(ARROW))
     assert expected > 500.0
     assert summary["bandwidth_hz"] == pytest.approx(expected, rel=0.05)
+
+
+def test_sim_reports_no_alarm_on_the_seed_program(capsys, tmp_path):
+    """The text summary says there was no alarm (exit 0 is test_sim_writes_trace_and_plot's)."""
+    program = tmp_path / "short.nc"
+    program.write_text("G0 X250\nG1 X250.5 F200\nM30\n")
+    assert main(["sim", str(ARROW), "--program", str(program), "--out", str(tmp_path)]) == 0
+    assert "alarms: none" in capsys.readouterr().out.splitlines()
+
+
+def test_sim_exits_1_and_reports_the_alarm(tmp_path, capsys):
+    """``hil sim`` of a blocked axis (the machine file's friction at 1 MN, more than the
+    motor's 23.75 kN): exit status 1, the alarm in the JSON summary (number, axis, text,
+    tick, time) and on stderr."""
+    machine = machine_variant(tmp_path / "blocked.toml", {"coulomb_n": "1.0e6",
+                                                          "breakaway_n": "1.0e6"})
+    program = tmp_path / "move.nc"
+    program.write_text("G0 X250\nG1 X260 F3000\nM30\n")
+    status = main(["sim", str(machine), "--program", str(program), "--out",
+                   str(tmp_path / "out"), "--json"])
+    out, err = capsys.readouterr()
+    summary = json.loads(out)
+    assert status == 1
+    alarm = summary["alarms"][0]
+    assert (alarm["number"], alarm["axis"], alarm["text"]) == (25050, "X",
+                                                               "Axis X contour monitoring")
+    assert alarm["tick"] > 0 and alarm["t_s"] > 0.0 and alarm["count"] == 1
+    assert f"hil sim: alarm 25050 axis X contour monitoring at t = {alarm['t_s']:.3f} s" in err
 
 
 def test_sim_without_controller_section_exits_2(capsys, tmp_path):

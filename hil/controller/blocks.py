@@ -25,6 +25,10 @@ class PI:
         """Clear the integrator."""
         self.integ = 0.0
 
+    def finite(self) -> bool:
+        """The integrator is finite (x * 0.0 is 0.0 for finite x, NaN otherwise)."""
+        return self.integ * 0.0 == 0.0
+
     def step(self, err: float) -> float:
         """Output for the control error ``err``, limited to ±limit."""
         u = self.kp * err + self.integ
@@ -51,6 +55,10 @@ class PT1:
         """Set the output (and state) to ``value``."""
         self.y = value
 
+    def finite(self) -> bool:
+        """The state is finite."""
+        return self.y * 0.0 == 0.0
+
     def step(self, u: float) -> float:
         """New output for input ``u``."""
         self.y = u + (self.y - u) * self.a
@@ -71,6 +79,10 @@ class Biquad:
         """Clear the delay line."""
         self.z1 = 0.0
         self.z2 = 0.0
+
+    def finite(self) -> bool:
+        """The delay line is finite."""
+        return self.z1 * 0.0 + self.z2 * 0.0 == 0.0
 
     def step(self, x: float) -> float:
         """Filter one sample."""

@@ -5,14 +5,29 @@ doc); values are in the units their names carry.  For rotary axes the
 velocity, acceleration and jerk keys take degrees (``_deg_min``,
 ``_deg_s2``, ``_deg_s3``) and K_v reads (1000 deg/min)/deg, as MD32200 does.
 Cycle times are whole multiples of the plant's PWM period (the basic clock).
+
+The axis monitoring (:mod:`hil.controller.monitoring`, alarms in
+:mod:`hil.controller.alarms`) takes its tolerances from the MDs of SINUMERIK's axis
+monitoring with their defaults: contour MD36400 (1 mm), standstill MD36030 (0.2 mm) after
+MD36040 (0.4 s), clamping MD36050 (0.5 mm); an alarm's braking ends at MD36060 (5 mm/min)
+or after MD36620 (0.1 s).  Rotary axes take them in deg and deg/min.  The clamp and
+unclamp M functions (M10, M11 by default) are the machine's own (its PLC clamps the
+axis), so they are machine data here.
 """
 
 import math
 from dataclasses import dataclass
 
+from hil.controller.program import ClampCodes
 from plant.config import MachineConfig, build_section, check_applies
 from plant.errors import ConfigError
 from plant.schema import key
+
+LINEAR_KINDS = "kind=screw|linear"
+#: M functions with a meaning of their own in SINUMERIK (program stop and end, spindle, tool
+#: change, subprogram end, spindle positioning, gear stages, spindle to axis mode): not
+#: available as clamp M functions
+RESERVED_M_CODES = frozenset((0, 1, 2, 3, 4, 5, 6, 17, 19, 30, 40, 41, 42, 43, 44, 45, 70))
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -59,11 +74,11 @@ class ControllerSection:
     notch_depth_db: float = key("dB", "Notch depth (negative dB; -inf dB is not allowed).",
                                 -40.0, le=0.0)
     max_velocity_mm_min: float = key("mm/min", "Maximum axis velocity (MD32000); G0 feed.",
-                                     0.0, ge=0.0, only="kind=screw|linear")
+                                     0.0, ge=0.0, only=LINEAR_KINDS)
     max_acceleration_m_s2: float = key("m/s^2", "Maximum acceleration (MD32300).", 0.0,
-                                       ge=0.0, only="kind=screw|linear")
+                                       ge=0.0, only=LINEAR_KINDS)
     max_jerk_m_s3: float = key("m/s^3", "Maximum jerk (MD32431); 0: no jerk limit.", 0.0,
-                               ge=0.0, only="kind=screw|linear")
+                               ge=0.0, only=LINEAR_KINDS)
     max_velocity_deg_min: float = key("deg/min", "Maximum axis velocity (MD32000).", 0.0,
                                       ge=0.0, only="kind=rotary")
     max_acceleration_deg_s2: float = key("deg/s^2", "Maximum acceleration (MD32300).", 0.0,
@@ -74,6 +89,44 @@ class ControllerSection:
                                     ge=0.0)
     current_ti_s: float = key("s", "Current PI integral time (plant_input = 'voltage').", 0.0,
                               ge=0.0)
+    encoder_feedback_polarity: int = key("1", "Sign of the position actual value (MD32110 "
+                                         "ENC_FEEDBACK_POL): -1 reverses it; 0 or 1 do not.",
+                                         1, ge=-1, le=1)
+    contour_tol_mm: float = key("mm", "Contour monitoring (MD36400 CONTOUR_TOL): largest "
+                                "deviation of the actual position from the one the loop "
+                                "model expects; beyond it alarm 25050.", 1.0, gt=0.0,
+                                only=LINEAR_KINDS)
+    contour_tol_deg: float = key("deg", "Contour monitoring tolerance of a rotary axis "
+                                 "(MD36400).", 1.0, gt=0.0, only="kind=rotary")
+    standstill_pos_tol_mm: float = key("mm", "Standstill monitoring (MD36030 "
+                                       "STANDSTILL_POS_TOL): largest following error while "
+                                       "the axis is meant to stand still; beyond it alarm "
+                                       "25040.", 0.2, gt=0.0, only=LINEAR_KINDS)
+    standstill_pos_tol_deg: float = key("deg", "Standstill tolerance of a rotary axis "
+                                        "(MD36030).", 0.2, gt=0.0, only="kind=rotary")
+    standstill_delay_time_s: float = key("s", "Standstill monitoring delay (MD36040 "
+                                         "STANDSTILL_DELAY_TIME): from the end of a motion to "
+                                         "the start of standstill monitoring.", 0.4, ge=0.0)
+    clamp_pos_tol_mm: float = key("mm", "Clamping monitoring (MD36050 CLAMP_POS_TOL): how far "
+                                  "a clamped axis may move from where it was clamped; beyond "
+                                  "it alarm 26000.", 0.5, gt=0.0, only=LINEAR_KINDS)
+    clamp_pos_tol_deg: float = key("deg", "Clamping tolerance of a rotary axis (MD36050).",
+                                   0.5, gt=0.0, only="kind=rotary")
+    standstill_velo_tol_mm_min: float = key("mm/min", "Axis stationary below this speed "
+                                            "(MD36060 STANDSTILL_VELO_TOL): ends the braking "
+                                            "of an alarm.", 5.0, gt=0.0, only=LINEAR_KINDS)
+    standstill_velo_tol_deg_min: float = key("deg/min", "Axis stationary speed of a rotary "
+                                             "axis (MD36060).", 5.0, gt=0.0,
+                                             only="kind=rotary")
+    servo_disable_delay_time_s: float = key("s", "Longest braking after an alarm before the "
+                                            "drive is disabled anyway (MD36620 "
+                                            "SERVO_DISABLE_DELAY_TIME).", 0.1, ge=0.0)
+    clamp_m_code: int = key("1", "M function that clamps the axis (a PLC M function of the "
+                            "machine; SINUMERIK has no MD for it): clamping monitoring "
+                            "replaces standstill monitoring until the unclamp M function.",
+                            ClampCodes().clamp, ge=0)
+    unclamp_m_code: int = key("1", "M function that releases the clamp.", ClampCodes().unclamp,
+                              ge=0)
 
 
 @dataclass(frozen=True)
@@ -82,6 +135,57 @@ class AxisLimits:
     velocity: float
     acceleration: float
     jerk: float
+
+
+@dataclass(frozen=True)
+class MonitoringLimits:
+    """The axis monitoring's machine data in SI units of the table coordinate.
+
+    Attributes:
+        contour_tol: MD36400, m (rad on rotary axes).
+        standstill_tol: MD36030, m (rad).
+        standstill_delay_s: MD36040, s.
+        clamp_tol: MD36050, m (rad).
+        standstill_velocity: MD36060, m/s (rad/s).
+        disable_delay_s: MD36620, s.
+    """
+    contour_tol: float
+    standstill_tol: float
+    standstill_delay_s: float
+    clamp_tol: float
+    standstill_velocity: float
+    disable_delay_s: float
+
+
+def motor_constant(cfg: MachineConfig) -> float:
+    """The motor's torque per q-current, N·m/A (force per current, N/A, for linear motors)."""
+    mo = cfg.motor
+    linear = cfg.machine.kind == "linear"
+    return mo.force_constant_n_per_a if linear else mo.torque_constant_nm_per_a
+
+
+def cnc_unit(cfg: MachineConfig) -> tuple[float, str]:
+    """Factor from SI table units (m, rad) to the CNC's (mm, deg), and that unit."""
+    return (180.0 / math.pi, "deg") if cfg.machine.kind == "rotary" else (1e3, "mm")
+
+
+def monitoring_limits(cfg: MachineConfig, section: ControllerSection) -> MonitoringLimits:
+    """The monitoring machine data of ``section`` in SI (the keys for the axis's kind)."""
+    k, unit = cnc_unit(cfg)
+
+    def si(name: str) -> float:
+        return getattr(section, f"{name}_{unit}") / k
+
+    return MonitoringLimits(
+        contour_tol=si("contour_tol"), standstill_tol=si("standstill_pos_tol"),
+        standstill_delay_s=section.standstill_delay_time_s, clamp_tol=si("clamp_pos_tol"),
+        standstill_velocity=getattr(section, f"standstill_velo_tol_{unit}_min") / k / 60.0,
+        disable_delay_s=section.servo_disable_delay_time_s)
+
+
+def clamp_codes(section: ControllerSection) -> ClampCodes:
+    """The axis's clamp and unclamp M functions, for the program parser."""
+    return ClampCodes(section.clamp_m_code, section.unclamp_m_code)
 
 
 def kv_si(section: ControllerSection) -> float:
@@ -136,6 +240,15 @@ def load_controller(cfg: MachineConfig) -> ControllerSection:
                                     or cfg.sensors.scale_resolution_m <= 0.0):
         raise ConfigError(f"{cfg.path}: [controller] feedback = 'scale' needs [sensors] "
                           "scale_resolution_m > 0 m")
+    for name in ("clamp_m_code", "unclamp_m_code"):
+        code = getattr(sec, name)
+        if code in RESERVED_M_CODES:
+            raise ConfigError(f"{cfg.path}: [controller] {name} = {code}: M{code} has a "
+                              "meaning of its own; reserved are M"
+                              + ", M".join(str(c) for c in sorted(RESERVED_M_CODES)))
+    if sec.clamp_m_code == sec.unclamp_m_code:
+        raise ConfigError(f"{cfg.path}: [controller] unclamp_m_code = {sec.unclamp_m_code} is "
+                          "clamp_m_code too: clamping and unclamping need two M functions")
     if sec.notch_hz > 0.0 and sec.notch_bandwidth_hz <= 0.0:
         raise ConfigError(f"{cfg.path}: [controller] notch_bandwidth_hz must be > 0 Hz when "
                           "notch_hz is set")

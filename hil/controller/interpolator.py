@@ -33,6 +33,12 @@ _Phase = tuple[float, float, float]
 """(duration s, acceleration at the phase start, jerk) of one phase, for a positive move."""
 
 
+class ClampEvent(NamedTuple):
+    """A clamp (``clamped`` True) or unclamp block at ``t_s`` (s) of the profile."""
+    t_s: float
+    clamped: bool
+
+
 class Setpoint(NamedTuple):
     """The profile at one instant: position (m or rad), velocity (/s), acceleration (/s²)."""
     pos: float
@@ -122,6 +128,7 @@ class Profile:
     ``pos0[i]`` (m or rad), velocity ``vel0[i]``, acceleration ``acc0[i]`` and constant
     jerk ``jerk[i]`` (SI, per second); every array has shape (n,).  The last segment starts
     at ``duration_s`` and holds the end position at rest; times before 0 read as 0.
+    ``clamps`` are the program's clamp and unclamp blocks in time order.
     """
     knots_s: np.ndarray
     pos0: np.ndarray
@@ -129,6 +136,7 @@ class Profile:
     acc0: np.ndarray
     jerk: np.ndarray
     duration_s: float
+    clamps: tuple[ClampEvent, ...] = ()
 
     def sample(self, t_s: float) -> Setpoint:
         """Position, velocity and acceleration at time ``t_s`` (s)."""
@@ -166,8 +174,12 @@ def plan(program: Program, limits: AxisLimits) -> Profile:
     velocity, every feed is clipped to it."""
     _check_limits(limits)
     rows: list[tuple[float, float, float, float, float]] = []
+    clamps = []
     t = 0.0
     for block in program.blocks:
+        if block.kind in (BlockKind.CLAMP, BlockKind.UNCLAMP):
+            clamps.append(ClampEvent(t, block.kind is BlockKind.CLAMP))
+            continue
         if block.kind is BlockKind.DWELL:
             phases = [(block.dwell_s, 0.0, 0.0)] if block.dwell_s > 0.0 else []
         else:
@@ -180,7 +192,7 @@ def plan(program: Program, limits: AxisLimits) -> Profile:
             t += dur
     rows.append((t, program.end, 0.0, 0.0, 0.0))
     columns = [np.ascontiguousarray(c) for c in np.array(rows, dtype=float).T]
-    return Profile(*columns, duration_s=t)
+    return Profile(*columns, duration_s=t, clamps=tuple(clamps))
 
 
 class FineInterpolator:

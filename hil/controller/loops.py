@@ -35,6 +35,10 @@ class PositionLoop:
         self.sym.reset(x)
         self.error = 0.0
 
+    def finite(self) -> bool:
+        """Every state is finite."""
+        return self.error * 0.0 == 0.0 and self.sym.finite()
+
     def step(self, x_set: float, v_set: float, x_act: float) -> float:
         """Velocity command (table units per s) for this position cycle."""
         self.error = self.sym.step(x_set) - x_act
@@ -66,6 +70,11 @@ class SpeedLoop:
             f.reset()
         self.e_prev = 0.0
 
+    def finite(self) -> bool:
+        """Every state is finite."""
+        return (self.e_prev * 0.0 == 0.0 and self.pi.finite() and self.set_filter.finite()
+                and self.cur_filter.finite() and self.notch.finite())
+
     def step(self, w_set: float, w_act: float, i_ff: float) -> float:
         """q-current setpoint (A) for this speed cycle."""
         e = self.set_filter.step(w_set) - w_act
@@ -94,6 +103,10 @@ class CurrentLoop:
         """Clear both integrators."""
         self.d.reset()
         self.q.reset()
+
+    def finite(self) -> bool:
+        """Both integrators are finite."""
+        return self.d.finite() and self.q.finite()
 
     def step(self, id_set: float, iq_set: float, id_act: float, iq_act: float,
              w_motor: float):

@@ -9,14 +9,21 @@ steps them all.  On one axis the messages are the plain records and the tick is 
 :class:`~io_adapters.messages.FeedbackGroup`, whose ``seq`` the tick advances.  A
 multi-axis program runs as one profile per axis on common knots
 (:func:`hil.controller.path.plan_path`), started on the same tick.
+
+An alarm on one axis stops every axis (as an alarm stops a SINUMERIK channel): from the
+next tick the other axes brake too and their drives are disabled, without alarms of their
+own.
 """
 
 from collections.abc import Sequence
 
-from hil.controller.config import axis_limits, load_controller
+from hil.controller.alarms import Alarm
+from hil.controller.config import axis_limits, clamp_codes, load_controller
 from hil.controller.interpolator import Profile
 from hil.controller.nc import Controller
 from hil.controller.path import PathProgram, plan_path
+from hil.controller.program import ClampCodes
+from hil.controller.stop import Phase
 from io_adapters.messages import SetpointGroup, axis_records
 from plant.machines import MachineSet
 
@@ -39,7 +46,7 @@ class MachineController:
         if len(x0) != len(machine.axes):
             raise ValueError(f"{len(x0)} start positions for {len(machine.axes)} axes")
         self.names = machine.names
-        self.ctrls = tuple(Controller(a.config, period_s, x, load_controller(a.config))
+        self.ctrls = tuple(Controller(a.config, period_s, x, load_controller(a.config), a.name)
                            for a, x in zip(machine.axes, x0))
         self.period = period_s
         self.enable_timeout_ticks = max(c.enable_timeout_ticks for c in self.ctrls)
@@ -60,6 +67,36 @@ class MachineController:
     @property
     def enable_failed(self) -> bool:
         return any(c.enable.failed for c in self.ctrls)
+
+    @property
+    def clamp_codes(self) -> tuple[ClampCodes, ...]:
+        """Each axis's clamp and unclamp M functions, for the program parser."""
+        return tuple(clamp_codes(c.sec) for c in self.ctrls)
+
+    @property
+    def alarms(self) -> list[Alarm]:
+        """Every axis's alarms (first raise of each number per axis) in the order raised."""
+        return sorted((a for c in self.ctrls for a in c.alarms.alarms), key=lambda a: a.tick)
+
+    def alarm_dicts(self) -> list[dict]:
+        """:attr:`alarms` JSON-ready, each with how often it was raised (``count``)."""
+        rows = [row for c in self.ctrls for row in c.alarms.as_dicts()]
+        return sorted(rows, key=lambda row: row["tick"])
+
+    @property
+    def alarmed(self) -> bool:
+        """Some axis raised an alarm."""
+        return any(c.alarms for c in self.ctrls)
+
+    @property
+    def stopped(self) -> bool:
+        """Every axis's stop reaction is complete (:attr:`Controller.stopped`)."""
+        return all(c.stopped for c in self.ctrls)
+
+    def reset_alarms(self) -> None:
+        """The NC's RESET of every axis (:meth:`Controller.reset_alarms`)."""
+        for c in self.ctrls:
+            c.reset_alarms()
 
     def enable_reason(self) -> str:
         """The enable sequences' reasons, per axis."""
@@ -82,6 +119,9 @@ class MachineController:
         one axis, groups on several)."""
         for c, f, s in zip(self.ctrls, axis_records(fb), axis_records(sp)):
             c.tick(f, s)
+        if any(c.phase is not Phase.RUN for c in self.ctrls):
+            for c in self.ctrls:
+                c.stop()
         if isinstance(sp, SetpointGroup):
             sp.seq = seq = (sp.seq + 1) & U32
             for s in sp.axes:

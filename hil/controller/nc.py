@@ -2,28 +2,60 @@
 
 Per tick, in the order a SINUMERIK 840D with SINAMICS runs them:
 
+* the feedback checked (a NaN or infinite value: alarm 25000, the last valid values kept)
+  and the drive's state (the enabled drive left OPERATION ENABLED: alarm 25201 with its
+  error code 603Fh);
 * until the drive reports OPERATION ENABLED, the CiA 402 enable sequence;
 * every IPO cycle the next interpolator point; every position cycle the fine
-  interpolated setpoint and the position loop;
+  interpolated setpoint, the axis monitoring (:mod:`hil.controller.monitoring`: contour,
+  standstill, clamping) and the position loop;
 * every speed cycle the speed loop on the speed measured from the motor
   encoder (difference over the speed cycle);
-* every tick, when the plant takes voltage, the current loop.
+* every tick, when the plant takes voltage, the current loop;
+* the NC's own state checked: a NaN or infinite loop state is alarm 1000, the loops are
+  cleared; it never raises.
+
+An alarm (:mod:`hil.controller.alarms`, the list in :attr:`Controller.alarms`) stops the
+axis as an NC does (:mod:`hil.controller.stop`): the program is abandoned, the position
+loop opened and the speed setpoint set to zero, so the speed controller brakes at its
+current limit; once the axis stands still, after MD36620 at the latest, or at once when
+the speed actual value is invalid or the drive no longer enabled, the drive is disabled
+(controlword disable voltage) and the axis stays in follow-up until
+:meth:`Controller.reset_alarms`.
 
 The controller sees the axis only through :class:`~io_adapters.messages.Feedback` (raw
 counts and sampled currents) and answers with a :class:`~io_adapters.messages.Setpoint`.
 Test modes for the measuring functions replace the position loop by a speed
 setpoint (``"speed"``) or the speed loop by a current setpoint (``"current"``),
 each given as a function of the controller time plus an optional additive
-excitation.
+excitation; the axis monitoring runs in position control only.
 """
 
 import math
 from collections.abc import Callable
 
-from hil.cia402 import EnableSequencer
-from hil.controller.config import ControllerSection, axis_limits, load_controller
-from hil.controller.interpolator import FineInterpolator, Profile, ProfileSamples
+from hil.cia402 import STATUS_PATTERNS, EnableSequencer, State
+from hil.controller.alarms import (
+    AlarmList,
+    AlarmNumber,
+    drive_fault_detail,
+    feedback_detail,
+)
+from hil.controller.config import (
+    ControllerSection,
+    axis_limits,
+    load_controller,
+    motor_constant,
+)
+from hil.controller.interpolator import (
+    ClampEvent,
+    FineInterpolator,
+    Profile,
+    ProfileSamples,
+)
 from hil.controller.loops import CurrentLoop, PositionLoop, SpeedLoop
+from hil.controller.monitoring import AxisMonitor
+from hil.controller.stop import Braking, Phase
 from io_adapters.messages import MODE_CST, MODE_VOLTAGE, Feedback, Setpoint
 from plant.assemble import reflected_inertia, transmission_ratio
 from plant.config import MachineConfig
@@ -31,26 +63,37 @@ from plant.config import MachineConfig
 MODES = ("position", "speed", "current")
 #: time the drive may take to reach OPERATION ENABLED before the NC reports a failure, s
 ENABLE_TIMEOUT_S = 0.5
+_OPERATION_ENABLED = STATUS_PATTERNS[State.OPERATION_ENABLED]
 
 
 class Controller:
-    """Interpolation, position, speed and current control of one axis.
+    """Interpolation, position, speed and current control of one axis, with its
+    monitoring and alarms.
+
+    Args:
+        cfg: the axis's machine file.
+        period_s: the basic clock (the PWM period), s.
+        x0: the table position at start, m or rad.
+        section: its ``[controller]`` machine data (default: the file's).
+        axis: the axis name in alarms (default X, or C on a rotary table).
 
     Signals of the last tick (SI, table units unless named otherwise) are
     attributes: ``x_set, v_set, a_set, x_act, theta_act (motor encoder, rad), v_act, v_cmd,
-    w_set, w_act, iq_set`` and
+    w_set, w_act, iq_set``,
     ``following_error`` (x_set - x_act, taken at the position-control cycle like the
-    NC's own, and held between cycles).
+    NC's own, and held between cycles) and ``contour_deviation`` (actual minus the
+    contour model's position, at the position-control cycle).  ``alarms`` is the axis's
+    :class:`~hil.controller.alarms.AlarmList`, ``phase`` its :class:`Phase`, ``monitored``
+    whether position control runs with the axis monitoring (:meth:`run_points`).
     """
 
     def __init__(self, cfg: MachineConfig, period_s: float, x0: float = 0.0,
-                 section: ControllerSection | None = None):
+                 section: ControllerSection | None = None, axis: str | None = None):
         self.cfg = cfg
         self.sec = sec = section or load_controller(cfg)
         self.period = period_s
         kind = cfg.machine.kind
-        kt = cfg.motor.force_constant_n_per_a if kind == "linear" else (
-            cfg.motor.torque_constant_nm_per_a)
+        kt = motor_constant(cfg)
         i_max = cfg.motor.current_max_a
         self.ratio = transmission_ratio(cfg)
         self.limits = axis_limits(cfg, sec)
@@ -69,11 +112,19 @@ class Controller:
         else:
             self.rad_per_count = 2.0 * math.pi / cfg.sensors.encoder_counts_per_rev
         self.scale_res = cfg.sensors.scale_resolution_m if sec.feedback == "scale" else 0.0
+        self.polarity = -1.0 if sec.encoder_feedback_polarity < 0 else 1.0
+        self.axis = axis or ("C" if kind == "rotary" else "X")
+        self.alarms = AlarmList(self.axis)
+        self.monitor = AxisMonitor(cfg, sec, period_s)
+        self.monitored = True
+        self.braking = Braking(self.monitor.limits, period_s, sec.speed_cycle_ratio,
+                               sec.position_cycle_ratio)
         self.enable_timeout_ticks = max(1, round(ENABLE_TIMEOUT_S / period_s))
         self.enable = EnableSequencer(timeout_cycles=self.enable_timeout_ticks)
         self.enable.enable()
         self.mode = "position"
         self.fine: FineInterpolator | None = None
+        self.clamps: tuple[ClampEvent, ...] = ()
         self.source: Callable[[float], float] | None = None
         self.excitation: Callable[[float], float] | None = None
         self.reset(x0)
@@ -86,16 +137,28 @@ class Controller:
         self.theta_act = x0 / self.ratio
         self.v_set = self.a_set = self.v_act = self.v_cmd = 0.0
         self.w_set = self.w_act = self.iq_set = self.i_ff = self.following_error = 0.0
+        self.id_meas = self.iq_meas = self.contour_deviation = 0.0
         self.theta_prev = None
+        self.phase = Phase.RUN
+        self.feedback_ok = True
+        self._fine_cycles = 0
         self.pos_loop.reset(x0)
         self.speed_loop.reset()
         if self.cur_loop is not None:
             self.cur_loop.reset()
+        self.monitor.active = False
 
     @property
     def enabled(self) -> bool:
-        """True once the drive reported OPERATION ENABLED."""
-        return self.enable.done
+        """True once the drive reported OPERATION ENABLED (and until an alarm's stop
+        disables it)."""
+        return self.enable.done and self.enable.target == State.OPERATION_ENABLED
+
+    @property
+    def stopped(self) -> bool:
+        """An alarm's stop reaction is complete: the drive reported SWITCH ON DISABLED (or
+        FAULT), or the disable request timed out."""
+        return self.phase is Phase.HALT and (self.enable.done or self.enable.failed)
 
     @property
     def ipo_period_s(self) -> float:
@@ -104,13 +167,23 @@ class Controller:
 
     def run_profile(self, profile: Profile) -> None:
         """Follow an interpolator profile: its IPO points, fine-interpolated to the
-        position cycle, starting at the next enabled tick."""
-        self.run_points(profile.ipo_points(self.ipo_period_s))
+        position cycle, and its clamp and unclamp blocks, starting at the next enabled
+        tick (unclamped), with the axis monitoring."""
+        self.run_points(profile.ipo_points(self.ipo_period_s), monitored=True)
+        self.clamps = profile.clamps
 
-    def run_points(self, ipo: ProfileSamples) -> None:
-        """Follow IPO points (at the IPO period) in position mode."""
+    def run_points(self, ipo: ProfileSamples, monitored: bool = False) -> None:
+        """Follow IPO points (at the IPO period) in position mode.  Points that no
+        interpolator planned (a measuring function's setpoint step, a recorded trace) run
+        without contour and standstill monitoring unless ``monitored``: the contour model
+        holds for motion within the axis's dynamics only."""
         self.mode = "position"
         self.fine = FineInterpolator(ipo, self.sec.ipo_cycle_ratio // self.sec.position_cycle_ratio)
+        self.clamps = ()
+        self._fine_cycles = 0
+        self.monitored = monitored
+        self.monitor.active = False
+        self.monitor.unclamp()
         self.t = 0.0
 
     def run_source(self, mode: str, source: Callable[[float], float],
@@ -123,63 +196,144 @@ class Controller:
         self.mode = mode
         self.source = source
         self.excitation = excitation
+        self.monitor.active = False
         self.t = 0.0
 
-    def _measure(self, fb: Feedback) -> None:
+    def stop(self) -> None:
+        """Stop the axis as for an alarm (without one: another axis's alarm stops this
+        one too): the program is abandoned; an enabled axis brakes, then its drive is
+        disabled; otherwise it is disabled at once."""
+        self.fine = None
+        self.clamps = ()
+        if self.phase is not Phase.RUN:
+            return
+        if self.enabled:
+            self.phase = Phase.BRAKE
+            self.braking.start()
+        else:
+            self._halt()
+
+    def reset_alarms(self) -> None:
+        """The NC's RESET: clear the alarm list and, after a stop, request OPERATION
+        ENABLED again (a faulted drive gets the fault-reset pulse first)."""
+        self.alarms.clear()
+        if self.phase is not Phase.RUN:
+            self.phase = Phase.RUN
+            self.enable.enable()
+
+    def _alarm(self, number: AlarmNumber, detail: str) -> None:
+        self.alarms.raise_alarm(number, detail, self.tick_count - 1, self.t)
+        self.stop()
+
+    def _halt(self) -> None:
+        self.phase = Phase.HALT
+        self.iq_set = 0.0
+        self.enable.disable()
+
+    def _read(self, fb: Feedback, k: int) -> None:
+        """Take the feedback's values, or keep the last valid ones and raise alarm 25000
+        when one is NaN or infinite (x * 0.0 is 0.0 for finite x only)."""
+        ok = (fb.encoder_counts * 0.0 + fb.scale_counts * 0.0 + fb.velocity_counts_s * 0.0
+              + fb.iq_a * 0.0 + fb.id_a * 0.0) == 0.0
+        if ok:
+            self._measure(fb, k)
+        else:
+            self.theta_prev = None  # the speed restarts from the next valid sample
+            if self.feedback_ok:
+                self._alarm(AlarmNumber.ENCODER_HW_FAULT, feedback_detail(fb))
+        self.feedback_ok = ok
+
+    def _measure(self, fb: Feedback, k: int) -> None:
+        """The actual values of tick ``k``: the speed every speed cycle (the encoder
+        difference over it), position and currents every tick."""
         theta = fb.encoder_counts * self.rad_per_count
         n_speed = self.sec.speed_cycle_ratio
-        if self.tick_count % n_speed == 0:
+        if k % n_speed == 0:
             if self.theta_prev is not None:
                 self.w_act = (theta - self.theta_prev) / (self.period * n_speed)
                 self.v_act = self.w_act * self.ratio
             self.theta_prev = theta
         self.theta_act = theta
-        self.x_act = fb.scale_counts * self.scale_res if self.scale_res else theta * self.ratio
+        x = fb.scale_counts * self.scale_res if self.scale_res else theta * self.ratio
+        self.x_act = self.polarity * x
+        self.id_meas, self.iq_meas = fb.id_a, fb.iq_a
+
+    def _watch_drive(self, fb: Feedback) -> None:
+        """Alarm 25201 when the drive, enabled at the last tick, no longer reports
+        OPERATION ENABLED; it can no longer be braked, so it is disabled at once."""
+        if not self.enabled or _OPERATION_ENABLED.matches(fb.statusword):
+            return
+        self._alarm(AlarmNumber.DRIVE_FAULT, drive_fault_detail(fb))
+        self._halt()
 
     def _follow_up(self) -> None:
-        """While the drive is not enabled (start-up, fault): the setpoint follows the actual
-        position, every loop is cleared and a running program is abandoned, as an NC's
-        follow-up mode does; so a fault's bad feedback never reaches a loop's state."""
-        self.x_set = self.x_act
-        self.v_set = self.a_set = self.v_cmd = self.w_set = self.iq_set = self.i_ff = 0.0
-        self.w_act = self.v_act = self.following_error = 0.0
+        """While the drive is not enabled (start-up, after an alarm): the setpoint follows
+        the actual position, every loop is cleared and a running program is abandoned, as an
+        NC's follow-up mode does; so a fault's bad feedback never reaches a loop's state."""
+        self._hold_setpoint()
+        self.iq_set = self.w_act = self.v_act = self.following_error = 0.0
+        self.contour_deviation = 0.0
         self.theta_prev = None
         self.fine = None
+        self.clamps = ()
+        self._clear_loops()
+
+    def _hold_setpoint(self) -> None:
+        """No motion commanded: the position setpoint at the actual position, speed,
+        acceleration, speed command and current feed-forward zero."""
+        self.x_set = self.x_act
+        self.v_set = self.a_set = self.v_cmd = self.w_set = self.i_ff = 0.0
+
+    def _clear_loops(self) -> None:
         self.pos_loop.reset(self.x_act)
         self.speed_loop.reset()
         if self.cur_loop is not None:
             self.cur_loop.reset()
+        self.monitor.active = False
 
     def _position_cycle(self) -> None:
         if self.mode == "position":
+            monitor = self.monitor
+            if self.monitored and not monitor.active:
+                monitor.start(self.x_act, self.w_act, self.pos_loop.sym.y)
             if self.fine is not None:
+                self._clamp_events()
                 self.fine.step()
                 self.x_set, self.v_set, self.a_set = self.fine.pos, self.fine.vel, self.fine.acc
             self.following_error = self.x_set - self.x_act
+            self.i_ff = self.i_ff_gain * self.a_set
+            if monitor.active:
+                violation = monitor.check(self.x_set, self.v_set, self.i_ff, self.x_act)
+                self.contour_deviation = monitor.deviation
+                if violation is not None:
+                    self._alarm(violation.number, violation.detail)
+                    return
             self.v_cmd = self.pos_loop.step(self.x_set, self.v_set, self.x_act)
             self.w_set = self.v_cmd / self.ratio
-            self.i_ff = self.i_ff_gain * self.a_set
         elif self.mode == "speed":
             self.w_set = self.source(self.t)
             if self.excitation is not None:
                 self.w_set += self.excitation(self.t)
 
-    def tick(self, fb: Feedback, sp: Setpoint) -> None:
-        """One basic-clock cycle: read ``fb``, write ``sp``."""
-        sp.seq = (sp.seq + 1) & 0xFFFFFFFF
-        sp.controlword = self.enable.next_controlword(fb.statusword)
-        self._measure(fb)
+    def _clamp_events(self) -> None:
+        """Clamp or unclamp on the blocks the fine interpolator's setpoint has reached."""
+        t_fine = self._fine_cycles * self.period * self.sec.position_cycle_ratio
+        self._fine_cycles += 1
+        while self.clamps and self.clamps[0].t_s <= t_fine:
+            if self.clamps[0].clamped:
+                self.monitor.clamp(self.x_act)
+            else:
+                self.monitor.unclamp()
+            self.clamps = self.clamps[1:]
+
+    def _run(self, k: int) -> None:
+        """The program or test mode's cycles due at tick ``k``."""
         sec = self.sec
-        k = self.tick_count
-        self.tick_count += 1
-        if not self.enable.done:
-            self._follow_up()
-            sp.mode = MODE_CST
-            sp.iq_ref_a = sp.id_ref_a = sp.ud_v = sp.uq_v = 0.0
-            return
         due = sec.speed_cycle_ratio if self.mode == "speed" else sec.position_cycle_ratio
         if k % due == 0:
             self._position_cycle()
+            if self.phase is not Phase.RUN:
+                return
         if k % sec.speed_cycle_ratio == 0:
             if self.mode == "current":
                 self.iq_set = self.source(self.t)
@@ -187,12 +341,73 @@ class Controller:
                     self.iq_set += self.excitation(self.t)
             else:
                 self.iq_set = self.speed_loop.step(self.w_set, self.w_act, self.i_ff)
+            if self.monitor.active:
+                self.monitor.model.speed_cycle()
+
+    def _brake(self, k: int) -> None:
+        """Speed setpoint zero, position loop open (the following error and the contour
+        deviation hold their values of the alarm's cycle), until :class:`~hil.controller.
+        stop.Braking` says the drive is to be disabled."""
+        self._hold_setpoint()
+        speed_cycle = k % self.sec.speed_cycle_ratio == 0
+        if speed_cycle and self.feedback_ok:
+            self.iq_set = self.speed_loop.step(0.0, self.w_act, 0.0)
+        if self.braking.over(speed_cycle, self.v_act, self.feedback_ok):
+            self._halt()
+
+    def _state_finite(self, ud: float, uq: float) -> bool:
+        """Every loop's state and this tick's outputs are finite."""
+        return (self.pos_loop.finite() and self.speed_loop.finite()
+                and self.monitor.model.finite()
+                and (self.cur_loop is None or self.cur_loop.finite())
+                and (self.iq_set * 0.0 + self.w_set * 0.0 + self.v_cmd * 0.0 + ud * 0.0
+                     + uq * 0.0) == 0.0)
+
+    def _state_alarm(self) -> None:
+        """Alarm 1000 for a non-finite loop state; the loops are cleared and the setpoints
+        zeroed, so nothing non-finite leaves the tick or stays in a loop."""
+        names = ("position loop", "speed loop", "contour model", "current loop")
+        parts = (self.pos_loop, self.speed_loop, self.monitor.model, self.cur_loop)
+        bad = [n for n, part in zip(names, parts) if part is not None and not part.finite()]
+        braking = self.phase is Phase.BRAKE
+        self._alarm(AlarmNumber.SYSTEM_ERROR, "non-finite state: " + (
+            ", ".join(bad) or "speed or current setpoint"))
+        self._hold_setpoint()
+        self.iq_set = self.following_error = self.contour_deviation = 0.0
+        self._clear_loops()
+        if braking:
+            self._halt()  # it failed while braking: the braking cannot be trusted
+
+    def tick(self, fb: Feedback, sp: Setpoint) -> None:
+        """One basic-clock cycle: read ``fb``, write ``sp``."""
+        sp.seq = (sp.seq + 1) & 0xFFFFFFFF
+        k = self.tick_count
+        self.tick_count += 1
+        self._read(fb, k)
+        self._watch_drive(fb)
+        sp.controlword = self.enable.next_controlword(fb.statusword)
+        if not self.enabled:
+            self._follow_up()
+            sp.mode = MODE_CST
+            sp.iq_ref_a = sp.id_ref_a = sp.ud_v = sp.uq_v = 0.0
+            self.t += self.period
+            return
+        if self.phase is Phase.RUN:
+            self._run(k)
+        if self.phase is Phase.BRAKE:
+            self._brake(k)
+        ud = uq = 0.0
+        if self.cur_loop is not None:
+            ud, uq = self.cur_loop.step(0.0, self.iq_set, self.id_meas, self.iq_meas,
+                                        self.w_act)
+        if not self._state_finite(ud, uq):
+            self._state_alarm()
+            ud = uq = 0.0
         if self.cur_loop is None:
             sp.mode = MODE_CST
             sp.iq_ref_a = self.iq_set
             sp.id_ref_a = 0.0
         else:
             sp.mode = MODE_VOLTAGE
-            sp.ud_v, sp.uq_v = self.cur_loop.step(0.0, self.iq_set, fb.id_a, fb.iq_a,
-                                                  self.w_act)
+            sp.ud_v, sp.uq_v = ud, uq
         self.t += self.period

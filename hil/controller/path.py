@@ -8,6 +8,7 @@ letters in a block::
     G0 X0 Y0             ; rapid, on the straight line too
     G4 F0.2              ; dwell, every axis holds
     G91 Y-5 F500         ; one axis alone: the others hold
+    M10                  ; clamp every axis whose clamp M function is M10
     M30
 
 An axis a block does not name holds its position.  The feed ``F`` is the velocity along
@@ -15,7 +16,10 @@ the path: in mm/min over the linear axes (X Y Z U V W; Euclidean length in mm) w
 of them moves, and in deg/min over the rotary axes when only those move (a rotary axis in
 a block with linear motion follows in the same time, as SINUMERIK's FGROUP default does).
 ``G0`` moves on the same straight line (linear interpolation of rapid traverse, RTLION) at
-the highest path velocity no axis's maximum velocity exceeds.
+the highest path velocity no axis's maximum velocity exceeds.  A clamp or unclamp M
+function (each axis's own, :class:`~hil.controller.program.ClampCodes`; alone in its
+block) acts on every axis it is the M function of; a block moving a clamped axis is a
+program error.
 
 Planning (:func:`plan_path`): the block runs one rest-to-rest profile in the path
 parameter s (length L, the one of :mod:`hil.controller.interpolator`), and axis i moves
@@ -27,25 +31,24 @@ axes start and stop together and stay on the line.  The per-axis profiles share 
 knots and are exact piecewise cubics, as a single axis's are.
 """
 
-import functools
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from hil.controller.config import AxisLimits
-from hil.controller.interpolator import Profile, _check_limits, _move_phases
+from hil.controller.interpolator import ClampEvent, Profile, _check_limits, _move_phases
 from hil.controller.program import (
     LINEAR_AXES,
     ROTARY_AXES,
     BlockKind,
+    ClampCodes,
     ErrorFactory,
-    ProgramError,
     _check_groups,
     _scales,
-    _strip_comments,
-    sort_words,
+    clamped_error,
+    program_lines,
 )
 
 
@@ -54,9 +57,10 @@ class PathBlock:
     """One block in SI units per axis (m, or rad on rotary axes).
 
     ``start`` and ``target`` have one position per axis of the program (equal for a
-    dwell).  ``feed`` is the programmed path velocity in m/s (over the linear axes) or
-    rad/s (rotary axes only), ``inf`` for rapid, 0 for a dwell; ``dwell_s`` in s; ``line``
-    the 1-based line of the program text.
+    dwell and a clamp).  ``feed`` is the programmed path velocity in m/s (over the linear
+    axes) or rad/s (rotary axes only), ``inf`` for rapid, 0 otherwise; ``dwell_s`` in s;
+    ``m_code`` the M function of a clamp or unclamp block and ``clamp_axes`` the axes it
+    acts on (one flag per axis); ``line`` the 1-based line of the program text.
     """
     kind: BlockKind
     line: int
@@ -65,6 +69,8 @@ class PathBlock:
     feed: float = 0.0
     rapid: bool = False
     dwell_s: float = 0.0
+    m_code: int = 0
+    clamp_axes: tuple[bool, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -88,16 +94,29 @@ class _Modal:
     absolute: bool = True
     motion: int | None = None
     feed: float | None = None  # as programmed: mm/min or deg/min
-    ended: bool = False
+    clamped_at: list[int] = field(default_factory=list)  # per axis: clamping line, 0: none
 
 
-def _words(code: str, axes: str, err: ErrorFactory):
-    """G codes, {axis letter: value}, F, end of one comment-free line."""
-    g, values, _, end = sort_words(
-        code, axes, err, lambda word: f"axis word '{word}': this machine has the axes "
-                                      f"{', '.join(axes)}")
-    f = values.pop("F", None)
-    return g, values, f, end
+def _clamp_block(code: int, st: _Modal, clamp: Sequence[ClampCodes], line: int) -> PathBlock:
+    """The block of a clamp or unclamp M function; each axis's clamp state updated."""
+    closing = any(c.clamp == code for c in clamp)
+    acts = tuple((c.clamp if closing else c.unclamp) == code for c in clamp)
+    for i, a in enumerate(acts):
+        if a:
+            st.clamped_at[i] = (st.clamped_at[i] or line) if closing else 0
+    here = tuple(st.pos)
+    return PathBlock(BlockKind.CLAMP if closing else BlockKind.UNCLAMP, line, here, here,
+                     m_code=code, clamp_axes=acts)
+
+
+def _check_codes(axes: tuple[str, ...], clamp: Sequence[ClampCodes]) -> None:
+    """One ClampCodes per axis; no M function clamps one axis and unclamps another."""
+    if len(clamp) != len(axes):
+        raise ValueError(f"{len(clamp)} clamp M functions for {len(axes)} axes")
+    both = {c.clamp for c in clamp} & {c.unclamp for c in clamp}
+    if both:
+        raise ValueError(f"M{min(both)} clamps one axis and unclamps another; give each "
+                         "its own M functions")
 
 
 def _block(g, moves: dict, f, st: _Modal, axes: str, rotary, line: int,
@@ -140,11 +159,13 @@ def _block(g, moves: dict, f, st: _Modal, axes: str, rotary, line: int,
 
 
 def parse_path_program(text: str, axes: Sequence[str], start: Sequence[float] | None = None,
-                       source: str = "<program>") -> PathProgram:
+                       source: str = "<program>",
+                       clamp: Sequence[ClampCodes] | None = None) -> PathProgram:
     """Parse a program for the axis letters ``axes`` (A, B, C rotary: degrees in the text,
-    rad here), starting at ``start`` (SI per axis; default all 0).  Raises
+    rad here), starting at ``start`` (SI per axis; default all 0), with each axis's clamp M
+    functions ``clamp`` (default M10/M11 for all).  Raises
     :class:`~hil.controller.program.ProgramError` on the first bad line, ValueError for
-    bad axis letters."""
+    bad axis letters or clamp M functions."""
     axes = tuple(axes)
     if not axes or len(set(axes)) != len(axes) or any(
             len(a) != 1 or a not in LINEAR_AXES + ROTARY_AXES for a in axes):
@@ -154,29 +175,35 @@ def parse_path_program(text: str, axes: Sequence[str], start: Sequence[float] | 
     start = tuple(float(x) for x in (start if start is not None else [0.0] * len(axes)))
     if len(start) != len(axes):
         raise ValueError(f"{len(start)} start positions for {len(axes)} axes")
-    st = _Modal(pos=list(start))
+    clamp = tuple(clamp) if clamp is not None else (ClampCodes(),) * len(axes)
+    _check_codes(axes, clamp)
+    m_codes = frozenset(c.clamp for c in clamp) | frozenset(c.unclamp for c in clamp)
+    st = _Modal(pos=list(start), clamped_at=[0] * len(axes))
     letters = "".join(axes)
     blocks = []
-    for line, raw in enumerate(text.splitlines(), start=1):
-        err = functools.partial(ProgramError, source, line)
-        code = _strip_comments(raw, err)
-        if not code.strip():
+    lines = program_lines(text, source, letters, lambda word: f"axis word '{word}': this "
+                          f"machine has the axes {', '.join(axes)}", m_codes)
+    for line, err, sw in lines:
+        m = sw.m_function(err)
+        if m is not None:
+            blocks.append(_clamp_block(m, st, clamp, line))
             continue
-        if st.ended:
-            raise err(f"block '{code.strip()}' after the end of the program (M2/M30)")
-        g, moves, f, end = _words(code, letters, err)
-        block = _block(g, moves, f, st, letters, rotary, line, err)
+        moves = dict(sw.values)
+        f = moves.pop("F", None)
+        for i, a in enumerate(axes):
+            if a in moves and st.clamped_at[i]:
+                raise err(clamped_error(a, sw.written[a], st.clamped_at[i], clamp[i]))
+        block = _block(sw.g, moves, f, st, letters, rotary, line, err)
         if block is not None:
             blocks.append(block)
-        st.ended = end
     return PathProgram(axes, rotary, start, tuple(blocks))
 
 
-def read_path_program(path, axes: Sequence[str],
-                      start: Sequence[float] | None = None) -> PathProgram:
+def read_path_program(path, axes: Sequence[str], start: Sequence[float] | None = None,
+                      clamp: Sequence[ClampCodes] | None = None) -> PathProgram:
     """Read and parse a program file (see :func:`parse_path_program`)."""
     with open(path) as f:
-        return parse_path_program(f.read(), axes, start, source=str(path))
+        return parse_path_program(f.read(), axes, start, source=str(path), clamp=clamp)
 
 
 def path_limits(direction: np.ndarray, limits: Sequence[AxisLimits]) -> AxisLimits:
@@ -215,8 +242,13 @@ def plan_path(program: PathProgram, limits: Sequence[AxisLimits]) -> tuple[Profi
         _check_limits(lim)
     n = len(program.axes)
     rows: list[list[tuple]] = [[] for _ in range(n)]
+    clamps: list[list[ClampEvent]] = [[] for _ in range(n)]
     t = 0.0
     for block in program.blocks:
+        if block.kind in (BlockKind.CLAMP, BlockKind.UNCLAMP):
+            for i in np.flatnonzero(block.clamp_axes):
+                clamps[i].append(ClampEvent(float(t), block.kind is BlockKind.CLAMP))
+            continue
         length = path_length(block.start, block.target, program.rotary)
         if block.kind is BlockKind.DWELL:
             phases, u = ([(block.dwell_s, 0.0, 0.0)] if block.dwell_s > 0.0 else []), None
@@ -240,5 +272,5 @@ def plan_path(program: PathProgram, limits: Sequence[AxisLimits]) -> tuple[Profi
     for i in range(n):
         rows[i].append((t, program.end[i], 0.0, 0.0, 0.0))
         cols = [np.ascontiguousarray(c) for c in np.array(rows[i], dtype=float).T]
-        profiles.append(Profile(*cols, duration_s=t))
+        profiles.append(Profile(*cols, duration_s=t, clamps=tuple(clamps[i])))
     return tuple(profiles)

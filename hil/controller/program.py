@@ -7,15 +7,22 @@ One block per line::
     N30 G1 X250.5 F200   ; linear move at 200 mm/min; F is modal
     N40 G4 F0.5          ; dwell 0.5 s (Sinumerik: F in a G4 block is seconds)
     N50 G91 X-50         ; incremental: 50 mm back, still G1 at F200
-    N60 M30              ; end of program (M2 also)
+    N60 M10              ; clamp the axis (the machine's clamp M function)
+    N70 G4 F2            ; clamped: clamping monitoring instead of standstill monitoring
+    N80 M11              ; unclamp
+    N90 M30              ; end of program (M2 also)
 
 Words: ``N`` block number (optional, first in the block), ``G0``/``G1`` (modal motion),
 ``G4`` (dwell, alone in its block with ``F`` in seconds), ``G90``/``G91`` (absolute /
 incremental, modal, default G90), ``G71`` (metric; ``G70`` inch is refused), the axis
-word, ``F`` feed in mm/min (deg/min for a rotary axis), ``M2``/``M30`` end.  Comments
-run from ``;`` to the end of the line, or sit between ``(`` and ``)``.  Linear axes
-(X Y Z U V W) take mm, rotary axes (A B C) take degrees.  A program is written for one
-axis letter; a word for another axis is refused (multi-axis programs come later).
+word, ``F`` feed in mm/min (deg/min for a rotary axis), ``M2``/``M30`` end, and the
+axis's clamp and unclamp M functions (:class:`ClampCodes`, machine data; M10 and M11 by
+default), each alone in its block.  A motion block for a clamped axis is a program error
+(the line and the clamping block named): unclamp first.  A program starts unclamped.
+Comments run from ``;`` to the end of the line, or sit between ``(`` and ``)``.  Linear
+axes (X Y Z U V W) take mm, rotary axes (A B C) take degrees.  A program is written for
+one axis letter; a word for another axis is refused (:mod:`hil.controller.path` reads
+programs of several axes).
 
 Every error is a :class:`ProgramError` naming the source, the line and the word.
 """
@@ -23,7 +30,7 @@ Every error is a :class:`ProgramError` naming the source, the line and the word.
 import functools
 import math
 import re
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from enum import Enum
 from pathlib import Path
@@ -47,6 +54,21 @@ class BlockKind(str, Enum):
     """What a block does."""
     MOVE = "move"
     DWELL = "dwell"
+    CLAMP = "clamp"
+    UNCLAMP = "unclamp"
+
+
+@dataclass(frozen=True)
+class ClampCodes:
+    """The M functions that clamp and unclamp an axis (machine data: the machine's PLC
+    clamps it; ``[controller] clamp_m_code``, ``unclamp_m_code``)."""
+    clamp: int = 10
+    unclamp: int = 11
+
+    def __post_init__(self):
+        if self.clamp == self.unclamp:
+            raise ValueError(f"clamp and unclamp need two M functions, both are "
+                             f"M{self.clamp}")
 
 
 @dataclass(frozen=True)
@@ -54,9 +76,10 @@ class Block:
     """One executable block in SI units of the axis (m for linear, rad for rotary).
 
     ``start`` and ``target`` are the axis positions before and after the block (equal
-    for a dwell).  ``feed`` is the programmed path velocity in m/s or rad/s, ``inf`` for
-    a rapid (G0) move (the interpolator clips every feed to the axis's maximum velocity)
-    and 0 for a dwell.  ``dwell_s`` is the dwell time in s (0 for a move).  ``line`` is
+    for a dwell and a clamp).  ``feed`` is the programmed path velocity in m/s or rad/s,
+    ``inf`` for a rapid (G0) move (the interpolator clips every feed to the axis's maximum
+    velocity) and 0 otherwise.  ``dwell_s`` is the dwell time in s (0 for a move).
+    ``m_code`` is the M function of a clamp or unclamp block (0 otherwise).  ``line`` is
     the 1-based line of the program text.
     """
     kind: BlockKind
@@ -66,6 +89,7 @@ class Block:
     feed: float = 0.0
     rapid: bool = False
     dwell_s: float = 0.0
+    m_code: int = 0
 
 
 @dataclass(frozen=True)
@@ -94,7 +118,7 @@ class _Modal:
     absolute: bool = True
     motion: int | None = None
     feed: float | None = None
-    ended: bool = False
+    clamped_at: int = 0  # line of the block that clamped the axis; 0: not clamped
 
 
 @dataclass(frozen=True)
@@ -104,7 +128,6 @@ class _Words:
     axis: float | None
     axis_word: str
     f: float | None
-    end: bool
 
 
 def _scales(rotary: bool) -> tuple[float, float]:
@@ -150,13 +173,34 @@ def _tokens(code: str, err: ErrorFactory) -> list[tuple[str, str, float]]:
     return out
 
 
-def sort_words(code: str, axes: str, err: ErrorFactory, foreign: Callable[[str], str]):
-    """Sort one comment-free line's words: (G codes, {letter: value} for the ``axes``
-    letters and F, {letter: word as written}, end of program).  An axis word of another
-    letter is refused with ``foreign(word)``, anything else unknown as such."""
+@dataclass(frozen=True)
+class SortedWords:
+    """The words of one line: G codes, {letter: value} of the axis letters and F,
+    {letter: the word as written}, end of program (M2/M30), and the clamp M functions."""
+    g: tuple[int, ...]
+    values: dict
+    written: dict
+    end: bool
+    m: tuple[int, ...]
+
+    def m_function(self, err: ErrorFactory) -> int | None:
+        """The block's clamp M function, or None; refused unless it stands alone."""
+        if not self.m:
+            return None
+        if len(self.m) > 1 or self.g or self.values or self.end:
+            raise err(f"M{self.m[0]} (clamping) must stand alone in its block")
+        return self.m[0]
+
+
+def sort_words(code: str, axes: str, err: ErrorFactory, foreign: Callable[[str], str],
+               m_codes: frozenset = frozenset()) -> SortedWords:
+    """Sort one comment-free line's words.  An axis word of another letter is refused
+    with ``foreign(word)``; an M function other than M2, M30 and those of ``m_codes``,
+    and anything else unknown, as such."""
     g: list[int] = []
     values: dict[str, float] = {}
     written: dict[str, str] = {}
+    m: list[int] = []
     end = False
     for i, (word, letter, value) in enumerate(_tokens(code, err)):
         if letter == "N":
@@ -166,6 +210,8 @@ def sort_words(code: str, axes: str, err: ErrorFactory, foreign: Callable[[str],
             g.append(_g_code(word, value, err))
         elif letter == "M" and value in _END_CODES:
             end = True
+        elif letter == "M" and value in m_codes:
+            m.append(int(value))
         elif letter in axes or letter == "F":
             if letter in values:
                 raise err(f"word {letter} appears twice ('{word}')")
@@ -175,15 +221,36 @@ def sort_words(code: str, axes: str, err: ErrorFactory, foreign: Callable[[str],
             raise err(foreign(word))
         else:
             raise err(f"unknown word '{word}'")
-    return tuple(g), values, written, end
+    return SortedWords(tuple(g), values, written, end, tuple(m))
 
 
-def _words(code: str, axis: str, err: ErrorFactory) -> _Words:
-    """Sort one line's words into G codes, axis, F and end; refuse anything else."""
-    g, values, written, end = sort_words(
-        code, axis, err, lambda word: f"axis word '{word}' is not for this program's axis "
-                                      f"{axis} (single-axis programs only)")
-    return _Words(g, values.get(axis), written.get(axis, ""), values.get("F"), end)
+def program_lines(text: str, source: str, axes: str, foreign: Callable[[str], str],
+                  m_codes: frozenset) -> Iterator[tuple[int, ErrorFactory, SortedWords]]:
+    """Each line of a program with a block on it: (its 1-based number, the factory of its
+    :class:`ProgramError`, its words, :func:`sort_words`); a block after the end of the
+    program (M2/M30) is refused."""
+    ended = False
+    for line, raw in enumerate(text.splitlines(), start=1):
+        err = functools.partial(ProgramError, source, line)
+        code = _strip_comments(raw, err)
+        if not code.strip():
+            continue
+        if ended:
+            raise err(f"block '{code.strip()}' after the end of the program (M2/M30)")
+        words = sort_words(code, axes, err, foreign, m_codes)
+        yield line, err, words
+        ended = words.end
+
+
+def clamped_error(axis: str, word: str, clamped_at: int, codes: ClampCodes) -> str:
+    """The message for a motion block of a clamped axis."""
+    return (f"'{word}' moves axis {axis}, clamped since line {clamped_at} "
+            f"(M{codes.clamp}): unclamp it with M{codes.unclamp} first")
+
+
+def _words(w: SortedWords, axis: str) -> _Words:
+    """One line's words as G codes, axis and F."""
+    return _Words(w.g, w.values.get(axis), w.written.get(axis, ""), w.values.get("F"))
 
 
 def _g_code(word: str, value: float, err: ErrorFactory) -> int:
@@ -201,6 +268,14 @@ def _check_groups(g: tuple[int, ...], err: ErrorFactory) -> None:
         found = [c for c in g if c in group]
         if len(found) > 1:
             raise err("conflicting " + " and ".join(f"G{c}" for c in found))
+
+
+def _clamp_block(code: int, st: _Modal, codes: ClampCodes, line: int) -> Block:
+    """The block of a clamp or unclamp M function; the clamp state updated."""
+    clamp = code == codes.clamp
+    st.clamped_at = (st.clamped_at or line) if clamp else 0
+    return Block(BlockKind.CLAMP if clamp else BlockKind.UNCLAMP, line, st.pos, st.pos,
+                 m_code=code)
 
 
 def _block(w: _Words, st: _Modal, rotary: bool, line: int, err: ErrorFactory) -> Block | None:
@@ -237,8 +312,9 @@ def _block(w: _Words, st: _Modal, rotary: bool, line: int, err: ErrorFactory) ->
 
 
 def parse_program(text: str, axis: str = "X", start: float = 0.0,
-                  source: str = "<program>") -> Program:
-    """Parse a part program for the axis ``axis`` starting at ``start`` (m or rad).
+                  source: str = "<program>", clamp: ClampCodes = ClampCodes()) -> Program:
+    """Parse a part program for the axis ``axis`` starting at ``start`` (m or rad), with
+    the axis's clamp M functions ``clamp``.
 
     ``source`` names the program in error messages (a file name).  Raises
     :class:`ProgramError` on the first bad line; ValueError for an unknown axis letter.
@@ -248,25 +324,28 @@ def parse_program(text: str, axis: str = "X", start: float = 0.0,
     rotary = axis in ROTARY_AXES
     st = _Modal(pos=start)
     blocks = []
-    for line, raw in enumerate(text.splitlines(), start=1):
-        err = functools.partial(ProgramError, source, line)
-        code = _strip_comments(raw, err)
-        if not code.strip():
+    lines = program_lines(text, source, axis, lambda word: f"axis word '{word}' is not for "
+                          f"this program's axis {axis} (single-axis programs only)",
+                          frozenset((clamp.clamp, clamp.unclamp)))
+    for line, err, sw in lines:
+        m = sw.m_function(err)
+        if m is not None:
+            blocks.append(_clamp_block(m, st, clamp, line))
             continue
-        if st.ended:
-            raise err(f"block '{code.strip()}' after the end of the program (M2/M30)")
-        w = _words(code, axis, err)
+        w = _words(sw, axis)
+        if w.axis is not None and st.clamped_at:
+            raise err(clamped_error(axis, w.axis_word, st.clamped_at, clamp))
         block = _block(w, st, rotary, line, err)
         if block is not None:
             blocks.append(block)
-        st.ended = w.end
     return Program(axis, rotary, start, tuple(blocks))
 
 
-def read_program(path: str | Path, axis: str = "X", start: float = 0.0) -> Program:
+def read_program(path: str | Path, axis: str = "X", start: float = 0.0,
+                 clamp: ClampCodes = ClampCodes()) -> Program:
     """Read and parse a part program file (see :func:`parse_program`)."""
     path = Path(path)
-    return parse_program(path.read_text(), axis, start, source=str(path))
+    return parse_program(path.read_text(), axis, start, source=str(path), clamp=clamp)
 
 
 def _number(x: float) -> str:
@@ -287,6 +366,8 @@ def format_program(program: Program) -> str:
     for b in program.blocks:
         if b.kind is BlockKind.DWELL:
             lines.append(f"G4 F{_number(b.dwell_s)}")
+        elif b.kind in (BlockKind.CLAMP, BlockKind.UNCLAMP):
+            lines.append(f"M{b.m_code}")
         elif b.rapid:
             lines.append(f"G0 {a}{_number(b.target / pos_scale)}")
         else:

@@ -17,8 +17,8 @@ from contextlib import contextmanager, nullcontext
 from pathlib import Path
 from urllib.parse import parse_qsl, urlsplit
 
+from hil.controller.config import cnc_unit
 from hil.rt.scheduling import SchedulingReport, SchedulingRequest, realtime_scheduling
-from plant.config import MachineConfig
 from plant.machines import MachineSet
 
 EXIT_OK = 0
@@ -34,11 +34,6 @@ class RuntimeInputError(ValueError):
 def eprint(*args) -> None:
     """Print to stderr at once (the processes' log)."""
     print(*args, file=sys.stderr, flush=True)
-
-
-def cnc_unit(cfg: MachineConfig) -> tuple[float, str]:
-    """Factor from SI table units (m, rad) to the CNC's (mm, deg), and that unit."""
-    return (180.0 / math.pi, "deg") if cfg.machine.kind == "rotary" else (1e3, "mm")
 
 
 def start_arg(text: str) -> float | dict[str, float]:

@@ -8,7 +8,9 @@ in ``controller.npz`` the columns ``t_s``, ``tick`` and ``fb_time_s`` (common to
 one tick steps them all) and the integer columns once, every other float column per axis
 with the letter in front (``X_following_error``); the summary's per-axis values under
 ``axes`` (each with its own unit and ``trace_every_ticks``), the top-level ones those of
-the first axis.
+the first axis.  ``alarms`` lists the NC's alarms of every axis (number, axis, text,
+detail, tick, time ``t_s``, count, message) in the order raised; any alarm makes the run
+fail.
 """
 
 from dataclasses import asdict
@@ -26,8 +28,8 @@ from hil.trace_file import write_trace
 #: the feedback's (motor_pos: the encoder angle, rad; fb_time_s: the drive's time stamp of
 #: the cycle read)
 FLOAT_COLUMNS = ("t_s", "x_set", "v_set", "a_set", "x_act", "v_act", "v_cmd", "w_set",
-                 "w_act", "iq_set", "following_error", "iq_meas", "motor_pos", "tick",
-                 "fb_time_s")
+                 "w_act", "iq_set", "following_error", "contour_deviation", "iq_meas",
+                 "motor_pos", "tick", "fb_time_s")
 #: float columns common to every axis
 COMMON_FLOATS = ("t_s", "tick", "fb_time_s")
 #: integer columns (see hil.runtime.controller_proc)
@@ -45,6 +47,8 @@ def _axis_summary(proc, a: int, cols: dict, trace) -> dict:
     fe = cols["following_error"] * k_cnc
     return {f"following_error_max_{u}": float(np.abs(fe).max()) if n else None,
             f"following_error_rms_{u}": float(np.sqrt(np.mean(fe ** 2))) if n else None,
+            f"contour_deviation_max_{u}": (float(np.abs(cols["contour_deviation"]).max()
+                                            * k_cnc) if n else None),
             f"final_position_{u}": float(cols["x_act"][-1] * k_cnc) if n else None,
             f"program_end_{u}": proc.program_end[a] * k_cnc,
             "trace_every_ticks": proc.mctrl.ctrls[a].sec.position_cycle_ratio,
@@ -92,10 +96,12 @@ def write_outputs(proc, stats, granted, alignment: Alignment) -> dict:
     lag = cols["lag_ticks"]
     delay = proc.delay_ticks
     drive_clock = getattr(proc.ep, "drive_clock", True)
+    alarms = proc.mctrl.alarm_dicts()
     summary = {
         "command": "hil controller", "result": proc.result,
         "exit_status": EXIT_OK if proc.result in ("completed", "stopped by SIGTERM/SIGINT")
-        else EXIT_FAILED,
+        and not alarms else EXIT_FAILED,
+        "alarms": alarms,
         "machine_file": str(rc.machine_file), "program": str(rc.program_file),
         "period_ns": proc.period_ns, "ticks_recorded": n, "ticks_planned": proc.n_run,
         **{k: v for k, v in first.items() if k != "trace"},

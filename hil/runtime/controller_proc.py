@@ -22,7 +22,10 @@ by a :class:`~hil.rt.loop.RealTimeLoop` instead of back to back with the drive:
 4. run: each tick polls the newest feedback (timeout 0), ``ctrl.tick(fb, sp)``, sends the
    setpoint; the CiA 402 enable sequence first, then, on the tick the drive reports
    OPERATION ENABLED, the program (as ``hil sim`` does), recorded for the program's
-   duration plus :data:`hil.commands.SETTLE_S`.  A tick without new feedback (a late drive
+   duration plus :data:`hil.commands.SETTLE_S`.  An alarm of the NC (:mod:`hil.controller.
+   alarms`: contour, standstill or clamping monitoring, a bad feedback value, a drive
+   fault) ends the run once the NC has stopped every axis (braked, drives disabled); the
+   ticks until then are recorded.  A tick without new feedback (a late drive
    cycle, a lost frame) extrapolates the last one with the drive's speed actual value
    (606Ch) over one period, as a controller bridges a missing bus telegram, instead of
    reading a frozen encoder as standstill; on a link whose feedback says how old it is
@@ -40,9 +43,11 @@ program (:mod:`hil.controller.path`: ``G1 X10 Y5 F1000`` moves both on one line)
 message carrying every axis per tick, one servo trace per axis (``trace_X.csv``).
 
 The run fails (exit 1, the reason in the summary and on stderr) when no drive answers
-within ``--connect-timeout``, the enable sequence fails, the drive leaves OPERATION
-ENABLED (a fault, the emulator's watchdog), no feedback comes for ``--feedback-timeout``
-cycles, or the axis is not where the program starts (``--start``).
+within ``--connect-timeout``, the enable sequence fails, the NC raised an alarm (the drive
+leaving OPERATION ENABLED, after a fault or the emulator's watchdog, is alarm 25201 with
+the drive's error code; ``summary.json`` lists every alarm with its number, axis, text,
+tick and time, and stderr prints one line each), no feedback comes for
+``--feedback-timeout`` cycles, or the axis is not where the program starts (``--start``).
 """
 
 import argparse
@@ -57,6 +62,7 @@ import numpy as np
 
 from hil.cia402 import DISABLE_VOLTAGE
 from hil.commands import SETTLE_S
+from hil.controller.config import clamp_codes, cnc_unit
 from hil.controller.interpolator import plan
 from hil.controller.machine import MachineController
 from hil.controller.path import read_path_program
@@ -71,7 +77,6 @@ from hil.runtime.common import (
     StopFlag,
     check_cpu,
     check_link,
-    cnc_unit,
     eprint,
     period_ns_of,
     scheduling,
@@ -92,7 +97,7 @@ START_WINDOW_CNC = 0.04
 DEFAULT_FEEDBACK_TIMEOUT_S = 0.1
 #: controller attributes recorded each tick (SI, hil.sim.SIGNALS names; ``t`` is t_s)
 CTRL_SIGNALS = ("t", "x_set", "v_set", "a_set", "x_act", "v_act", "v_cmd", "w_set", "w_act",
-                "iq_set", "following_error")
+                "iq_set", "following_error", "contour_deviation")
 #: FLOAT_COLUMNS and INT_COLUMNS of controller.npz: :mod:`hil.runtime.controller_files`.
 #: The integer columns: the loop's deadline index, 1 when new feedback came, the lag
 #: (ticks between the setpoint the feedback answers and the one sent last tick: 0 =
@@ -164,11 +169,13 @@ class ControllerProcess:
         self.mctrl = MachineController(m, self.period_s, self.x0)
         self.ctrl = self.mctrl.ctrls[0]
         if m.multi_axis:
-            self.program = read_path_program(rc.program_file, m.names, self.x0)
+            self.program = read_path_program(rc.program_file, m.names, self.x0,
+                                             clamp=self.mctrl.clamp_codes)
             self.profiles = self.mctrl.plan(self.program)
             self.program_end = self.program.end
         else:
-            self.program = read_program(rc.program_file, axis=m.names[0], start=self.x0[0])
+            self.program = read_program(rc.program_file, axis=m.names[0], start=self.x0[0],
+                                        clamp=clamp_codes(self.ctrl.sec))
             self.profiles = (plan(self.program, self.mctrl.limits[0]),)
             self.program_end = (self.program.end,)
         self.profile = self.profiles[0]
@@ -221,23 +228,31 @@ class ControllerProcess:
             self.adapter_errors += 1
         if self.silent >= self.feedback_timeout:
             self._fail(f"no feedback for {self.silent} cycles at tick {k}")
-        elif not self.running:
+            return
+        if self.running:
+            self._record(k, new)
+        elif not mctrl.alarmed:
             self._start(k)
-        elif not mctrl.enabled:
-            self._fail(f"the drive left OPERATION ENABLED at tick {k}: "
-                       f"{self._enable_reason()}")
-        else:
-            i = self.rows
-            row = self.floats[i]
-            for a, (ctrl, f) in enumerate(zip(mctrl.ctrls, self.fbs)):
-                row[a] = self._get(ctrl) + (f.iq_a, f.encoder_counts * ctrl.rad_per_count,
-                                            ctrl.tick_count - 1, fb.time_s)
-            lag = (sp.seq - 1 - fb.seq) & U32
-            self.ints[i] = ((k, 1, lag, fb.round_trip_ns(), fb.sp_t_ns, fb.t_ns, fb.rx_ns)
-                            if new else (k, 0, lag, 0, 0, 0, 0))
-            self.rows = i + 1
-            if self.rows == self.n_run:
+        if mctrl.alarmed:
+            if self.result == "completed":
+                self.result = mctrl.alarms[0].message()
+            if mctrl.stopped:
                 self.loop.request_stop()
+
+    def _record(self, k: int, new: bool) -> None:
+        """Row ``self.rows`` of the recording; the run ends when the last is taken."""
+        mctrl, sp, fb = self.mctrl, self.sp, self.fb
+        i = self.rows
+        row = self.floats[i]
+        for a, (ctrl, f) in enumerate(zip(mctrl.ctrls, self.fbs)):
+            row[a] = self._get(ctrl) + (f.iq_a, f.encoder_counts * ctrl.rad_per_count,
+                                        ctrl.tick_count - 1, fb.time_s)
+        lag = (sp.seq - 1 - fb.seq) & U32
+        self.ints[i] = ((k, 1, lag, fb.round_trip_ns(), fb.sp_t_ns, fb.t_ns, fb.rx_ns)
+                        if new else (k, 0, lag, 0, 0, 0, 0))
+        self.rows = i + 1
+        if self.rows == self.n_run:
+            self.loop.request_stop()
 
     def _extrapolate(self, ticks: int) -> None:
         """The feedback moved on by ``ticks`` periods at each drive's speed actual value."""
@@ -363,7 +378,10 @@ def run_from_args(args: argparse.Namespace) -> int:
           f"{fe_max if fe_max is None else format(fe_max, '.4g')} {u}; round trip p50 "
           f"{rt['p50']:.1f} p99 {rt['p99']:.1f} µs; summary in {rc.out_dir / 'summary.json'}",
           flush=True)
-    if summary["exit_status"] != EXIT_OK:
+    if summary["alarms"]:
+        for alarm in summary["alarms"]:
+            eprint(f"hil controller: {alarm['message']}")
+    elif summary["exit_status"] != EXIT_OK:
         eprint(f"hil controller: {summary['result']}")
     return summary["exit_status"]
 

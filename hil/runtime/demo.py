@@ -16,8 +16,10 @@ Every child gets a timeout and is killed if still running when the demo leaves. 
 to ``--out``: ``emulator/`` (run.npz, report.json), ``controller/`` (trace.csv,
 controller.npz, summary.json), ``lockstep/`` (trace.csv, sim.png), the latency report
 (report.md, report_latency.json, latency_hist.png), the two logs and ``demo.json``.
-Exit status 0 when both processes finished cleanly, 1 otherwise, 2 when the machine file
-or the program is refused (before anything starts).
+Exit status 0 when both processes finished cleanly and neither the controller nor the
+lock-step simulation raised an alarm, 1 otherwise (the reason printed: the alarms, from the
+controller's ``summary.json``, one line each), 2 when the machine file or the program is
+refused (before anything starts).
 """
 
 import argparse
@@ -35,7 +37,7 @@ from pathlib import Path
 import numpy as np
 
 from hil.commands import run_sim
-from hil.controller.config import load_controller
+from hil.controller.config import clamp_codes, load_controller
 from hil.controller.program import ProgramError, read_program
 from hil.report.latency import build_report, load_run, write_report
 from hil.runtime.common import EXIT_BAD_INPUT, EXIT_FAILED, EXIT_OK, eprint, write_json
@@ -227,24 +229,33 @@ def run_demo(config: Path, program: Path, out: Path, realtime: bool) -> int:
     """The whole demo; returns the exit status."""
     try:  # refuse bad input before any process starts
         cfg = load_machine(config)
-        load_controller(cfg)
-        read_program(program, axis="C" if cfg.machine.kind == "rotary" else "X")
+        read_program(program, axis="C" if cfg.machine.kind == "rotary" else "X",
+                     clamp=clamp_codes(load_controller(cfg)))
     except (ConfigError, ProgramError, OSError) as e:
         eprint(f"hil demo: {e}")
         return EXIT_BAD_INPUT
     out.mkdir(parents=True, exist_ok=True)
+    summary_file = out / "controller" / "summary.json"
+    summary_file.unlink(missing_ok=True)  # an earlier run's alarms are not this run's
     try:
         emu_status, ctl_status = run_pair(config, program, out, realtime)
     except (DemoError, subprocess.TimeoutExpired) as e:
         eprint(f"hil demo: {e}; logs in {out}")
         return EXIT_FAILED
-    if (emu_status, ctl_status) != (EXIT_OK, EXIT_OK):
+    controller = json.loads(summary_file.read_text()) if summary_file.exists() else {}
+    alarms = controller.get("alarms", [])
+    if (emu_status, ctl_status) != (EXIT_OK, EXIT_OK) or alarms:
         eprint(f"hil demo: emulator exited with {emu_status}, controller with {ctl_status}; "
                f"logs in {out}")
+        for alarm in alarms:
+            eprint(f"hil demo: the controller raised {alarm['message']}")
         return EXIT_FAILED
     sim = run_sim(config, program, out / "lockstep", 0.0, None, None)
+    if sim["alarms"]:
+        for alarm in sim["alarms"]:
+            eprint(f"hil demo: the lock-step simulation raised {alarm['message']}")
+        return EXIT_FAILED
     emulator = json.loads((out / "emulator" / "report.json").read_text())
-    controller = json.loads((out / "controller" / "summary.json").read_text())
     loopback = out / "controller" / "trace.csv"
     every = compare_following_error(loopback, Path(sim["trace"]))
     settled = compare_following_error(loopback, Path(sim["trace"]),

@@ -67,6 +67,7 @@ from pathlib import Path
 
 from hil.cia402 import DISABLE_VOLTAGE
 from hil.drive import DriveSet, EmulatedDrive
+from hil.drive.objects import DriveObjects
 from hil.report.host import host_fingerprint
 from hil.rt.loop import OverrunPolicy, RealTimeLoop
 from hil.rt.scheduling import last_cpu
@@ -107,6 +108,8 @@ DEFAULT_WATCHDOG_S = 0.1
 #: overruns in the first this-many seconds (start-up) never stop the loop
 GRACE_S = 0.1
 DEFAULT_MAX_DURATION_S = 120.0
+#: the longest a fault reaction may still brake in the safe state at shutdown, s of drive time
+SAFE_STATE_MAX_S = 5.0
 DEFAULT_RUN_DIR = "hil-run"
 RUN_JSON = "report.json"
 
@@ -286,6 +289,13 @@ class Emulator:
                else check_link(self.rc.adapter_url, len(self.machine.axes)))
         self.endpoint = endpoint or open_endpoint(url, "device")
         self.endpoint.drain = True
+        self.endpoint.setpoint_bounds = tuple(d.setpoint_bounds() for d in self.drives.drives)
+        if hasattr(self.endpoint, "objects"):  # a CANopen node: its parameter objects
+            self.endpoint.objects = DriveObjects(self.drives.drives,
+                                                 self.endpoint.rated_current_a)
+        if getattr(self.endpoint, "exposed", False):
+            self._log(f"WARNING: {url} is reachable from the network; this bench tool has no "
+                      "authentication (README: who may talk to the drive)")
         if hasattr(self.endpoint, "last_sync_ns"):  # the cycle follows SYNC
             clock = ShiftableClock(self.loop.clock)
             self.loop.clock = clock
@@ -303,13 +313,18 @@ class Emulator:
         except AdapterError as e:
             heard = False
             self._adapter_error("receive", e)
+        refused = self.endpoint.refused_axes
+        if refused:
+            for a, d in enumerate(drives.drives):
+                if refused >> a & 1:
+                    d.refuse_setpoint()
         if self.sync_lock is not None:
             self.sync_lock.update(self.endpoint.last_sync_ns)
-        self.watchdog.update(heard, k, sp.seq, drives)
+        self.watchdog.update(heard, k, sp.seq, drives, self.endpoint)
         for _ in range(self.timing.cycles_per_tick):
             drives.cycle(sp, fb)
         fb.tick_ns = t_ns
-        if self.watchdog.answering:
+        if self.watchdog.answering or self.sync_lock is not None:  # SYNC asks for it
             try:
                 self.endpoint.send_feedback(fb)
             except AdapterError as e:
@@ -324,19 +339,25 @@ class Emulator:
             self._log(f"adapter {kind} error (counted, logged once): {err}")
 
     def safe_state(self) -> dict:
-        """One drive cycle with controlword 0 (disable voltage: transitions 7, 9, 10, 12 to
-        SWITCH ON DISABLED; a drive in FAULT stays there), its feedback sent to a
-        controller still listening; returns the state reached (per axis letter on a
-        machine of several axes)."""
+        """Drive cycles with controlword 0 (disable voltage: transitions 7, 9, 10, 12 to
+        SWITCH ON DISABLED; a drive in FAULT stays there) until every power stage is off:
+        one cycle, or as many as a fault reaction still braking needs (at most
+        :data:`SAFE_STATE_MAX_S` of drive time, run back to back as the loop has stopped);
+        the last feedback sent to a controller still listening; returns the state reached
+        (per axis letter on a machine of several axes)."""
         self.sp.controlword = DISABLE_VOLTAGE.value
-        self.drives.cycle(self.sp, self.fb)
+        for _ in range(max(1, round(SAFE_STATE_MAX_S / self.plant.pwm_period))):
+            self.drives.cycle(self.sp, self.fb)
+            if all(d.plant.inp[L.I_ENABLE] == 0.0 for d in self.drives.drives):
+                break
         if self.watchdog.answering:
             try:
                 self.endpoint.send_feedback(self.fb)
             except AdapterError as e:
                 self._adapter_error("send", e)
         states = {name: {"state": d.sm.state.name, "statusword": f"0x{fb.statusword:04X}",
-                         "plant_enable": float(d.plant.inp[L.I_ENABLE]), "fault": d.fault}
+                         "plant_enable": float(d.plant.inp[L.I_ENABLE]),
+                         "error_code": f"0x{d.fault:04X}"}
                   for name, d, fb in zip(self.machine.names, self.drives.drives,
                                          axis_records(self.fb))}
         return states if self.machine.multi_axis else states[self.machine.names[0]]
@@ -382,6 +403,8 @@ class Emulator:
             "setpoints": {"ticks_with_new_setpoint": int(heard.sum()),
                           "last_seq": int(self.sp.seq)},
             "watchdog": self.watchdog.as_dict(), "safe_state": safe,
+            "faults": {name: d.faults.as_dict()
+                       for name, d in zip(self.machine.names, self.drives.drives)},
             "recording": {"file": RUN_NPZ, "slots": len(stats.lateness_ns),
                           "ticks": stats.ticks,
                           "columns": units(self.machine.names if self.machine.multi_axis

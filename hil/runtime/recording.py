@@ -54,7 +54,8 @@ _PLANT_UNITS = {"status": "1", "time_s": "s", "motor_pos": "rad (m on linear mot
                 "table_vel": "m/s (rad/s)", "encoder_counts": "counts",
                 "scale_counts": "counts", "id_a": "A", "iq_a": "A", "id_meas_a": "A",
                 "iq_meas_a": "A", "torque": "N*m (N on linear motors)", "ud_v": "V",
-                "uq_v": "V", "nut_force_n": "N", "friction": "N (N*m on rotary tables)"}
+                "uq_v": "V", "nut_force_n": "N", "friction": "N (N*m on rotary tables)",
+                "limit_neg": "1", "limit_pos": "1", "end_stop_force_n": "N"}
 #: column -> unit
 UNITS = {"lateness_ns": "ns", "compute_ns": "ns", **{s: "ns" for s in STAMPS},
          "sp_new": "1", "sp_seq": "1", "sp_controlword": "6040h", "sp_mode": "6060h",

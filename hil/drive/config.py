@@ -1,0 +1,242 @@
+"""The ``[drive]`` section of a machine file: the drive's monitoring and fault-reaction
+objects, and :class:`DriveParameters`, the values the drive runs on.
+
+Every key stands for a CiA 402 object (named in its doc).  A key that is absent takes a
+default derived from the rest of the machine file (said in its doc); on CAN the same
+objects are readable and writable by SDO (:mod:`hil.drive.objects`).  Positions and
+accelerations are in table units (m, m/s² on screw and linear axes; deg, deg/s² on rotary
+tables), the motor speed in rpm (m/s for linear motors), as a commissioning engineer
+reads them; inside, :class:`DriveParameters` holds them in the motor coordinate the drive's
+loops use (rad, rad/s, rad/s²; m, m/s, m/s² on linear motors).
+"""
+
+import math
+from dataclasses import dataclass
+
+from hil.cia402 import AbortConnectionOption, FaultReactionOption, QuickStopOption
+from hil.controller.config import ControllerSection, axis_limits, kv_si
+from plant.assemble import reflected_inertia, transmission_ratio
+from plant.config import MachineConfig, build_section, check_applies
+from plant.errors import ConfigError
+from plant.schema import key
+
+DERIVED = None
+LINEAR_KINDS = "kind=screw|linear"
+
+
+@dataclass(frozen=True, kw_only=True)
+class DriveSection:
+    """Drive monitoring and fault reaction (CiA 402 objects); absent keys are derived."""
+    following_error_window_m: float = key(
+        "m", "6065h following error window (CSP); 0: monitoring off (FFFFFFFFh). Absent: 1.5 "
+        "times the following error at the maximum velocity without feed-forward, v_max/K_v "
+        "([controller]); off without [controller].", DERIVED, ge=0.0, only=LINEAR_KINDS)
+    following_error_window_deg: float = key(
+        "deg", "6065h following error window of a rotary table (see the _m key).", DERIVED,
+        ge=0.0, only="kind=rotary")
+    following_error_time_s: float = key(
+        "s", "6066h following error time out: how long the error may stay beyond the window.",
+        0.01, ge=0.0, le=65.535)
+    position_window_m: float = key(
+        "m", "6067h position window: CSP target reached (statusword bit 10) within it.", 1e-5,
+        ge=0.0, only=LINEAR_KINDS)
+    position_window_deg: float = key("deg", "6067h position window of a rotary table.", 0.01,
+                                     ge=0.0, only="kind=rotary")
+    position_window_time_s: float = key("s", "6068h position window time.", 0.01, ge=0.0,
+                                        le=65.535)
+    software_limit_min_m: float = key(
+        "m", "607Dh:01 minimum software position limit. Absent: halfway from the start of "
+        "the travel (0) to the negative limit switch ([table] limit_switch_overtravel_m).",
+        DERIVED, only=LINEAR_KINDS)
+    software_limit_max_m: float = key(
+        "m", "607Dh:02 maximum software position limit; equal to the minimum: limits off. "
+        "Absent: halfway from the end of [table] travel_m to the positive limit switch.",
+        DERIVED, only=LINEAR_KINDS)
+    software_limit_min_deg: float = key("deg", "607Dh:01 of a rotary table. Absent: off.",
+                                        0.0, only="kind=rotary")
+    software_limit_max_deg: float = key("deg", "607Dh:02 of a rotary table; equal to the "
+                                        "minimum: off (the default).", 0.0, only="kind=rotary")
+    max_motor_speed_rpm: float = key(
+        "rpm", "6080h maximum motor speed: speed commands are limited to it, 1.1 times it is "
+        "an overspeed fault; 0: off. Absent: 1.2 times the [controller] maximum velocity at "
+        "the motor, else the dq motor's no-load speed at the voltage limit, else off.",
+        DERIVED, ge=0.0, only="kind=screw|rotary")
+    max_motor_speed_m_s: float = key("m/s", "6080h maximum speed of a linear motor (see the "
+                                     "rpm key).", DERIVED, ge=0.0, only="kind=linear")
+    max_current_a: float = key(
+        "A", "6072h maximum torque, as the q-current limit the drive applies to every current "
+        "setpoint (<= [motor] current_max_a). Absent: [motor] current_max_a.", DERIVED, gt=0.0)
+    quick_stop_deceleration_m_s2: float = key(
+        "m/s^2", "6085h quick stop deceleration. Absent: half the acceleration the motor gives "
+        "the axis at [motor] current_max_a.", DERIVED, gt=0.0, only=LINEAR_KINDS)
+    quick_stop_deceleration_deg_s2: float = key(
+        "deg/s^2", "6085h quick stop deceleration of a rotary table.", DERIVED, gt=0.0,
+        only="kind=rotary")
+    profile_deceleration_m_s2: float = key(
+        "m/s^2", "6084h profile deceleration, the slow down ramp. Absent: the [controller] "
+        "maximum acceleration, else the quick stop deceleration.", DERIVED, gt=0.0,
+        only=LINEAR_KINDS)
+    profile_deceleration_deg_s2: float = key("deg/s^2", "6084h of a rotary table.", DERIVED,
+                                             gt=0.0, only="kind=rotary")
+    quick_stop_option: int = key("1", "605Ah quick stop option code, 1-8.", 2, ge=1, le=8)
+    fault_reaction_option: int = key(
+        "1", "605Eh fault reaction option code: 0 torque off, 1 slow down ramp, 2 quick stop "
+        "ramp, 3 current limit, 4 voltage limit (here: current limit).", 2, ge=0, le=4)
+    abort_connection_option: int = key(
+        "1", "6007h abort connection option code: what setpoint silence, a lost heartbeat or "
+        "an NMT stop/reset does: 0 nothing, 1 fault, 2 disable voltage, 3 quick stop.", 1,
+        ge=0, le=3)
+    continuous_current_a: float = key(
+        "A", "I2t: the current the drive carries without end (< [motor] current_max_a). "
+        "Absent: half of [motor] current_max_a.", DERIVED, gt=0.0)
+    overload_time_s: float = key(
+        "s", "I2t: how long [motor] current_max_a may flow from cold before the over-current "
+        "fault (2310h).", 1.0, gt=0.0)
+
+
+@dataclass
+class DriveParameters:
+    """What the drive runs on, in the motor coordinate (rad; m on linear motors).
+
+    Mutable: a master writes these objects by SDO while the drive runs (each write is one
+    attribute; the loop reads them every cycle).  ``inf`` bounds mean "off".
+
+    Attributes:
+        fe_window: 6065h, inf: off.
+        fe_time_s: 6066h.
+        position_window: 6067h.
+        position_window_time_s: 6068h.
+        limit_min, limit_max: 607Dh (-inf/inf: off).
+        max_speed: 6080h, motor units/s (inf: off).
+        max_current_a: 6072h as a q-current limit.
+        quick_stop_decel: 6085h, motor units/s².
+        profile_decel: 6084h, motor units/s².
+        quick_stop_option, fault_reaction_option, abort_connection_option: 605Ah, 605Eh,
+            6007h.
+        continuous_current_a, overload_time_s: the I²t model (the peak current may flow
+            for overload_time_s from cold).
+        current_max_a: the power stage's peak current ([motor] current_max_a), the bound of
+            max_current_a.
+    """
+    fe_window: float
+    fe_time_s: float
+    position_window: float
+    position_window_time_s: float
+    limit_min: float
+    limit_max: float
+    max_speed: float
+    max_current_a: float
+    quick_stop_decel: float
+    profile_decel: float
+    quick_stop_option: int
+    fault_reaction_option: int
+    abort_connection_option: int
+    continuous_current_a: float
+    overload_time_s: float
+    current_max_a: float
+
+    @property
+    def i2t_trip_a2s(self) -> float:
+        """The I²t integral of (i² - continuous²) that trips the over-current fault: the
+        power stage's peak current for ``overload_time_s`` from cold, A²·s."""
+        return (self.current_max_a ** 2 - self.continuous_current_a ** 2) * self.overload_time_s
+
+
+def _per_motor_unit(cfg: MachineConfig) -> tuple[float, float]:
+    """(table unit of the keys per motor unit, motor unit per rpm-or-m/s key unit)."""
+    kind = cfg.machine.kind
+    table_per_motor = transmission_ratio(cfg)
+    if kind == "rotary":
+        table_per_motor = 180.0 / math.pi  # deg per rad (direct drive)
+    speed = 1.0 if kind == "linear" else 2.0 * math.pi / 60.0  # rad/s per rpm
+    return table_per_motor, speed
+
+
+def _motor_acceleration(cfg: MachineConfig) -> float:
+    """The motor's acceleration at [motor] current_max_a, motor units/s²."""
+    mo = cfg.motor
+    kt = mo.force_constant_n_per_a if cfg.machine.kind == "linear" else mo.torque_constant_nm_per_a
+    return mo.current_max_a * kt / reflected_inertia(cfg)
+
+
+def _no_load_speed(cfg: MachineConfig) -> float:
+    """The dq motor's speed at which the back-EMF takes the whole voltage U_dc/2, motor
+    units/s (inf for other motor models: they state no voltage limit)."""
+    mo = cfg.motor
+    if mo.model != "dq":
+        return math.inf
+    kt = mo.force_constant_n_per_a if cfg.machine.kind == "linear" else mo.torque_constant_nm_per_a
+    return 1.5 * 0.5 * mo.dc_link_v / kt  # omega = U / (p psi), K_t = 1.5 p psi
+
+
+def load_drive(cfg: MachineConfig, controller: ControllerSection | None) -> DriveParameters:
+    """The drive's parameters from ``cfg``'s ``[drive]`` section (absent keys derived);
+    ConfigError names the file, the key and the unit."""
+    raw = cfg.section("drive")
+    sec = build_section(DriveSection, raw, cfg.path, "drive")
+    check_applies(sec, raw, {"kind": cfg.machine.kind, "model": cfg.motor.model}, cfg.path,
+                  "drive")
+    kind = cfg.machine.kind
+    rotary, linear = kind == "rotary", kind == "linear"
+    pos_sfx, acc_sfx = ("_deg", "_deg_s2") if rotary else ("_m", "_m_s2")
+    per, rpm = _per_motor_unit(cfg)
+
+    def given(name: str):
+        return getattr(sec, name)
+
+    v_max = kv = None
+    if controller is not None:
+        v_max = axis_limits(cfg, controller).velocity  # table SI units/s (m or rad)
+        kv = kv_si(controller)
+    table_si_per_motor = transmission_ratio(cfg)  # m (or rad) per motor unit
+
+    fe = given("following_error_window" + pos_sfx)
+    if fe is None:
+        fe_window = (1.5 * v_max / kv / table_si_per_motor if v_max else math.inf)
+    else:
+        fe_window = fe / per if fe > 0.0 else math.inf
+    lo, hi = given("software_limit_min" + pos_sfx), given("software_limit_max" + pos_sfx)
+    if not rotary:  # outside the programmable travel, inside the limit switches
+        margin = 0.5 * cfg.table.limit_switch_overtravel_m
+        lo = -margin if lo is None else lo
+        hi = cfg.table.travel_m + margin if hi is None else hi
+    if lo > hi:
+        raise ConfigError(f"{cfg.path}: [drive] software_limit_min{pos_sfx} = {lo:g} must be "
+                          f"<= software_limit_max{pos_sfx} = {hi:g} ({pos_sfx[1:]})")
+    limit_min, limit_max = (lo / per, hi / per) if lo < hi else (-math.inf, math.inf)
+    speed_key = "max_motor_speed_m_s" if linear else "max_motor_speed_rpm"
+    speed = given(speed_key)
+    if speed is None:
+        max_speed = 1.2 * v_max / table_si_per_motor if v_max else _no_load_speed(cfg)
+    else:
+        max_speed = speed * rpm if speed > 0.0 else math.inf
+    i_peak = cfg.motor.current_max_a
+    max_current = given("max_current_a") or i_peak
+    if max_current > i_peak:
+        raise ConfigError(f"{cfg.path}: [drive] max_current_a = {max_current:g} A must be <= "
+                          f"[motor] current_max_a = {i_peak:g} A (the power stage's peak)")
+    continuous = given("continuous_current_a") or 0.5 * i_peak
+    if continuous >= i_peak:
+        raise ConfigError(f"{cfg.path}: [drive] continuous_current_a = {continuous:g} A must "
+                          f"be < [motor] current_max_a = {i_peak:g} A")
+    qs = given("quick_stop_deceleration" + acc_sfx)
+    quick_stop = qs / per if qs is not None else 0.5 * _motor_acceleration(cfg)
+    pd = given("profile_deceleration" + acc_sfx)
+    if pd is not None:
+        profile = pd / per
+    elif controller is not None:
+        profile = axis_limits(cfg, controller).acceleration / table_si_per_motor
+    else:
+        profile = quick_stop
+    return DriveParameters(
+        fe_window=fe_window, fe_time_s=sec.following_error_time_s,
+        position_window=given("position_window" + pos_sfx) / per,
+        position_window_time_s=sec.position_window_time_s,
+        limit_min=limit_min, limit_max=limit_max, max_speed=max_speed,
+        max_current_a=max_current, quick_stop_decel=quick_stop, profile_decel=profile,
+        quick_stop_option=int(QuickStopOption(sec.quick_stop_option)),
+        fault_reaction_option=int(FaultReactionOption(sec.fault_reaction_option)),
+        abort_connection_option=int(AbortConnectionOption(sec.abort_connection_option)),
+        continuous_current_a=continuous, overload_time_s=sec.overload_time_s,
+        current_max_a=i_peak)
+

@@ -1,0 +1,433 @@
+"""The emulated drive: the device side of the wire, around one plant.
+
+Every cycle (one PWM period of the plant) it takes a
+:class:`~io_adapters.messages.Setpoint`, monitors the axis (:mod:`hil.drive.monitor`),
+latches the fault causes found (:mod:`hil.drive.faults`), runs the CiA 402 state machine on
+the controlword, drives the plant as its state says, steps the plant and fills a
+:class:`~io_adapters.messages.Feedback` (statusword 6041h, error code 603Fh in ``fault``).
+
+What the power stage does in each CiA 402 state:
+
+* OPERATION ENABLED: the mode of operation.  CST passes the q- and d-current setpoints,
+  limited to 6072h (``max_current_a``); VOLTAGE passes the d-q voltages; CSV and CSP close
+  the speed loop (and, for CSP, the position loop) in the drive, as a SINAMICS drive does,
+  with the ``[controller]`` machine data of the simulated NC (:class:`~hil.drive.loops.
+  DriveLoops`), the CSP target held inside the software position limits 607Dh, the speed
+  command inside 6080h and the current inside 6072h.  Any limit in force sets statusword
+  bit 11 (internal limit active).
+* QUICK STOP ACTIVE: braking as 605Ah says (slow down ramp 6084h, quick stop ramp 6085h,
+  or the current limit), then transition 12 (codes 1-4), or holding zero speed (5-8).
+* FAULT REACTION ACTIVE: braking as 605Eh says, then transition 14 to FAULT; torque off at
+  once for code 0 and for the causes of :data:`~hil.drive.faults.TORQUE_OFF`.
+* every other state: torque off (the plant's pulses blocked).
+
+Braking needs the drive's speed loop; a drive without ``[controller]`` machine data takes
+the torque off instead.  Positions and speeds on the wire are motor-encoder increments
+(CiA 402 position factor 1).
+
+A fault reset (rising edge of controlword bit 7) clears every latched cause that is gone
+(:mod:`hil.drive.faults` says when each one is), in every mode; a non-finite or runaway
+plant state restarts the emulation at rest where the table was last valid, so that cause is
+gone at once.  The lost-master causes (setpoint watchdog, heartbeat, NMT) come from the
+runtime through :attr:`EmulatedDrive.link_causes` and act as 6007h says.
+
+The same object serves the lock-step simulator and the real-time loop.  A machine of
+several axes is a :class:`DriveSet`: one drive per axis, each with its own CiA 402 state
+machine, faults and loops, all cycled once per message.
+"""
+
+import math
+from dataclasses import asdict, dataclass
+
+from hil.cia402 import (
+    DISABLE_VOLTAGE,
+    QUICK_STOP,
+    SW_FOLLOWS_COMMAND,
+    SW_INTERNAL_LIMIT_ACTIVE,
+    AbortConnectionOption,
+    DriveStateMachine,
+    FaultReactionOption,
+    QuickStopOption,
+    State,
+)
+from hil.controller.config import ControllerSection, load_controller
+from hil.drive.config import DriveParameters, load_drive
+from hil.drive.faults import ERROR_CODE, TORQUE_OFF, Cause, causes_text, first_cause
+from hil.drive.loops import DriveLoops
+from hil.drive.monitor import Monitor
+from hil.drive.reaction import BrakeRamp
+from io_adapters.messages import (
+    MODE_CSP,
+    MODE_CST,
+    MODE_CSV,
+    MODE_VOLTAGE,
+    Feedback,
+    FeedbackGroup,
+    Setpoint,
+    SetpointBounds,
+    axis_records,
+)
+from plant import Plant
+from plant import layout as L
+
+#: fault events kept in :attr:`FaultLog.events`; later ones are counted only
+MAX_EVENTS = 1000
+CW_FAULT_RESET = 1 << 7
+
+
+@dataclass(frozen=True)
+class FaultEvent:
+    """A fault latched, or a fault reset taken.
+
+    Attributes:
+        kind: "fault" (causes latched) or "reset" (causes cleared by a fault reset).
+        cycle: the drive cycle (PWM periods since the drive was built).
+        causes: the causes (a :class:`~hil.drive.faults.Cause` mask).
+        code: 603Fh after the event (0 after a complete reset).
+        text: the causes in words, with their codes.
+    """
+    kind: str
+    cycle: int
+    causes: int
+    code: int
+    text: str
+
+
+class FaultLog:
+    """The drive's fault causes: latched since the last reset, and the events.
+
+    Attributes:
+        latched: causes latched and not yet reset (a Cause mask).
+        code: 603Fh, the code of the first cause latched (0: none).
+        events: the first :data:`MAX_EVENTS` events; ``n_events`` counts them all.
+    """
+
+    def __init__(self):
+        self.latched = 0
+        self.code = 0
+        self.events: list[FaultEvent] = []
+        self.n_events = 0
+
+    def latch(self, causes: int, cycle: int) -> None:
+        """Latch ``causes`` (those already latched are not events again)."""
+        new = causes & ~self.latched
+        if not new:
+            return
+        if not self.latched:
+            self.code = ERROR_CODE[first_cause(new)]
+        self.latched |= new
+        self._event("fault", cycle, new)
+
+    def reset(self, present: int, cycle: int) -> None:
+        """A fault reset: clear the latched causes not in ``present``."""
+        cleared = self.latched & ~present
+        if not cleared:
+            return
+        self.latched &= present
+        self.code = ERROR_CODE[first_cause(self.latched)] if self.latched else 0
+        self._event("reset", cycle, cleared)
+
+    def _event(self, kind: str, cycle: int, causes: int) -> None:
+        self.n_events += 1
+        if len(self.events) < MAX_EVENTS:
+            self.events.append(FaultEvent(kind, cycle, causes, self.code, causes_text(causes)))
+
+    def as_dict(self) -> dict:
+        """JSON-ready: latched causes, 603Fh, events."""
+        return {"latched": causes_text(self.latched), "error_code": self.code,
+                "events": [asdict(e) for e in self.events], "events_total": self.n_events}
+
+
+class EmulatedDrive:
+    """A plant behind a CiA 402 drive interface (see the module docstring).
+
+    Args:
+        plant: the axis.
+        section: the ``[controller]`` machine data for the drive's loops (default: the
+            machine file's, when it has one).
+        params: the drive's parameters (default: the machine file's ``[drive]`` section).
+
+    Attributes:
+        params: the monitoring and reaction objects in force (writable while running).
+        faults: the latched causes and fault events.
+        link_causes: lost-master causes present now (WATCHDOG, HEARTBEAT, NMT), set by the
+            runtime before each cycle.
+        fault: 603Fh of the last cycle (0: no fault latched).
+    """
+
+    def __init__(self, plant: Plant, section: ControllerSection | None = None,
+                 params: DriveParameters | None = None):
+        self.plant = plant
+        cfg = plant.config
+        if section is None and cfg.section("controller"):
+            section = load_controller(cfg)
+        self.params = params or load_drive(cfg, section)
+        self.sm = DriveStateMachine(self.params.quick_stop_option)
+        self.loops = DriveLoops(plant, section) if section is not None else None
+        speed_ratio = section.speed_cycle_ratio if section is not None else 1
+        self.speed_period = plant.pwm_period * speed_ratio
+        self.speed_ratio = speed_ratio
+        self.rad_per_count = 1.0 / plant.params[L.P_ENC_COUNTS_PER_RAD]
+        self.monitor = Monitor(self.params, plant.pwm_period,
+                               self.rad_per_count / self.speed_period)
+        self.brake = BrakeRamp(plant.pwm_period)
+        self._bounds = self.setpoint_bounds()
+        self.faults = FaultLog()
+        self.link_causes = 0
+        self.fault = 0
+        self.tick = 0
+        self.counts_prev = math.nan
+        self.velocity_counts_s = 0.0
+        self._link_seen = 0         # link causes already acted on
+        self._override = -1         # controlword forced by 6007h while the link is lost
+        self._previous_cw = 0
+        self._limited = 0           # statusword bit 11 when a command met a limit
+        self._last_good_x = float(plant.out[L.O_TABLE_POS])
+
+    def setpoint_bounds(self) -> SetpointBounds:
+        """What this drive takes at all (an adapter refuses anything else): finite values,
+        increments within 2**53, currents within the power stage's peak ([motor]
+        current_max_a), voltages within the DC link, CSP and CSV only with the machine
+        data for the drive's loops, VOLTAGE only on a motor model fed by voltage."""
+        mo = self.plant.config.motor
+        modes = {MODE_CST}
+        if self.loops is not None:
+            modes |= {MODE_CSP, MODE_CSV}
+        if mo.model in ("dq", "commutation"):
+            modes.add(MODE_VOLTAGE)
+        return SetpointBounds(current_a=mo.current_max_a, voltage_v=mo.dc_link_v or math.inf,
+                              modes=frozenset(modes))
+
+    def refuse_setpoint(self) -> None:
+        """A setpoint for this drive was refused by its adapter this cycle: a fault."""
+        self.faults.latch(Cause.SETPOINT_REFUSED, self.tick)
+
+    def _speed_actual(self, counts: float) -> None:
+        """The drive's speed from the encoder difference over its speed cycle."""
+        if self.tick % self.speed_ratio == 0:
+            if self.counts_prev == self.counts_prev:  # not NaN: a previous sample exists
+                self.velocity_counts_s = (counts - self.counts_prev) / self.speed_period
+            self.counts_prev = counts
+
+    def cycle(self, sp: Setpoint, fb: Feedback) -> None:
+        """Apply ``sp``, advance the plant one PWM period, write ``fb``."""
+        plant, out, p, rpc = self.plant, self.plant.out, self.params, self.rad_per_count
+        counts = out[L.O_ENCODER]
+        self._speed_actual(counts)
+        theta = counts * rpc
+        w_act = self.velocity_counts_s * rpc
+        target = math.nan
+        if sp.mode == MODE_CSP:
+            target = sp.target_position_counts * rpc
+            target = min(max(target, p.limit_min), p.limit_max)
+        operating = self.sm.state == State.OPERATION_ENABLED
+        present = self.monitor.check(operating, target, theta, w_act,
+                                     out[L.O_IQ_MEAS] ** 2 + out[L.O_ID_MEAS] ** 2,
+                                     (out[L.O_LIMIT_NEG], out[L.O_LIMIT_POS]))
+        controlword = self._controlword(sp.controlword, present)
+        standstill = self.monitor.standstill()
+        braked = (self.brake.done(w_act, standstill) if self.brake.active
+                  else abs(w_act) <= standstill)
+        torque_off_reaction = self._reaction() == FaultReactionOption.DISABLE_DRIVE
+        before = self.sm.state
+        statusword = self.sm.update(
+            controlword, self.faults.latched != 0, stopped=braked,
+            reaction_done=torque_off_reaction or braked, flags=self._flags(sp.mode))
+        self._limited = 0
+        state = self.sm.state
+        if state != before:
+            self._entered(state, w_act)
+        if self._bounds.refusal(sp.mode, sp.target_position_counts,
+                                sp.target_velocity_counts_s, sp.velocity_offset_counts_s,
+                                sp.iq_ref_a, sp.id_ref_a, sp.ud_v, sp.uq_v):
+            # an adapter refuses these before they come here; a caller in the same process
+            # meets the same refusal: nothing of it reaches the plant, and a fault follows
+            self.faults.latch(Cause.SETPOINT_REFUSED, self.tick)
+            iq, on = 0.0, False
+        else:
+            iq, on = self._current(state, sp, target, theta, w_act)
+        inp = plant.inp
+        voltage = sp.mode == MODE_VOLTAGE and state == State.OPERATION_ENABLED
+        inp[L.I_ENABLE] = 1.0 if on else 0.0
+        inp[L.I_MODE] = L.INPUT_VOLTAGE if voltage else L.INPUT_CURRENT
+        inp[L.I_IQ_REF] = iq if on else 0.0
+        limit = p.max_current_a
+        inp[L.I_ID_REF] = min(max(sp.id_ref_a, -limit), limit) if on and not voltage else 0.0
+        inp[L.I_UD] = sp.ud_v if voltage else 0.0
+        inp[L.I_UQ] = sp.uq_v if voltage else 0.0
+        self._step_plant()
+        self.tick += 1
+        self.fault = self.faults.code
+        fb.seq = sp.seq
+        fb.statusword = statusword
+        fb.time_s = out[L.O_TIME]
+        fb.encoder_counts = out[L.O_ENCODER]
+        fb.scale_counts = out[L.O_SCALE]
+        fb.velocity_counts_s = self.velocity_counts_s
+        fb.iq_a = out[L.O_IQ_MEAS]
+        fb.id_a = out[L.O_ID_MEAS]
+        fb.fault = self.fault
+
+    # -- faults and the controlword -------------------------------------------------------
+    def _controlword(self, controlword: int, present: int) -> int:
+        """Latch this cycle's causes, take a fault reset, apply 6007h; the controlword the
+        state machine sees."""
+        p, sm = self.params, self.sm
+        link = self.link_causes
+        # 6007h acts when the link is lost while the power stage is on (torque may be on)
+        new_link = link & ~self._link_seen if sm.power_enabled else 0
+        self._link_seen = link
+        option = p.abort_connection_option
+        latch = (present if sm.state == State.OPERATION_ENABLED
+                 else present & (Cause.OVERSPEED | Cause.OVERCURRENT))
+        if new_link and option == AbortConnectionOption.FAULT:
+            latch |= new_link
+        if new_link and option == AbortConnectionOption.DISABLE_VOLTAGE:
+            self._override = DISABLE_VOLTAGE.value
+        elif new_link and option == AbortConnectionOption.QUICK_STOP:
+            self._override = QUICK_STOP.value
+        if not link:
+            self._override = -1
+        self.faults.latch(latch, self.tick)
+        rising = controlword & CW_FAULT_RESET and not self._previous_cw & CW_FAULT_RESET
+        self._previous_cw = controlword
+        if rising and sm.state == State.FAULT:
+            self.faults.reset(present | link, self.tick)
+        return controlword if self._override < 0 else self._override
+
+    def _reaction(self) -> int:
+        """605Eh in force for the latched causes (torque off where braking is impossible)."""
+        if self.loops is None or self.faults.latched & TORQUE_OFF:
+            return FaultReactionOption.DISABLE_DRIVE
+        return self.params.fault_reaction_option
+
+    def _deceleration(self, option: int) -> float:
+        """The braking deceleration of a slow down (1), quick stop (2) or current-limit (3,
+        4) reaction, motor units/s² (inf: at the current limit)."""
+        p = self.params
+        return {1: p.profile_decel, 2: p.quick_stop_decel}.get(option, math.inf)
+
+    def _entered(self, state: State, w_act: float) -> None:
+        """Start or end braking on a change of state."""
+        if state == State.QUICK_STOP_ACTIVE and self.loops is not None:
+            # 605Ah 1-4 and 5-8 brake alike: 1 and 5 on the slow down ramp, 2 and 6 on the
+            # quick stop ramp, 3, 4, 7 and 8 at the current limit
+            option = (self.sm.quick_stop_option - 1) % 4 + 1
+            self.brake.start(w_act, self._deceleration(option))
+        elif state == State.FAULT_REACTION_ACTIVE and self._reaction():
+            self.brake.start(w_act, self._deceleration(self._reaction()))
+        else:
+            self.brake.stop()
+        if state != State.OPERATION_ENABLED:
+            self.monitor.reset()
+
+    def _flags(self, mode: int) -> int:
+        """The statusword bits of this cycle: the monitor's, the limits the last cycle's
+        commands met (bit 11), bit 12 while following a cyclic command."""
+        flags = self.monitor.flags | self._limited
+        if self.sm.state == State.OPERATION_ENABLED and mode != MODE_VOLTAGE:
+            flags |= SW_FOLLOWS_COMMAND
+        return flags
+
+    # -- the power stage ------------------------------------------------------------------
+    def _current(self, state: State, sp: Setpoint, target: float, theta: float,
+                 w_act: float) -> tuple[float, bool]:
+        """This cycle's q-current setpoint (A) and whether the power stage is on."""
+        loops, tick, rpc = self.loops, self.tick, self.rad_per_count
+        if state == State.OPERATION_ENABLED:
+            if sp.mode == MODE_CSP and loops is not None:
+                # a target held at a software limit stands still: no speed feed-forward
+                held = target != sp.target_position_counts * rpc
+                w_ff = 0.0 if held else sp.velocity_offset_counts_s * rpc
+                w_cmd = loops.position(tick, target, w_ff, theta)
+                iq = loops.current(tick, self._speed_limited(w_cmd), w_act, sp.iq_ref_a)
+            elif sp.mode == MODE_CSV and loops is not None:
+                w_cmd = self._speed_limited(sp.target_velocity_counts_s * rpc)
+                if (w_cmd > 0.0 and theta >= self.params.limit_max) or (
+                        w_cmd < 0.0 and theta <= self.params.limit_min):
+                    w_cmd = 0.0  # at a software limit: no further out
+                    self._limited = SW_INTERNAL_LIMIT_ACTIVE
+                iq = loops.current(tick, w_cmd, w_act, sp.iq_ref_a)
+            elif sp.mode in (MODE_CSP, MODE_CSV):  # no machine data for the drive's loops
+                return 0.0, True
+            else:
+                iq = sp.iq_ref_a
+            if sp.mode == MODE_CSP and target != sp.target_position_counts * rpc:
+                self._limited = SW_INTERNAL_LIMIT_ACTIVE
+            return self._current_limited(iq, theta), True
+        if self.brake.active and loops is not None:
+            iq = loops.current(tick, self.brake.advance(), w_act, 0.0)
+            return self._current_limited(iq, theta), True
+        if loops is not None:
+            loops.reset(theta)
+        return 0.0, False
+
+    def _speed_limited(self, w_cmd: float) -> float:
+        limit = self.params.max_speed
+        if abs(w_cmd) > limit:
+            self._limited = SW_INTERNAL_LIMIT_ACTIVE
+            return math.copysign(limit, w_cmd)
+        return w_cmd
+
+    def _current_limited(self, iq: float, theta: float) -> float:
+        """``iq`` inside 6072h; a non-finite loop output is a fault (the loops restart)."""
+        if iq != iq or abs(iq) == math.inf:
+            self.faults.latch(Cause.LOOP_NONFINITE, self.tick)
+            self.loops.reset(theta)
+            return 0.0
+        limit = self.params.max_current_a
+        if abs(iq) > limit:
+            self._limited = SW_INTERNAL_LIMIT_ACTIVE
+            return math.copysign(limit, iq)
+        return iq
+
+    def _step_plant(self) -> None:
+        """One PWM period; a non-finite or runaway state is a fault and the plant restarts
+        at rest where the table was last valid."""
+        plant = self.plant
+        status = plant.step(plant.sub_per_pwm)
+        if status == L.STATUS_OK:
+            self._last_good_x = plant.out[L.O_TABLE_POS]
+            return
+        self.faults.latch(Cause.PLANT_NONFINITE if status == L.STATUS_NONFINITE
+                          else Cause.PLANT_DIVERGED, self.tick)
+        plant.reset(self._last_good_x)
+        plant.inp[L.I_ENABLE] = 0.0
+        self.counts_prev = math.nan
+        self.velocity_counts_s = 0.0
+        if self.loops is not None:
+            self.loops.reset(plant.out[L.O_ENCODER] * self.rad_per_count)
+
+    def set_quick_stop_option(self, code: int) -> None:
+        """605Ah: ``code`` (1-8) from the next cycle on."""
+        self.sm.set_quick_stop_option(QuickStopOption(code))
+        self.params.quick_stop_option = int(code)
+
+
+class DriveSet:
+    """The drives of a machine's axes behind one message pair (plain records on one axis,
+    :class:`~io_adapters.messages.SetpointGroup`/``FeedbackGroup`` on several).
+
+    One :meth:`cycle` runs every drive's cycle on its axis's setpoint, in axis order; on a
+    group the feedback's common fields take the cycle's ``seq`` and axis 0's time (every
+    plant advanced the same PWM period).
+    """
+
+    def __init__(self, drives: list[EmulatedDrive]):
+        if not drives:
+            raise ValueError("a DriveSet needs at least one drive")
+        self.drives = drives
+
+    def __len__(self) -> int:
+        return len(self.drives)
+
+    def __getitem__(self, i: int) -> EmulatedDrive:
+        return self.drives[i]
+
+    def cycle(self, sp, fb) -> None:
+        """Apply ``sp``, advance every plant one PWM period, write ``fb``."""
+        for drive, s, f in zip(self.drives, axis_records(sp), axis_records(fb)):
+            drive.cycle(s, f)
+        if isinstance(fb, FeedbackGroup):
+            fb.seq = sp.seq
+            fb.time_s = fb.axes[0].time_s
