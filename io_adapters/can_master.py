@@ -33,7 +33,7 @@ TPDOs to Feedback: ``statusword`` 6041h, ``fault`` the drive's error code 603Fh,
 ``scale_counts`` 60E4h:01; ``time_s`` and ``id_a`` are 0 (not on this wire).  The drive
 sends at SYNC k the feedback of the cycle SYNC k-1 started, so ``seq`` is the seq of the
 setpoint sent with SYNC k-1.  Each SYNC carries a counter byte (CiA 301, 1-240) and the
-drive echoes which SYNC sent a TPDO set (:data:`io_adapters.can_cia402.SW_ECHO`, bits 8,
+drive echoes which SYNC sent a TPDO set (:data:`io_adapters.can_node.SW_ECHO`, bits 8,
 14-15 of the statusword, removed here), so a set that comes late is labelled with the
 SYNC it answers, not taken for the answer to the last one; without the echo (another
 drive) the set is taken for the answer to the last SYNC sent.  The drive's clock is not
@@ -56,13 +56,8 @@ import time
 import can
 
 from io_adapters.base import AdapterError, Endpoint, FrameError, Role
-from io_adapters.can_cia402 import (
-    ECHO_SHIFT,
-    SW_ECHO,
-    SW_ECHO_MASK,
-    CanDriveEndpoint,
-    open_bus,
-)
+from io_adapters.can_cia402 import CanDriveEndpoint, open_bus
+from io_adapters.can_node import ECHO_SHIFT, SW_ECHO, SW_ECHO_MASK
 from io_adapters.cia402_objects import (
     HEARTBEAT_BASE,
     INT_RANGE,

@@ -5,8 +5,8 @@ reaction (:mod:`hil.drive.core`); its parameters (:mod:`hil.drive.config`), faul
 lock-step simulation use this one drive."""
 
 from hil.drive.config import DriveParameters, load_drive
-from hil.drive.core import DriveSet, EmulatedDrive, FaultEvent, FaultLog
-from hil.drive.faults import Cause
+from hil.drive.core import DriveSet, EmulatedDrive
+from hil.drive.faults import Cause, FaultEvent, FaultLog
 from hil.drive.loops import DriveLoops
 
 __all__ = ["Cause", "DriveLoops", "DriveParameters", "DriveSet", "EmulatedDrive", "FaultEvent",

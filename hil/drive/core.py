@@ -37,9 +37,9 @@ machine, faults and loops, all cycled once per message.
 """
 
 import math
-from dataclasses import asdict, dataclass
 
 from hil.cia402 import (
+    CW_FAULT_RESET,
     DISABLE_VOLTAGE,
     QUICK_STOP,
     SW_FOLLOWS_COMMAND,
@@ -52,7 +52,7 @@ from hil.cia402 import (
 )
 from hil.controller.config import ControllerSection, load_controller
 from hil.drive.config import DriveParameters, load_drive
-from hil.drive.faults import ERROR_CODE, TORQUE_OFF, Cause, causes_text, first_cause
+from hil.drive.faults import TORQUE_OFF, Cause, FaultLog
 from hil.drive.loops import DriveLoops
 from hil.drive.monitor import Monitor
 from hil.drive.reaction import BrakeRamp
@@ -69,73 +69,6 @@ from io_adapters.messages import (
 )
 from plant import Plant
 from plant import layout as L
-
-#: fault events kept in :attr:`FaultLog.events`; later ones are counted only
-MAX_EVENTS = 1000
-CW_FAULT_RESET = 1 << 7
-
-
-@dataclass(frozen=True)
-class FaultEvent:
-    """A fault latched, or a fault reset taken.
-
-    Attributes:
-        kind: "fault" (causes latched) or "reset" (causes cleared by a fault reset).
-        cycle: the drive cycle (PWM periods since the drive was built).
-        causes: the causes (a :class:`~hil.drive.faults.Cause` mask).
-        code: 603Fh after the event (0 after a complete reset).
-        text: the causes in words, with their codes.
-    """
-    kind: str
-    cycle: int
-    causes: int
-    code: int
-    text: str
-
-
-class FaultLog:
-    """The drive's fault causes: latched since the last reset, and the events.
-
-    Attributes:
-        latched: causes latched and not yet reset (a Cause mask).
-        code: 603Fh, the code of the first cause latched (0: none).
-        events: the first :data:`MAX_EVENTS` events; ``n_events`` counts them all.
-    """
-
-    def __init__(self):
-        self.latched = 0
-        self.code = 0
-        self.events: list[FaultEvent] = []
-        self.n_events = 0
-
-    def latch(self, causes: int, cycle: int) -> None:
-        """Latch ``causes`` (those already latched are not events again)."""
-        new = causes & ~self.latched
-        if not new:
-            return
-        if not self.latched:
-            self.code = ERROR_CODE[first_cause(new)]
-        self.latched |= new
-        self._event("fault", cycle, new)
-
-    def reset(self, present: int, cycle: int) -> None:
-        """A fault reset: clear the latched causes not in ``present``."""
-        cleared = self.latched & ~present
-        if not cleared:
-            return
-        self.latched &= present
-        self.code = ERROR_CODE[first_cause(self.latched)] if self.latched else 0
-        self._event("reset", cycle, cleared)
-
-    def _event(self, kind: str, cycle: int, causes: int) -> None:
-        self.n_events += 1
-        if len(self.events) < MAX_EVENTS:
-            self.events.append(FaultEvent(kind, cycle, causes, self.code, causes_text(causes)))
-
-    def as_dict(self) -> dict:
-        """JSON-ready: latched causes, 603Fh, events."""
-        return {"latched": causes_text(self.latched), "error_code": self.code,
-                "events": [asdict(e) for e in self.events], "events_total": self.n_events}
 
 
 class EmulatedDrive:

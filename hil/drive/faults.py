@@ -28,12 +28,15 @@ FF02h   plant state diverged          a plant state beyond its runaway bound
 FF03h   drive loop non-finite         the drive's own speed/position loop gave a NaN
 ======  ============================  =========================================================
 
+:class:`FaultLog` keeps a drive's latched causes, its 603Fh and the fault events.
+
 The link causes (watchdog, heartbeat, NMT) act as the abort connection option code 6007h
 says; the others take the fault reaction of 605Eh, except those in :data:`TORQUE_OFF`, for
 which braking is impossible or unsafe (the state it would brake from is gone, or the
 current that would brake is what tripped) and the drive removes torque at once.
 """
 
+from dataclasses import asdict, dataclass
 from enum import IntFlag
 
 
@@ -93,3 +96,69 @@ def causes_text(mask: int) -> str:
     """The causes of ``mask`` with their codes, one phrase each."""
     return "; ".join(f"{ERROR_CODE[c]:04X}h {TEXT[c]}" for c in Cause if mask & c)
 
+
+#: fault events kept in :attr:`FaultLog.events`; later ones are counted only
+MAX_EVENTS = 1000
+
+
+@dataclass(frozen=True)
+class FaultEvent:
+    """A fault latched, or a fault reset taken.
+
+    Attributes:
+        kind: "fault" (causes latched) or "reset" (causes cleared by a fault reset).
+        cycle: the drive cycle (PWM periods since the drive was built).
+        causes: the causes (a :class:`~hil.drive.faults.Cause` mask).
+        code: 603Fh after the event (0 after a complete reset).
+        text: the causes in words, with their codes.
+    """
+    kind: str
+    cycle: int
+    causes: int
+    code: int
+    text: str
+
+
+class FaultLog:
+    """The drive's fault causes: latched since the last reset, and the events.
+
+    Attributes:
+        latched: causes latched and not yet reset (a Cause mask).
+        code: 603Fh, the code of the first cause latched (0: none).
+        events: the first :data:`MAX_EVENTS` events; ``n_events`` counts them all.
+    """
+
+    def __init__(self):
+        self.latched = 0
+        self.code = 0
+        self.events: list[FaultEvent] = []
+        self.n_events = 0
+
+    def latch(self, causes: int, cycle: int) -> None:
+        """Latch ``causes`` (those already latched are not events again)."""
+        new = causes & ~self.latched
+        if not new:
+            return
+        if not self.latched:
+            self.code = ERROR_CODE[first_cause(new)]
+        self.latched |= new
+        self._event("fault", cycle, new)
+
+    def reset(self, present: int, cycle: int) -> None:
+        """A fault reset: clear the latched causes not in ``present``."""
+        cleared = self.latched & ~present
+        if not cleared:
+            return
+        self.latched &= present
+        self.code = ERROR_CODE[first_cause(self.latched)] if self.latched else 0
+        self._event("reset", cycle, cleared)
+
+    def _event(self, kind: str, cycle: int, causes: int) -> None:
+        self.n_events += 1
+        if len(self.events) < MAX_EVENTS:
+            self.events.append(FaultEvent(kind, cycle, causes, self.code, causes_text(causes)))
+
+    def as_dict(self) -> dict:
+        """JSON-ready: latched causes, 603Fh, events."""
+        return {"latched": causes_text(self.latched), "error_code": self.code,
+                "events": [asdict(e) for e in self.events], "events_total": self.n_events}
