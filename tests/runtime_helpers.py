@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from hil.cia402 import EnableSequencer
+from hil.cia402 import EnableSequencer, State, statusword_state
 from hil.runtime.demo import wait_ready
 from tests.conftest import CONFIGS, ROOT
 
@@ -144,3 +144,30 @@ def enable(ep, sp, fb) -> EnableSequencer:
         if seq.done:
             return seq
     raise AssertionError(seq.reason)
+
+
+def until_state(ep, sp, fb, state: State, limit: int = 4000) -> None:
+    """Answer feedback until the drive reports ``state``."""
+    for _ in range(limit):
+        exchange(ep, sp, fb, 1)
+        if statusword_state(fb.statusword) == state:
+            return
+    raise AssertionError(f"drive not in {state.name}: 0x{fb.statusword:04X}")
+
+
+def check_recording(run_dir: Path) -> tuple[dict, dict]:
+    """The run's report and recording, with what must hold whatever happened: the plant
+    state finite, every setpoint applied finite and within the power stage, the table
+    inside the stroke and its end stops."""
+    report, rec = read_run(run_dir)
+    from plant.config import load_machine
+    table = load_machine(report["machine_file"]).table
+    for name in ("plant_table_pos", "plant_motor_vel", "plant_iq_a"):
+        assert np.isfinite(rec[name]).all(), name
+    for name in ("sp_iq_ref_a", "sp_uq_v", "sp_target_position_counts"):
+        assert np.isfinite(rec[name]).all(), f"{name}: a refused value was applied"
+    assert (np.abs(rec["sp_iq_ref_a"]) <= 28.0).all()
+    x = rec["plant_table_pos"]
+    over = table.end_stop_overtravel_m
+    assert -over < x.min() and x.max() < table.travel_m + over
+    return report, rec

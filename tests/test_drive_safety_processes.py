@@ -1,5 +1,6 @@
-"""Every fault and watchdog path of the emulated drive with the emulator (``hil run``) in
-its own process and the test as the controller over real sockets, pty pairs and CAN buses.
+"""The emulated drive's refusals, strangers, a restarted controller and a stalled peer with
+the emulator (``hil run``) in its own process and the test as the controller over real
+sockets and pty pairs (the drive's monitoring and CAN: test_drive_monitoring_processes.py).
 
 The references are the CiA 402 state table (statusword patterns, the fault-reset edge),
 the drive's error codes (hil.drive.faults, CiA 301/402), the stroke of the machine file and
@@ -17,24 +18,23 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
 import pytest
 
 from hil.cia402 import DISABLE_VOLTAGE, State, statusword_state
 from hil.drive.faults import ERROR_CODE, Cause
 from io_adapters import Feedback, Setpoint, open_endpoint
 from io_adapters.messages import MODE_CSP, MODE_CST, MODE_VOLTAGE
-from plant.config import load_machine
 from tests.runtime_helpers import (
     ANSWER_S,
     EXIT_S,
     SLOW_2KHZ,
     Children,
+    check_recording,
     enable,
     exchange,
     machine_variant,
-    read_run,
     terminate,
+    until_state,
 )
 
 START_MM = 250.0
@@ -47,32 +47,6 @@ MM_S_COUNTS = 1e-3 / 0.01 * 2**22
 @pytest.fixture(scope="module")
 def config(tmp_path_factory) -> Path:
     return machine_variant(tmp_path_factory.mktemp("cfg") / "arrow_2khz.toml", SLOW_2KHZ)
-
-
-def until_state(ep, sp, fb, state: State, limit: int = 4000) -> None:
-    """Answer feedback until the drive reports ``state``."""
-    for _ in range(limit):
-        exchange(ep, sp, fb, 1)
-        if statusword_state(fb.statusword) == state:
-            return
-    raise AssertionError(f"drive not in {state.name}: 0x{fb.statusword:04X}")
-
-
-def check_recording(run_dir: Path) -> tuple[dict, dict]:
-    """The run's report and recording, with what must hold whatever happened: the plant
-    state finite, every setpoint applied finite and within the power stage, the table
-    inside the stroke and its end stops."""
-    report, rec = read_run(run_dir)
-    table = load_machine(report["machine_file"]).table
-    for name in ("plant_table_pos", "plant_motor_vel", "plant_iq_a"):
-        assert np.isfinite(rec[name]).all(), name
-    for name in ("sp_iq_ref_a", "sp_uq_v", "sp_target_position_counts"):
-        assert np.isfinite(rec[name]).all(), f"{name}: a refused value was applied"
-    assert (np.abs(rec["sp_iq_ref_a"]) <= 28.0).all()
-    x = rec["plant_table_pos"]
-    over = table.end_stop_overtravel_m
-    assert -over < x.min() and x.max() < table.travel_m + over
-    return report, rec
 
 
 # -- UDP ------------------------------------------------------------------------------
@@ -300,97 +274,3 @@ def test_a_serial_peer_that_stops_reading_costs_no_overrun(config, tmp_path):
     loop, stats = report["loop"], report["adapter"]["stats"]
     assert stats["send_dropped"] > 0 and report["adapter_errors"]["send"] == 0
     assert loop["overruns"] <= 0.05 * loop["ticks"], loop
-
-
-# -- CANopen, with canopen's master -----------------------------------------------------
-
-CAN_NODE, CAN_RATED_MA = 5, 28000
-SYNC_S = 0.002  # the master's SYNC period; hil run runs one tick per SYNC (--rate 500)
-MASTER_HEARTBEAT = 0x77F  # the master's heartbeat as node 127
-
-
-def wait_until(predicate, what: str, limit_s: float = 10.0) -> None:
-    end = time.monotonic() + limit_s
-    while not predicate():
-        assert time.monotonic() < end, f"gave up waiting for {what}"
-        time.sleep(0.002)
-
-
-def emcy_codes(node) -> list[int]:
-    return [e.code for e in node.emcy.log]
-
-
-def recover(network, node) -> None:
-    """SYNC and process data on, the target at the actual position, a fault reset and
-    the enable sequence back to OPERATION ENABLED (canopen's BaseNode402 state setter)."""
-    from tests.test_can_cia402 import WAIT_S
-    rpdo2 = node.rpdo[2]
-    rpdo2[0x607A].raw = node.sdo[0x6064].raw
-    rpdo2[0x60B1].raw = 0
-    node.state = "OPERATION ENABLED"
-    assert node.state == "OPERATION ENABLED"
-    assert node.tpdo[1].wait_for_reception(WAIT_S) is not None
-    assert node.sdo[0x603F].raw == 0
-
-
-def test_a_canopen_master_lost_in_every_way_faults_the_drive(config, tmp_path,
-                                                             multicast_group):
-    """hil run as a CiA 402 node on udp_multicast; canopen's BaseNode402 enables it in
-    CSP at a 2 ms SYNC with its heartbeat consumed (1016h, 100 ms).  Then, each followed
-    by a fault reset: the heartbeat stops (8130h), NMT stop (8100h), SYNC and RPDOs stop
-    (the watchdog: 8250h; the drive's own cycles are not heard), and a mode 42 in RPDO1
-    (FF10h).  Every fault is the drive's FAULT with its EMCY and 603Fh; the recording
-    holds them in order."""
-    from tests.test_can_cia402 import enable_and_move_csp, master_network, master_node
-    group, port = multicast_group
-    url = (f"can://udp_multicast/{group}?node={CAN_NODE}&rated_current_ma={CAN_RATED_MA}"
-           f"&port={port}&heartbeat_consumer=127:100")
-    run_dir = tmp_path / "run"
-    with Children(tmp_path) as children:
-        proc, _ = children.emulator(config, url, run_dir, "--rate", 500, "--start", START_MM)
-        network = master_network()
-        heartbeat = None
-        try:
-            network.connect(interface="udp_multicast", channel=group, port=port)
-            node = master_node(network)
-            heartbeat = network.send_periodic(MASTER_HEARTBEAT, [0x05], 0.02)
-            enable_and_move_csp(network, node, distance_counts=41943, steps=25)
-
-            heartbeat.stop()  # 1: the master's heartbeat stops
-            wait_until(lambda: 0x8130 in emcy_codes(node), "EMCY 8130h")
-            wait_until(lambda: node.state == "FAULT", "FAULT")
-            assert node.sdo[0x603F].raw == 0x8130
-            heartbeat = network.send_periodic(MASTER_HEARTBEAT, [0x05], 0.02)
-            recover(network, node)
-
-            node.nmt.state = "STOPPED"  # 2: NMT stop
-            wait_until(lambda: node.sdo[0x603F].raw == 0x8100, "603Fh 8100h")
-            node.nmt.state = "OPERATIONAL"
-            wait_until(lambda: node.state == "FAULT", "FAULT after NMT stop")
-            recover(network, node)
-
-            network.sync.stop()  # 3: SYNC and process data stop
-            node.rpdo[2].stop()
-            wait_until(lambda: 0x8250 in emcy_codes(node), "EMCY 8250h")
-            network.sync.start(SYNC_S)
-            node.rpdo[2].start(SYNC_S)
-            recover(network, node)
-
-            node.rpdo[1][0x6060].raw = 42  # 4: a mode the drive does not take
-            node.rpdo[1].transmit()
-            wait_until(lambda: 0xFF10 in emcy_codes(node), "EMCY FF10h")
-            node.rpdo[1][0x6060].raw = 8
-            node.rpdo[1].transmit()
-            recover(network, node)
-        finally:
-            if heartbeat is not None:
-                heartbeat.stop()
-            network.sync.stop()
-            network.disconnect()
-        assert terminate(proc) == 0, children.log("emulator")
-    report, _ = check_recording(run_dir)
-    faults = [e["code"] for e in report["faults"]["X"]["events"] if e["kind"] == "fault"]
-    assert faults == [0x8130, 0x8100, 0x8250, 0xFF10]
-    assert report["adapter"]["stats"]["refused_mode"] == 1
-    kinds = [e["kind"] for e in report["watchdog"]["events"]]
-    assert "heartbeat lost" in kinds and "NMT stopped" in kinds and "tripped" in kinds
