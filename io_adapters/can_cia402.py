@@ -40,7 +40,8 @@ drive synchronises its control cycle to SYNC.  With no SYNC for ``sync_timeout_m
 the drive starts its cycle on its own clock, every ``sync_timeout_ms``, sending its
 TPDOs the same way (the newest values, however many cycles wrote them since): a master
 that has not started SYNC yet (or stopped it) still sees the statusword move.  SYNC is
-taken while a node is in PRE-OPERATIONAL or OPERATIONAL; SDO in every state.  The drive
+taken while a node is in PRE-OPERATIONAL or OPERATIONAL, SDO in every state but STOPPED
+(CiA 301; a request there goes unanswered).  The drive
 boots into PRE-OPERATIONAL and sends its boot-up message when opened.
 
 Network management and the lost master (:meth:`link_conditions`, which the drive's watchdog
@@ -68,14 +69,16 @@ parameter objects are the drive's (:attr:`CanDriveEndpoint.objects`).
 
 Refused, as on every transport (:attr:`~io_adapters.base.Endpoint.setpoint_bounds`): an
 RPDO or SDO write with a mode the drive does not take (``refused_mode``; SDO abort 0609
-0030h) or a current beyond its bound (``refused_range``; SDO abort 0609 0031h/0032h):
-the image keeps its last accepted values and :attr:`refused_axes` names the axis at the
-next :meth:`recv_setpoint`.  Counted in :attr:`stats`: ``received`` cycles heard,
-``timeouts`` the others, ``lost`` cycles that a newer SYNC overwrote before
-:meth:`recv_setpoint` took them, ``malformed`` RPDO frames dropped (a DLC other than the
-mapping's, stricter than CiA 301, which uses the first bytes of a longer one).  The bus's
-receive thread (python-can's ``Notifier``, run by canopen) is stopped by :meth:`close`.
-"""
+0030h) or a value beyond its bound (``refused_range``; SDO abort 0609 0031h/0032h): the
+image keeps its last accepted values; a refused RPDO is named in :attr:`refused_axes` at
+the next :meth:`recv_setpoint` (the drive faults, FF10h), a refused SDO write is
+answered with its abort only, as a drive answers a bad parameter.  A frame the bus
+cannot take (a full transmit queue) is dropped and counted in ``send_dropped``.  Counted
+in :attr:`stats`: ``received`` cycles heard, ``timeouts`` the others, ``lost`` cycles
+that a newer SYNC overwrote before :meth:`recv_setpoint` took them, ``malformed`` RPDO
+frames dropped (a DLC other than the mapping's, stricter than CiA 301, which uses the
+first bytes of a longer one).  The bus's receive thread (python-can's ``Notifier``, run
+by canopen) is stopped by :meth:`close`.  """
 
 import ipaddress
 import threading
@@ -187,8 +190,11 @@ class CanDriveEndpoint(Endpoint):
         self.network = canopen.Network(open_bus(link))
         self.network.NOTIFIER_CYCLE = NOTIFIER_CYCLE_S
         try:
-            for node in self.nodes:
-                self.network.add_node(node)
+            for n in self._nodes:
+                self.network.add_node(n.local)
+                sdo = n.local.sdo  # its requests go through the node (no SDO when STOPPED)
+                self.network.unsubscribe(sdo.rx_cobid, sdo.on_request)
+                self.network.subscribe(sdo.rx_cobid, n.on_sdo_request)
             self.network.subscribe(SYNC_COB_ID, self._on_sync)
             self.network.subscribe(NMT_COB_ID, self._on_nmt)  # after canopen's own
             for cob_id in self._rpdo_of:
@@ -223,7 +229,7 @@ class CanDriveEndpoint(Endpoint):
         if node.reset_event:
             node.reset_event = False
             conditions |= LINK_RESET
-        if node.consumer is not None and node.heartbeat_lost(time.monotonic()):
+        if node.watch is not None and node.heartbeat_lost(time.monotonic()):
             conditions |= LINK_HEARTBEAT_LOST
         return conditions
 
@@ -283,15 +289,20 @@ class CanDriveEndpoint(Endpoint):
                      counter: int | None = None) -> None:
         """Send the TPDOs, latch the inputs, wake the loop (the lock is held)."""
         fresh = self._written == 1 if by_sync else self._written > 0
+        # a frame the bus cannot take (a full transmit queue: nobody acknowledges) is
+        # dropped and counted; the cycle's bookkeeping below always runs
         if fresh:
             with self.network.send_lock:
                 for node in self._nodes:
                     if node.local.nmt.state == "OPERATIONAL":
-                        node.send_tpdos(self.network.bus, counter)
+                        self.stats.send_dropped += node.send_tpdos(self.network.bus, counter)
         for node in self._nodes:
             due = node.emcy_due()
             if due is not None:
-                node.local.emcy.send(*due)
+                try:
+                    node.local.emcy.send(*due)
+                except can.CanError:
+                    self.stats.send_dropped += 1
         self._written = 0
         if self._ready:
             self.stats.lost += 1

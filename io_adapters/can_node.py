@@ -77,8 +77,9 @@ class DriveNode:
         self.emcy_code = 0        # the error code the last EMCY announced
         self.reset_event = False  # an NMT reset not yet reported to the loop
         self.heartbeat_start = link.heartbeat_consumer
-        self.consumer: tuple[int, int] | None = None
-        self.heartbeat_s = math.nan  # monotonic time of the last consumed heartbeat
+        #: the consumed heartbeat: (node-ID, consumer time s, monotonic time of the last
+        #: one, NaN before the first), or None
+        self.watch: tuple[int, float, float] | None = None
         self.local = canopen.LocalNode(node_id, drive_object_dictionary(
             node_id, link.rated_current_ma, link.rated_torque_mnm, link.heartbeat_consumer))
         self.local.add_read_callback(self.on_sdo_read)
@@ -120,16 +121,22 @@ class DriveNode:
         self.image[ERROR_REGISTER] = error_register(fb.fault)
 
     # -- the bus's side --------------------------------------------------------------------
-    def send_tpdos(self, bus: can.BusABC, counter: int | None) -> None:
-        """Send the staged TPDO1-3, TPDO1 with the SYNC echo when ``counter`` is given."""
+    def send_tpdos(self, bus: can.BusABC, counter: int | None) -> int:
+        """Send the staged TPDO1-3, TPDO1 with the SYNC echo when ``counter`` is given;
+        how many the bus could not take (dropped)."""
         for msg, staged in zip(self.tpdo_msgs, self.staged):
             msg.data[:] = staged
         tpdo1 = self.tpdo_msgs[0].data  # statusword little-endian: bits 8-15
         tpdo1[1] &= ~SW_ECHO_MASK >> 8 & 0xFF
         if counter is not None:
             tpdo1[1] |= (SW_ECHO | (counter & 3) << ECHO_SHIFT) >> 8
+        dropped = 0
         for msg in self.tpdo_msgs:
-            bus.send(msg)
+            try:
+                bus.send(msg)
+            except can.CanError:
+                dropped += 1
+        return dropped
 
     def emcy_due(self) -> tuple[int, int] | None:
         """(code, 1001h) of an EMCY to send now, if the error code changed (lock held)."""
@@ -163,14 +170,15 @@ class DriveNode:
         return bounds.refusal(MODE_CST if mode == NO_MODE else mode, get((0x607A, 0)),
                               get((0x60FF, 0)), get((0x60B1, 0)), current, 0.0, 0.0, 0.0)
 
-    def refuse(self, reason: int) -> None:
-        """Count a refusal and keep it for the loop (the lock is held)."""
+    def refuse(self, reason: int, fault: bool = True) -> None:
+        """Count a refusal and, for process data (``fault``), keep it for the loop, whose
+        drive faults on it (the lock is held)."""
         stats = self.owner.stats
         if reason == REFUSED_MODE:
             stats.refused_mode += 1
         else:
             stats.refused_range += 1
-        self.refused = True
+        self.refused = self.refused or fault
 
     def on_rpdo(self, data: bytearray, layout) -> bool:
         """Take one RPDO into the image; False (malformed) on a wrong DLC."""
@@ -186,13 +194,21 @@ class DriveNode:
                 self.owner._fresh = True
         return True
 
+    def on_sdo_request(self, can_id: int, data: bytearray, timestamp: float) -> None:
+        """An SDO request, served unless the node is STOPPED (CiA 301: no SDO there)."""
+        if self.local.nmt.state != "STOPPED":
+            self.local.sdo.on_request(can_id, data, timestamp)
+
     def on_sdo_read(self, index: int, subindex: int, od) -> int | None:
         if subindex != od.subindex:
             raise SdoAbortedError(SDO_ABORT_NO_SUBINDEX)
         key = (index, subindex)
         objects = self.owner.objects
         if key in PARAMETER_OBJECTS and objects is not None:
-            return objects.read(self.axis, index, subindex)
+            try:
+                return objects.read(self.axis, index, subindex)
+            except ObjectAccessError as e:
+                raise SdoAbortedError(e.abort_code) from e
         with self.lock:
             return self.image.get(key)
 
@@ -214,8 +230,8 @@ class DriveNode:
     def _write_input(self, key: tuple[int, int], value: int) -> None:
         with self.lock:
             reason = self.refusal({key: value})
-            if reason:
-                self.refuse(reason)
+            if reason:  # the abort answers the master; the drive does not fault
+                self.refuse(reason, fault=False)
                 if reason == REFUSED_MODE:
                     raise SdoAbortedError(SDO_ABORT_VALUE_RANGE)
                 raise SdoAbortedError(SDO_ABORT_VALUE_HIGH if value > 0 else SDO_ABORT_VALUE_LOW)
@@ -227,24 +243,28 @@ class DriveNode:
         """1016h:01 = ``entry``: watch node (bits 16-22)'s heartbeat for (bits 0-15) ms;
         0 in either: no consumer."""
         network = self.owner.network
-        if self.consumer is not None:
-            network.unsubscribe(HEARTBEAT_BASE + self.consumer[0], self.on_heartbeat)
+        watched = self.watch
+        if watched is not None:
+            network.unsubscribe(HEARTBEAT_BASE + watched[0], self.on_heartbeat)
         node_id, ms = entry >> 16 & 0x7F, entry & 0xFFFF
-        self.consumer = (node_id, ms) if node_id and ms else None
-        self.heartbeat_s = math.nan
-        if self.consumer is not None:
+        # one assignment: the loop's thread never sees a new consumer with an old time
+        self.watch = (node_id, ms * 1e-3, math.nan) if node_id and ms else None
+        if self.watch is not None:
             network.subscribe(HEARTBEAT_BASE + node_id, self.on_heartbeat)
 
     def on_heartbeat(self, can_id: int, data: bytearray, timestamp: float) -> None:
-        self.heartbeat_s = time.monotonic()
+        watched = self.watch
+        if watched is not None:
+            self.watch = (watched[0], watched[1], time.monotonic())
 
     def heartbeat_lost(self, now_s: float) -> bool:
         """The consumed heartbeat is overdue (monitoring starts with the first one)."""
-        consumer = self.consumer
-        return consumer is not None and now_s - self.heartbeat_s > consumer[1] * 1e-3
+        watched = self.watch
+        return watched is not None and now_s - watched[2] > watched[1]
 
     def boot(self, application: bool) -> None:
-        """NMT reset: communication objects back to their start values (and the drive's
+        """NMT reset: the master's process data cleared (controlword 0: disable voltage,
+        no mode), communication objects back to their start values (and the drive's
         parameters for a reset node), boot-up message, PRE-OPERATIONAL."""
         objects = self.owner.objects
         if application and objects is not None:
@@ -252,6 +272,9 @@ class DriveNode:
         entry = self.heartbeat_start
         self.consume_heartbeat(0 if entry is None else entry[0] << 16 | entry[1])
         self.local.data_store.clear()
+        with self.lock:  # the master's process data is gone: controlword 0, no mode
+            self.image.update(dict.fromkeys(INPUTS, 0))
+            self.latched = (0,) * len(INPUTS)
         nmt = self.local.nmt
         nmt.stop_heartbeat()
         nmt.state = "RESET"             # boot-up message

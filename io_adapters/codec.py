@@ -30,7 +30,7 @@ Feedback (kind 2), header then::
 
     4  seq             int    u32, seq of the setpoint answered
     5  statusword      int    u16, CiA 402 statusword (6041h)
-    6  fault           int    i32, plant fault status (0 = none)
+    6  fault           int    i32, the drive's error code 603Fh (0 = none)
     7  time_s          float  s, drive time at the end of the cycle
     8  encoder_counts  float  motor encoder counts
     9  scale_counts    float  linear scale counts

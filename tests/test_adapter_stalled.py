@@ -2,10 +2,10 @@
 
 Each test makes 10 000 sends to a peer that does not read and asserts that every call
 returned, that the sends the transport had no room for were dropped and counted
-(``send_dropped``), and that the sends together took less than 1 ms each.  That bound is
-not a measure of speed (a non-blocking send takes microseconds); it separates the two
-behaviours: the old serial code waited up to its 0.1 s write timeout for each send to a
-stalled peer, and a blocking send waits forever.  On serial the stream must stay framed:
+(``send_dropped``), and, on the ptys, that the calls kept returning while the descriptor
+could not take a byte (``select`` says it is not writable): a send that waited for room
+(the old serial code, 0.1 s a send) would not have returned until the peer read.  No
+duration is asserted.  On serial the stream must stay framed:
 what the peer reads afterwards decodes to exactly the frames counted as sent, with no
 bad frame and no skipped byte.
 
@@ -21,6 +21,7 @@ and IP_RECVERR, refuses them (ENOBUFS).
 
 import json
 import os
+import select
 import shutil
 import subprocess
 import sys
@@ -38,18 +39,16 @@ from tests.test_adapters import assert_counts_add_up
 
 ROOT = Path(__file__).resolve().parent.parent
 SENDS = 10_000
-BOUND_S = SENDS * 1e-3  # 1 ms per send: see the module docstring
 WAIT_S = 10.0
 
 
-def send_many(ep) -> tuple[int, float]:
-    """SENDS feedback records; (how many went out, seconds the calls took)."""
+def send_many(ep) -> int:
+    """SENDS feedback records; how many went out."""
     fb, sent = Feedback(), 0
-    start = time.monotonic()
     for k in range(SENDS):
         fb.seq = k
         sent += ep.send_feedback(fb)
-    return sent, time.monotonic() - start
+    return sent
 
 
 def read_frames(reader: FrameReader, fd: int, expected: int) -> int:
@@ -69,10 +68,10 @@ def read_frames(reader: FrameReader, fd: int, expected: int) -> int:
 
 
 def assert_never_waited_and_stayed_framed(ep, far_fd: int) -> None:
-    sent, took_s = send_many(ep)
+    sent = send_many(ep)
     s = ep.stats
     assert s.send_dropped > 0 and sent + s.send_dropped == SENDS == s.sent + s.send_dropped
-    assert took_s < BOUND_S
+    assert not select.select((), (ep.fileno(),), (), 0)[1], "full, and the sends returned"
     # the peer reads again: the frame left half written (if one was) is finished before
     # the next one is started
     far = AdapterStats()
@@ -124,8 +123,7 @@ def test_udp_receiver_with_a_full_buffer_on_loopback():
             UdpEndpoint("controller", device.address[:2], rcvbuf=4096) as ctl:
         ctl.send_setpoint(Setpoint())
         assert device.recv_setpoint(Setpoint(), WAIT_S)  # pinned to ctl
-        sent, took_s = send_many(device)
-        assert sent == SENDS and took_s < BOUND_S
+        assert send_many(device) == SENDS
         assert device.stats.send_dropped == 0
         fb, got = Feedback(), 0
         while ctl.recv_feedback(fb, 0.05):
@@ -138,7 +136,7 @@ def test_udp_receiver_with_a_full_buffer_on_loopback():
 
 
 NAMESPACE_DEVICE = textwrap.dedent("""
-    import json, socket, sys, time
+    import json, socket, sys
     from io_adapters import Feedback, Setpoint
     from io_adapters.udp import UdpEndpoint
     IP_RECVERR = 11  # linux/in.h; Python's socket module does not name it
@@ -151,12 +149,10 @@ NAMESPACE_DEVICE = textwrap.dedent("""
             with socket.socket(fileno=os.dup(device.fileno())) as same:
                 same.setsockopt(socket.IPPROTO_IP, IP_RECVERR, 1)
         fb, sent = Feedback(), 0
-        start = time.monotonic()
         for k in range(sends):
             sent += device.send_feedback(fb)
-        took = time.monotonic() - start
         print(json.dumps({"sent": sent, "dropped": device.stats.send_dropped,
-                          "stats_sent": device.stats.sent, "took_s": took}))
+                          "stats_sent": device.stats.sent}))
 """).replace("import json, socket", "import json, os, socket")
 
 
@@ -182,11 +178,11 @@ def test_udp_send_buffer_full_drops_and_counts():
     until its send buffer is full: sendto raises BlockingIOError."""
     got = _in_namespace("limit 10000000", recverr=False)
     assert got["dropped"] > 0 and got["sent"] + got["dropped"] == SENDS
-    assert got["stats_sent"] == got["sent"] and got["took_s"] < BOUND_S
+    assert got["stats_sent"] == got["sent"]
 
 
 def test_udp_enobufs_drops_and_counts():
     """A short queue refuses the datagrams; with IP_RECVERR Linux says so (ENOBUFS)."""
     got = _in_namespace("latency 1s", recverr=True)
     assert got["dropped"] > 0 and got["sent"] + got["dropped"] == SENDS
-    assert got["stats_sent"] == got["sent"] and got["took_s"] < BOUND_S
+    assert got["stats_sent"] == got["sent"]

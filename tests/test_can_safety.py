@@ -16,6 +16,7 @@ import subprocess
 import sys
 import time
 import uuid
+from dataclasses import asdict
 
 import can
 import pytest
@@ -25,6 +26,7 @@ from hil.drive.objects import DriveObjects
 from io_adapters import Feedback, Setpoint, open_endpoint
 from io_adapters.base import LINK_HEARTBEAT_LOST, LINK_RESET, LINK_STOPPED
 from io_adapters.can_loopback import LoopbackMulticastBus
+from io_adapters.messages import MODE_CST
 from plant import Plant
 from plant.config import load_machine
 from tests.conftest import CONFIGS
@@ -90,11 +92,15 @@ SDO_REFUSALS = [  # what, request, response (abort code, CiA 301)
 
 @pytest.mark.parametrize("what, asked, response", SDO_REFUSALS)
 def test_sdo_writes_are_checked(rig, what, asked, response):
+    """The abort, and nothing changed: the drive's parameters, its state machine's option,
+    the node's process image, no refusal reported to the loop (an SDO abort is the whole
+    answer; the drive does not fault)."""
     ep, bus, drive = rig
-    before = (drive.params.fe_window, drive.params.max_current_a, drive.sm.quick_stop_option)
+    node = ep._nodes[0]
+    before = (asdict(drive.params), drive.sm.quick_stop_option, dict(node.image))
     assert sdo(bus, asked) == response, what
-    assert (drive.params.fe_window, drive.params.max_current_a,
-            drive.sm.quick_stop_option) == before
+    assert (asdict(drive.params), drive.sm.quick_stop_option, dict(node.image)) == before
+    assert not node.refused
 
 
 def test_parameter_objects_are_the_drives(rig):
@@ -140,6 +146,46 @@ def test_nmt_stop_and_reset_are_link_conditions(rig):
     assert ep.link_conditions(0) == LINK_RESET, "the reset is reported ..."
     assert ep.link_conditions(0) == 0, "... once"
     assert ep.nmt_state == "PRE-OPERATIONAL"
+
+
+def test_a_reset_clears_the_masters_process_data_and_stopped_answers_no_sdo(rig):
+    """After an NMT reset node the latched controlword and mode are 0 (disable voltage,
+    no mode), not the master's last words; in STOPPED an SDO request goes unanswered
+    (CiA 301)."""
+    ep, bus, _ = rig
+    bus.send(frame(0x000, f"01{NODE:02X}"))
+    wait_for(lambda: ep.nmt_state == "OPERATIONAL", "OPERATIONAL")
+    bus.send(frame(0x200 + NODE, "0F000A"))  # RPDO1: enable operation, CST
+    bus.send(frame(0x080, ""))
+    sp = Setpoint()
+    assert ep.recv_setpoint(sp, WAIT_S) and (sp.controlword, sp.mode) == (0x0F, MODE_CST)
+    bus.send(frame(0x000, f"81{NODE:02X}"))  # reset node
+    recv_id(bus, 0x700 + NODE)
+    bus.send(frame(0x080, ""))
+    ep.recv_setpoint(sp, WAIT_S)
+    assert (sp.controlword, sp.mode, sp.iq_ref_a) == (0, MODE_CST, 0.0)
+    bus.send(frame(0x000, f"02{NODE:02X}"))  # stop
+    wait_for(lambda: ep.nmt_state == "STOPPED", "STOPPED")
+    bus.send(frame(0x600 + NODE, upload(0x6041, 0)))
+    assert all(m.arbitration_id != 0x580 + NODE for m in iter(lambda: bus.recv(0.2), None))
+
+
+def test_a_bus_that_takes_no_frame_drops_them_and_the_cycle_goes_on(rig):
+    """A full transmit queue (no node acknowledging on a real bus; here the bus's send
+    refuses): the TPDOs and the EMCY are dropped and counted, the cycle is latched and
+    handed to the loop all the same."""
+    ep, bus, _ = rig
+    bus.send(frame(0x000, f"01{NODE:02X}"))
+    wait_for(lambda: ep.nmt_state == "OPERATIONAL", "OPERATIONAL")
+
+    def refuse(msg, timeout=None):
+        raise can.CanOperationError("transmit buffer full")
+
+    ep.network.bus.send = refuse
+    ep.send_feedback(Feedback(statusword=0x0218, fault=0x8611))
+    bus.send(frame(0x080, ""))
+    assert not ep.recv_setpoint(Setpoint(), WAIT_S) and ep.taken == 1
+    assert ep.stats.send_dropped == 3 + 1  # TPDO1-3 and the EMCY
 
 
 def test_a_heartbeat_consumer_reports_a_lost_master(rig):

@@ -399,3 +399,28 @@ def test_config_keys_lists_the_drive_and_controller_sections():
         for f in fields(cls):
             assert (section, f.name) in rows, f.name
             assert f.metadata["unit"] and f.metadata["doc"], f.name
+
+
+def test_a_link_lost_before_the_drive_is_enabled_acts_once_it_is():
+    """6007h = 1: a master enabling the drive while its link is lost (say, by SDO without
+    SYNC) gets the fault as soon as the power stage is on, not never."""
+    b = Bench()
+    b.drive.link_causes = Cause.WATCHDOG
+    b.seq.enable()
+    b.run(200, until=lambda b: b.fb.fault)
+    assert b.fb.fault == ERROR_CODE[Cause.WATCHDOG] and b.state != State.OPERATION_ENABLED
+
+
+def test_a_fault_while_disabled_keeps_the_torque_off():
+    """A drive coasting with its power stage off that faults (a refused setpoint) does
+    not switch the power stage on to brake: FAULT REACTION ACTIVE, then FAULT, torque off
+    throughout."""
+    b = enabled(x0=0.05)
+    b.run(4000, mode=MODE_CSV, target_velocity_counts_s=150.0 / b.rpc)
+    b.hold = 0x0000  # disable voltage: the axis coasts
+    b.run(2)
+    assert b.state == State.SWITCH_ON_DISABLED and not b.torque_on
+    b.run(1, target_velocity_counts_s=math.nan)
+    torque = []
+    b.run(2000, until=lambda b: torque.append(b.torque_on) or b.state == State.FAULT)
+    assert b.state == State.FAULT and not any(torque)

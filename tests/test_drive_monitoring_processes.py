@@ -90,10 +90,12 @@ def test_a_canopen_master_lost_in_every_way_faults_the_drive(config, tmp_path,
             heartbeat = network.send_periodic(MASTER_HEARTBEAT, [0x05], 0.02)
             recover(network, node)
 
-            node.nmt.state = "STOPPED"  # 2: NMT stop
-            wait_until(lambda: node.sdo[0x603F].raw == 0x8100, "603Fh 8100h")
+            node.nmt.state = "STOPPED"  # 2: NMT stop (no SDO, PDO or EMCY while STOPPED)
+            time.sleep(0.2)  # the drive's ticks see it within one; nothing to poll
             node.nmt.state = "OPERATIONAL"
+            wait_until(lambda: 0x8100 in emcy_codes(node), "EMCY 8100h after NMT stop")
             wait_until(lambda: node.state == "FAULT", "FAULT after NMT stop")
+            assert node.sdo[0x603F].raw == 0x8100
             recover(network, node)
 
             network.sync.stop()  # 3: SYNC and process data stop

@@ -34,8 +34,8 @@ penetration of a stop, and the checks, each PASS or FAIL:
   every inertia the motor moves, at the table: rigid-body energy, F x + M v^2 / 2 >=
   k x^2 / 2), and only says the plant stays physical;
 * **counters add up**: per frame, as :mod:`hil.bench.fuzz_links` says for its transport;
-* **refusals fault the drive**: the feedback of the cycle that met a refusal carries a
-  non-zero 603Fh.
+* **refusals fault the drive**: the feedback of the cycle that met a refused setpoint
+  carries a non-zero 603Fh (a refused SDO write is answered by its abort alone).
 
 The exit status is 1 when a check fails.  Progress goes to stderr: one updating line on
 a terminal, a line per tenth when piped.  ``hil bench fuzz`` takes the same options
@@ -55,6 +55,7 @@ import numpy as np
 from hil.bench.fuzz_frames import AxisLimits
 from hil.bench.fuzz_links import LINKS
 from hil.cia402 import EnableSequencer, State
+from hil.controller.config import motor_constant
 from hil.drive import DriveSet, EmulatedDrive
 from io_adapters.messages import axis_records, message_pair
 from plant import Plant
@@ -93,7 +94,7 @@ class Stroke:
 
     def __init__(self, plant: Plant, impacts: bool):
         cfg, stops = plant.config, plant.built.end_stops
-        stall_n = cfg.motor.torque_constant_nm_per_a * cfg.motor.current_max_a / plant.built.ratio
+        stall_n = motor_constant(cfg) * cfg.motor.current_max_a / plant.built.ratio
         self.stop_neg, self.stop_pos = stops.stop_neg, stops.stop_pos
         self.static_m = stall_n / stops.stiffness
         self.impact_m_per_m_s = math.sqrt(reflected_inertia(cfg) / plant.built.ratio ** 2

@@ -14,7 +14,7 @@ import math
 from dataclasses import dataclass
 
 from hil.cia402 import AbortConnectionOption, FaultReactionOption, QuickStopOption
-from hil.controller.config import ControllerSection, axis_limits, kv_si
+from hil.controller.config import ControllerSection, axis_limits, kv_si, motor_constant
 from plant.assemble import reflected_inertia, transmission_ratio
 from plant.config import MachineConfig, build_section, check_applies
 from plant.errors import ConfigError
@@ -154,9 +154,7 @@ def _per_motor_unit(cfg: MachineConfig) -> tuple[float, float]:
 
 def _motor_acceleration(cfg: MachineConfig) -> float:
     """The motor's acceleration at [motor] current_max_a, motor units/s²."""
-    mo = cfg.motor
-    kt = mo.force_constant_n_per_a if cfg.machine.kind == "linear" else mo.torque_constant_nm_per_a
-    return mo.current_max_a * kt / reflected_inertia(cfg)
+    return cfg.motor.current_max_a * motor_constant(cfg) / reflected_inertia(cfg)
 
 
 def _no_load_speed(cfg: MachineConfig) -> float:
@@ -165,8 +163,7 @@ def _no_load_speed(cfg: MachineConfig) -> float:
     mo = cfg.motor
     if mo.model != "dq":
         return math.inf
-    kt = mo.force_constant_n_per_a if cfg.machine.kind == "linear" else mo.torque_constant_nm_per_a
-    return 1.5 * 0.5 * mo.dc_link_v / kt  # omega = U / (p psi), K_t = 1.5 p psi
+    return 1.5 * 0.5 * mo.dc_link_v / motor_constant(cfg)  # omega = U / (p psi), K_t = 1.5 p psi
 
 
 def load_drive(cfg: MachineConfig, controller: ControllerSection | None) -> DriveParameters:

@@ -37,6 +37,7 @@ machine, faults and loops, all cycled once per message.
 """
 
 import math
+import threading
 
 from hil.cia402 import (
     CW_FAULT_RESET,
@@ -86,6 +87,8 @@ class EmulatedDrive:
         link_causes: lost-master causes present now (WATCHDOG, HEARTBEAT, NMT), set by the
             runtime before each cycle.
         fault: 603Fh of the last cycle (0: no fault latched).
+        lock: held by every cycle; hold it to change :attr:`params` from another thread
+            (an SDO write: :class:`hil.drive.objects.DriveObjects`).
     """
 
     def __init__(self, plant: Plant, section: ControllerSection | None = None,
@@ -107,11 +110,12 @@ class EmulatedDrive:
         self._bounds = self.setpoint_bounds()
         self.faults = FaultLog()
         self.link_causes = 0
+        self.lock = threading.Lock()
         self.fault = 0
         self.tick = 0
         self.counts_prev = math.nan
         self.velocity_counts_s = 0.0
-        self._link_seen = 0         # link causes already acted on
+        self._link_handled = 0      # link causes acted on while still present
         self._override = -1         # controlword forced by 6007h while the link is lost
         self._previous_cw = 0
         self._limited = 0           # statusword bit 11 when a command met a limit
@@ -143,7 +147,12 @@ class EmulatedDrive:
             self.counts_prev = counts
 
     def cycle(self, sp: Setpoint, fb: Feedback) -> None:
-        """Apply ``sp``, advance the plant one PWM period, write ``fb``."""
+        """Apply ``sp``, advance the plant one PWM period, write ``fb``.  Holds
+        :attr:`lock`: a parameter written from another thread lands between two cycles."""
+        with self.lock:
+            self._cycle(sp, fb)
+
+    def _cycle(self, sp: Setpoint, fb: Feedback) -> None:
         plant, out, p, rpc = self.plant, self.plant.out, self.params, self.rad_per_count
         counts = out[L.O_ENCODER]
         self._speed_actual(counts)
@@ -159,17 +168,18 @@ class EmulatedDrive:
                                      (out[L.O_LIMIT_NEG], out[L.O_LIMIT_POS]))
         controlword = self._controlword(sp.controlword, present)
         standstill = self.monitor.standstill()
-        braked = (self.brake.done(w_act, standstill) if self.brake.active
-                  else abs(w_act) <= standstill)
-        torque_off_reaction = self._reaction() == FaultReactionOption.DISABLE_DRIVE
+        braking = self.brake.active
+        braked = braking and self.brake.done(w_act, standstill)
         before = self.sm.state
+        # a fault reaction is over once its braking is (at once when it does not brake)
         statusword = self.sm.update(
-            controlword, self.faults.latched != 0, stopped=braked,
-            reaction_done=torque_off_reaction or braked, flags=self._flags(sp.mode))
+            controlword, self.faults.latched != 0,
+            stopped=braked if braking else abs(w_act) <= standstill,
+            reaction_done=braked or not braking, flags=self._flags(sp.mode))
         self._limited = 0
         state = self.sm.state
         if state != before:
-            self._entered(state, w_act)
+            self._entered(state, before, w_act)
         if self._bounds.refusal(sp.mode, sp.target_position_counts,
                                 sp.target_velocity_counts_s, sp.velocity_offset_counts_s,
                                 sp.iq_ref_a, sp.id_ref_a, sp.ud_v, sp.uq_v):
@@ -207,9 +217,10 @@ class EmulatedDrive:
         state machine sees."""
         p, sm = self.params, self.sm
         link = self.link_causes
-        # 6007h acts when the link is lost while the power stage is on (torque may be on)
-        new_link = link & ~self._link_seen if sm.power_enabled else 0
-        self._link_seen = link
+        # 6007h acts on a lost link while the power stage is on (torque may be on): at once,
+        # or when the drive is enabled while the link is still lost; once per loss
+        new_link = link & ~self._link_handled if sm.power_enabled else 0
+        self._link_handled = (self._link_handled | new_link) & link
         option = p.abort_connection_option
         latch = (present if sm.state == State.OPERATION_ENABLED
                  else present & (Cause.OVERSPEED | Cause.OVERCURRENT))
@@ -240,14 +251,16 @@ class EmulatedDrive:
         p = self.params
         return {1: p.profile_decel, 2: p.quick_stop_decel}.get(option, math.inf)
 
-    def _entered(self, state: State, w_act: float) -> None:
-        """Start or end braking on a change of state."""
+    def _entered(self, state: State, before: State, w_act: float) -> None:
+        """Start or end braking on a change of state (a fault reaction brakes only a drive
+        whose power stage was on: one faulted while disabled keeps its torque off)."""
         if state == State.QUICK_STOP_ACTIVE and self.loops is not None:
             # 605Ah 1-4 and 5-8 brake alike: 1 and 5 on the slow down ramp, 2 and 6 on the
             # quick stop ramp, 3, 4, 7 and 8 at the current limit
             option = (self.sm.quick_stop_option - 1) % 4 + 1
             self.brake.start(w_act, self._deceleration(option))
-        elif state == State.FAULT_REACTION_ACTIVE and self._reaction():
+        elif (state == State.FAULT_REACTION_ACTIVE and self._reaction()
+              and before in (State.OPERATION_ENABLED, State.QUICK_STOP_ACTIVE)):
             self.brake.start(w_act, self._deceleration(self._reaction()))
         else:
             self.brake.stop()

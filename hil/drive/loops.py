@@ -2,7 +2,7 @@
 with the loop blocks and the ``[controller]`` machine data of the simulated NC, as a
 SINAMICS drive closes them."""
 
-from hil.controller.config import ControllerSection, axis_limits
+from hil.controller.config import ControllerSection, axis_limits, motor_constant
 from hil.controller.loops import PositionLoop, SpeedLoop
 from plant import Plant
 
@@ -19,15 +19,13 @@ class DriveLoops:
 
     def __init__(self, plant: Plant, sec: ControllerSection):
         cfg = plant.config
-        kind = cfg.machine.kind
-        kt = (cfg.motor.force_constant_n_per_a if kind == "linear"
-              else cfg.motor.torque_constant_nm_per_a)
         self.speed_ratio = sec.speed_cycle_ratio
         self.position_ratio = sec.position_cycle_ratio
         period = plant.pwm_period
         w_max = axis_limits(cfg, sec).velocity / plant.built.ratio
         self.pos = PositionLoop(sec, period * sec.position_cycle_ratio, w_max)
-        self.speed = SpeedLoop(sec, period * sec.speed_cycle_ratio, kind, kt,
+        self.speed = SpeedLoop(sec, period * sec.speed_cycle_ratio, cfg.machine.kind,
+                               motor_constant(cfg),
                                cfg.motor.current_max_a)
         self.w_cmd = 0.0
         self.iq = 0.0

@@ -10,11 +10,11 @@ be reset while the axis is still too fast or the motor still too hot.
 
 * **Following error** (CSP): |target - actual| beyond 6065h for longer than 6066h.
 * **Software position limits** 607Dh: the position actual beyond a limit while moving
-  further out.  The limits also act on the commands (:class:`~hil.drive.core.
-  EmulatedDrive`: a CSP target is held inside them, a CSV speed toward the outside is
-  stopped at them); in CSP an overshoot of the target that stopped at a limit is the
-  position loop's, so there the fault needs the position beyond it by more than the
-  following error window 6065h.  A drive that was reset beyond a limit may move back in.
+  further out, in the modes without a position target (CSV, CST, voltage).  In CSP the
+  limits act on the target (:class:`~hil.drive.core.EmulatedDrive` holds it inside them,
+  as it stops a CSV speed toward the outside at them), and the position actual is judged
+  by the following error against that target and by the limit switches.  A drive that
+  was reset beyond a limit may move back in.
 * **Limit switches** (60FDh bits 0 and 1, the plant's switch outputs): a switch active
   while moving further out, or reached.
 * **Overspeed**: |speed| above 6080h times :data:`~hil.drive.faults.OVERSPEED_FACTOR`.
@@ -115,9 +115,7 @@ class Monitor:
                 switches[1] > 0.0 and (reached_pos or w > out)):
             present |= Cause.LIMIT_SWITCH
         csp = target == target
-        tolerance = p.fe_window if csp else 0.0
-        if (theta < p.limit_min - tolerance and w < -out) or (
-                theta > p.limit_max + tolerance and w > out):
+        if not csp and ((theta < p.limit_min and w < -out) or (theta > p.limit_max and w > out)):
             present |= Cause.SOFTWARE_LIMIT
         if csp:
             present |= self._following_error(target - theta)

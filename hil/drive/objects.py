@@ -16,12 +16,13 @@ object   meaning                      wire unit                       refused (a
 6066h    following error time out     ms
 6067h    position window              increments
 6068h    position window time         ms
-6072h    max torque (current)         per mille of 6075h              0 (0609 0032), above
-                                                                      the peak (0609 0031)
+6072h    max torque, as the current   per mille of 6075h (the torque  0 (0609 0032), above
+         limit                        objects' unit on this wire)     the peak (0609 0031)
 607Dh    software position limits     increments (sub 1 min,          min > max (0609 0036)
                                       sub 2 max; -2^31 and 2^31-1:
                                       that side off)
-6080h    max motor speed              increments/s, 0: off
+6080h    max motor speed              increments/s (velocity unit),
+                                      0: off (device-specific)
 6084h    profile deceleration         increments/s²                   0 (0609 0032)
 6085h    quick stop deceleration      increments/s²                   0 (0609 0032)
 60F4h    following error actual       increments (read only)
@@ -29,8 +30,9 @@ object   meaning                      wire unit                       refused (a
                                       limit switch (read only)
 =======  ===========================  ==============================  ======================
 
-Writes take effect from the drive's next cycle.  An NMT reset node puts every object back
-to the machine file's values.
+Reads and writes hold the drive's lock, so a write lands between two cycles and takes
+effect from the next.  An NMT reset node puts every object back to the machine file's
+values.
 """
 
 import math
@@ -42,6 +44,7 @@ from io_adapters.cia402_objects import (
     DI_NEGATIVE_LIMIT,
     DI_POSITIVE_LIMIT,
     SDO_ABORT_MAX_BELOW_MIN,
+    SDO_ABORT_NO_OBJECT,
     SDO_ABORT_VALUE_HIGH,
     SDO_ABORT_VALUE_LOW,
     SDO_ABORT_VALUE_RANGE,
@@ -78,6 +81,10 @@ class DriveObjects:
 
     def read(self, axis: int, index: int, subindex: int) -> int:
         d = self.drives[axis]
+        with d.lock:
+            return self._read(d, index, subindex)
+
+    def _read(self, d: EmulatedDrive, index: int, subindex: int) -> int:
         p, rpc = d.params, d.rad_per_count
         if index in OPTIONS:
             return getattr(p, OPTIONS[index][0])
@@ -98,12 +105,18 @@ class DriveObjects:
             return 0 if math.isinf(p.max_speed) else min(round(p.max_speed / rpc), U32_OFF)
         if index == 0x60F4:
             return min(max(round(d.monitor.following_error / rpc), I32_MIN), I32_MAX)
-        out = d.plant.out  # 0x60FD
-        return ((DI_NEGATIVE_LIMIT if out[L.O_LIMIT_NEG] > 0.0 else 0)
-                | (DI_POSITIVE_LIMIT if out[L.O_LIMIT_POS] > 0.0 else 0))
+        if index == 0x60FD:
+            out = d.plant.out
+            return ((DI_NEGATIVE_LIMIT if out[L.O_LIMIT_NEG] > 0.0 else 0)
+                    | (DI_POSITIVE_LIMIT if out[L.O_LIMIT_POS] > 0.0 else 0))
+        raise ObjectAccessError(SDO_ABORT_NO_OBJECT, f"{index:04X}h is not a drive parameter")
 
     def write(self, axis: int, index: int, subindex: int, value: int) -> None:
         d = self.drives[axis]
+        with d.lock:
+            self._write(d, index, subindex, value)
+
+    def _write(self, d: EmulatedDrive, index: int, subindex: int, value: int) -> None:
         p, rpc = d.params, d.rad_per_count
         if index in OPTIONS:
             name, codes = OPTIONS[index]
@@ -112,7 +125,8 @@ class DriveObjects:
                                         f"not one of {[int(c) for c in codes]}")
             if index == 0x605A:
                 d.set_quick_stop_option(value)
-            setattr(p, name, value)
+            else:
+                setattr(p, name, value)
         elif index in POSITIONS:
             setattr(p, POSITIONS[index], math.inf if value == U32_OFF else value * rpc)
         elif index in TIMES:
@@ -145,9 +159,10 @@ class DriveObjects:
 
     def reset_application(self, axis: int) -> None:
         d, initial = self.drives[axis], self._initial[axis]
-        for f in fields(initial):
-            setattr(d.params, f.name, getattr(initial, f.name))
-        d.set_quick_stop_option(initial.quick_stop_option)
+        with d.lock:
+            for f in fields(initial):
+                setattr(d.params, f.name, getattr(initial, f.name))
+            d.set_quick_stop_option(initial.quick_stop_option)
 
 
 def _positive(index: int, value: int) -> None:
