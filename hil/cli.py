@@ -3,11 +3,13 @@
     hil demo [--config FILE] [--program FILE] [--out DIR] [--no-rt]
     hil run CONFIG --adapter URL [--duration S] [--record DIR] [--watchdog-cycles N] ...
     hil controller CONFIG --adapter URL --program FILE [--out DIR] ...
-    hil validate [--json] [--out DIR] [--only NAME ...]
+    hil validate [--json] [--out DIR | --no-plots] [--only NAME ...] [--strict]
     hil bench plant [--json] [--config FILE ...] [--seconds S]
     hil bench loop [--rate 1000,4000,8000] [--seconds S] [--with-plant] [--json]
     hil bench adapters [--n N] [--adapter udp|serial] [--json]
     hil bench fuzz [--frames N] [--seed N] [--json]
+    hil bench study [--samples N] [--seconds S] [--json]
+    hil study SPEC.toml [--out DIR] [--workers N | --scheduler tcp://HOST:8786] [--fresh]
     hil report RUN [--cyclictest] [--controller DIR]
     hil config-keys [--markdown]
     hil identify TRACE --config CONFIG --out DIR [--validate TRACE2]
@@ -15,9 +17,10 @@
     hil measure CONFIG step current|speed|position --amplitude X [--at MM] --out DIR
     hil measure CONFIG bode current|speed --amplitude X [--offset X] --out DIR
 
-Exit status: 0 on success, 1 when a validation row is not ok or the NC of ``hil sim``
-raised an alarm, 2 on bad input (a machine file that does not load, a part program that
-does not parse, an unknown experiment).
+Exit status: 0 on success (``hil validate``: it ran, whatever rows disagree), 1 when
+``hil validate --strict`` finds a failing verification row or the NC of ``hil sim`` raised
+an alarm, 2 on bad input (a machine file that does not load, a part program that does
+not parse, an unknown experiment).
 """
 
 import argparse
@@ -34,37 +37,6 @@ CONFIG_DIR = Path(__file__).resolve().parent.parent / "configs"
 
 def _eprint(*args) -> None:
     print(*args, file=sys.stderr, flush=True)
-
-
-def _fmt(value) -> str:
-    if isinstance(value, float):
-        return f"{value:.4g}"
-    return str(value)
-
-
-def cmd_validate(args) -> int:
-    from hil.validate.core import run_all
-
-    out_dir = None if args.no_plots else Path(args.out)
-    rows = run_all(out_dir, args.only or None,
-                   progress=lambda name, s: _eprint(f"  {name:<28} {s:6.1f} s"))
-    if args.json:
-        print(json.dumps([r.as_dict() for r in rows], indent=1))
-    else:
-        print(validate_table(rows))
-        if out_dir is not None:
-            print(f"\nplots in {out_dir}/")
-    return 0 if all(r.ok for r in rows) else 1
-
-
-def validate_table(rows) -> str:
-    """Markdown table of validation rows (what README shows)."""
-    lines = ["| experiment | paper / reference | model | unit | ok | reference | tolerance |",
-             "|---|---|---|---|---|---|---|"]
-    for r in rows:
-        lines.append(f"| {r.experiment} | {_fmt(r.paper)} | {_fmt(r.model)} | {r.unit} | "
-                     f"{'yes' if r.ok else '**NO**'} | {r.reference} | {r.tolerance} |")
-    return "\n".join(lines)
 
 
 def cmd_bench_plant(args) -> int:
@@ -184,12 +156,11 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="hil", description="Feed-drive HIL plant emulator")
     sub = parser.add_subparsers(dest="command", required=True)
 
-    v = sub.add_parser("validate", help="run the seed experiments, paper beside model")
-    v.add_argument("--json", action="store_true", help="print a JSON list of rows")
-    v.add_argument("--out", default="validate-out", help="folder for the plots")
-    v.add_argument("--no-plots", action="store_true", help="write no plots")
-    v.add_argument("--only", nargs="*", metavar="NAME", help="run only these experiments")
-    v.set_defaults(func=cmd_validate)
+    from hil.validate import command as validate_command
+    v = sub.add_parser("validate", help="run the seed experiments: each row's kind "
+                       "(verification, reproduction, prediction) and verdict")
+    validate_command.add_arguments(v)
+    v.set_defaults(func=validate_command.run_from_args)
 
     b = sub.add_parser("bench", help="benchmarks (JSON with --json)")
     bsub = b.add_subparsers(dest="what", required=True)
@@ -256,6 +227,11 @@ def build_parser() -> argparse.ArgumentParser:
     from hil.bench import fuzz
     fuzz.add_arguments(bf)
     bf.set_defaults(func=fuzz.run_from_args)
+    from hil.bench import study as bench_study
+    bst = bsub.add_parser("study", help="hil study's samples/s on 1 and 2 local workers, "
+                          "per-task overhead against a bare simulation")
+    bench_study.add_arguments(bst)
+    bst.set_defaults(func=bench_study.run_from_args)
 
     r = sub.add_parser("report", help="latency and jitter report of a run folder")
     r.add_argument("run", help="run folder (run.npz + report.json)")
@@ -286,6 +262,12 @@ def build_parser() -> argparse.ArgumentParser:
                          "from a measured trace")
     identify_command.add_arguments(idf)
     idf.set_defaults(func=identify_command.run_from_args)
+
+    from hil.study import command as study_command
+    stu = sub.add_parser("study", help="tolerance, sensitivity and tuning studies over many "
+                         "simulated machines, on Dask")
+    study_command.add_arguments(stu)
+    stu.set_defaults(func=study_command.run_from_args)
 
     k = sub.add_parser("config-keys", help="every machine-file key with unit and meaning")
     k.add_argument("--markdown", action="store_true")

@@ -1,6 +1,15 @@
-"""Seed experiments that a plant alone can run, each compared with its paper or an
-independent reference (``hil validate``)."""
+"""Seed experiments that a plant alone can run, each row a verification, reproduction or
+prediction with its verdict (``hil validate``)."""
 
-from hil.validate.core import REGISTRY, Result, experiment, run_all
+from hil.validate.core import (
+    REGISTRY,
+    Kind,
+    Result,
+    SeedRef,
+    experiment,
+    failing_verifications,
+    run_all,
+)
 
-__all__ = ["REGISTRY", "Result", "experiment", "run_all"]
+__all__ = ["REGISTRY", "Kind", "Result", "SeedRef", "experiment", "failing_verifications",
+           "run_all"]

@@ -23,7 +23,8 @@ import scipy.signal
 from scipy.stats import norm
 
 from hil.validate import plots
-from hil.validate.core import CONFIGS, Result, experiment, within
+from hil.validate.core import CONFIGS, VERIFICATION, Result, SeedRef, experiment, within
+from hil.validate.experiments.linear_loops import current_loop_tf
 from plant import Plant
 from plant import layout as L
 from plant.config import MachineConfig
@@ -39,6 +40,8 @@ LOCKED = {"motor": {"inertia_kgm2": 1e6}}
 QUIET = {"sensors": {"current_noise_a": 0.0, "current_lsb_a": 0.0}}
 NO_COGGING = {"cogging": {"orders": [], "amplitudes_nm": [], "phases_deg": []}}
 STEP_FRACTIONS = {0.84: 0.03, 2.8: 0.10}  # seed 000 §5: 3 % and 10 % of I_max
+STEP_SOURCE = SeedRef("000", "§5", None, "validated using 3% and 10% step increase of the "
+                      "maximum motor current (0.84 and 2.8 A respectively)")
 
 
 def merged(*overrides: dict) -> dict:
@@ -54,24 +57,10 @@ def merged(*overrides: dict) -> dict:
 
 def analytic_current_step(cfg: MachineConfig, i_ref: float, n: int) -> np.ndarray:
     """Sampled q current (A, shape (n+1,), k = 0..n at t = kT) of the drive's current loop
-    after a step of ``i_ref`` at k = 0, locked rotor, no saturation.
-
-    Plant: L di/dt = u - R i with the voltage held over the PWM period T (ZOH).
-    Controller: u[k] = Kp e[k] + Ki T sum_{j<k} e[j] with Ki = Kp/Ti (forward-Euler
-    integrator), e[k] the error of the current sampled at kT, u[k] applied over
-    [(k+1)T, (k+2)T) (one period of computation delay), so the loop is C(z) z^-1 P(z).
-    """
-    mo, cl = cfg.motor, cfg.current_loop
-    period = 1.0 / mo.pwm_frequency_hz
-    r, ind = mo.resistance_ohm, mo.inductance_q_h
-    num_p, den_p = scipy.signal.ss2tf(*scipy.signal.cont2discrete(
-        (np.array([[-r / ind]]), np.array([[1.0 / ind]]), np.eye(1), np.zeros((1, 1))),
-        period, method="zoh")[:4])
-    kp, ki = cl.kp_v_per_a, cl.kp_v_per_a / cl.ti_s
-    num_c, den_c = [kp, ki * period - kp], [1.0, -1.0]
-    num = np.polymul(num_c, np.trim_zeros(num_p[0], "f"))
-    den = np.polymul(np.polymul(den_c, [1.0, 0.0]), den_p)
-    _, (y,) = scipy.signal.dstep((num, np.polyadd(den, num), period), n=n + 1)
+    after a step of ``i_ref`` at k = 0, locked rotor, no saturation: the step response of
+    :func:`~hil.validate.experiments.linear_loops.current_loop_tf`."""
+    num, den, period = current_loop_tf(cfg)
+    _, (y,) = scipy.signal.dstep((num, den, period), n=n + 1)
     return i_ref * y.ravel()
 
 
@@ -123,18 +112,22 @@ def _step_rows(label: str, i_ref: float, frac: float, cfg: MachineConfig, quiet:
     return [
         Result(f"{label}: step height ({frac:.0%} of I_max = {cfg.motor.current_max_a:g} A)",
                i_ref, frac * cfg.motor.current_max_a, "A",
-               within(frac * cfg.motor.current_max_a, i_ref, abs_=0.005), "seed 000 §5",
-               "±0.005 A (paper's rounding)"),
+               within(frac * cfg.motor.current_max_a, i_ref, abs_=0.005),
+               "configuration: current_max_a, derived from seed 000 §5's step heights (the "
+               "row checks that both heights give the same I_max)",
+               "±0.005 A (the paper's rounding)", VERIFICATION, STEP_SOURCE),
         Result(f"{label}: max |i_model - i_analytic| per PWM period", 0.0, dev, "A",
-               dev <= 1e-6, src, "<= 1e-6 A"),
+               dev <= 1e-6, src, "<= 1e-6 A", VERIFICATION),
         Result(f"{label}: rise time 10-90 %", tr_a * 1e6, tr_m * 1e6, "us",
-               within(tr_m, tr_a, abs_=1e-9), src, "±0.001 us"),
+               within(tr_m, tr_a, abs_=1e-9), src, "±0.001 us", VERIFICATION),
         Result(f"{label}: overshoot", os_a, os_m, "%", within(os_m, os_a, abs_=1e-4), src,
-               "±1e-4 %-points"),
+               "±1e-4 %-points", VERIFICATION),
         Result(f"{label}: final value", i_ref, float(quiet.iq[-1]), "A",
-               within(quiet.iq[-1], i_ref, rel=1e-3), "setpoint (integral action)", "±0.1 %"),
+               within(quiet.iq[-1], i_ref, rel=1e-3), "setpoint (integral action)", "±0.1 %",
+               VERIFICATION),
         Result(f"{label}: mean true current, 2nd half, with noise and ADC", i_ref, float(tail),
-               "A", within(tail, i_ref, abs_=lsb), "setpoint", f"±1 LSB ({lsb:g} A)"),
+               "A", within(tail, i_ref, abs_=lsb), "setpoint", f"±1 LSB ({lsb:g} A)",
+               VERIFICATION),
     ]
 
 
@@ -219,18 +212,25 @@ class SeedOneDrive:
         return k * current
 
 
-def held_speed_torque(path: Path, omega: float, iq_ref: float, weakening: bool,
-                      n_periods: int = 2400) -> float:
-    """Mean electromagnetic torque (N·m) over the last tenth of ``n_periods`` PWM periods
-    with the rotor held at ``omega`` (rad/s) by a huge inertia, noise and cogging off."""
+def held_speed_run(path: Path, omega: float, iq_ref: float, weakening: bool,
+                   n_periods: int = 2400) -> dict:
+    """Means over the last tenth of ``n_periods`` PWM periods with the rotor held at
+    ``omega`` (rad/s) by a huge inertia, noise and cogging off, current setpoint ``iq_ref``
+    (A): "torque" (N·m) and "iq_a" (A, the coil or q current)."""
     ov = merged(LOCKED, QUIET, NO_COGGING, {"field_weakening": {"enabled": weakening}})
     plant = Plant.from_file(path, overrides=ov)
     p = plant.params
     ro, nr = int(p[L.P_SOFF_ROT]), int(p[L.P_N_ROT])
     plant.state[ro + nr:ro + 2 * nr] = omega
     plant.set_input(iq_ref_a=iq_ref)
-    torque = plant.run(n_periods, plant.sub_per_pwm)["torque"]
-    return float(torque[-n_periods // 10:].mean())
+    trace = plant.run(n_periods, plant.sub_per_pwm)
+    return {name: float(trace[name][-n_periods // 10:].mean()) for name in ("torque", "iq_a")}
+
+
+def held_speed_torque(path: Path, omega: float, iq_ref: float, weakening: bool,
+                      n_periods: int = 2400) -> float:
+    """Mean electromagnetic torque (N·m) of :func:`held_speed_run`."""
+    return held_speed_run(path, omega, iq_ref, weakening, n_periods)["torque"]
 
 
 # (label, demand as a fraction of I_max, field weakening on, speeds as fractions of
@@ -264,7 +264,7 @@ def field_weakening(out_dir: Path | None, config: Path = GEISS) -> list[Result]:
             rows.append(Result(f"torque at {omega:.1f} rad/s ({s:g} omega_max), {label}",
                                ref, model, "N*m", within(model, ref, abs_=tol),
                                "seed 001 eq. 2, 4-6, 8-10 + I_max (own implementation)",
-                               f"±{tol:.2g} N*m (0.1 % of K_0 I_max)"))
+                               f"±{tol:.2g} N*m (0.1 % of K_0 I_max)", VERIFICATION))
             ax[0, 0].plot(omega, model, "o", color=lines[0].get_color())
     ax[0, 0].axvline(drive.omega_m_max, ls=":", color="k")
     ax[0, 0].axvline(w_max, ls="--", color="k")
@@ -304,10 +304,10 @@ def _hold_rows(path: Path) -> list[Result]:
     changes = int(np.count_nonzero(np.diff(meas[:, 0])))
     return [
         Result("measured i_q: spread within one PWM period", 0.0, spread, "A", spread == 0.0,
-               "sample and hold over the PWM period", "exactly 0"),
+               "sample and hold over the PWM period", "exactly 0", VERIFICATION),
         Result("measured i_q: new samples in 50 periods", "> 25", changes, "-", changes > 25,
                "one fresh sample per period (equal neighbours possible on the ADC grid)",
-               "> half of the periods"),
+               "> half of the periods", VERIFICATION),
     ]
 
 
@@ -333,13 +333,17 @@ def _noise_rows(noise_only: dict, full: dict, n: int, out_dir: Path | None) -> l
     stat = f"±5 % (sample std of {n} draws: ±{100 / math.sqrt(2 * n):.1f} % 1-sigma)"
     rows = [
         Result("measured i_q std, noise only", sigma, float(raw.std()), "A",
-               within(raw.std(), sigma, rel=0.05), "config current_noise_a (assumed)", stat),
+               within(raw.std(), sigma, rel=0.05), "config current_noise_a (assumed)", stat,
+               VERIFICATION),
         Result("measured i_q mean, noise only", 0.0, float(raw.mean()), "A",
-               abs(raw.mean()) <= mean_tol, "true current 0 A", f"±{mean_tol:.2g} A (4 sigma)"),
+               abs(raw.mean()) <= mean_tol, "true current 0 A", f"±{mean_tol:.2g} A (4 sigma)",
+               VERIFICATION),
         Result("measured i_q std, noise + ADC grid", exact, float(q.std()), "A",
-               within(q.std(), exact, rel=0.05), "analytic: Gaussian rounded to the grid", stat),
+               within(q.std(), exact, rel=0.05), "analytic: Gaussian rounded to the grid", stat,
+               VERIFICATION),
         Result("measured i_q: distance from the ADC grid", 0.0, off_grid, "LSB",
-               off_grid <= 1e-9, f"grid of current_lsb_a = {lsb:g} A", "<= 1e-9 LSB"),
+               off_grid <= 1e-9, f"grid of current_lsb_a = {lsb:g} A", "<= 1e-9 LSB",
+               VERIFICATION),
     ]
     fig, ax = plots.new_figure(1, 2, "Current measurement at standstill, pulses blocked "
                                "(true i_q = 0 A)")
@@ -361,6 +365,11 @@ def _noise_rows(noise_only: dict, full: dict, n: int, out_dir: Path | None) -> l
 PAPER_COUNTS_PER_REV = 131072  # seed 004 §2.1: 17 bits, 131072 pulses per rotation
 PAPER_LEAD_M = 0.005  # seed 004 §2.1 and Table 1: lead 5 mm
 PAPER_NM_PER_COUNT = 38.0  # seed 004 §2.1: one pulse corresponds to 38 nm
+COUNTS_SOURCE = SeedRef("004", "§2.1", None, "the lead of ball screw is 5mm and the output of "
+                        "rotary encoder is 17 bits, so that 131.072 pulses are equivalent to "
+                        "one rotation")
+COUNT_SOURCE = SeedRef("004", "§2.1", None, "one pulse of the rotary encoder corresponds to "
+                       "the linear displacement of 38nm")
 FRICTIONLESS = {"presliding": {"enabled": False}, "friction": {
     "viscous_ns_per_m": 0.0, "coulomb_n": 0.0, "breakaway_n": 0.0},
     "motor": {"viscous_nms_per_rad": 0.0}}
@@ -398,24 +407,28 @@ def encoder_resolution(out_dir: Path | None, config: Path = XY_TABLE) -> list[Re
     rows = [
         Result("encoder counts per revolution", PAPER_COUNTS_PER_REV,
                cfg.sensors.encoder_counts_per_rev, "-",
-               cfg.sensors.encoder_counts_per_rev == PAPER_COUNTS_PER_REV, "seed 004 §2.1",
-               "exact"),
+               cfg.sensors.encoder_counts_per_rev == PAPER_COUNTS_PER_REV,
+               "configuration: encoder_counts_per_rev, copied from seed 004 (the row verifies "
+               "the configuration)", "exact", VERIFICATION, COUNTS_SOURCE),
         Result("ball-screw lead", PAPER_LEAD_M * 1e3, cfg.mechanics.lead_m * 1e3, "mm",
-               within(cfg.mechanics.lead_m, PAPER_LEAD_M, rel=1e-12), "seed 004 Table 1",
-               "exact"),
+               within(cfg.mechanics.lead_m, PAPER_LEAD_M, rel=1e-12),
+               "configuration: lead_m, copied from seed 004 (the row verifies the "
+               "configuration)", "exact", VERIFICATION, COUNTS_SOURCE),
         Result("table travel per count, measured while moving", PAPER_NM_PER_COUNT,
                0.5 * (lo + hi) * 1e9, "nm",
                lo <= per_count <= hi and within(0.5 * (lo + hi) * 1e9, PAPER_NM_PER_COUNT,
                                                 abs_=0.5),
-               "seed 004 §2.1", f"±0.5 nm (paper's rounding); bracket [{lo * 1e9:.4f}, "
-               f"{hi * 1e9:.4f}] nm holds lead/2^17"),
+               "analytic: lead / 2^17 = 38.147 nm, which seed 004 rounds to 38 nm (its own "
+               "arithmetic on the two configured values)",
+               f"±0.5 nm (the paper's rounding); bracket [{lo * 1e9:.4f}, "
+               f"{hi * 1e9:.4f}] nm holds lead/2^17", VERIFICATION, COUNT_SOURCE),
         Result("count increments per PWM period (0.097 count/period)", "0 or 1",
                f"{int(steps.min())}..{int(steps.max())}", "count",
                bool(steps.min() == 0 and steps.max() == 1), "incremental encoder, no skips",
-               "exact"),
+               "exact", VERIFICATION),
         Result("counts after the run", float(np.floor(x[-1] / per_count)), float(c[-1]),
                "count", abs(c[-1] - np.floor(x[-1] / per_count)) <= 1,
-               "table travel / (lead / 2^17)", "±1 count"),
+               "table travel / (lead / 2^17)", "±1 count", VERIFICATION),
     ]
     fig, ax = plots.new_figure(1, 2, "Motor encoder against table travel (seed 004 §2.1)")
     for a, part in zip(ax[0], (slice(None), x <= 8 * per_count)):

@@ -15,12 +15,7 @@ import scipy.integrate
 import scipy.linalg
 
 from hil.validate import plots
-from hil.validate.core import Result, experiment, within
-from plant import Plant
-from plant import layout as L
-from plant.assemble import build_chains, mechanics_matrices, natural_frequencies
-from plant.config import load_machine
-
+from hil.validate.core import VERIFICATION, Result, experiment, within
 from hil.validate.experiments.variants import (
     ARROW,
     HELD_MOTOR_KGM2,
@@ -31,13 +26,16 @@ from hil.validate.experiments.variants import (
     machine_raw,
     mean_acceleration,
     plant_of,
-    result,
     rigid_inertia,
     screw_energy,
     torque_free,
     undamped,
     with_keys,
 )
+from plant import Plant
+from plant import layout as L
+from plant.assemble import build_chains, mechanics_matrices, natural_frequencies
+from plant.config import load_machine
 
 
 @experiment("rigid_acceleration", "000")
@@ -64,9 +62,10 @@ def rigid_acceleration(out_dir: Path | None) -> list[Result]:
         if plant.config.motor.model == "first_order":
             torque = plant.config.motor.torque_constant_nm_per_a * inputs.get("iq_ref_a", 0.0)
         ref = (torque + inputs.get("load", 0.0) * plant.built.ratio) / j_total
-        rows.append(result(f"rigid: acceleration, {name}", ref, acc, "rad/s^2",
+        rows.append(Result(f"rigid: acceleration, {name}", ref, acc, "rad/s^2",
                            status == 0 and within(acc, ref, rel=2e-3),
-                           "analytic: T / (J_m + J_load + m (lead/2pi)^2)", "±0.2 %"))
+                           "analytic: T / (J_m + J_load + m (lead/2pi)^2)", "±0.2 %",
+                           VERIFICATION))
         traces.append((name, tr))
     if out_dir is not None:
         fig, ax = plots.new_figure(1, 1, "Rigid Arrow axis: motor speed under constant drive")
@@ -121,9 +120,10 @@ def two_mass_resonance(out_dir: Path | None) -> list[Result]:
         t, v, status = free_vibration(plant, node, 1e-3, 20.0, ref / (2 * math.pi))
         f_model = crossing_frequency(t, v)
         f_ref = ref / (2.0 * math.pi)
-        rows.append(result(f"two-mass: {name} frequency", f_ref, f_model, "Hz",
+        rows.append(Result(f"two-mass: {name} frequency", f_ref, f_model, "Hz",
                            status == 0 and within(f_model, f_ref, rel=1e-3),
-                           "analytic: sqrt(k (J1+J2)/(J1 J2)), sqrt(k/J2)", "±0.1 %"))
+                           "analytic: sqrt(k (J1+J2)/(J1 J2)), sqrt(k/J2)", "±0.1 %",
+                           VERIFICATION))
         curves.append((name, t, v))
     if out_dir is not None:
         fig, ax = plots.new_figure(1, 1, "Two-mass Arrow axis: free vibration")
@@ -221,21 +221,23 @@ def screw_modes(out_dir: Path | None) -> list[Result]:
     rows = []
     for name, (f_ref, err) in conv.items():
         slope = np.polyfit(np.log(segments), np.log(np.abs(err)), 1)[0]
-        rows.append(result(f"screw {name} mode 1, N = {segments[-1]}", f_ref,
+        rows.append(Result(f"screw {name} mode 1, N = {segments[-1]}", f_ref,
                            f_ref * (1 + err[-1]), "Hz", abs(err[-1]) < 1e-3,
-                           "analytic: continuous rod, fixed-free, sqrt(M/rho)/(4L)", "±0.1 %"))
-        rows.append(result(f"screw {name} mode 1: convergence order", -2.0, float(slope), "1",
+                           "analytic: continuous rod, fixed-free, sqrt(M/rho)/(4L)", "±0.1 %",
+                           VERIFICATION))
+        rows.append(Result(f"screw {name} mode 1: convergence order", -2.0, float(slope), "1",
                            within(slope, -2.0, abs_=0.1),
-                           "second-order lumping of a uniform rod", "±0.1"))
+                           "second-order lumping of a uniform rod", "±0.1", VERIFICATION))
     raw = undamped(torque_free(machine_raw()))
     traces = []
     for mode in (1, 2):
         plant = plant_of(raw, f"{ARROW} (undamped, torque-free)", table_pos=0.25)
         run = kernel_mode_frequency(plant, mode)
         ok = run.status == 0 and within(run.f_kernel, run.f_lin, rel=1e-3) and run.leak < 0.01
-        rows.append(result(f"Arrow screw model mode {mode}: kernel free vibration", run.f_lin,
+        rows.append(Result(f"Arrow screw model mode {mode}: kernel free vibration", run.f_lin,
                            run.f_kernel, "Hz", ok, "linearisation: eigh(K, M) of "
-                           "mechanics_matrices at 250 mm", "±0.1 %, other modes < 1 %"))
+                           "mechanics_matrices at 250 mm", "±0.1 %, other modes < 1 %",
+                           VERIFICATION))
         traces.append((mode, run.t, run.eta))
     if out_dir is not None:
         _plot_screw_modes(out_dir, segments, conv, traces)
@@ -317,10 +319,11 @@ def moving_nut_stiffness(out_dir: Path | None) -> list[Result]:
         k_model, drift, status = static_stiffness(raw, x, 1000.0, 0.12)
         k_ref = 1.0 / series_compliance(cfg, lumped_nut_distance(cfg, x))
         where = "at a node" if x in at_nodes else "mid-segment, s_eff = (j + w^2) seg"
-        rows.append(result(f"nut stiffness at table {x * 1e3:.1f} mm ({where})", k_ref,
+        rows.append(Result(f"nut stiffness at table {x * 1e3:.1f} mm ({where})", k_ref,
                            k_model, "N/m", status == 0 and drift < 1e-4
                            and within(k_model, k_ref, rel=2e-3),
-                           "analytic series formula, fixed-supported, rotor held", "±0.2 %"))
+                           "analytic series formula, fixed-supported, rotor held", "±0.2 %",
+                           VERIFICATION))
         points.append((x, k_model))
     if out_dir is not None:
         _plot_moving_nut(out_dir, cfg, points)
@@ -429,27 +432,28 @@ def energy_conservation(out_dir: Path | None) -> list[Result]:
     tenth = e.size // 10
     spread = float(np.abs(e - 1.0).max())
     drift = float(abs(e[-tenth:].mean() - e[:tenth].mean()))
-    rows = [result(f"energy: largest deviation over {4000 * plant.sub_per_pwm} sub-steps", 0.0,
+    rows = [Result(f"energy: largest deviation over {4000 * plant.sub_per_pwm} sub-steps", 0.0,
                    spread, "E/E0 - 1", status == 0 and spread < 0.05,
-                   f"conservation (bound omega_max dt / 2 = {omega_dt / 2:.2f})", "< 5 %"),
-            result("energy: drift, mean of last vs first tenth", 0.0, drift, "E/E0",
+                   f"conservation (bound omega_max dt / 2 = {omega_dt / 2:.2f})", "< 5 %",
+                   VERIFICATION),
+            Result("energy: drift, mean of last vs first tenth", 0.0, drift, "E/E0",
                    status == 0 and drift < 1e-4, "conservation (symplectic: no drift)",
-                   "< 1e-4")]
+                   "< 1e-4", VERIFICATION)]
     runs = {}
     for label, mod in (("config dt", None), ("dt / 10", 0.1 * omega_dt)):
         run = runs[label] = trajectory_errors(mod, 0.01)
         for name, err in run.errors.items():
-            rows.append(result(f"trajectory vs DOP853, {name}, {label} "
+            rows.append(Result(f"trajectory vs DOP853, {name}, {label} "
                                f"({run.dt * 1e6:.2f} µs)", 0.0, err, "max error / amplitude",
                                run.status == 0 and err < 0.01,
                                "second solver: solve_ivp DOP853 on mechanics_matrices",
-                               "< 1 % over 10 ms"))
+                               "< 1 % over 10 ms", VERIFICATION))
     coarse, fine = runs["config dt"], runs["dt / 10"]
     order = math.log(coarse.errors["motor"] / fine.errors["motor"]) / math.log(
         coarse.dt / fine.dt)
-    rows.append(result("trajectory error order in dt (motor angle)", 1.0, order, "1",
+    rows.append(Result("trajectory error order in dt (motor angle)", 1.0, order, "1",
                        within(order, 1.0, abs_=0.2), "semi-implicit Euler is first order",
-                       "±0.2"))
+                       "±0.2", VERIFICATION))
     if out_dir is not None:
         _plot_energy(out_dir, t_e, e, coarse)
     return rows
@@ -488,12 +492,12 @@ def lumped_vs_tlm(out_dir: Path | None) -> list[Result]:
         f_lin = run.f_lin
     (f_l, k_l, st_l, *_), (f_t, k_t, st_t, *_) = res["lumped"], res["tlm"]
     ok = st_l == 0 and st_t == 0
-    rows = [result("TLM vs lumped: first natural frequency at 250 mm", f_l, f_t, "Hz",
+    rows = [Result("TLM vs lumped: first natural frequency at 250 mm", f_l, f_t, "Hz",
                    ok and within(f_t, f_l, rel=1e-3), "second solver: lumped kernel "
-                   f"(linearisation: {f_lin:.2f} Hz)", "±0.1 %"),
-            result("TLM vs lumped: static stiffness at the table, 250 mm", k_l, k_t, "N/m",
+                   f"(linearisation: {f_lin:.2f} Hz)", "±0.1 %", VERIFICATION),
+            Result("TLM vs lumped: static stiffness at the table, 250 mm", k_l, k_t, "N/m",
                    ok and within(k_t, k_l, rel=1e-3), "second solver: lumped kernel",
-                   "±0.1 %")]
+                   "±0.1 %", VERIFICATION)]
     if out_dir is not None:
         fig, ax = plots.new_figure(1, 1, "Arrow screw, mode 1 free vibration: TLM vs lumped")
         for solver, (*_, t, eta) in res.items():

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import tomllib
 
-from hil.validate.core import CONFIGS, Result
+from hil.validate.core import CONFIGS
 from plant import Plant
 from plant import layout as L
 from plant.config import load_machine, parse_machine
@@ -19,12 +19,6 @@ from plant.effects.tlm import tlm_init
 
 ARROW = CONFIGS / "arrow500_x.toml"
 HELD_MOTOR_KGM2 = 1.0e4  # motor inertia that stands for a clamped rotor (10^7 x the real one)
-
-
-def result(name: str, ref: float, model: float, unit: str, ok, reference: str,
-           tolerance: str) -> Result:
-    """A Result with plain Python numbers (numpy scalars do not serialise)."""
-    return Result(name, float(ref), float(model), unit, bool(ok), reference, tolerance)
 
 
 # --- machine-file variants ------------------------------------------------------------------

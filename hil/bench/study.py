@@ -1,0 +1,89 @@
+"""``hil bench study``: how fast ``hil study`` runs samples, and what Dask costs per task.
+
+The study: the Arrow 500 X position step of seed 000 (0.5 mm from 250 mm), ``--seconds``
+of simulated time (default 1 s) per sample, the table mass drawn within +-10 %
+(Monte Carlo), ``--samples`` samples, one sample per task (so every task pays the whole
+per-task cost).  In one call:
+
+* **bare**: the same experiment on the first samples' machines, called directly in this
+  process (:meth:`~hil.study.experiments.Experiment.run`, no Dask, no store): seconds
+  per sample, the mean of the medians measured before and after the pipelines;
+* **1 worker** and **2 workers**: the whole pipeline (``hil study``'s own dispatch: a
+  LocalCluster of that many single-threaded worker processes, tasks, the Parquet store),
+  wall time from the first task sent to the last result stored: samples per second;
+  each worker's kernels loaded before the clock starts, as ``hil study`` does.
+
+Figures: ``scaling_ratio`` = rate(2) / (2 rate(1)) (goal >= 0.9); ``overhead_pct`` =
+(wall(1) / samples - bare) / bare, the per-task overhead against a bare simulation of
+the same length (goal <= 5 % of a 1 s simulation); ``dispatch_overhead_ms`` = (wall(1) -
+the samples' own compute time on the worker) / samples, the same overhead without the
+simulation's own variation; ``cpu_overhead_pct``: the CPU time of every process of the
+1-worker pipeline (this one with the scheduler, and the worker) per sample against the
+bare simulation's, the overhead as it stands when other work shares the CPUs and the
+wall-clock figures say little.  The load average before and after is reported.
+"""
+
+import argparse
+import json
+import sys
+
+
+def text(r: dict) -> str:
+    """The report in lines."""
+    one, two = r["one_worker"], r["two_workers"]
+    goals = r["goals"]
+    load = (" ".join(f"{x:.2f}" for x in r["load_average_before"]) + ", after "
+            + " ".join(f"{x:.2f}" for x in r["load_average_after"]))
+    return "\n".join([
+        (f"hil bench study: {r['samples']} samples of a {r['simulated_s']:g} s Arrow 500 X "
+         f"position step, one per task, {r['cpus']} CPUs"),
+        f"  bare simulation           {r['bare_s_per_sample'] * 1e3:8.1f} ms per sample",
+        (f"  1 worker                  {one['samples_per_s']:8.2f} samples/s "
+         f"({one['wall_s']:.1f} s)"),
+        (f"  2 workers                 {two['samples_per_s']:8.2f} samples/s "
+         f"({two['wall_s']:.1f} s, {two['distinct_workers']} workers used)"),
+        (f"  scaling 1 -> 2 workers    {r['scaling_ratio']:8.2f} x linear "
+         f"(goal >= {goals['scaling_ratio_min']:g})"),
+        (f"  per-task overhead         {r['overhead_per_task_s'] * 1e3:8.1f} ms = "
+         f"{r['overhead_pct']:.1f} % of the bare simulation (goal <= "
+         f"{goals['overhead_pct_max']:g} %)"),
+        (f"  dispatch overhead         {r['dispatch_overhead_ms']:8.1f} ms per task (wall - "
+         "worker compute)"),
+        (f"  CPU per sample            {r['one_worker']['cpu_s'] / r['samples'] * 1e3:8.1f} ms "
+         f"in every process of the pipeline, bare {r['bare_cpu_s_per_sample'] * 1e3:.1f} ms: "
+         f"{r['cpu_overhead_pct']:+.1f} %"),
+        f"  load average              before {load}"])
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """The options of ``hil bench study``."""
+    p.add_argument("--samples", type=int, default=24, help="samples per run (default "
+                   "%(default)s)")
+    p.add_argument("--seconds", type=float, default=1.0,
+                   help="simulated time per sample, s (default %(default)s)")
+    p.add_argument("--json", action="store_true", help="print the report as JSON")
+
+
+def run_from_args(args: argparse.Namespace) -> int:
+    """``hil bench study``: print the report; 0 (the goals are reported, not enforced:
+    the figures depend on the machine's other load), 2 on bad input."""
+    if args.samples < 2 or not args.seconds > 0.0:
+        print("hil bench study: --samples must be >= 2 and --seconds > 0", file=sys.stderr)
+        return 2
+    from hil.study.benchmark import run
+
+    report = run(args.samples, args.seconds,
+                 note=lambda message: print(message, file=sys.stderr, flush=True))
+    print(json.dumps(report, indent=1) if args.json else text(report))
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python3 -m hil.bench.study ...``: the same as ``hil bench study ...``."""
+    parser = argparse.ArgumentParser(prog="hil bench study", description=__doc__.split("\n")[0])
+    add_arguments(parser)
+    return run_from_args(parser.parse_args(argv))
+
+
+if __name__ == "__main__":
+    sys.exit(main())
