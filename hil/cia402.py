@@ -51,6 +51,7 @@ class ModeOfOperation(IntEnum):
     """Values of modes of operation (6060h) and its display (6061h) that the drive knows."""
     PP = 1    # profile position
     PV = 3    # profile velocity
+    HOMING = 6
     CSP = 8   # cyclic synchronous position
     CSV = 9   # cyclic synchronous velocity
     CST = 10  # cyclic synchronous torque
@@ -104,12 +105,21 @@ SW_REMOTE = 1 << 9              # the controlword is processed
 SW_TARGET_REACHED = 1 << 10
 SW_INTERNAL_LIMIT_ACTIVE = 1 << 11
 SW_FOLLOWS_COMMAND = 1 << 12    # CSP/CSV/CST: the drive follows the command value
-SW_FOLLOWING_ERROR = 1 << 13    # CSP: the following error is beyond its window (6065h)
+SW_SET_POINT_ACK = 1 << 12      # PP: a new set-point was taken (bit 12 by mode)
+SW_SPEED_ZERO = 1 << 12         # PV: the speed is zero
+SW_HOMING_ATTAINED = 1 << 12    # homing: the home position was found
+SW_FOLLOWING_ERROR = 1 << 13    # CSP, PP: the following error is beyond its window (6065h)
+SW_HOMING_ERROR = 1 << 13       # homing: it failed
 #: the statusword bits a caller of DriveStateMachine.update may set
 SW_CALLER_BITS = (SW_WARNING | SW_TARGET_REACHED | SW_INTERNAL_LIMIT_ACTIVE
                   | SW_FOLLOWS_COMMAND | SW_FOLLOWING_ERROR)
 
 CW_FAULT_RESET = 1 << 7  # controlword (6040h) bit 7: fault reset, acts on its 0 -> 1 edge
+# controlword bits of the profile modes (CiA 402-2 §12, §14, §16)
+CW_NEW_SET_POINT = 1 << 4            # PP: new set-point (its rising edge); homing: start
+CW_CHANGE_SET_IMMEDIATELY = 1 << 5   # PP: the new set-point replaces the one under way
+CW_RELATIVE = 1 << 6                 # PP: the target is relative to the previous one
+CW_HALT = 1 << 8                     # PP, PV, homing: stop (6084h, 609Ah)
 
 
 @dataclass(frozen=True)

@@ -8,9 +8,13 @@
     hil bench loop [--rate 1000,4000,8000] [--seconds S] [--with-plant] [--json]
     hil bench adapters [--n N] [--adapter udp|serial] [--json]
     hil bench fuzz [--frames N] [--seed N] [--json]
+    hil bench can [--config FILE] [--program FILE] [--sync-hz HZ] [--group G] [--json]
     hil bench study [--samples N] [--seconds S] [--json]
+    hil eds CONFIG --adapter can://... [--out DIR]
     hil study SPEC.toml [--out DIR] [--workers N | --scheduler tcp://HOST:8786] [--fresh]
     hil report RUN [--cyclictest] [--controller DIR]
+    hil export RUN --to mdf4|csv [--axis X] [--out PATH] [--force]
+    hil soak [--minutes N] [--rate HZ] [--no-rt] [--out DIR]
     hil config-keys [--markdown]
     hil identify TRACE --config CONFIG --out DIR [--validate TRACE2]
     hil sim CONFIG --program FILE --out DIR [--start MM] [--json]
@@ -227,6 +231,11 @@ def build_parser() -> argparse.ArgumentParser:
     from hil.bench import fuzz
     fuzz.add_arguments(bf)
     bf.set_defaults(func=fuzz.run_from_args)
+    from hil.bench import can as bench_can
+    bc = bsub.add_parser("can", help="CSP over CAN at a 1 kHz SYNC against UDP and the "
+                         "lock-step simulation: following error, overruns, bus load")
+    bench_can.add_arguments(bc)
+    bc.set_defaults(func=bench_can.run_from_args)
     from hil.bench import study as bench_study
     bst = bsub.add_parser("study", help="hil study's samples/s on 1 and 2 local workers, "
                           "per-task overhead against a bare simulation")
@@ -234,7 +243,7 @@ def build_parser() -> argparse.ArgumentParser:
     bst.set_defaults(func=bench_study.run_from_args)
 
     r = sub.add_parser("report", help="latency and jitter report of a run folder")
-    r.add_argument("run", help="run folder (run.npz + report.json)")
+    r.add_argument("run", help="run folder of hil run (recording.arrows + report.json)")
     r.add_argument("--cyclictest", action="store_true",
                    help="cyclictest baseline at the run's period (needs rt-tests)")
     r.add_argument("--cyclictest-seconds", type=float, default=10.0, help="baseline length, s")
@@ -243,7 +252,15 @@ def build_parser() -> argparse.ArgumentParser:
                         "run for the round trip's total and transport")
     r.set_defaults(func=cmd_report)
 
-    from hil.runtime import controller_proc, demo, emulator
+    from hil.runtime import controller_proc, demo, emulator, export, soak
+
+    exp = sub.add_parser("export", help="a run's recording as MDF4 or servo-trace CSV")
+    export.add_arguments(exp)
+    exp.set_defaults(func=export.run_from_args)
+    sk = sub.add_parser("soak", help="emulator and controller for minutes or hours: memory, "
+                        "lateness and overruns per minute, a plot")
+    soak.add_arguments(sk)
+    sk.set_defaults(func=soak.run_from_args)
 
     run = sub.add_parser("run", help="the emulator daemon: the plant behind an adapter, "
                          "in real time")
@@ -252,6 +269,11 @@ def build_parser() -> argparse.ArgumentParser:
     ctl = sub.add_parser("controller", help="the simulated NC as a process over an adapter")
     controller_proc.add_arguments(ctl)
     ctl.set_defaults(func=controller_proc.run_from_args)
+    from hil import eds
+    ed = sub.add_parser("eds", help="the CiA 306 EDS and DCF of the CANopen nodes hil run "
+                        "serves on a can:// adapter")
+    eds.add_arguments(ed)
+    ed.set_defaults(func=eds.run_from_args)
     dem = sub.add_parser("demo", help="emulator and controller over UDP loopback, compared "
                          "with the lock-step simulation")
     demo.add_arguments(dem)

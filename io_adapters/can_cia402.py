@@ -7,82 +7,85 @@ and :class:`~io_adapters.messages.FeedbackGroup`).
 Each node (:class:`~io_adapters.can_node.DriveNode`): a :class:`canopen.LocalNode` holds
 the object dictionary of :mod:`io_adapters.cia402_objects` and answers SDO requests;
 this endpoint adds what canopen 2.4 leaves to the application on the device side: the
-SYNC consumer, the RPDO consumer and the TPDO producer, over a python-can bus.
+SYNC consumer, the RPDO consumer and the TPDO producer, over a python-can bus seen
+through a :class:`~io_adapters.can_tap.BusTap` (the bus load per cycle, the URL's log).
 
-One drive cycle per SYNC.  At each SYNC the drive
+**The cycle.**  The drive's loop runs at its own rate (the PWM period) and calls
+:meth:`recv_setpoint` every tick (without waiting, but for the tick due to take a SYNC,
+which may wait a little for a late one: :class:`hil.runtime.sync.SyncLock`); the master's
+process data reach it once per communication cycle, at SYNC.  At each SYNC (in
+PRE-OPERATIONAL or OPERATIONAL) the endpoint
 
-1. sends TPDO1-3 holding the feedback of the cycle before (synchronous, type 1: the
-   values :meth:`send_feedback` wrote since the SYNC before, when it wrote them exactly
-   once; NMT OPERATIONAL only).  A loop that wrote none since (its cycle did not run)
-   or two (it ran twice: it is not in step with SYNC) gets nothing sent, so the master
-   sees an answer missing rather than taking a stale one, or one two cycles on, for the
-   answer to its last SYNC,
-2. latches the values received before it, by RPDO (NMT OPERATIONAL only) or by SDO
-   (controlword, mode, targets, offsets) and wakes :meth:`recv_setpoint`, which turns
-   them into a :class:`~io_adapters.messages.Setpoint`.
+1. sends the synchronous TPDOs due (OPERATIONAL nodes only; type 0 when their data
+   changed, type n at every n-th SYNC) with the newest feedback the loop wrote -- none if
+   the loop wrote none since the SYNC before (its ticks did not run: the master sees an
+   answer missing rather than a stale one), and none either where a SYNC comes every
+   drive cycle (the mean interval under :data:`ONE_TICK` cycles, ``hil controller``'s
+   link) and two or more ticks ran since the one before: the second ran on a stale
+   setpoint, which a master that compares with the lock-step simulation must see,
+2. latches the master's process data received before it, by RPDO (OPERATIONAL only, any
+   transmission type) or by SDO (controlword, mode, targets, offsets), and hands them to
+   the next :meth:`recv_setpoint`, which turns them into a
+   :class:`~io_adapters.messages.Setpoint` in increments and returns True when new process
+   data came since the SYNC before (the cycle is *heard*).
+
+Between SYNCs :meth:`recv_setpoint` returns False and leaves the record as it was: the
+drive runs on the setpoint of the cycle and interpolates its cyclic targets over the
+interpolation time period 60C2h (:mod:`hil.drive.interpolation`), which a node sets to its
+communication cycle period 1006h.  :attr:`heard_for_s` says how long one heard cycle
+stands for the master (1.5 cycles: the SYNC's jitter), so the watchdog does not count
+the ticks between SYNCs as silence.  Event-driven TPDOs (254/255) go out from
+:meth:`send_feedback` when their data change (no sooner than their inhibit time after
+the last) and when their event timer runs out.
 
 A SYNC may carry a counter byte (CiA 301, DLC 1; :mod:`io_adapters.can_master` counts
-1-240): the TPDO1 it sends then has the manufacturer-specific statusword bits set to say
-which SYNC sent it -- bit 8 (:data:`~io_adapters.can_node.SW_ECHO`) and the counter's
-low two bits in bits 14-15 -- so a master can tell a late answer from a new one.  Those
-bits are 0 in TPDO1 otherwise, and never in the 6041h that SDO reads.
+1-240): a synchronous TPDO holding the statusword then has its manufacturer-specific
+bits set to say which SYNC sent it -- bit 8 (:data:`~io_adapters.can_node.SW_ECHO`) and
+the counter's low two bits in bits 14-15 -- so a master can tell a late answer from a new
+one.  Those bits are 0 otherwise, and never in the 6041h that SDO reads.
 
-So the feedback of a setpoint reaches the master one SYNC later, as on a real CiA 402
-network.  A cycle counts as *heard* (:meth:`recv_setpoint` returns True) only when a SYNC
-started it and new process data came since the cycle before (an RPDO taken in
-OPERATIONAL, or an SDO write to one of the inputs); a cycle the drive starts on its own
-clock, or a SYNC with nothing new before it, is run (the loop gets the latched setpoint)
-but returns False, so the drive's watchdog counts it as silence (SYNC/RPDO timeout).
-:attr:`last_sync_ns` is when the newest SYNC was latched (``time.monotonic_ns``; 0
-before the first): a loop that runs on its own clock locks
-its cycle to it (``hil run`` does, :class:`hil.runtime.sync.SyncLock`), as a CiA 402
-drive synchronises its control cycle to SYNC.  With no SYNC for ``sync_timeout_ms``
-the drive starts its cycle on its own clock, every ``sync_timeout_ms``, sending its
-TPDOs the same way (the newest values, however many cycles wrote them since): a master
-that has not started SYNC yet (or stopped it) still sees the statusword move.  SYNC is
-taken while a node is in PRE-OPERATIONAL or OPERATIONAL, SDO in every state but STOPPED
-(CiA 301; a request there goes unanswered).  The drive
-boots into PRE-OPERATIONAL and sends its boot-up message when opened.
+With no SYNC for ``sync_timeout_ms`` the endpoint starts a cycle on its own clock, every
+``sync_timeout_ms``, sending the synchronous TPDOs and latching the process data the same
+way; such a cycle is never heard.  :attr:`last_sync_ns` is when the newest SYNC was latched
+(``time.monotonic_ns``; 0 before the first): the loop aligns its ticks to it
+(:class:`hil.runtime.sync.SyncLock`).
 
-Network management and the lost master (:meth:`link_conditions`, which the drive's watchdog
-reads every tick): NMT stop puts a node in STOPPED (no PDO, no SYNC: LINK_STOPPED while
-it lasts); NMT reset node and reset communication are reported once (LINK_RESET), then
-the node boots again: boot-up message, PRE-OPERATIONAL, its communication objects (1016h,
-1017h) back to their start values, and for a reset node the drive's parameter objects too
-(:meth:`~io_adapters.cia402_objects.ObjectAccess.reset_application`).  A heartbeat
-consumer (1016h:01, the ``heartbeat_consumer`` option or an SDO write) watches the
-master's heartbeat from the first one on: none within the consumer time is
-LINK_HEARTBEAT_LOST until the next one.  What the drive does then is its abort connection
-option code 6007h.  An error code that changes in the feedback (603Fh) is sent as an EMCY
-(80h + node-ID: code, 1001h, five zero bytes) at the next cycle start; its clearing as the
-EMCY "error reset" (code 0).
+**Network management** (:meth:`link_conditions`, which the drive's watchdog reads every
+tick): NMT stop puts a node in STOPPED (no PDO, no SYNC, no SDO: LINK_STOPPED while it
+lasts); NMT reset node and reset communication are reported once (LINK_RESET), then the
+node boots again: boot-up message, PRE-OPERATIONAL, its communication objects (PDO
+mapping, 1016h, 1017h) back to their start values, and for a reset node the drive's
+objects and the factor group too.  NMT start is refused when the PDO configuration of the
+nodes then OPERATIONAL does not fit the communication cycle at the bus's bit rate
+(:meth:`bus_plan`): the node stays where it is and sends the EMCY 8110h with the load it
+would need (:data:`~io_adapters.can_node.EMCY_BUS_OVERLOAD`).  A heartbeat consumer
+(1016h:01, the ``heartbeat_consumer`` option or an SDO write) watches the master's
+heartbeat from the first one on: none within the consumer time is LINK_HEARTBEAT_LOST
+until the next one.  What the drive does then is its abort connection option code 6007h.
+An error code that changes in the feedback (603Fh) is sent as an EMCY (80h + node-ID:
+code, 1001h, five zero bytes) at the next cycle start; its clearing as the EMCY "error
+reset" (code 0).
 
-Setpoint from the latched objects: ``seq`` counts the cycles; ``controlword`` = 6040h;
-``mode`` = 6060h (0, no mode, becomes MODE_CST with zero current); targets 607Ah,
-60FFh, 60B1h as floats; ``iq_ref_a`` = (6071h in CST + 60B2h) per mille of 6075h;
-``id_ref_a``, ``ud_v``, ``uq_v`` and ``t_ns`` = 0 (not on this wire).  Feedback into
-the objects: 6041h statusword, 6061h = the mode of the cycle, 603Fh = ``fault`` (the
-drive's error code), 1001h from it, 6064h ``encoder_counts`` (wrapped into INTEGER32),
-606Ch ``velocity_counts_s``, 6078h and 6077h ``iq_a`` in per mille (saturated),
-60E4h:01 ``scale_counts``.  SDO reads of these objects return the newest values; the
-parameter objects are the drive's (:attr:`CanDriveEndpoint.objects`).
-
-Refused, as on every transport (:attr:`~io_adapters.base.Endpoint.setpoint_bounds`): an
-RPDO or SDO write with a mode the drive does not take (``refused_mode``; SDO abort 0609
+**Refused**, as on every transport (:attr:`~io_adapters.base.Endpoint.setpoint_bounds`;
+a node offers the profile modes beside the cyclic ones where the drive runs CSP,
+:func:`~io_adapters.can_dictionary.offered_modes`): an RPDO or SDO write with a mode the
+drive does not take (``refused_mode``; SDO abort 0609
 0030h) or a value beyond its bound (``refused_range``; SDO abort 0609 0031h/0032h): the
 image keeps its last accepted values; a refused RPDO is named in :attr:`refused_axes` at
-the next :meth:`recv_setpoint` (the drive faults, FF10h), a refused SDO write is
-answered with its abort only, as a drive answers a bad parameter.  A frame the bus
-cannot take (a full transmit queue) is dropped and counted in ``send_dropped``.  Counted
-in :attr:`stats`: ``received`` cycles heard, ``timeouts`` the others, ``lost`` cycles
-that a newer SYNC overwrote before :meth:`recv_setpoint` took them, ``malformed`` RPDO
-frames dropped (a DLC other than the mapping's, stricter than CiA 301, which uses the
-first bytes of a longer one).  The bus's receive thread (python-can's ``Notifier``, run
-by canopen) is stopped by :meth:`close`.  """
+the next :meth:`recv_setpoint` (the drive faults, FF10h), a refused SDO write is answered
+with its abort only.  A frame the bus cannot take is dropped and counted in
+``send_dropped``.  Counted in :attr:`stats` (:class:`CanStats`): ``received`` cycles heard,
+``timeouts`` polls that found no new cycle, ``lost`` cycles a newer SYNC overwrote before
+:meth:`recv_setpoint` took them, ``malformed`` RPDO frames dropped (a DLC other than the
+mapping's, stricter than CiA 301), the bus's load per cycle and the refused starts.  The
+bus's receive thread (python-can's ``Notifier``, run by canopen) is stopped by
+:meth:`close`.
+"""
 
 import ipaddress
 import threading
 import time
+from dataclasses import dataclass
 
 import can
 import canopen
@@ -93,18 +96,16 @@ from io_adapters.base import (
     LINK_STOPPED,
     AdapterClosed,
     AdapterError,
+    AdapterStats,
     Endpoint,
     Role,
 )
-from io_adapters.can_loopback import LoopbackMulticastBus
-from io_adapters.can_node import INPUTS, DriveNode
-from io_adapters.cia402_objects import (
-    NMT_COB_ID,
-    SYNC_COB_ID,
-    CanLink,
-    ObjectAccess,
-    parse_can_url,
-)
+from io_adapters.can_bus_time import BusPlan, per_cycle, plan_cycle
+from io_adapters.can_catalog import INPUTS, NMT_COB_ID, SYNC_COB_ID
+from io_adapters.can_node import DriveNode
+from io_adapters.can_tap import open_bus
+from io_adapters.can_url import CanLink, parse_can_url
+from io_adapters.cia402_objects import ObjectAccess
 from io_adapters.messages import (
     Feedback,
     FeedbackGroup,
@@ -116,24 +117,40 @@ from io_adapters.messages import (
 U32_MASK = 0xFFFFFFFF
 #: how long the receive thread waits in one bus read: the bound on :meth:`close`
 NOTIFIER_CYCLE_S = 0.05
-NMT_RESET_NODE, NMT_RESET_COMMUNICATION = 0x81, 0x82
+#: one heard cycle stands for the master this many communication cycle periods
+HEARD_CYCLES = 1.5
+#: a SYNC interval longer than this many communication cycle periods is a late or
+#: resumed SYNC, not a cycle: left out of the most bits per cycle
+LONG_CYCLE = 1.5
+#: SYNCs whose intervals make the mean the endpoint keeps
+SYNC_MEAN_SAMPLES = 16
+#: a mean SYNC interval under this many drive cycles is one tick per SYNC
+ONE_TICK = 1.5
 
 
-def open_bus(link: CanLink, **options) -> can.BusABC:
-    """The python-can bus of ``link`` (``options`` go to ``can.Bus``); ``udp_multicast``
-    stays on the loopback interface unless ``multicast_if`` says otherwise
-    (:mod:`io_adapters.can_loopback`).  Raises :class:`AdapterError` saying why it cannot
-    be opened."""
-    if link.port is not None:
-        options["port"] = link.port
-    try:
-        if link.interface == "udp_multicast" and link.multicast_if != "any":
-            address = link.multicast_if or ("::1" if ":" in link.channel else "127.0.0.1")
-            return LoopbackMulticastBus(link.channel, address, **options)
-        return can.Bus(interface=link.interface, channel=link.channel, **options)
-    except (can.CanError, OSError, ValueError) as e:
-        raise AdapterError(f"{link.url!r}: cannot open the {link.interface} bus "
-                           f"{link.channel!r}: {e}") from e
+@dataclass(slots=True)
+class CanStats(AdapterStats):
+    """:class:`~io_adapters.base.AdapterStats` and the bus.
+
+    Attributes:
+        sync_cycles: SYNC cycles the bus tap closed.
+        bus_bits_per_cycle_max: the most bits one SYNC cycle held (every frame this side
+            sent or received, worst-case stuffing; cycles longer than :data:`LONG_CYCLE`
+            periods left out).
+        bus_load_max: those bits as a share of the communication cycle 1006h at the bit
+            rate (1.0: the whole cycle).
+        bus_load_mean: every cycle's bits over the time the cycles lasted, as a share of
+            the bit rate.
+        start_refused: NMT starts refused because the PDO configuration did not fit.
+        bus_plan_load: the worst-case load of the configuration at the last NMT start
+            taken (:meth:`CanDriveEndpoint.bus_plan`), as a share of the cycle.
+    """
+    sync_cycles: int = 0
+    bus_bits_per_cycle_max: int = 0
+    bus_load_max: float = 0.0
+    bus_load_mean: float = 0.0
+    start_refused: int = 0
+    bus_plan_load: float = 0.0
 
 
 class CanDriveEndpoint(Endpoint):
@@ -146,13 +163,10 @@ class CanDriveEndpoint(Endpoint):
     one SYNC starts the cycle of every node.
 
     Attributes:
-        objects: the drive's parameter objects (:class:`~io_adapters.cia402_objects.
-            ObjectAccess`), set by the drive's owner; None: the dictionary's defaults,
-            stored as written.
         cycles: cycles started so far (by SYNC or on the drive's own clock).
-        taken: cycles handed to the loop by :meth:`recv_setpoint`, heard or not (a loop
-            that runs its drive on every cycle, rather than on its own clock, counts them).
+        taken: cycles handed to the loop by :meth:`recv_setpoint`, heard or not.
         rated_current_a: 6075h in A, the reference of the per-mille currents.
+        last_sync_ns: when the newest SYNC was latched (monotonic ns; 0: none yet).
     """
 
     @classmethod
@@ -167,44 +181,68 @@ class CanDriveEndpoint(Endpoint):
     def __init__(self, link: CanLink):
         super().__init__(Role.DEVICE)
         self.link = link
-        self.objects: ObjectAccess | None = None
+        self.stats = CanStats()
+        self._objects: ObjectAccess | None = None
         self.rated_current_a = link.rated_current_ma / 1e3
         self._free_run_s = link.sync_timeout_ms / 1e3
         self._lock = threading.Lock()
         self._cycle = threading.Condition(self._lock)
-        self._nodes = tuple(DriveNode(a, n, link, self) for a, n in enumerate(link.nodes))
-        self._by_id = {n.local.id: n for n in self._nodes}
-        self._rpdo_of = {cob_id: (node, layout) for node in self._nodes
-                         for cob_id, layout in node.rpdos.items()}
         self._ready = False
         self._heard = False   # the cycle ready for the loop was heard
         self._fresh = False   # process data taken since the last cycle started
-        self._written = 0     # send_feedback calls since the last cycle started
+        self._staged = 0      # send_feedback calls since the last cycle started
+        self._sync_interval_s = 0.0  # SYNC to SYNC, averaged over SYNC_MEAN_SAMPLES
+        self._rpdo_of: dict = {}
         self.last_sync_ns = 0
         self.cycles = 0
         self.taken = 0
         self._last_cycle_s = time.monotonic()
+        self._nodes = tuple(DriveNode(a, n, link, self) for a, n in enumerate(link.nodes))
+        self._by_id = {n.local.id: n for n in self._nodes}
         #: the canopen LocalNode of each axis; ``node`` is the first
         self.nodes = tuple(n.local for n in self._nodes)
         self.node = self.nodes[0]
-        self.network = canopen.Network(open_bus(link))
+        self.bus = open_bus(link)
+        self.network = canopen.Network(self.bus)
         self.network.NOTIFIER_CYCLE = NOTIFIER_CYCLE_S
         try:
             for n in self._nodes:
                 self.network.add_node(n.local)
-                sdo = n.local.sdo  # its requests go through the node (no SDO when STOPPED)
+                sdo, nmt = n.local.sdo, n.local.nmt
+                # requests go through the node: no SDO when STOPPED, a start checked
                 self.network.unsubscribe(sdo.rx_cobid, sdo.on_request)
                 self.network.subscribe(sdo.rx_cobid, n.on_sdo_request)
+                self.network.unsubscribe(NMT_COB_ID, nmt.on_command)
             self.network.subscribe(SYNC_COB_ID, self._on_sync)
-            self.network.subscribe(NMT_COB_ID, self._on_nmt)  # after canopen's own
-            for cob_id in self._rpdo_of:
-                self.network.subscribe(cob_id, self._on_rpdo)
+            self.network.subscribe(NMT_COB_ID, self._on_nmt)
             self.network.connect()
             for n in self._nodes:
                 n.boot(application=False)
         except (can.CanError, OSError) as e:
             self.network.disconnect()
             raise AdapterError(f"{link.url!r}: cannot start the CANopen node: {e}") from e
+
+    # -- what the loop and the drive's owner see -------------------------------------------
+    @property
+    def objects(self) -> ObjectAccess | None:
+        """The drive's objects (:class:`~io_adapters.cia402_objects.ObjectAccess`), set by
+        the drive's owner; None: the dictionary's defaults, stored as written.  Setting
+        them gives each node the drive's 1006h and encoder resolution, and the drive the
+        node's 60C2h (:meth:`~io_adapters.can_dictionary.NodeDictionary.refresh`)."""
+        return self._objects
+
+    @objects.setter
+    def objects(self, objects: ObjectAccess | None) -> None:
+        self._objects = objects
+        with self._lock:
+            for n in self._nodes:
+                n.dict.refresh()
+
+    @property
+    def heard_for_s(self) -> float:
+        """How long a heard cycle stands for the master, s: :data:`HEARD_CYCLES`
+        communication cycle periods (1006h, the shortest of the nodes')."""
+        return HEARD_CYCLES * min(n.dict.cycle_s for n in self._nodes)
 
     @property
     def exposed(self) -> bool:
@@ -220,6 +258,22 @@ class CanDriveEndpoint(Endpoint):
     def nmt_state(self) -> str:
         """The (first) node's NMT state ("PRE-OPERATIONAL", "OPERATIONAL", ...)."""
         return self.node.nmt.state
+
+    def bus_plan(self, starting: DriveNode | None = None) -> BusPlan:
+        """The worst communication cycle of the nodes OPERATIONAL (and ``starting``):
+        SYNC with its counter, every valid PDO (:meth:`~io_adapters.can_pdo.PdoSet.
+        frames`) and each heartbeat produced, over the shortest 1006h at the bit rate."""
+        nodes = [n for n in self._nodes if n.operational or n is starting]
+        cycle = min(n.dict.cycle_s for n in self._nodes)
+        frames = [("SYNC", 1.0, 1)]
+        for n in nodes:
+            drive_cycle = (self._objects.cycle_s(n.axis) if self._objects is not None
+                           else cycle)
+            frames += n.dict.pdos.frames(cycle, drive_cycle)
+            if n.dict.producer_ms:
+                frames.append((f"heartbeat of node {n.local.id}",
+                               per_cycle(n.dict.producer_ms * 1e-3, cycle), 1))
+        return plan_cycle(frames, cycle, self.link.bitrate)
 
     def link_conditions(self, axis: int) -> int:
         """LINK_STOPPED while the node is in NMT STOPPED, LINK_RESET once after an NMT
@@ -273,11 +327,28 @@ class CanDriveEndpoint(Endpoint):
 
     def _write(self, fb: Feedback | FeedbackGroup) -> bool:
         records = self._records(fb, "feedback")
+        now = time.monotonic()
+        frames = []
         with self._lock:
             for rec, node in zip(records, self._nodes):
                 node.stage(rec)
-            self._written += 1
+                if node.operational:
+                    frames += node.event_frames(now)
+            self._staged += 1
+        self._send_all(frames)
         return True
+
+    def _send_all(self, frames: list) -> None:
+        """Send ``frames``; one the bus cannot take (a full transmit queue: nobody
+        acknowledges) is dropped and counted."""
+        if not frames:
+            return
+        with self.network.send_lock:
+            for msg in frames:
+                try:
+                    self.bus.send(msg)
+                except can.CanError:
+                    self.stats.send_dropped += 1
 
     def _close(self) -> None:
         for node in self.nodes:
@@ -285,17 +356,24 @@ class CanDriveEndpoint(Endpoint):
         self.network.disconnect()
 
     # -- the bus's side (canopen's receive thread) ---------------------------------------
+    def pdos_changed(self) -> None:
+        """Subscribe the valid RPDOs' COB-IDs (after a remapping or a reset)."""
+        wanted = {pdo.cob_id: (node, pdo) for node in self._nodes
+                  for pdo in node.dict.pdos.rpdos if pdo.layout is not None}
+        for cob_id in set(self._rpdo_of) - set(wanted):
+            self.network.unsubscribe(cob_id, self._on_rpdo)
+        for cob_id in set(wanted) - set(self._rpdo_of):
+            self.network.subscribe(cob_id, self._on_rpdo)
+        self._rpdo_of = wanted
+
     def _start_cycle(self, now: float, by_sync: bool = False,
                      counter: int | None = None) -> None:
-        """Send the TPDOs, latch the inputs, wake the loop (the lock is held)."""
-        fresh = self._written == 1 if by_sync else self._written > 0
-        # a frame the bus cannot take (a full transmit queue: nobody acknowledges) is
-        # dropped and counted; the cycle's bookkeeping below always runs
-        if fresh:
-            with self.network.send_lock:
-                for node in self._nodes:
-                    if node.local.nmt.state == "OPERATIONAL":
-                        self.stats.send_dropped += node.send_tpdos(self.network.bus, counter)
+        """Send the TPDOs due, latch the inputs, wake the loop (the lock is held)."""
+        frames = []
+        if self._staged == 1 or (self._staged and not (by_sync and self._one_tick_per_sync())):
+            for node in self._nodes:
+                if node.operational:
+                    frames += node.sync_frames(by_sync, counter, now)
         for node in self._nodes:
             due = node.emcy_due()
             if due is not None:
@@ -303,11 +381,12 @@ class CanDriveEndpoint(Endpoint):
                     node.local.emcy.send(*due)
                 except can.CanError:
                     self.stats.send_dropped += 1
-        self._written = 0
+        self._send_all(frames)
+        self._staged = 0
         if self._ready:
             self.stats.lost += 1
         for node in self._nodes:
-            node.latched = tuple(node.image[obj] for obj in INPUTS)
+            node.latched = tuple(node.image[key] for key in INPUTS)
         self._heard = by_sync and self._fresh
         self._fresh = False
         self._ready = True
@@ -315,23 +394,43 @@ class CanDriveEndpoint(Endpoint):
         self._last_cycle_s = now
         self._cycle.notify_all()
 
+    def _update_load(self) -> None:
+        load, stats = self.bus.load, self.stats
+        cycle = min(n.dict.cycle_s for n in self._nodes)
+        load.max_interval_s = LONG_CYCLE * cycle
+        stats.sync_cycles = load.cycles
+        stats.bus_bits_per_cycle_max = load.max_bits
+        stats.bus_load_max = load.max_bits / (self.link.bitrate * cycle)
+        stats.bus_load_mean = load.total_bits / max(1e-9, self.link.bitrate * load.total_s)
+
     def _on_sync(self, can_id: int, data: bytearray, timestamp: float) -> None:
         if any(n.nmt.state in ("PRE-OPERATIONAL", "OPERATIONAL") for n in self.nodes):
             now_ns = time.monotonic_ns()
             with self._lock:
+                if self.last_sync_ns:
+                    interval = (now_ns - self.last_sync_ns) * 1e-9
+                    self._sync_interval_s += (interval - self._sync_interval_s) / (
+                        1 if not self._sync_interval_s else SYNC_MEAN_SAMPLES)
                 self.last_sync_ns = now_ns
                 self._start_cycle(now_ns * 1e-9, True, data[0] if len(data) == 1 else None)
+                self._update_load()
+
+    def _one_tick_per_sync(self) -> bool:
+        """The SYNC comes every drive cycle (its mean interval under 1.5 of them): each
+        SYNC's answer is the one tick its predecessor's setpoint ran."""
+        if self._objects is None or not self._sync_interval_s:
+            return False
+        drive_cycle = min(self._objects.cycle_s(n.axis) for n in self._nodes)
+        return self._sync_interval_s < ONE_TICK * drive_cycle
 
     def _on_rpdo(self, can_id: int, data: bytearray, timestamp: float) -> None:
-        node, layout = self._rpdo_of[can_id]
-        if node.local.nmt.state == "OPERATIONAL" and not node.on_rpdo(data, layout):
+        node, pdo = self._rpdo_of[can_id]
+        if node.operational and not node.on_rpdo(data, pdo):
             self.stats.malformed += 1
 
     def _on_nmt(self, can_id: int, data: bytearray, timestamp: float) -> None:
-        """After canopen's own NMT handling: a reset boots the node again."""
-        if len(data) != 2 or data[0] not in (NMT_RESET_NODE, NMT_RESET_COMMUNICATION):
+        if len(data) != 2:
             return
         for node in self._nodes if data[1] == 0 else (self._by_id.get(data[1]),):
             if node is not None:
-                node.reset_event = True
-                node.boot(application=data[0] == NMT_RESET_NODE)
+                node.on_nmt(data[0], data, timestamp)

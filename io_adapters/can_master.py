@@ -14,7 +14,8 @@ On ``socketcan`` the kernel filters for it; on the other buses it reads every fr
 skips them itself: python-can filters those in software, and its ``recv(0)`` returns
 None on meeting a filtered frame with more frames queued behind it, so a poll per cycle
 would fall behind the master's own echoes.
-The PDO mapping, URL and units are those of :mod:`io_adapters.cia402_objects`.
+The default PDO mapping and the units are those of :mod:`io_adapters.cia402_objects`, the
+URL :mod:`io_adapters.can_url`'s; the master leaves the drive's mapping as it is.
 
 Setpoint to RPDOs, per mode (6060h = ``mode``)::
 
@@ -42,6 +43,10 @@ setpoints sent with SYNC k-1 and SYNC k (stamped as their RPDOs and SYNC went ou
 :meth:`~io_adapters.messages.Feedback.round_trip_ns` is the time from sending SYNC k to
 taking the TPDO set it brought back.
 
+A node that refuses NMT start because its PDO configuration does not fit the bus (its
+EMCY 8110h) makes :meth:`recv_feedback` raise :class:`~io_adapters.base.AdapterError`
+with the load it needs.
+
 With ``heartbeat=ID:MS`` the master produces a heartbeat (700h + ID, state OPERATIONAL)
 at most every MS ms, sent after a SYNC, for a drive that consumes it (1016h).
 The master sends NMT "start remote node" when opened and again whenever the drive
@@ -56,9 +61,8 @@ import time
 import can
 
 from io_adapters.base import AdapterError, Endpoint, FrameError, Role
-from io_adapters.can_cia402 import CanDriveEndpoint, open_bus
-from io_adapters.can_node import ECHO_SHIFT, SW_ECHO, SW_ECHO_MASK
-from io_adapters.cia402_objects import (
+from io_adapters.can_catalog import (
+    EMCY_BASE,
     HEARTBEAT_BASE,
     INT_RANGE,
     NMT_BOOT_UP,
@@ -66,14 +70,14 @@ from io_adapters.cia402_objects import (
     NMT_OPERATIONAL,
     NMT_PRE_OPERATIONAL,
     NMT_START,
-    PROCESS_OBJECTS,
     SYNC_COB_ID,
-    CanLink,
-    amps,
-    permille,
-    rpdo_layouts,
-    tpdo_layouts,
+    spec,
 )
+from io_adapters.can_cia402 import CanDriveEndpoint
+from io_adapters.can_node import ECHO_SHIFT, EMCY_BUS_OVERLOAD, SW_ECHO, SW_ECHO_MASK
+from io_adapters.can_tap import open_bus
+from io_adapters.can_url import CanLink
+from io_adapters.cia402_objects import amps, permille, rpdo_layouts, tpdo_layouts
 from io_adapters.messages import (
     MODE_CSP,
     MODE_CST,
@@ -96,7 +100,7 @@ def _wire_int(sp: Setpoint, name: str, field: str, wire_value: float,
               obj: tuple[int, int]) -> int:
     """``wire_value`` (``sp.field`` in wire units) rounded into the type of ``obj``;
     FrameError naming the record ``name`` and the field if it does not fit."""
-    lo, hi = INT_RANGE[PROCESS_OBJECTS[obj][1]]
+    lo, hi = INT_RANGE[spec(*obj).data_type]
     if not math.isfinite(wire_value) or not lo <= round(wire_value) <= hi:
         raise FrameError(f"{name}.{field}={getattr(sp, field)!r} does not fit "
                          f"{obj[0]:04X}h ({lo} to {hi} on the wire)")
@@ -148,6 +152,7 @@ class CanMasterEndpoint(Endpoint):
         self._tpdo_slot = {p.cob_id: k for k, p in enumerate(self._tpdos)}
         self._per_axis = len(self._tpdos) // link.axes
         self._heartbeats = {HEARTBEAT_BASE + n: n for n in link.nodes}
+        self._emcys = {EMCY_BASE + n: n for n in link.nodes}
         self._heartbeat = None if link.heartbeat is None else can.Message(
             arbitration_id=HEARTBEAT_BASE + link.heartbeat[0], is_extended_id=False,
             data=bytes((NMT_OPERATIONAL,)))
@@ -158,7 +163,7 @@ class CanMasterEndpoint(Endpoint):
         self._all = (1 << len(self._tpdos)) - 1
         self._seq = [0, 0]      # seq of the setpoints sent with the last two SYNCs
         self._sync_ns = [0, 0]  # and when those SYNCs were sent
-        wanted = [*self._tpdo_slot, *self._heartbeats]
+        wanted = [*self._tpdo_slot, *self._heartbeats, *self._emcys]
         self.bus = open_bus(link, can_filters=[
             {"can_id": i, "can_mask": STANDARD_ID_MASK, "extended": False} for i in wanted]
             if link.interface == "socketcan" else None)
@@ -255,6 +260,10 @@ class CanMasterEndpoint(Endpoint):
             if msg.data and msg.data[0] & 0x7F in (NMT_BOOT_UP, NMT_PRE_OPERATIONAL):
                 self._bus_send(self._starts[node])
             return False
+        node = self._emcys.get(can_id)
+        if node is not None:
+            self._check_emcy(node, msg.data)
+            return False
         slot = self._tpdo_slot.get(can_id)
         if slot is None:
             return False
@@ -280,6 +289,17 @@ class CanMasterEndpoint(Endpoint):
             into.tick_ns = 0
         self.stats.received += 1
         return True
+
+    def _check_emcy(self, node: int, data: bytearray) -> None:
+        """A node that refused NMT start for the bus load (EMCY 8110h with the load in per
+        mille and the cycle in µs) will never answer: AdapterError saying why."""
+        if len(data) == 8 and int.from_bytes(data[:2], "little") == EMCY_BUS_OVERLOAD:
+            load = int.from_bytes(data[3:5], "little") / 10
+            cycle_us = int.from_bytes(data[5:8], "little")
+            raise AdapterError(f"{self!r}: node {node} refused NMT start: its PDO "
+                               f"configuration needs {load:g} % of the {cycle_us} µs "
+                               f"communication cycle (1006h) at {self.link.bitrate} bit/s; "
+                               "map fewer PDOs or lengthen 1006h")
 
     def _fill(self, into: Feedback, values: list[tuple]) -> None:
         (statusword, _mode, error_code), (position, velocity), (current, _, scale) = values

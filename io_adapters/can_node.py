@@ -1,42 +1,52 @@
 """One CiA 402 node of the ``can://`` device endpoint (:mod:`io_adapters.can_cia402`):
-its :class:`canopen.LocalNode`, PDO frames, process image, SDO checks and network
-management.  The endpoint owns the lock, the bus, the drive's parameter objects and the
-setpoint bounds; a node reaches them through its ``owner``."""
+its :class:`canopen.LocalNode`, the master's process data and the drive's feedback, the
+PDO frames, the SDO checks and network management.  The node's other objects are its
+:class:`~io_adapters.can_dictionary.NodeDictionary`'s.  The endpoint owns the lock, the
+bus, the drive's objects and the setpoint bounds; a node reaches them through ``owner``.
+"""
 
 import math
 import time
 
-import can
 import canopen
 from canopen.sdo import SdoAbortedError
 
-from io_adapters.cia402_objects import (
+from io_adapters.can_catalog import (
     HEARTBEAT_BASE,
     HEARTBEAT_CONSUMER,
     I16,
     I32,
+    INPUTS,
+    MODE_HM,
+    MODE_PP,
+    MODE_PV,
+    NMT_RESET_COMMUNICATION,
+    NMT_RESET_NODE,
+    NMT_START,
     NO_MODE,
-    PARAMETER_OBJECTS,
     SDO_ABORT_NO_SUBINDEX,
     SDO_ABORT_VALUE_HIGH,
     SDO_ABORT_VALUE_LOW,
     SDO_ABORT_VALUE_RANGE,
-    CanLink,
+)
+from io_adapters.can_dictionary import NodeDictionary
+from io_adapters.can_pdo import PdoConfig
+from io_adapters.can_tpdo import TpdoTimer
+from io_adapters.can_url import CanLink
+from io_adapters.cia402_objects import (
     ObjectAccessError,
     amps,
     drive_object_dictionary,
     error_register,
     permille,
-    rpdo_layouts,
     saturate,
-    tpdo_layouts,
     wrap_i32,
 )
 from io_adapters.messages import (
     MODE_CSP,
     MODE_CST,
-    MODE_CSV,
     REFUSED_MODE,
+    REFUSED_RANGE,
     Feedback,
     Setpoint,
     SetpointBounds,
@@ -45,57 +55,69 @@ from io_adapters.messages import (
 SW_ECHO = 1 << 8
 ECHO_SHIFT = 14
 SW_ECHO_MASK = SW_ECHO | 3 << ECHO_SHIFT
-#: objects written by the master, in the order :meth:`DriveNode.fill` reads them
-INPUTS = ((0x6040, 0), (0x6060, 0), (0x607A, 0), (0x60B1, 0), (0x60FF, 0), (0x6071, 0),
-          (0x60B2, 0))
+STATUSWORD = (0x6041, 0)
 ERROR_CODE = (0x603F, 0)
-ERROR_REGISTER = (0x1001, 0)
-#: modes a CiA 402 node on this wire can run (the drive's own bounds narrow them)
-CAN_MODES = frozenset((MODE_CSP, MODE_CSV, MODE_CST))
+#: the EMCY of a start refused for the bus load (CiA 301: CAN overrun, objects lost);
+#: bytes 3-4 the load needed in per mille, 5-7 the communication cycle in µs
+EMCY_BUS_OVERLOAD = 0x8110
+#: the mode whose bounds a profile mode is checked against (it runs the same loops)
+CHECKED_AS = {NO_MODE: MODE_CST, MODE_PP: MODE_CSP, MODE_PV: MODE_CSP, MODE_HM: MODE_CSP}
+
 
 class DriveNode:
-    """One CiA 402 node of the endpoint (one axis): its :class:`canopen.LocalNode`, PDO
-    frames, process image and network management.  Its state is guarded by the
-    endpoint's ``lock``; the endpoint's ``objects`` and ``setpoint_bounds`` are read
-    through ``owner``."""
+    """One CiA 402 node (one axis): see the module docstring.  Its state is guarded by
+    the endpoint's ``lock``.
+
+    Attributes:
+        dict: the node's other objects (:class:`NodeDictionary`).
+        image: the master's process data as written (wire values), by (index, sub).
+        latched: the image at the start of the cycle the loop takes next.
+        staged: the newest feedback the loop wrote.
+        mode: the mode of operation of the last cycle (6061h).
+        refused: a refused RPDO not yet reported to the loop.
+        reset_event: an NMT reset not yet reported to the loop.
+        watch: the consumed heartbeat (node-ID, consumer time s, monotonic time of the
+            last one, NaN before the first), or None.
+    """
 
     def __init__(self, axis: int, node_id: int, link: CanLink, owner):
         self.axis = axis
         self.owner = owner
         self.lock = owner._lock
         self.rated_ma = link.rated_current_ma
-        self.rpdos = {p.cob_id: p for p in rpdo_layouts(node_id)}
-        self.tpdos = tpdo_layouts(node_id)
-        self.tpdo_msgs = tuple(can.Message(arbitration_id=p.cob_id, is_extended_id=False,
-                                           data=bytearray(p.frame.size)) for p in self.tpdos)
-        self.staged = tuple(bytearray(p.frame.size) for p in self.tpdos)
-        self.image = {obj: 0 for p in (*self.rpdos.values(), *self.tpdos) for obj in p.objects}
-        self.image[ERROR_REGISTER] = 0
+        self.dict = NodeDictionary(node_id, link, axis, owner)
+        self.image = dict.fromkeys(INPUTS, 0)
         self.latched = (0,) * len(INPUTS)
+        self.staged = Feedback()
         self.mode = NO_MODE
-        self.refused = False      # a refusal not yet reported to the loop
-        self.emcy_code = 0        # the error code the last EMCY announced
-        self.reset_event = False  # an NMT reset not yet reported to the loop
-        self.heartbeat_start = link.heartbeat_consumer
-        #: the consumed heartbeat: (node-ID, consumer time s, monotonic time of the last
-        #: one, NaN before the first), or None
+        self.refused = False
+        self.emcy_code = 0
+        self.start_refused = False  # the last NMT start was refused: an EMCY is standing
+        self.reset_event = False
         self.watch: tuple[int, float, float] | None = None
+        self.tpdo = TpdoTimer()
+        self._getters = self._feedback_getters()
         self.local = canopen.LocalNode(node_id, drive_object_dictionary(
             node_id, link.rated_current_ma, link.rated_torque_mnm, link.heartbeat_consumer))
         self.local.add_read_callback(self.on_sdo_read)
         self.local.add_write_callback(self.on_sdo_write)
 
+    @property
+    def operational(self) -> bool:
+        return self.local.nmt.state == "OPERATIONAL"
+
     # -- the loop's side (lock held) -------------------------------------------------------
     def fill(self, into: Setpoint, seq: int) -> None:
-        """The latched objects as a setpoint (the lock is held)."""
+        """The latched objects as a setpoint, in increments (the lock is held)."""
         controlword, mode, position, velocity_offset, velocity, torque, torque_offset = \
             self.latched
+        factor = self.dict.factor
         self.mode = mode
         into.seq = seq
         into.controlword = controlword
-        into.target_position_counts = float(position)
-        into.velocity_offset_counts_s = float(velocity_offset)
-        into.target_velocity_counts_s = float(velocity)
+        into.target_position_counts = position * factor
+        into.velocity_offset_counts_s = velocity_offset * factor
+        into.target_velocity_counts_s = velocity * factor
         if mode == NO_MODE:
             into.mode, into.iq_ref_a = MODE_CST, 0.0
         else:
@@ -110,65 +132,94 @@ class DriveNode:
         return amps((torque if mode == MODE_CST else 0) + torque_offset, self.rated_ma)
 
     def stage(self, fb: Feedback) -> None:
-        """Pack ``fb`` into the TPDO frames and the image (the lock is held)."""
-        current = saturate(permille(fb.iq_a, self.rated_ma), I16)
-        values = ((fb.statusword, self.mode, fb.fault),
-                  (wrap_i32(fb.encoder_counts), saturate(fb.velocity_counts_s, I32)),
-                  (current, current, wrap_i32(fb.scale_counts)))
-        for layout, staged, vals in zip(self.tpdos, self.staged, values):
-            layout.frame.pack_into(staged, 0, *vals)
-            self.image.update(zip(layout.objects, vals))
-        self.image[ERROR_REGISTER] = error_register(fb.fault)
+        """Keep ``fb`` as the newest feedback (the lock is held)."""
+        s = self.staged
+        s.statusword, s.fault = fb.statusword, fb.fault
+        s.encoder_counts, s.scale_counts = fb.encoder_counts, fb.scale_counts
+        s.velocity_counts_s, s.iq_a = fb.velocity_counts_s, fb.iq_a
 
-    # -- the bus's side --------------------------------------------------------------------
-    def send_tpdos(self, bus: can.BusABC, counter: int | None) -> int:
-        """Send the staged TPDO1-3, TPDO1 with the SYNC echo when ``counter`` is given;
-        how many the bus could not take (dropped)."""
-        for msg, staged in zip(self.tpdo_msgs, self.staged):
-            msg.data[:] = staged
-        tpdo1 = self.tpdo_msgs[0].data  # statusword little-endian: bits 8-15
-        tpdo1[1] &= ~SW_ECHO_MASK >> 8 & 0xFF
-        if counter is not None:
-            tpdo1[1] |= (SW_ECHO | (counter & 3) << ECHO_SHIFT) >> 8
-        dropped = 0
-        for msg in self.tpdo_msgs:
-            try:
-                bus.send(msg)
-            except can.CanError:
-                dropped += 1
-        return dropped
+    # -- values ----------------------------------------------------------------------------
+    def _feedback_getters(self) -> dict:
+        """(index, sub-index) -> the object's wire value from the staged feedback."""
+        d, rated = self.dict, self.rated_ma
+
+        def current(fb: Feedback) -> int:
+            return saturate(permille(fb.iq_a, rated), I16)
+
+        return {STATUSWORD: lambda fb: fb.statusword & ~SW_ECHO_MASK & 0xFFFF,
+                (0x6061, 0): lambda fb: self.mode,
+                ERROR_CODE: lambda fb: fb.fault,
+                (0x1001, 0): lambda fb: error_register(fb.fault),
+                (0x6064, 0): lambda fb: wrap_i32(fb.encoder_counts / d.factor),
+                (0x606C, 0): lambda fb: saturate(fb.velocity_counts_s / d.factor, I32),
+                (0x6077, 0): current, (0x6078, 0): current,
+                (0x60E4, 1): lambda fb: wrap_i32(fb.scale_counts)}
+
+    def value(self, key: tuple[int, int]) -> int:
+        """An object's value as the wire carries it (the lock is held)."""
+        getter = self._getters.get(key)
+        if getter is not None:
+            return getter(self.staged)
+        if key in self.image:
+            return self.image[key]
+        return self.dict.read(*key)
+
+    def pack(self, pdo: PdoConfig, counter: int | None = None) -> bytes:
+        """The frame of a valid TPDO now; a statusword in it carries the SYNC echo when
+        ``counter`` is given (see :mod:`io_adapters.can_cia402`)."""
+        values = []
+        for key in pdo.layout.objects:
+            v = self.value(key)
+            if key == STATUSWORD and counter is not None:
+                v |= SW_ECHO | (counter & 3) << ECHO_SHIFT
+            values.append(v)
+        return pdo.layout.frame.pack(*values)
+
+    # -- TPDOs -------------------------------------------------------------------------------
+    def sync_frames(self, by_sync: bool, counter: int | None, now_s: float) -> list:
+        """The synchronous TPDOs due at this cycle start (every one on the drive's own
+        clock), as messages (the lock is held)."""
+        return self.tpdo.sync_frames(self.dict.pdos.tpdos, self.pack, by_sync, counter, now_s)
+
+    def event_frames(self, now_s: float) -> list:
+        """The event-driven TPDOs due now (the lock is held)."""
+        return self.tpdo.event_frames(self.dict.pdos.tpdos, self.pack, now_s)
 
     def emcy_due(self) -> tuple[int, int] | None:
         """(code, 1001h) of an EMCY to send now, if the error code changed (lock held)."""
-        code = self.image[ERROR_CODE]
+        code = self.staged.fault
         if code == self.emcy_code or self.local.nmt.state not in ("PRE-OPERATIONAL",
                                                                  "OPERATIONAL"):
             return None
         self.emcy_code = code
-        return code, self.image[ERROR_REGISTER]
+        return code, error_register(code)
 
+    # -- refusals ----------------------------------------------------------------------------
     def bounds(self) -> SetpointBounds:
-        b = self.owner.setpoint_bounds
-        return b[self.axis] if self.axis < len(b) else b[0]
+        return self.dict.bounds()
 
     def refusal(self, values: dict) -> int:
-        """Why ``values`` (index -> value, merged over the image) cannot be taken, or 0:
-        the axis's :class:`~io_adapters.messages.SetpointBounds` on the setpoint they make
-        (no mode, the power-up value, counts as CST), a current beyond its bound by less
-        than half a per-mille step (the wire's rounding) taken at the bound."""
+        """Why ``values`` (key -> wire value, merged over the image) cannot be taken, or 0:
+        a mode this node does not take, or the axis's
+        :class:`~io_adapters.messages.SetpointBounds` on the setpoint they make (no mode,
+        the power-up value, counts as CST; a profile mode as CSP, whose loops it needs), a
+        current beyond its bound by less than half a per-mille step (the wire's rounding)
+        taken at the bound."""
         def get(key):
             return values.get(key, self.image[key])
 
         mode = get((0x6060, 0))
-        if mode not in CAN_MODES and mode != NO_MODE:
+        if mode != NO_MODE and mode not in self.dict.modes():
             return REFUSED_MODE
         torque, offset = get((0x6071, 0)), get((0x60B2, 0))
         current = amps(max(abs(torque), abs(offset), abs(torque + offset)), self.rated_ma)
         bounds = self.bounds()
         if bounds.current_a < current <= bounds.current_a + 0.5e-6 * self.rated_ma:
             current = bounds.current_a
-        return bounds.refusal(MODE_CST if mode == NO_MODE else mode, get((0x607A, 0)),
-                              get((0x60FF, 0)), get((0x60B1, 0)), current, 0.0, 0.0, 0.0)
+        factor = self.dict.factor
+        return bounds.refusal(CHECKED_AS.get(mode, mode), get((0x607A, 0)) * factor,
+                              get((0x60FF, 0)) * factor, get((0x60B1, 0)) * factor,
+                              current, 0.0, 0.0, 0.0)
 
     def refuse(self, reason: int, fault: bool = True) -> None:
         """Count a refusal and, for process data (``fault``), keep it for the loop, whose
@@ -180,19 +231,37 @@ class DriveNode:
             stats.refused_range += 1
         self.refused = self.refused or fault
 
-    def on_rpdo(self, data: bytearray, layout) -> bool:
-        """Take one RPDO into the image; False (malformed) on a wrong DLC."""
+    # -- the bus's side ----------------------------------------------------------------------
+    def on_rpdo(self, data: bytearray, pdo: PdoConfig) -> bool:
+        """Take one RPDO: its inputs into the image, the drive's objects mapped in it
+        written at once; False (malformed) on a DLC other than the mapping's."""
+        layout = pdo.layout
         if len(data) != layout.frame.size:
             return False
         update = dict(zip(layout.objects, layout.frame.unpack(data)))
+        inputs = {k: v for k, v in update.items() if k in self.image}
         with self.lock:
-            reason = self.refusal(update)
+            reason = self.refusal(inputs)
+            if not reason:
+                reason = self._write_mapped(update)
             if reason:
                 self.refuse(reason)
             else:
-                self.image.update(update)
+                self.image.update(inputs)
                 self.owner._fresh = True
         return True
+
+    def _write_mapped(self, update: dict) -> int:
+        """Write the drive's objects an RPDO carries; REFUSED_RANGE if one is refused."""
+        for key, value in update.items():
+            if key in self.image:
+                continue
+            try:
+                self.dict.check_limits(*key, value)
+                self.dict.write(*key, value, pre_operational=False)
+            except ObjectAccessError:
+                return REFUSED_RANGE
+        return 0
 
     def on_sdo_request(self, can_id: int, data: bytearray, timestamp: float) -> None:
         """An SDO request, served unless the node is STOPPED (CiA 301: no SDO there)."""
@@ -203,27 +272,30 @@ class DriveNode:
         if subindex != od.subindex:
             raise SdoAbortedError(SDO_ABORT_NO_SUBINDEX)
         key = (index, subindex)
-        objects = self.owner.objects
-        if key in PARAMETER_OBJECTS and objects is not None:
-            try:
-                return objects.read(self.axis, index, subindex)
-            except ObjectAccessError as e:
-                raise SdoAbortedError(e.abort_code) from e
-        with self.lock:
-            return self.image.get(key)
+        try:
+            if key in self._getters or key in self.image:
+                with self.lock:
+                    return self.value(key)
+            return self.dict.read(index, subindex)
+        except ObjectAccessError as e:
+            raise SdoAbortedError(e.abort_code) from e
 
     def on_sdo_write(self, index: int, subindex: int, od, data: bytes) -> None:
         if subindex != od.subindex:
             raise SdoAbortedError(SDO_ABORT_NO_SUBINDEX)
         key = (index, subindex)
         value = od.decode_raw(data)
-        if key in INPUTS:
+        if key in self.image:
             self._write_input(key, value)
-        elif key in PARAMETER_OBJECTS and self.owner.objects is not None:
-            try:
-                self.owner.objects.write(self.axis, index, subindex, value)
-            except ObjectAccessError as e:
-                raise SdoAbortedError(e.abort_code) from e
+            return
+        try:
+            self.dict.check_limits(index, subindex, value)
+            self.dict.write(index, subindex, value,
+                            self.local.nmt.state == "PRE-OPERATIONAL")
+        except ObjectAccessError as e:
+            raise SdoAbortedError(e.abort_code) from e
+        if self.dict.pdos.owner(index) is not None:
+            self.owner.pdos_changed()
         elif key == HEARTBEAT_CONSUMER:
             self.consume_heartbeat(value)
 
@@ -238,7 +310,31 @@ class DriveNode:
             self.image[key] = value
             self.owner._fresh = True
 
-    # -- network management ----------------------------------------------------------------
+    # -- network management ------------------------------------------------------------------
+    def on_nmt(self, command: int, data: bytearray, timestamp: float) -> None:
+        """An NMT command for this node: a start the bus cannot carry is refused (the node
+        stays where it is and says why in an EMCY); a reset boots the node again; the
+        rest is canopen's."""
+        if command == NMT_START and self.local.nmt.state != "OPERATIONAL":
+            plan = self.owner.bus_plan(starting=self)
+            if not plan.fits:
+                self.owner.stats.start_refused += 1
+                load = min(round(plan.load * 1000), 0xFFFF)
+                cycle = round(plan.cycle_s * 1e6)
+                self.local.emcy.send(EMCY_BUS_OVERLOAD, 0x11,
+                                     load.to_bytes(2, "little") + cycle.to_bytes(3, "little"))
+                self.start_refused = True
+                return
+            self.owner.stats.bus_plan_load = plan.load
+            if self.start_refused:  # the EMCY's error is gone: error reset
+                self.start_refused = False
+                self.local.emcy.send(0, error_register(self.emcy_code))
+            self.tpdo.restart()
+        self.local.nmt.on_command(0, data, timestamp)
+        if command in (NMT_RESET_NODE, NMT_RESET_COMMUNICATION):
+            self.reset_event = True
+            self.boot(application=command == NMT_RESET_NODE)
+
     def consume_heartbeat(self, entry: int) -> None:
         """1016h:01 = ``entry``: watch node (bits 16-22)'s heartbeat for (bits 0-15) ms;
         0 in either: no consumer."""
@@ -265,16 +361,18 @@ class DriveNode:
     def boot(self, application: bool) -> None:
         """NMT reset: the master's process data cleared (controlword 0: disable voltage,
         no mode), communication objects back to their start values (and the drive's
-        parameters for a reset node), boot-up message, PRE-OPERATIONAL."""
+        objects and the factor group for a reset node), boot-up message, PRE-OPERATIONAL."""
         objects = self.owner.objects
         if application and objects is not None:
             objects.reset_application(self.axis)
-        entry = self.heartbeat_start
-        self.consume_heartbeat(0 if entry is None else entry[0] << 16 | entry[1])
-        self.local.data_store.clear()
         with self.lock:  # the master's process data is gone: controlword 0, no mode
+            self.dict.reset(application)
             self.image.update(dict.fromkeys(INPUTS, 0))
             self.latched = (0,) * len(INPUTS)
+            self.tpdo.clear()
+        self.consume_heartbeat(self.dict.consumer_entry)
+        self.local.data_store.clear()
+        self.owner.pdos_changed()
         nmt = self.local.nmt
         nmt.stop_heartbeat()
         nmt.state = "RESET"             # boot-up message

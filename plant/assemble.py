@@ -14,6 +14,8 @@ stiffest mode is off by at most 1 %, the modes a controller sees, far below
 it, by much less).  The electrical states use exact exponential decay and
 impose no limit.  A table with a stroke adds its end stops: the chains' modes with a stop
 in contact and the contact's own rate (:mod:`plant.end_stops`) count toward omega_max.
+The count of sub-steps is bounded (:mod:`plant.substeps`): a machine file asking for more
+is refused with the largest stiffness that fits.
 """
 
 import math
@@ -28,6 +30,7 @@ from plant.effects.chain import params_size, state_size
 from plant.effects.delay import ring_size
 from plant.end_stops import EndStops, check_substep, end_stops
 from plant.errors import ConfigError
+from plant.substeps import MAX_SUB_PER_PWM, PLANT_LIMIT, refusal
 
 _MOTOR = {"dq": L.MOTOR_DQ, "first_order": L.MOTOR_FIRST_ORDER,
           "commutation": L.MOTOR_COMMUTATION}
@@ -265,16 +268,38 @@ def choose_substep(cfg: MachineConfig, omega_max: float) -> tuple[float, int]:
     return period / n, n
 
 
-def build(cfg: MachineConfig) -> Built:
-    """Fill the kernel's params vector from a checked machine file."""
-    mo, cl, kind = cfg.motor, cfg.current_loop, cfg.machine.kind
-    rot, ax = build_chains(cfg)
+def _substep_choice(cfg: MachineConfig) -> tuple[float, int, float, EndStops | None]:
+    """(dt in s, sub-steps per PWM period, omega_max in rad/s, the end stops or None)
+    following the module's rule, before any bound on the count."""
     omega_max = _omega_max(cfg)
     dt, n_sub = choose_substep(cfg, omega_max)
     stops = None
     if cfg.table is not None:
+        rot, _ = build_chains(cfg)
         stops = end_stops(cfg.table, _contact_mass(cfg, rot), cfg.simulation.max_omega_dt / dt)
         dt, n_sub, omega_max = _substep_with_stops(cfg, stops, omega_max, dt, n_sub)
+    return dt, n_sub, omega_max, stops
+
+
+def check_substep_count(cfg: MachineConfig, n_max: int, why: str) -> int:
+    """The sub-steps per PWM period ``cfg`` needs; a :class:`ConfigError` when more than
+    ``n_max`` (``why``: whose bound it is), naming the stiffness to lower and the largest
+    value that fits (:func:`plant.substeps.refusal`)."""
+    _, n_sub, omega_max, _ = _substep_choice(cfg)
+    if n_sub > n_max:
+        raise ConfigError(refusal(cfg, n_sub, n_max, why, omega_max,
+                                  lambda c: _substep_choice(c)[1]))
+    return n_sub
+
+
+def build(cfg: MachineConfig) -> Built:
+    """Fill the kernel's params vector from a checked machine file; refuses one that needs
+    more than :data:`plant.substeps.MAX_SUB_PER_PWM` sub-steps per PWM period."""
+    mo, cl, kind = cfg.motor, cfg.current_loop, cfg.machine.kind
+    rot, ax = build_chains(cfg)
+    dt, n_sub, omega_max, stops = _substep_choice(cfg)
+    if n_sub > MAX_SUB_PER_PWM:
+        check_substep_count(cfg, MAX_SUB_PER_PWM, PLANT_LIMIT)
     ratio = transmission_ratio(cfg)
     p = np.zeros(L.P_COUNT + params_size(rot.n) + (params_size(ax.n) if ax else 0))
     p[L.P_MOTOR_MODEL] = _MOTOR[mo.model]

@@ -10,6 +10,8 @@ prints the whole schema from these declarations.
 
 import difflib
 import math
+import os
+import stat
 from dataclasses import dataclass, fields
 from pathlib import Path
 
@@ -17,7 +19,7 @@ import tomllib
 
 from plant.errors import ConfigError
 from plant.layout import N_DELAY_MAX, N_PITCH
-from plant.schema import describe, is_required
+from plant.schema import describe, in_range, is_required, range_text
 from plant.sections import (
     FOREIGN_SECTIONS,
     OPTIONAL_SECTIONS,
@@ -76,15 +78,52 @@ def load_machine(path: str | Path, overrides: dict | None = None) -> MachineConf
         ConfigError: naming the file, key and expected unit or range.
     """
     path = Path(path)
-    try:
-        raw = tomllib.loads(path.read_text())
-    except FileNotFoundError as exc:
-        raise ConfigError(f"{path}: no such machine file") from exc
-    except tomllib.TOMLDecodeError as exc:
-        raise ConfigError(f"{path}: not valid TOML: {exc}") from exc
+    raw = read_toml(path)
     for sec, values in (overrides or {}).items():
         raw.setdefault(sec, {}).update(values)
     return parse_machine(raw, str(path))
+
+
+#: a machine file or manifest larger than this is refused unread, bytes
+MAX_FILE_BYTES = 1_000_000
+
+
+def read_toml(path: Path, what: str = "machine file") -> dict:
+    """The TOML table of ``path``, or a :class:`ConfigError` of one line naming the file
+    and why: missing, not a regular file (a directory, a FIFO or a device is never read,
+    so nothing can block here), unreadable, larger than :data:`MAX_FILE_BYTES`, not UTF-8
+    (with the line of the first bad byte), or not TOML (with tomllib's line and column).
+    ``what`` names the file's role in the messages."""
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | os.O_CLOEXEC)
+    except FileNotFoundError as exc:
+        raise ConfigError(f"{path}: no such {what}") from exc
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot open the {what}: {exc.strerror or exc}") from exc
+    try:
+        st = os.fstat(fd)
+        if stat.S_ISDIR(st.st_mode):
+            raise ConfigError(f"{path}: is a directory, not a {what} (give the .toml file)")
+        if not stat.S_ISREG(st.st_mode):
+            raise ConfigError(f"{path}: not a regular file; a {what} is a .toml file")
+        if st.st_size > MAX_FILE_BYTES:
+            raise ConfigError(f"{path}: {st.st_size} bytes, more than a {what} can be "
+                              f"({MAX_FILE_BYTES} bytes)")
+        data = os.read(fd, MAX_FILE_BYTES + 1)
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot read the {what}: {exc.strerror or exc}") from exc
+    finally:
+        os.close(fd)
+    try:
+        text = data.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        line = data.count(b"\n", 0, exc.start) + 1
+        raise ConfigError(f"{path}: not UTF-8 text (byte 0x{data[exc.start]:02x} at line "
+                          f"{line}); TOML files are UTF-8") from exc
+    try:
+        return tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{path}: not valid TOML: {exc}") from exc
 
 
 def parse_machine(raw: dict, where: str) -> MachineConfig:
@@ -200,14 +239,16 @@ def _check_value(f, value, where, sec):
         if not isinstance(value, list) or not all(
                 isinstance(v, (int, float)) and not isinstance(v, bool) for v in value):
             raise ConfigError(f"{label}: expected a list of numbers in {m['unit']}")
-        return tuple(float(v) for v in value)
-    unit = m["unit"]
-    if m["gt"] is not None and not value > m["gt"]:
-        raise ConfigError(f"{label}: must be > {m['gt']:g} {unit}")
-    if m["ge"] is not None and not value >= m["ge"]:
-        raise ConfigError(f"{label}: must be >= {m['ge']:g} {unit}")
-    if m["le"] is not None and not value <= m["le"]:
-        raise ConfigError(f"{label}: must be <= {m['le']:g} {unit}")
+        value = tuple(float(v) for v in value)
+        for v in value:
+            if not math.isfinite(v):
+                raise ConfigError(f"{label}: every element must be finite (unit {m['unit']})")
+            if not in_range(m, v):
+                raise ConfigError(f"{label}: every element must be {range_text(m)} "
+                                  f"{m['unit']} (got {v:g})")
+        return value
+    if not in_range(m, value):
+        raise ConfigError(f"{label}: must be {range_text(m)} {m['unit']}")
     return value
 
 

@@ -26,7 +26,12 @@ and the measured ones (encoder and scale counts, measured currents) through the 
 
 from numba import njit
 
-from plant.effects.chain import chain_clear_forces, chain_internal_forces, chain_step, dead_zone
+from plant.effects.chain import (
+    chain_clear_forces,
+    chain_internal_forces,
+    chain_step,
+    dead_zone,
+)
 from plant.effects.cogging import cogging_torque
 from plant.effects.commutation import commutation_control, commutation_substep
 from plant.effects.delay import delay_push, measured_delayed
@@ -41,6 +46,7 @@ from plant.effects.pmsm import (
     freewheel,
     limit_voltage,
 )
+from plant.effects.reference import home_switch, index_marks
 from plant.effects.sensors import measure_current
 from plant.effects.tlm import tlm_step
 from plant.layout import (
@@ -59,8 +65,10 @@ from plant.layout import (
     O_ENCODER,
     O_END_STOP_F,
     O_FRICTION,
+    O_HOME_SWITCH,
     O_ID,
     O_ID_MEAS,
+    O_INDEX,
     O_IQ,
     O_IQ_MEAS,
     O_LIMIT_NEG,
@@ -381,6 +389,8 @@ def write_outputs(p, s, out, status):
     out[O_FRICTION] = s[S_FRICTION]
     out[O_LIMIT_NEG], out[O_LIMIT_POS] = limit_switches(p, s[S_TABLE_X])
     out[O_END_STOP_F] = s[S_STOP_F]
+    out[O_HOME_SWITCH] = home_switch(p, s[S_TABLE_X])
+    out[O_INDEX] = index_marks(p, enc)
 
 
 @njit(cache=True, error_model="numpy")

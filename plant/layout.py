@@ -126,6 +126,7 @@ P_STOP_K = next(_p)  # N/m, contact stiffness
 P_STOP_C = next(_p)  # N·s/m, contact damping (it only ever pushes the table out)
 P_LIMIT_NEG = next(_p)  # m, the negative limit switch is on below this position
 P_LIMIT_POS = next(_p)  # m, the positive limit switch is on above this position
+P_HOME_SWITCH = next(_p)  # m (rad on rotary tables), the home switch's edge: on below it
 
 # sensors
 P_ENC_COUNTS_PER_RAD = next(_p)  # motor encoder counts per motor rad (or per m, linear)
@@ -135,6 +136,7 @@ P_I_LSB = next(_p)  # A, current-measurement quantization step; 0: none
 P_SEED = next(_p)  # noise generator seed
 N_DELAY_MAX = 32  # longest measurement delay in PWM periods
 P_DELAY_N = next(_p)  # measurement delay in whole PWM periods (0: none)
+P_INDEX_PERIOD = next(_p)  # rad (m on linear motors) between encoder index marks; 0: 2 pi
 
 # chain layout (offsets into params and state; counts)
 P_N_ROT = next(_p)  # number of torsional nodes (motor is node 0)
@@ -219,5 +221,7 @@ O_FRICTION = next(_o)  # N (N·m), table friction
 O_LIMIT_NEG = next(_o)  # 1.0 while the table is beyond the negative limit switch, else 0.0
 O_LIMIT_POS = next(_o)  # 1.0 while the table is beyond the positive limit switch, else 0.0
 O_END_STOP_F = next(_o)  # N, end-stop force on the table, + pushing toward +x
+O_HOME_SWITCH = next(_o)  # 1.0 while the home switch is on, else 0.0 (plant.effects.reference)
+O_INDEX = next(_o)  # index marks of the (measured) encoder below its position (whole number)
 O_COUNT = next(_o)
 del _o

@@ -36,9 +36,7 @@ on it unchanged.  Manifests live in ``configs/machines/`` so that the tools that
 from dataclasses import dataclass
 from pathlib import Path
 
-import tomllib
-
-from plant.config import MachineConfig, load_machine
+from plant.config import MachineConfig, load_machine, read_toml
 from plant.errors import ConfigError
 
 LINEAR_LETTERS = "XYZUVW"
@@ -173,12 +171,7 @@ def load_machine_set(path: str | Path, axis_name: str | None = None) -> MachineS
     """Read a manifest, or a plain machine file as a machine of one axis named
     ``axis_name`` (default :func:`default_axis_name`).  Raises :class:`ConfigError`."""
     path = Path(path)
-    try:
-        raw = tomllib.loads(path.read_text())
-    except FileNotFoundError as exc:
-        raise ConfigError(f"{path}: no such machine file") from exc
-    except tomllib.TOMLDecodeError as exc:
-        raise ConfigError(f"{path}: not valid TOML: {exc}") from exc
+    raw = read_toml(path)
     if not is_manifest(raw):
         return single_axis(load_machine(path), axis_name)
     _unknown(str(path), raw, ("machine", "axis"))

@@ -22,6 +22,7 @@ from plant.assemble import Built, build
 from plant.config import MachineConfig, load_machine
 from plant.effects.delay import delay_fill
 from plant.effects.pitch import nominal_position
+from plant.effects.reference import counts_per_mark
 from plant.effects.tlm import tlm_init
 from plant.kernel import axis_step_nb
 
@@ -33,6 +34,7 @@ OUTPUTS = {
     "id_meas_a": L.O_ID_MEAS, "iq_meas_a": L.O_IQ_MEAS, "torque": L.O_TORQUE, "ud_v": L.O_UD,
     "uq_v": L.O_UQ, "nut_force_n": L.O_NUT_FORCE, "friction": L.O_FRICTION,
     "limit_neg": L.O_LIMIT_NEG, "limit_pos": L.O_LIMIT_POS, "end_stop_force_n": L.O_END_STOP_F,
+    "home_switch": L.O_HOME_SWITCH, "index_marks": L.O_INDEX,
 }
 INPUTS = {
     "mode": L.I_MODE, "enable": L.I_ENABLE, "id_ref_a": L.I_ID_REF, "iq_ref_a": L.I_IQ_REF,
@@ -60,6 +62,14 @@ class Plant:
         self.config = config
         self.built: Built = build(config)
         self.params = self.built.params
+        p = self.params
+        if config.machine.kind == "linear":  # a mark per electrical period (two pole pitches)
+            p[L.P_INDEX_PERIOD] = 2.0 * config.motor.pole_pitch_m
+        # the home switch's edge halfway between two index marks above the start of the
+        # travel (table m, rad on a rotary table), as a machine builder sets the cam, so
+        # that no homing meets the edge and a mark at once
+        p[L.P_HOME_SWITCH] = (0.5 * counts_per_mark(p) / p[L.P_ENC_COUNTS_PER_RAD]
+                              * self.built.ratio)
         self.state = np.zeros(self.built.state_size)
         self.inp = np.zeros(L.I_COUNT)
         self.out = np.zeros(L.O_COUNT)
@@ -85,6 +95,12 @@ class Plant:
     def pwm_period(self) -> float:
         """PWM period in s."""
         return self.built.dt * self.built.sub_per_pwm
+
+    @property
+    def counts_per_mark(self) -> int:
+        """Motor-encoder counts between two index marks (one motor revolution, or one
+        electrical period of a linear motor; :mod:`plant.effects.reference`)."""
+        return int(counts_per_mark(self.params))
 
     def reset(self, table_pos: float = 0.0) -> None:
         """Rest state with the table at ``table_pos`` (m, or rad for rotary tables),

@@ -17,6 +17,7 @@ import numpy as np
 
 from hil.cia402 import EnableSequencer, State, statusword_state
 from hil.runtime.demo import wait_ready
+from hil.runtime.record_reader import Recording
 from tests.conftest import CONFIGS, ROOT
 
 ARROW = CONFIGS / "arrow500_x.toml"
@@ -99,8 +100,7 @@ def terminate(proc: subprocess.Popen) -> int:
 def read_run(run_dir: Path) -> tuple[dict, dict]:
     """``hil run``'s report.json and its recording's columns (name -> array)."""
     report = json.loads((run_dir / "report.json").read_text())
-    with np.load(run_dir / "run.npz") as npz:
-        return report, {k: npz[k] for k in npz.files}
+    return report, Recording(run_dir).read()
 
 
 def machine_lockstep_traces(config: Path, program: Path, settle_s: float, folder: Path,

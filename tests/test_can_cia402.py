@@ -8,6 +8,7 @@
   the test and removed after it, so nothing leaves the machine; skipped, with the
   kernel's answer, where the route cannot be added); ``socketcan`` on ``vcan0`` where
   the kernel has SocketCAN (skipped here: ``socket(AF_CAN)`` fails, platform-notes.md).
+* The EDS: tests/test_can_eds.py.
 * canopen's ``BaseNode402`` enables an EmulatedDrive of the Arrow 500 X, moves it in
   CSP and reads the position back, in one process (``virtual``; plus a plant fault)
   and across two processes (``udp_multicast``).
@@ -33,7 +34,6 @@ from pathlib import Path
 import can
 import canopen
 import pytest
-from canopen.objectdictionary import ODArray, ODRecord
 from canopen.profiles.p402 import BaseNode402
 
 from hil.drive import EmulatedDrive
@@ -45,6 +45,7 @@ from io_adapters import (
     Setpoint,
     open_endpoint,
 )
+from io_adapters.can_catalog import VENDOR_ID
 from io_adapters.cia402_objects import drive_object_dictionary
 from io_adapters.messages import MODE_CSP, MODE_CST, MODE_CSV, MODE_VOLTAGE
 from plant import Plant
@@ -140,16 +141,27 @@ def recv_id(bus: can.BusABC, can_id: int) -> can.Message:
     raise AssertionError(f"no frame 0x{can_id:03X} within {WAIT_S} s")
 
 
+def sdo_write_u32(bus: can.BusABC, node: int, index: int, subindex: int, value: int) -> None:
+    """An expedited SDO download of four bytes (CiA 301: 23h), answered by 60h."""
+    bus.send(can.Message(arbitration_id=0x600 + node, is_extended_id=False,
+                         data=bytes([0x23, index & 0xFF, index >> 8, subindex])
+                         + value.to_bytes(4, "little")))
+    answer = recv_id(bus, 0x580 + node).data
+    assert answer[0] == 0x60, f"{index:04X}h:{subindex:02X} = {value}: {answer.hex()}"
+
+
 # -- golden frames ----------------------------------------------------------------------
 
 SDO_EXCHANGES = [  # CiA 301 SDO, request on 600h + node, response on 580h + node
     ("expedited upload 6041h statusword", "4041600000000000", "4B41600050020000"),
     ("expedited upload 1000h device type", "4000100000000000", "4300100092010200"),
-    ("expedited upload 6502h supported modes", "4002650000000000", "4302650080030000"),
+    # PP, PV, homing, CSP, CSV, CST (bits 0, 2, 5, 7, 8, 9)
+    ("expedited upload 6502h supported modes", "4002650000000000", "43026500A5030000"),
     ("expedited download 6040h controlword = 6", "2B40600006000000", "6040600000000000"),
     ("abort: object 2000h does not exist", "4000200000000000", "8000200000000206"),
     ("abort: 6041h is read-only", "2B41600006000000", "8041600002000106"),
-    ("abort: mode 1 (profile position) not offered", "2F60600001000000", "8060600030000906"),
+    ("abort: mode 7 (interpolated position) not offered", "2F60600007000000",
+     "8060600030000906"),
 ]
 
 
@@ -167,20 +179,6 @@ def test_boot_up_and_sdo_frames_are_the_standards():
         assert drive.recv_setpoint(sp, WAIT_S)
         assert (sp.controlword, sp.mode, sp.iq_ref_a) == (6, MODE_CST, 0.0)  # no mode
         assert drive.nmt_state == "PRE-OPERATIONAL"
-
-
-def test_object_dictionary_exports_as_an_eds_a_master_can_import(tmp_path):
-    """What a third-party master gets: every object survives EDS export and import."""
-    od = drive_object_dictionary(NODE, RATED_MA, rated_torque_mnm=16000)
-    path = tmp_path / "drive.eds"
-    canopen.export_od(od, str(path))
-    back = canopen.import_od(str(path), NODE)
-    for index in od:
-        obj = od[index]
-        for var in obj.values() if isinstance(obj, (ODRecord, ODArray)) else [obj]:
-            got = back.get_variable(index, var.subindex)
-            assert (got.data_type, got.access_type, got.default, got.pdo_mappable) == \
-                (var.data_type, var.access_type, var.default, var.pdo_mappable), var
 
 
 # -- controller endpoint against device endpoint ------------------------------------------
@@ -243,7 +241,7 @@ def test_malformed_frames_are_counted_and_dropped(bus_spec):
         assert device.recv_setpoint(got, WAIT_S) and got.iq_ref_a == 2.8
         tester.send(frame(0x200 + NODE, "0F00"))          # RPDO1 is 3 bytes
         tester.send(frame(0x500 + NODE, "64000000FF"))     # RPDO4 is 4 bytes
-        tester.send(frame(0x200 + NODE, "0F0001"))         # mode 1 is not offered
+        tester.send(frame(0x200 + NODE, "0F0007"))         # mode 7 is not offered
         tester.send(frame(0x080, ""))
         assert not device.recv_setpoint(got, WAIT_S), "a SYNC with nothing new is not heard"
         assert (got.controlword, got.mode, got.iq_ref_a) == (0x0006, MODE_CST, 2.8)  # untouched
@@ -436,7 +434,7 @@ def test_canopen_master_enables_moves_and_sees_a_fault():
         network.connect(interface="virtual", channel=channel)
         node = master_node(network)
         assert node.sdo[0x1000].raw == 0x00020192
-        assert [node.sdo[0x1018][s].raw for s in (1, 2)] == [0, 0x0402]
+        assert [node.sdo[0x1018][s].raw for s in (1, 2)] == [VENDOR_ID, 0x0402]
         assert node.sdo[0x6060].raw == 0  # no mode until the master picks one
         wait_for(lambda: node.sdo[0x6041].raw == 0x0250, "SWITCH ON DISABLED by SDO")
         target = enable_and_move_csp(network, node, distance_counts=209715, steps=100)  # 0.5 mm

@@ -76,9 +76,17 @@ SDO_REFUSALS = [  # what, request, response (abort code, CiA 301)
     ("6060h: mode 42 is not offered", download(0x6060, 0, 42, 1), abort(0x6060, 0, 0x06090030)),
     ("6040h has no sub-index 5", download(0x6040, 5, 6, 2), abort(0x6040, 5, 0x06090011)),
     ("6041h has no sub-index 1 either", upload(0x6041, 1), abort(0x6041, 1, 0x06090011)),
-    ("605Ah: 9 is no quick stop option", download(0x605A, 0, 9, 2), abort(0x605A, 0, 0x06090030)),
-    ("605Eh: 5 is no fault reaction", download(0x605E, 0, 5, 2), abort(0x605E, 0, 0x06090030)),
-    ("6007h: 4 is no abort option", download(0x6007, 0, 4, 2), abort(0x6007, 0, 0x06090030)),
+    # the option codes' ranges are their EDS limits: beyond them is "too high" (0031)
+    ("605Ah: 9 is no quick stop option", download(0x605A, 0, 9, 2), abort(0x605A, 0, 0x06090031)),
+    ("605Eh: 5 is no fault reaction", download(0x605E, 0, 5, 2), abort(0x605E, 0, 0x06090031)),
+    ("6007h: 4 is no abort option", download(0x6007, 0, 4, 2), abort(0x6007, 0, 0x06090031)),
+    ("6098h: method 3 needs a positive home switch", download(0x6098, 0, 3, 1),
+     abort(0x6098, 0, 0x06090030)),
+    ("1006h: 1130 µs is no whole number of 125 µs drive cycles", download(0x1006, 0, 1130, 4),
+     abort(0x1006, 0, 0x06090030)),
+    ("1006h: 20 ms is beyond 10 ms", download(0x1006, 0, 20000, 4), abort(0x1006, 0, 0x06090031)),
+    ("608Fh:01 is the encoder's, read-only", download(0x608F, 1, 2, 4),
+     abort(0x608F, 1, 0x06010002)),
     ("6072h: 2000 per mille of 28 A is above the peak", download(0x6072, 0, 2000, 2),
      abort(0x6072, 0, 0x06090031)),
     ("6085h: a zero deceleration", download(0x6085, 0, 0, 4), abort(0x6085, 0, 0x06090032)),
@@ -308,7 +316,8 @@ def test_udp_multicast_takes_no_frame_from_another_host(remote_host):
 
 def test_loopback_bus_talks_to_python_cans_own_bus_over_lo(multicast_group):
     """A peer on python-can's own bus with the group routed over lo (the README's one
-    setting) reaches the drive's bus, and the other way round."""
+    setting) reaches the drive's bus, and the other way round; the drive's bus never
+    receives its own frames."""
     group, port = multicast_group
     ours = LoopbackMulticastBus(group, "127.0.0.1", port=port)
     theirs = can.Bus(interface="udp_multicast", channel=group, port=port)
@@ -321,6 +330,11 @@ def test_loopback_bus_talks_to_python_cans_own_bus_over_lo(multicast_group):
         while msg is not None and msg.arbitration_id != 0x321:  # its own frame first
             msg = theirs.recv(WAIT_S)
         assert msg is not None
+        # ours does not hear itself, as a CAN controller does not: its own frame is dropped
+        # in the kernel (socket filter), the next frame is the peer's
+        theirs.send(can.Message(arbitration_id=0x124, data=b"", is_extended_id=False))
+        msg = ours.recv(WAIT_S)
+        assert msg is not None and msg.arbitration_id == 0x124 and ours.own == 0
     finally:
         ours.shutdown()
         theirs.shutdown()

@@ -20,7 +20,7 @@ import math
 import struct
 import time
 import uuid
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import can
 import pytest
@@ -32,6 +32,7 @@ from hil.bench.fuzz_links import SDO_REFUSED
 from hil.drive import EmulatedDrive
 from hil.drive.objects import DriveObjects
 from io_adapters import open_endpoint
+from io_adapters.can_dictionary import offered_modes
 from io_adapters.cia402_objects import rpdo_layouts
 from io_adapters.messages import MODE_CST, SetpointBounds, message_pair
 from plant import Plant
@@ -179,7 +180,7 @@ def refusals(stats) -> int:
 @given(data=st.data())
 def test_can_device_counts_every_rpdo_and_sdo_write_once(data, arrow_objects):
     bounds = data.draw(can_bounds(arrow_objects.drives[0].setpoint_bounds()))
-    machine, image = Machine(1, (bounds,)), Image()
+    machine, image = Machine(1, (replace(bounds, modes=offered_modes(bounds)),)), Image()
     rig = CanRig(arrow_objects, bounds)
     sp = message_pair(1)[0]
     try:

@@ -188,6 +188,6 @@ def test_demo_runs_both_processes_and_prints_the_comparison(tmp_path):
         assert demo.wait(timeout=300) == 0, children.log("demo")
         out = children.log("demo")
     assert "following error" in out and "round trip" in out and "lateness" in out
-    for name in ("emulator/run.npz", "emulator/report.json", "controller/trace.csv",
+    for name in ("emulator/recording.arrows", "emulator/report.json", "controller/trace.csv",
                  "controller/summary.json", "lockstep/trace.csv", "demo.json"):
         assert (tmp_path / "out" / name).stat().st_size > 0, name

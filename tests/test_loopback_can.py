@@ -10,21 +10,22 @@ the loopback interface for the test (``ip route add GROUP/32 dev lo``, checked w
 route get``, deleted after it), so nothing leaves the machine; where the route cannot be
 added the test is skipped with the kernel's answer.
 
-How the two processes meet on this wire (``hil.runtime.sync``): the controller is the
-SYNC producer; each tick it reads the newest TPDO set, then sends RPDO1 and RPDO4 (CST:
-controlword and mode, q-current) and SYNC.  The emulator locks its cycle to SYNC
-(``SyncLock``: its tick comes 0.3 of a period after SYNC is latched) and answers SYNC k+1
-with the cycle SYNC k started.  So controller tick k reads drive cycle k-2, one tick
-later than the lock-step simulation's k-1: the reference is ``LockStep(cfg,
-feedback_delay_ticks=1)``, the same controller and drive with that delay.  Against the
-reference without it the loopback differs by 2.6-2.7 µm (measured), with it by 0.4-1 µm.
+How the two processes meet on this wire (``hil.runtime.sync``): the controller is the SYNC
+producer; each tick it reads the newest TPDO set, then sends RPDO1 and RPDO4 (CST:
+controlword and mode, q-current) and SYNC.  The emulator locks its ticks to SYNC
+(``SyncLock``: the tick that takes a SYNC comes 0.3 of a tick after it is latched; here
+one tick per SYNC) and answers SYNC k+1 with the newest tick, the one SYNC k's setpoint ran.
+So controller tick k reads drive cycle k-2, one tick later than the lock-step simulation's
+k-1: the reference is ``LockStep(cfg, feedback_delay_ticks=1)``, the same controller and
+drive with that delay.  Against the reference without it the loopback differs by 2.6-2.7
+µm (measured), with it by 0.4-1 µm.
 
 Why the loopback is not exact, and the tolerance:
 
 * Timing faults: a late tick on either side, a VM pause, a late SYNC or TPDO set.  They
-  show at the controller: the drive sends no TPDOs for a SYNC unless its cycle ran
-  exactly once since the SYNC before, and it echoes which SYNC sent a set, so a missing
-  or late answer has a lag other than 1 (the drive's clock is not on this wire); the
+  show at the controller: the drive sends no TPDOs for a SYNC unless a tick ran since
+  the SYNC before, and it echoes which SYNC sent a set, so a missing or late answer has a
+  lag other than 1 (the drive's clock is not on this wire); the
   controller extrapolates over it.  Rows clear of every fault's effect (``settled_rows``
   with the summary's ``delay_ticks`` and ``drive_clock``: 0.5 s after a fault of more
   than two ticks, the delayed loop's slow settling) are compared; at least MIN_CLEAR of
@@ -59,6 +60,7 @@ from hil.rt.clock import SimulatedClock
 from hil.runtime.sync import (
     SYNC_DEADBAND,
     SYNC_PHASE,
+    SYNC_WAIT,
     ShiftableClock,
     SyncLock,
     settled_rows,
@@ -134,9 +136,10 @@ def test_lockstep_feedback_delay_reads_the_cycle_before_last(config):
 
 
 def test_master_labels_each_answer_by_the_sync_that_sent_it():
-    """The drive answers SYNC k with the cycle SYNC k-1 started and says which SYNC sent
-    it: a set read late is labelled with the setpoint it answers (lag 2), not taken for
-    the answer to the last SYNC.  A SYNC after no cycle, or after two, gets no answer."""
+    """The drive answers SYNC k with the newest feedback its loop wrote since SYNC k-1 and
+    says which SYNC sent it: a set read late is labelled with the setpoint it answers (lag
+    2), not taken for the answer to the last SYNC.  A SYNC after no loop tick gets no
+    answer; after several, the newest one's."""
     url = f"can://virtual/hil-{uuid.uuid4().hex[:12]}?node={NODE}&rated_current_ma={RATED_MA}"
     with open_endpoint(url + LOCK_STEP, "device") as device, \
             open_endpoint(url, "controller") as controller:
@@ -146,8 +149,9 @@ def test_master_labels_each_answer_by_the_sync_that_sent_it():
             sp.seq = seq
             controller.send_setpoint(sp)
             assert device.recv_setpoint(got, WAIT_S)
-            for _ in range(writes):
-                device.send_feedback(Feedback(statusword=0x0237, encoder_counts=float(seq)))
+            for w in range(writes):
+                device.send_feedback(Feedback(statusword=0x0237,
+                                              encoder_counts=float(seq + 1000 * w)))
 
         for seq in (101, 102, 103):
             sync(seq, 1)
@@ -155,33 +159,43 @@ def test_master_labels_each_answer_by_the_sync_that_sent_it():
         assert (back.seq, back.encoder_counts, back.statusword) == (101, 101.0, 0x0237)
         assert ((sp.seq - back.seq) & 0xFFFFFFFF) == 2  # late by one: lag 2, not 1
         assert controller.recv_feedback(back, WAIT_S) and back.seq == 102
-        sync(104, 0)     # answers 103; cycle 104 did not run ...
-        sync(105, 2)     # ... so SYNC 105 gets nothing; cycle 105 ran twice ...
-        sync(106, 1)     # ... so SYNC 106 gets nothing either
-        sync(107, 1)     # answers 106
+        sync(104, 0)     # answers 103; no tick ran in cycle 104 ...
+        sync(105, 2)     # ... so SYNC 105 gets nothing; two ticks ran in cycle 105 ...
+        sync(106, 1)     # ... and SYNC 106 answers with the second
         assert controller.recv_feedback(back, WAIT_S) and back.seq == 103
-        assert controller.recv_feedback(back, WAIT_S) and back.seq == 106
+        assert controller.recv_feedback(back, WAIT_S)
+        assert (back.seq, back.encoder_counts) == (105, 1105.0)
         assert not controller.recv_feedback(back, 0.05)
 
 
-def test_drive_lock_moves_the_ticks_to_their_phase_after_sync():
-    """SyncLock on a simulated clock: SYNC latched 0.1 ms into each 0.5 ms period, ticks
-    starting anywhere; after the first correction (none when already within the dead
-    band) each tick comes SYNC_PHASE of a period after its SYNC, and stays there."""
-    period = 500_000
+@pytest.mark.parametrize("period, ticks_per_sync", [(500_000, 1), (125_000, 8)])
+def test_drive_lock_moves_the_ticks_to_their_phase_after_sync(period, ticks_per_sync):
+    """SyncLock on a simulated clock: a SYNC latched 0.1 ms into each communication cycle
+    of ``ticks_per_sync`` ticks (one tick per SYNC at 2 kHz; a 1 ms cycle over 125 us
+    ticks), the ticks starting anywhere; after the first correction (none when already
+    within the dead band) the tick that sees each SYNC comes SYNC_PHASE of a tick after
+    it, and stays there; only that tick may wait for its SYNC."""
+    cycle = period * ticks_per_sync
     for start in (0, 123_456, 260_000, 499_999):
         base = SimulatedClock(start)
         clock = ShiftableClock(base)
         lock = SyncLock(clock, period)
-        phases = []
-        for k in range(100):
+        phases, last, waited, took = [], 0, [], []
+        for k in range(100 * ticks_per_sync):
+            waited.append(lock.wait_s == SYNC_WAIT * period * 1e-9)  # set by the tick before
             clock.sleep_until(start + k * period)
-            sync_ns = (clock.deadline_ns - 100_000) // period * period + 100_000
+            sync_ns = (clock.deadline_ns - 100_000) // cycle * cycle + 100_000
             lock.update(sync_ns)
-            phases.append(clock.deadline_ns - sync_ns)
-        assert lock.moves <= 1 and lock.wait_s > 0
+            took.append(sync_ns != last)
+            if sync_ns != last:
+                phases.append(clock.deadline_ns - sync_ns)
+                last = sync_ns
+        assert lock.moves <= 1
         assert len(set(phases[-80:])) == 1, start
         assert abs(phases[-1] - SYNC_PHASE * period) <= SYNC_DEADBAND * period, start
+        assert lock.interval_ns == cycle
+        # once locked, exactly the ticks that take a SYNC may wait for it (SYNC_WAIT)
+        assert waited[-80 * ticks_per_sync:] == took[-80 * ticks_per_sync:], start
 
 
 # -- the two processes ------------------------------------------------------------------

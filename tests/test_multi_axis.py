@@ -305,6 +305,7 @@ def test_the_emulator_steps_every_axis_and_its_watchdog_faults_both(slow_xy, tmp
             ctrl.tick(fb, sp)
             ep.send_setpoint(sp)
             emu.step(k)
+            emu.recorder.end_tick(k, 0, 0)  # as the loop does after each step
             assert ep.recv_feedback(fb, 1.0)
             k += 1
         assert ctrl.enabled and [d.sm.state for d in emu.drives.drives] == [
@@ -312,12 +313,14 @@ def test_the_emulator_steps_every_axis_and_its_watchdog_faults_both(slow_xy, tmp
         assert fb.seq == sp.seq and all(f.seq == sp.seq for f in fb.axes)
         for j in range(30):  # 10 silent ticks trip it; the axes at rest stop braking at once
             emu.step(k + j)
+            emu.recorder.end_tick(k + j, 0, 0)
     assert [d.fault for d in emu.drives.drives] == [FAULT_WATCHDOG] * 2
     assert [d.sm.state for d in emu.drives.drives] == [State.FAULT] * 2
     assert all(p.inp[L.I_ENABLE] == 0.0 for p in emu.plants)
     assert emu.watchdog.n_events == 1
-    cols = emu.recorder.columns(np.zeros(k + 30, dtype=np.int64), np.zeros(k + 30))
-    assert set(cols) == set(units(("X", "Y")))
+    cols = emu.recorder.columns(0, emu.recorder.committed)
+    assert cols["tick"].tolist() == list(range(k + 30))
+    assert set(cols) == set(units(("screw", "screw"), ("X", "Y")))
     assert cols["Y_drive_enable"][k - 1] == 1 and cols["Y_drive_enable"][-1] == 0
     assert cols["X_plant_table_pos"][0] == pytest.approx(0.1, abs=1e-6)
 

@@ -34,6 +34,7 @@ from hil.controller.interpolator import ProfileSamples, plan
 from hil.controller.monitoring import ContourModel
 from hil.controller.path import parse_path_program, read_path_program
 from hil.controller.program import parse_program
+from hil.runtime.record_reader import Recording
 from hil.sim import LockStep, MachineLockStep, SimResult
 from io_adapters.messages import axis_records
 from plant import layout as L
@@ -466,11 +467,11 @@ def test_an_alarm_on_y_stops_x_too(tmp_path):
 
 
 @pytest.mark.parametrize("key, value, fragment", [
-    ("contour_tol_mm", 0.0, "must be > 0 mm"),
-    ("standstill_pos_tol_mm", -0.1, "must be > 0 mm"),
-    ("standstill_delay_time_s", -1.0, "must be >= 0 s"),
+    ("contour_tol_mm", 0.0, "must be > 0 and <= 1000 mm"),
+    ("standstill_pos_tol_mm", -0.1, "must be > 0 and <= 1000 mm"),
+    ("standstill_delay_time_s", -1.0, "must be >= 0 and <= 100 s"),
     ("contour_tol_deg", 1.0, "does not apply here"),
-    ("encoder_feedback_polarity", 2, "must be <= 1"),
+    ("encoder_feedback_polarity", 2, "must be >= -1 and <= 1"),
     ("clamp_m_code", 30, "M30 has a meaning of its own"),
     ("unclamp_m_code", 10, "clamping and unclamping need two M functions"),
 ])
@@ -520,10 +521,11 @@ def test_the_controller_process_stops_a_runaway_axis_and_exits_1(tmp_path):
     assert alarm["axis"] == "X" and alarm["text"] == texts[alarm["number"]]
     assert alarm["tick"] > 0 and alarm["t_s"] > 0.0
     assert f"hil controller: {alarm['message']}" in log and summary["result"] == alarm["message"]
-    with np.load(tmp_path / "emulator" / "run.npz") as run:
-        on = np.flatnonzero(run["drive_enable"] == 1)
-        velocity = np.abs(run["plant_table_vel"])
-        state = run["drive_state"]
+    run = Recording(tmp_path / "emulator").read(["drive_enable", "plant_table_vel",
+                                                 "drive_state"])
+    on = np.flatnonzero(run["drive_enable"] == 1)
+    velocity = np.abs(run["plant_table_vel"])
+    state = run["drive_state"]
     assert on.size and velocity[on].max() > 0.01  # it ran away (m/s) ...
     assert velocity[on[-1]] < 1e-3  # ... and was at rest when the torque went off
     assert np.all(state[on[-1] + 1:] == State.SWITCH_ON_DISABLED)

@@ -14,6 +14,7 @@ import os
 from multiprocessing import resource_tracker
 
 import numpy as np
+import pyarrow as pa
 import pytest
 
 from hil.bench import adapters as bench_adapters
@@ -31,6 +32,7 @@ from hil.report.latency import (
     report_run,
     write_report,
 )
+from hil.runtime.record_writer import FORMAT, META_KEY
 
 PERIOD_NS = 100_000
 N_RAN = 1000
@@ -110,13 +112,29 @@ def synthetic_run(**changes) -> RunData:
     return RunData(**{**fields, **changes})
 
 
-def write_run_folder(folder, with_stamps=True, **meta_changes):
-    """A run folder as the daemon writes it (the documented keys only)."""
+def write_recording(folder, columns: dict) -> None:
+    """recording.arrows as the daemon writes it (hil.runtime.record_writer): an Arrow IPC
+    stream of ``columns`` in a few batches, the run's metadata in its schema."""
+    table = pa.table(columns)
+    meta = json.dumps({"format": FORMAT, "period_ns": PERIOD_NS}).encode()
+    schema = table.schema.with_metadata({META_KEY: meta})
+    with pa.ipc.new_stream(str(folder / "recording.arrows"), schema) as w:
+        for batch in table.cast(schema).to_batches(max_chunksize=300):
+            w.write_batch(batch)
+
+
+def write_run_folder(folder, with_stamps=True, recorded=None, **meta_changes):
+    """A run folder as the daemon writes it (the documented keys only): one row per tick
+    that ran, the stamps of ``stamps()`` but the controller's fb_rx_ns (``recorded``:
+    which of them, default all four)."""
     lateness, compute = loop_arrays()
-    arrays = {"lateness_ns": lateness, "compute_ns": compute}
+    ran = np.flatnonzero(lateness != NO_VALUE)
+    columns = {"tick": ran, "lateness_ns": lateness[ran], "compute_ns": compute[ran]}
     if with_stamps:
-        arrays |= stamps(lateness, compute)
-    np.savez(folder / "run.npz", **arrays)
+        all_stamps = stamps(lateness, compute)
+        for key in recorded or ("tick_start_ns", "sp_t_ns", "sp_rx_ns", "fb_t_ns"):
+            columns[key] = all_stamps[key][ran]
+    write_recording(folder, columns)
     meta = {"loop": {"period_ns": PERIOD_NS, "ticks": N_RAN, "overruns": 1, "skipped": 1,
                      "stopped_by": "completed"},
             "scheduling": SCHEDULING,
@@ -196,6 +214,8 @@ def test_written_report_has_json_markdown_with_units_and_a_png(tmp_path):
 
 
 def test_load_run_derives_the_parts_from_the_stamps(tmp_path):
+    """One slot per deadline (the skipped one empty); without the controller's receive
+    stamps only wait and compute are known."""
     write_run_folder(tmp_path)
     run = load_run(tmp_path)
     lateness, compute = loop_arrays()
@@ -205,17 +225,11 @@ def test_load_run_derives_the_parts_from_the_stamps(tmp_path):
     assert run.scheduling == SCHEDULING and run.host is None
     assert (run.adapter, run.adapter_stats) == ("udp://127.0.0.1:5005", ADAPTER_STATS)
     want = expected_round_trip(lateness.size)
-    for name in ("total_ns", "transport_ns", "wait_ns", "compute_ns"):
+    for name in ("wait_ns", "compute_ns"):
         np.testing.assert_array_equal(getattr(run.round_trip, name), getattr(want, name), name)
-
-
-def test_without_the_controllers_stamp_only_wait_and_compute_are_known(tmp_path):
-    write_run_folder(tmp_path)
-    with np.load(tmp_path / "run.npz") as npz:
-        arrays = dict(npz)
-    arrays["fb_rx_ns"][:] = 0
-    np.savez(tmp_path / "run.npz", **arrays)
-    rt = build_report(load_run(tmp_path))["round_trip"]
+    for name in ("total_ns", "transport_ns"):
+        assert np.all(getattr(run.round_trip, name) == NO_VALUE), name
+    rt = build_report(run)["round_trip"]
     assert (rt["samples"], rt["with_transport"], rt["total_us"], rt["transport_us"]) == (
         100, 0, None, None)
     assert rt["wait_us"]["p50"] == 2.0
@@ -240,18 +254,16 @@ SUPERSEDED = RT_SLOTS[10]
 
 
 def write_pair(folder):
-    """An emulator run folder (fb_rx_ns 0, as the daemon writes it) in folder/emulator and
-    the controller's controller.npz in folder/controller: one row per controller tick, a
-    tick without new feedback (all three stamps 0) after each one with."""
+    """An emulator run folder in folder/emulator and the controller's controller.npz in
+    folder/controller: one row per controller tick, a tick without new feedback (all three
+    stamps 0) after each one with."""
     run, ctl = folder / "emulator", folder / "controller"
     run.mkdir()
     ctl.mkdir()
     write_run_folder(run)
-    with np.load(run / "run.npz") as npz:
-        arrays = dict(npz)
-    sp_t, fb_t, fb_rx = (arrays[k][RT_SLOTS].copy() for k in ("sp_t_ns", "fb_t_ns", "fb_rx_ns"))
-    arrays["fb_rx_ns"][:] = 0
-    np.savez(run / "run.npz", **arrays)
+    all_stamps = stamps(*loop_arrays())
+    sp_t, fb_t, fb_rx = (all_stamps[k][RT_SLOTS].copy() for k in ("sp_t_ns", "fb_t_ns",
+                                                                   "fb_rx_ns"))
     i = int(np.flatnonzero(RT_SLOTS == SUPERSEDED)[0])
     fb_t[i] += PERIOD_NS
     fb_rx[i] += PERIOD_NS
@@ -317,16 +329,18 @@ def test_a_run_without_stamps_or_adapter_loads(tmp_path):
 
 
 @pytest.mark.parametrize("damage, match", [
-    (lambda d: (d / "run.npz").unlink(), "run.npz: cannot read"),
+    (lambda d: (d / "recording.arrows").unlink(), "recording.arrows: cannot read"),
+    (lambda d: (d / "recording.arrows").write_bytes(b"PAR1"), "recording.arrows: cannot read"),
     (lambda d: (d / "report.json").write_text("{"), "report.json: cannot read"),
     (lambda d: write_run_folder(d, loop={"period_ns": PERIOD_NS, "ticks": N_RAN + 1,
                                          "overruns": 0, "skipped": 1}),
-     "1001 slots with 1 dropped, but .* says 1001 ticks"),
+     "rows for 1000 of 1001 deadlines, but .* says 1001 ticks"),
+    (lambda d: write_run_folder(d, recording={"ticks_not_recorded": 1}),
+     "and .*report.json 1 ticks not recorded"),
     (lambda d: write_run_folder(d, loop={"period_ns": 0, "ticks": N_RAN, "overruns": 0,
                                          "skipped": 1}), "'period_ns' must be an integer >= 1"),
     (lambda d: write_run_folder(d, scheduling=None), "needs the objects 'loop'"),
-    (lambda d: np.savez(d / "run.npz", **{k: v for k, v in np.load(d / "run.npz").items()
-                                          if k != "fb_rx_ns"}), "need all of"),
+    (lambda d: write_run_folder(d, recorded=("tick_start_ns", "sp_t_ns")), "need all of"),
 ])
 def test_a_bad_run_folder_is_refused_naming_file_and_key(tmp_path, damage, match):
     write_run_folder(tmp_path)

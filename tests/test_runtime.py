@@ -204,10 +204,11 @@ def test_sigterm_stops_the_daemon_with_report_and_recording_complete(slow_config
     report, rec = read_run(run_dir)
     loop = report["loop"]
     assert loop["stopped_by"] == "stop_flag" and loop["skipped"] == 0 and loop["ticks"] > 0
-    assert report["recording"]["ticks"] == report["recording"]["slots"] == loop["ticks"]
+    assert report["recording"]["rows"] == loop["ticks"]
     assert {len(v) for v in rec.values()} == {loop["ticks"]}
     assert report["safe_state"] == {"state": "SWITCH_ON_DISABLED", "statusword": "0x0250",
-                                    "plant_enable": 0.0, "error_code": "0x0000"}
+                                    "plant_enable": 0.0, "error_code": "0x0000",
+                                    "cycle": loop["ticks"]}
     assert report["adapter"]["name"] == url and report["host"]["kernel_release"]
 
 

@@ -26,7 +26,7 @@ import socket
 import time
 import uuid
 from collections import Counter
-from dataclasses import asdict
+from dataclasses import asdict, replace
 
 import can
 
@@ -40,6 +40,7 @@ from hil.bench.fuzz_frames import (
 )
 from hil.drive.objects import DriveObjects
 from io_adapters import open_endpoint
+from io_adapters.can_dictionary import offered_modes
 from io_adapters.serial_link import SerialEndpoint
 from io_adapters.udp import UdpEndpoint
 
@@ -141,6 +142,8 @@ class _CanLink:
                                       f"{self.rated_ma}&sync_timeout_ms=60000", "device")
         self.endpoint.objects = DriveObjects(axes.drives.drives, self.endpoint.rated_current_a)
         self.endpoint.setpoint_bounds = axes.bounds
+        # a CAN node also takes the profile modes (PP, PV, homing): within its bounds
+        axes.bounds = tuple(replace(b, modes=offered_modes(b)) for b in axes.bounds)
         self.frames_sent = 0
         self._send(0x000, bytes([0x01, NODE]))  # NMT start: RPDOs are taken in OPERATIONAL
         deadline = time.monotonic() + WAIT_S

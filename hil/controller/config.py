@@ -36,16 +36,16 @@ class ControllerSection:
     plant_input: str = key("-", "What the controller sends: 'current' (the plant's drive holds "
                            "the current loop) or 'voltage' (the controller's current loop "
                            "sends d-q voltages).", "current", choices=("current", "voltage"))
-    speed_cycle_ratio: int = key("1", "Speed-loop cycle in PWM periods.", 1, ge=1)
+    speed_cycle_ratio: int = key("1", "Speed-loop cycle in PWM periods.", 1, ge=1, le=64)
     position_cycle_ratio: int = key("1", "Position-loop cycle in PWM periods (a multiple of "
-                                    "the speed cycle).", 16, ge=1)
+                                    "the speed cycle).", 16, ge=1, le=256)
     ipo_cycle_ratio: int = key("1", "Interpolation (IPO) cycle in PWM periods (a multiple of "
-                               "the position cycle).", 32, ge=1)
+                               "the position cycle).", 32, ge=1, le=1024)
     feedback: str = key("-", "Position-loop measuring system: 'scale' (direct, linear scale) "
                         "or 'motor' (motor encoder through the lead).", "motor",
                         choices=("scale", "motor"))
     kv_m_min_per_mm: float = key("(m/min)/mm", "Position-loop gain K_v (MD32200): 1 gives 1 mm "
-                                 "following error at 1 m/min.", gt=0.0)
+                                 "following error at 1 m/min.", gt=0.0, le=100.0)
     speed_ff: bool = key("-", "Speed feed-forward (MD32620).", True)
     speed_ff_weight: float = key("1", "Weight of the speed feed-forward (MD32610).", 1.0,
                                  ge=0.0, le=2.0)
@@ -53,80 +53,81 @@ class ControllerSection:
                           "acceleration and the axis inertia.", False)
     speedctrl_equiv_time_s: float = key("s", "Equivalent time constant of the closed speed "
                                         "loop (MD32810); delays the position setpoint of the P "
-                                        "path when feed-forward is on.", 0.0, ge=0.0)
+                                        "path when feed-forward is on.", 0.0, ge=0.0, le=1.0)
     speed_kp_nms_per_rad: float = key("N*m*s/rad", "Speed-controller gain (p1460).", 0.0,
-                                      ge=0.0, only="kind=screw|rotary")
+                                      ge=0.0, le=1e4, only="kind=screw|rotary")
     speed_kp_ns_per_m: float = key("N*s/m", "Speed-controller gain of a linear motor.", 0.0,
-                                   ge=0.0, only="kind=linear")
+                                   ge=0.0, le=1e7, only="kind=linear")
     speed_tn_s: float = key("s", "Speed-controller integral time (p1462); 0: P only.", 0.0,
-                            ge=0.0)
+                            ge=0.0, le=10.0)
     speed_kd_nms2_per_rad: float = key("N*m*s^2/rad", "Speed-controller D gain (seed 003 eq. "
-                                       "7).", 0.0, ge=0.0, only="kind=screw|rotary")
+                                       "7).", 0.0, ge=0.0, le=10.0, only="kind=screw|rotary")
     speed_kd_ns2_per_m: float = key("N*s^2/m", "Speed-controller D gain of a linear motor.",
-                                    0.0, ge=0.0, only="kind=linear")
+                                    0.0, ge=0.0, le=1e4, only="kind=linear")
     speed_setpoint_lowpass_hz: float = key("Hz", "PT2 low-pass on the speed setpoint (p1416 "
-                                           "class); 0: off.", 0.0, ge=0.0)
+                                           "class); 0: off.", 0.0, ge=0.0, le=1e5)
     current_setpoint_lowpass_hz: float = key("Hz", "PT2 low-pass on the current setpoint "
-                                             "(p1658 class); 0: off.", 0.0, ge=0.0)
+                                             "(p1658 class); 0: off.", 0.0, ge=0.0, le=1e5)
     notch_hz: float = key("Hz", "Notch on the current setpoint (p1663 class); 0: off.", 0.0,
-                          ge=0.0)
-    notch_bandwidth_hz: float = key("Hz", "-3 dB width of the notch.", 0.0, ge=0.0)
+                          ge=0.0, le=1e5)
+    notch_bandwidth_hz: float = key("Hz", "-3 dB width of the notch.", 0.0, ge=0.0, le=1e5)
     notch_depth_db: float = key("dB", "Notch depth (negative dB; -inf dB is not allowed).",
-                                -40.0, le=0.0)
+                                -40.0, ge=-200.0, le=0.0)
     max_velocity_mm_min: float = key("mm/min", "Maximum axis velocity (MD32000); G0 feed.",
-                                     0.0, ge=0.0, only=LINEAR_KINDS)
+                                     0.0, ge=0.0, le=1e6, only=LINEAR_KINDS)
     max_acceleration_m_s2: float = key("m/s^2", "Maximum acceleration (MD32300).", 0.0,
-                                       ge=0.0, only=LINEAR_KINDS)
+                                       ge=0.0, le=1000.0, only=LINEAR_KINDS)
     max_jerk_m_s3: float = key("m/s^3", "Maximum jerk (MD32431); 0: no jerk limit.", 0.0,
-                               ge=0.0, only=LINEAR_KINDS)
+                               ge=0.0, le=1e6, only=LINEAR_KINDS)
     max_velocity_deg_min: float = key("deg/min", "Maximum axis velocity (MD32000).", 0.0,
-                                      ge=0.0, only="kind=rotary")
+                                      ge=0.0, le=1e7, only="kind=rotary")
     max_acceleration_deg_s2: float = key("deg/s^2", "Maximum acceleration (MD32300).", 0.0,
-                                         ge=0.0, only="kind=rotary")
+                                         ge=0.0, le=1e7, only="kind=rotary")
     max_jerk_deg_s3: float = key("deg/s^3", "Maximum jerk (MD32431); 0: no jerk limit.", 0.0,
-                                 ge=0.0, only="kind=rotary")
+                                 ge=0.0, le=1e9, only="kind=rotary")
     current_kp_v_per_a: float = key("V/A", "Current PI gain (plant_input = 'voltage').", 0.0,
-                                    ge=0.0)
+                                    ge=0.0, le=1e4)
     current_ti_s: float = key("s", "Current PI integral time (plant_input = 'voltage').", 0.0,
-                              ge=0.0)
+                              ge=0.0, le=10.0)
     encoder_feedback_polarity: int = key("1", "Sign of the position actual value (MD32110 "
                                          "ENC_FEEDBACK_POL): -1 reverses it; 0 or 1 do not.",
                                          1, ge=-1, le=1)
     contour_tol_mm: float = key("mm", "Contour monitoring (MD36400 CONTOUR_TOL): largest "
                                 "deviation of the actual position from the one the loop "
-                                "model expects; beyond it alarm 25050.", 1.0, gt=0.0,
+                                "model expects; beyond it alarm 25050.", 1.0, gt=0.0, le=1000.0,
                                 only=LINEAR_KINDS)
     contour_tol_deg: float = key("deg", "Contour monitoring tolerance of a rotary axis "
-                                 "(MD36400).", 1.0, gt=0.0, only="kind=rotary")
+                                 "(MD36400).", 1.0, gt=0.0, le=360.0, only="kind=rotary")
     standstill_pos_tol_mm: float = key("mm", "Standstill monitoring (MD36030 "
                                        "STANDSTILL_POS_TOL): largest following error while "
                                        "the axis is meant to stand still; beyond it alarm "
-                                       "25040.", 0.2, gt=0.0, only=LINEAR_KINDS)
+                                       "25040.", 0.2, gt=0.0, le=1000.0, only=LINEAR_KINDS)
     standstill_pos_tol_deg: float = key("deg", "Standstill tolerance of a rotary axis "
-                                        "(MD36030).", 0.2, gt=0.0, only="kind=rotary")
+                                        "(MD36030).", 0.2, gt=0.0, le=360.0, only="kind=rotary")
     standstill_delay_time_s: float = key("s", "Standstill monitoring delay (MD36040 "
                                          "STANDSTILL_DELAY_TIME): from the end of a motion to "
-                                         "the start of standstill monitoring.", 0.4, ge=0.0)
+                                         "the start of standstill monitoring.", 0.4, ge=0.0,
+                                         le=100.0)
     clamp_pos_tol_mm: float = key("mm", "Clamping monitoring (MD36050 CLAMP_POS_TOL): how far "
                                   "a clamped axis may move from where it was clamped; beyond "
-                                  "it alarm 26000.", 0.5, gt=0.0, only=LINEAR_KINDS)
+                                  "it alarm 26000.", 0.5, gt=0.0, le=1000.0, only=LINEAR_KINDS)
     clamp_pos_tol_deg: float = key("deg", "Clamping tolerance of a rotary axis (MD36050).",
-                                   0.5, gt=0.0, only="kind=rotary")
+                                   0.5, gt=0.0, le=360.0, only="kind=rotary")
     standstill_velo_tol_mm_min: float = key("mm/min", "Axis stationary below this speed "
                                             "(MD36060 STANDSTILL_VELO_TOL): ends the braking "
-                                            "of an alarm.", 5.0, gt=0.0, only=LINEAR_KINDS)
+                                            "of an alarm.", 5.0, gt=0.0, le=1e5, only=LINEAR_KINDS)
     standstill_velo_tol_deg_min: float = key("deg/min", "Axis stationary speed of a rotary "
-                                             "axis (MD36060).", 5.0, gt=0.0,
+                                             "axis (MD36060).", 5.0, gt=0.0, le=1e6,
                                              only="kind=rotary")
     servo_disable_delay_time_s: float = key("s", "Longest braking after an alarm before the "
                                             "drive is disabled anyway (MD36620 "
-                                            "SERVO_DISABLE_DELAY_TIME).", 0.1, ge=0.0)
+                                            "SERVO_DISABLE_DELAY_TIME).", 0.1, ge=0.0, le=100.0)
     clamp_m_code: int = key("1", "M function that clamps the axis (a PLC M function of the "
                             "machine; SINUMERIK has no MD for it): clamping monitoring "
                             "replaces standstill monitoring until the unclamp M function.",
-                            ClampCodes().clamp, ge=0)
+                            ClampCodes().clamp, ge=0, le=99999)
     unclamp_m_code: int = key("1", "M function that releases the clamp.", ClampCodes().unclamp,
-                              ge=0)
+                              ge=0, le=99999)
 
 
 @dataclass(frozen=True)

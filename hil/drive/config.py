@@ -22,6 +22,9 @@ from plant.schema import key
 
 DERIVED = None
 LINEAR_KINDS = "kind=screw|linear"
+#: default homing speeds (6099h) as shares of the profile velocity 6081h
+HOMING_SWITCH_SHARE = 0.1
+HOMING_ZERO_SHARE = 0.01
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -92,6 +95,10 @@ class DriveSection:
     overload_time_s: float = key(
         "s", "I2t: how long [motor] current_max_a may flow from cold before the over-current "
         "fault (2310h).", 1.0, gt=0.0)
+    communication_cycle_s: float = key(
+        "s", "1006h communication cycle period on CANopen: the SYNC period the drive takes its "
+        "setpoints at and interpolates them over (60C2h), in whole PWM periods.", 0.001,
+        ge=0.00025, le=0.01)
 
 
 @dataclass
@@ -117,6 +124,16 @@ class DriveParameters:
             for overload_time_s from cold).
         current_max_a: the power stage's peak current ([motor] current_max_a), the bound of
             max_current_a.
+        communication_cycle_s: 1006h, s.
+        interpolation_value, interpolation_index: 60C2h, the interpolation time period
+            value * 10**index s; 0: each cyclic setpoint is taken as it comes (a link that
+            delivers one every drive cycle).
+        profile_velocity: 6081h, motor units/s.
+        profile_acceleration: 6083h, motor units/s².
+        homing_method: 6098h.
+        homing_speed_switch, homing_speed_zero: 6099h:01 and :02, motor units/s.
+        homing_acceleration: 609Ah, motor units/s².
+        home_offset: 607Ch, motor units: the position actual value at the home position.
     """
     fe_window: float
     fe_time_s: float
@@ -134,6 +151,21 @@ class DriveParameters:
     continuous_current_a: float
     overload_time_s: float
     current_max_a: float
+    communication_cycle_s: float
+    interpolation_value: int
+    interpolation_index: int
+    profile_velocity: float
+    profile_acceleration: float
+    homing_method: int
+    homing_speed_switch: float
+    homing_speed_zero: float
+    homing_acceleration: float
+    home_offset: float
+
+    @property
+    def interpolation_period_s(self) -> float:
+        """60C2h in s (0: no interpolation)."""
+        return self.interpolation_value * 10.0 ** self.interpolation_index
 
     @property
     def i2t_trip_a2s(self) -> float:
@@ -225,6 +257,13 @@ def load_drive(cfg: MachineConfig, controller: ControllerSection | None) -> Driv
         profile = axis_limits(cfg, controller).acceleration / table_si_per_motor
     else:
         profile = quick_stop
+    cycle = sec.communication_cycle_s
+    pwm_periods = cycle * cfg.motor.pwm_frequency_hz
+    if abs(pwm_periods - round(pwm_periods)) > 1e-6:
+        raise ConfigError(f"{cfg.path}: [drive] communication_cycle_s = {cycle:g} s must be a "
+                          f"whole number of PWM periods (1/{cfg.motor.pwm_frequency_hz:g} s)")
+    profile_velocity = (v_max / table_si_per_motor if v_max
+                        else max_speed if math.isfinite(max_speed) else 0.0)
     return DriveParameters(
         fe_window=fe_window, fe_time_s=sec.following_error_time_s,
         position_window=given("position_window" + pos_sfx) / per,
@@ -235,5 +274,10 @@ def load_drive(cfg: MachineConfig, controller: ControllerSection | None) -> Driv
         fault_reaction_option=int(FaultReactionOption(sec.fault_reaction_option)),
         abort_connection_option=int(AbortConnectionOption(sec.abort_connection_option)),
         continuous_current_a=continuous, overload_time_s=sec.overload_time_s,
-        current_max_a=i_peak)
+        current_max_a=i_peak, communication_cycle_s=cycle, interpolation_value=0,
+        interpolation_index=-3, profile_velocity=profile_velocity,
+        profile_acceleration=profile, homing_method=0,
+        homing_speed_switch=HOMING_SWITCH_SHARE * profile_velocity,
+        homing_speed_zero=HOMING_ZERO_SHARE * profile_velocity,
+        homing_acceleration=profile, home_offset=0.0)
 

@@ -8,13 +8,15 @@ the controlword, drives the plant as its state says, steps the plant and fills a
 
 What the power stage does in each CiA 402 state:
 
-* OPERATION ENABLED: the mode of operation.  CST passes the q- and d-current setpoints,
-  limited to 6072h (``max_current_a``); VOLTAGE passes the d-q voltages; CSV and CSP close
-  the speed loop (and, for CSP, the position loop) in the drive, as a SINAMICS drive does,
-  with the ``[controller]`` machine data of the simulated NC (:class:`~hil.drive.loops.
-  DriveLoops`), the CSP target held inside the software position limits 607Dh, the speed
-  command inside 6080h and the current inside 6072h.  Any limit in force sets statusword
-  bit 11 (internal limit active).
+* OPERATION ENABLED: the mode of operation (:mod:`hil.drive.modes`).  CST passes the q-
+  and d-current setpoints, limited to 6072h (``max_current_a``); VOLTAGE passes the d-q
+  voltages; CSV and PV close the speed loop, CSP, PP and homing the position loop too, in
+  the drive, as a SINAMICS drive does, with the ``[controller]`` machine data of the
+  simulated NC (:class:`~hil.drive.loops.DriveLoops`); CSP and CSV targets interpolated
+  between communication cycles (60C2h), PP, PV and homing on the drive's own profile; the
+  CSP and PP target held inside the software position limits 607Dh, the speed command
+  inside 6080h and the current inside 6072h.  Any limit in force sets statusword bit 11
+  (internal limit active).
 * QUICK STOP ACTIVE: braking as 605Ah says (slow down ramp 6084h, quick stop ramp 6085h,
   or the current limit), then transition 12 (codes 1-4), or holding zero speed (5-8).
 * FAULT REACTION ACTIVE: braking as 605Eh says, then transition 14 to FAULT; torque off at
@@ -23,7 +25,11 @@ What the power stage does in each CiA 402 state:
 
 Braking needs the drive's speed loop; a drive without ``[controller]`` machine data takes
 the torque off instead.  Positions and speeds on the wire are motor-encoder increments
-(CiA 402 position factor 1).
+(CiA 402 position factor 1), shifted by the home offset once a homing has ended (the
+feedback's ``encoder_counts`` is the position actual value 6064h).  The profile modes (PP,
+PV, homing) need the same loops as CSP; :meth:`EmulatedDrive.setpoint_bounds` offers the
+cyclic modes only, which are what every link carries (a CANopen node adds the profile
+modes, whose parameters it reaches by SDO).
 
 A fault reset (rising edge of controlword bit 7) clears every latched cause that is gone
 (:mod:`hil.drive.faults` says when each one is), in every mode; a non-finite or runaway
@@ -38,13 +44,16 @@ machine, faults and loops, all cycled once per message.
 
 import math
 import threading
+from dataclasses import replace
 
 from hil.cia402 import (
     CW_FAULT_RESET,
     DISABLE_VOLTAGE,
     QUICK_STOP,
+    SW_FOLLOWING_ERROR,
     SW_FOLLOWS_COMMAND,
     SW_INTERNAL_LIMIT_ACTIVE,
+    SW_TARGET_REACHED,
     AbortConnectionOption,
     DriveStateMachine,
     FaultReactionOption,
@@ -55,6 +64,7 @@ from hil.controller.config import ControllerSection, load_controller
 from hil.drive.config import DriveParameters, load_drive
 from hil.drive.faults import TORQUE_OFF, Cause, FaultLog
 from hil.drive.loops import DriveLoops
+from hil.drive.modes import MODE_PP, PROFILE_MODES, ModeControl
 from hil.drive.monitor import Monitor
 from hil.drive.reaction import BrakeRamp
 from io_adapters.messages import (
@@ -107,7 +117,11 @@ class EmulatedDrive:
         self.monitor = Monitor(self.params, plant.pwm_period,
                                self.rad_per_count / self.speed_period)
         self.brake = BrakeRamp(plant.pwm_period)
-        self._bounds = self.setpoint_bounds()
+        self.modes = ModeControl(self.params, plant.pwm_period, self.rad_per_count,
+                                 plant.counts_per_mark)
+        bounds = self.setpoint_bounds()
+        self._bounds = (replace(bounds, modes=bounds.modes | PROFILE_MODES)
+                        if self.loops is not None else bounds)
         self.faults = FaultLog()
         self.link_causes = 0
         self.lock = threading.Lock()
@@ -158,11 +172,14 @@ class EmulatedDrive:
         self._speed_actual(counts)
         theta = counts * rpc
         w_act = self.velocity_counts_s * rpc
-        target = math.nan
-        if sp.mode == MODE_CSP:
-            target = sp.target_position_counts * rpc
-            target = min(max(target, p.limit_min), p.limit_max)
         operating = self.sm.state == State.OPERATION_ENABLED
+        target, w_cmd = math.nan, 0.0
+        if operating:
+            target, w_cmd = self.modes.command(sp, theta, w_act, out)
+            if sp.mode in (MODE_CSP, MODE_PP):
+                target = min(max(target, p.limit_min), p.limit_max)
+        else:
+            self.modes.hold(sp, theta, w_act)
         present = self.monitor.check(operating, target, theta, w_act,
                                      out[L.O_IQ_MEAS] ** 2 + out[L.O_ID_MEAS] ** 2,
                                      (out[L.O_LIMIT_NEG], out[L.O_LIMIT_POS]))
@@ -175,7 +192,7 @@ class EmulatedDrive:
         statusword = self.sm.update(
             controlword, self.faults.latched != 0,
             stopped=braked if braking else abs(w_act) <= standstill,
-            reaction_done=braked or not braking, flags=self._flags(sp.mode))
+            reaction_done=braked or not braking, flags=self._flags(sp.mode, w_act))
         self._limited = 0
         state = self.sm.state
         if state != before:
@@ -188,7 +205,7 @@ class EmulatedDrive:
             self.faults.latch(Cause.SETPOINT_REFUSED, self.tick)
             iq, on = 0.0, False
         else:
-            iq, on = self._current(state, sp, target, theta, w_act)
+            iq, on = self._current(state, sp, target, w_cmd, theta, w_act)
         inp = plant.inp
         voltage = sp.mode == MODE_VOLTAGE and state == State.OPERATION_ENABLED
         inp[L.I_ENABLE] = 1.0 if on else 0.0
@@ -204,7 +221,7 @@ class EmulatedDrive:
         fb.seq = sp.seq
         fb.statusword = statusword
         fb.time_s = out[L.O_TIME]
-        fb.encoder_counts = out[L.O_ENCODER]
+        fb.encoder_counts = out[L.O_ENCODER] + self.modes.shift_counts
         fb.scale_counts = out[L.O_SCALE]
         fb.velocity_counts_s = self.velocity_counts_s
         fb.iq_a = out[L.O_IQ_MEAS]
@@ -267,39 +284,42 @@ class EmulatedDrive:
         if state != State.OPERATION_ENABLED:
             self.monitor.reset()
 
-    def _flags(self, mode: int) -> int:
+    def _flags(self, mode: int, w_act: float) -> int:
         """The statusword bits of this cycle: the monitor's, the limits the last cycle's
-        commands met (bit 11), bit 12 while following a cyclic command."""
-        flags = self.monitor.flags | self._limited
-        if self.sm.state == State.OPERATION_ENABLED and mode != MODE_VOLTAGE:
-            flags |= SW_FOLLOWS_COMMAND
-        return flags
+        commands met (bit 11), in OPERATION ENABLED the mode's bits 10, 12 and 13."""
+        flags = self.monitor.flags
+        if self.sm.state == State.OPERATION_ENABLED:
+            mode_bits = SW_TARGET_REACHED | SW_FOLLOWS_COMMAND | SW_FOLLOWING_ERROR
+            flags = flags & ~mode_bits | self.modes.flags(mode, flags, w_act,
+                                                          self.monitor.standstill())
+        return flags | self._limited
 
     # -- the power stage ------------------------------------------------------------------
-    def _current(self, state: State, sp: Setpoint, target: float, theta: float,
-                 w_act: float) -> tuple[float, bool]:
-        """This cycle's q-current setpoint (A) and whether the power stage is on."""
-        loops, tick, rpc = self.loops, self.tick, self.rad_per_count
+    def _current(self, state: State, sp: Setpoint, target: float, w_cmd: float,
+                 theta: float, w_act: float) -> tuple[float, bool]:
+        """This cycle's q-current setpoint (A) and whether the power stage is on, for the
+        mode's position demand ``target`` (NaN: speed or current control) and speed
+        command or feed-forward ``w_cmd``."""
+        loops, tick = self.loops, self.tick
         if state == State.OPERATION_ENABLED:
-            if sp.mode == MODE_CSP and loops is not None:
-                # a target held at a software limit stands still: no speed feed-forward
-                held = target != sp.target_position_counts * rpc
-                w_ff = 0.0 if held else sp.velocity_offset_counts_s * rpc
-                w_cmd = loops.position(tick, target, w_ff, theta)
-                iq = loops.current(tick, self._speed_limited(w_cmd), w_act, sp.iq_ref_a)
-            elif sp.mode == MODE_CSV and loops is not None:
-                w_cmd = self._speed_limited(sp.target_velocity_counts_s * rpc)
-                if (w_cmd > 0.0 and theta >= self.params.limit_max) or (
-                        w_cmd < 0.0 and theta <= self.params.limit_min):
-                    w_cmd = 0.0  # at a software limit: no further out
-                    self._limited = SW_INTERNAL_LIMIT_ACTIVE
-                iq = loops.current(tick, w_cmd, w_act, sp.iq_ref_a)
-            elif sp.mode in (MODE_CSP, MODE_CSV):  # no machine data for the drive's loops
-                return 0.0, True
-            else:
+            if sp.mode in (MODE_CST, MODE_VOLTAGE):
                 iq = sp.iq_ref_a
-            if sp.mode == MODE_CSP and target != sp.target_position_counts * rpc:
-                self._limited = SW_INTERNAL_LIMIT_ACTIVE
+            elif loops is None:  # no machine data for the drive's loops
+                return 0.0, True
+            elif target == target:
+                # a target held at a software limit stands still: no speed feed-forward
+                held = target != self.modes.demand
+                if held:
+                    self._limited = SW_INTERNAL_LIMIT_ACTIVE
+                w = loops.position(tick, target, 0.0 if held else w_cmd, theta)
+                iq = loops.current(tick, self._speed_limited(w), w_act, sp.iq_ref_a)
+            else:
+                w = self._speed_limited(w_cmd)
+                if (w > 0.0 and theta >= self.params.limit_max) or (
+                        w < 0.0 and theta <= self.params.limit_min):
+                    w = 0.0  # at a software limit: no further out
+                    self._limited = SW_INTERNAL_LIMIT_ACTIVE
+                iq = loops.current(tick, w, w_act, sp.iq_ref_a)
             return self._current_limited(iq, theta), True
         if self.brake.active and loops is not None:
             iq = loops.current(tick, self.brake.advance(), w_act, 0.0)

@@ -1,38 +1,55 @@
-"""The drive's parameter objects as a CANopen master reads and writes them by SDO.
+"""The drive's objects as a CANopen master reads and writes them by SDO.
 
 :class:`DriveObjects` is the :class:`io_adapters.cia402_objects.ObjectAccess` that
 ``hil run`` gives a ``can://`` endpoint: each object of
-:data:`~io_adapters.cia402_objects.PARAMETER_OBJECTS` maps onto a field of the axis's
+:data:`~io_adapters.cia402_objects.PARAMETERS` maps onto a field of the axis's
 :class:`~hil.drive.config.DriveParameters` (or, read-only, onto what the drive measures),
-converted between the wire's units and the drive's motor coordinate:
+converted between the drive's motor coordinate and increments (the node scales those to
+the master's position unit, :mod:`io_adapters.can_dictionary`):
 
 =======  ===========================  ==============================  ======================
-object   meaning                      wire unit                       refused (abort code)
+object   meaning                      unit here                       refused (abort code)
 =======  ===========================  ==============================  ======================
+1006h    communication cycle period   µs                              not whole PWM periods
+                                                                      (0609 0030)
 6007h    abort connection option      code 0-3                        other (0609 0030)
 605Ah    quick stop option            code 1-8                        other (0609 0030)
 605Eh    fault reaction option        code 0-4                        other (0609 0030)
+6062h    position demand value        increments (read only)
 6065h    following error window       increments, FFFFFFFFh: off
 6066h    following error time out     ms
 6067h    position window              increments
 6068h    position window time         ms
 6072h    max torque, as the current   per mille of 6075h (the torque  0 (0609 0032), above
          limit                        objects' unit on this wire)     the peak (0609 0031)
+607Ch    home offset                  increments
 607Dh    software position limits     increments (sub 1 min,          min > max (0609 0036)
                                       sub 2 max; -2^31 and 2^31-1:
                                       that side off)
-6080h    max motor speed              increments/s (velocity unit),
-                                      0: off (device-specific)
+6080h    max motor speed              increments/s, 0: off
+6081h    profile velocity             increments/s
+6083h    profile acceleration         increments/s²                   0 (0609 0032)
 6084h    profile deceleration         increments/s²                   0 (0609 0032)
 6085h    quick stop deceleration      increments/s²                   0 (0609 0032)
+608Fh    encoder increments per       :01 increments, :02 1 (read
+         motor revolution             only; a linear motor's
+                                      revolution: 2 pole pitches)
+6098h    homing method                :mod:`hil.drive.homing`'s       other (0609 0030)
+6099h    homing speeds                increments/s (:01 switch,       0 (0609 0032)
+                                      :02 zero)
+609Ah    homing acceleration          increments/s²                   0 (0609 0032)
+60C2h    interpolation time period    :01 value, :02 index (10^index
+                                      s); 0: none
 60F4h    following error actual       increments (read only)
 60FDh    digital inputs               bit 0 negative, bit 1 positive
-                                      limit switch (read only)
+                                      limit switch, bit 2 home switch
+                                      (read only)
 =======  ===========================  ==============================  ======================
 
-Reads and writes hold the drive's lock, so a write lands between two cycles and takes
-effect from the next.  An NMT reset node puts every object back to the machine file's
-values.
+Positions (6062h, 607Dh) are those of the position actual value: shifted by the home
+offset once a homing has ended.  Reads and writes hold the drive's lock, so a write lands
+between two cycles and takes effect from the next.  An NMT reset node puts every object
+back to the machine file's values and forgets the home (the position offset back to 0).
 """
 
 import math
@@ -40,7 +57,9 @@ from dataclasses import fields, replace
 
 from hil.cia402 import AbortConnectionOption, FaultReactionOption, QuickStopOption
 from hil.drive.core import EmulatedDrive
-from io_adapters.cia402_objects import (
+from hil.drive.homing import METHODS
+from io_adapters.can_catalog import (
+    DI_HOME_SWITCH,
     DI_NEGATIVE_LIMIT,
     DI_POSITIVE_LIMIT,
     SDO_ABORT_MAX_BELOW_MIN,
@@ -48,8 +67,8 @@ from io_adapters.cia402_objects import (
     SDO_ABORT_VALUE_HIGH,
     SDO_ABORT_VALUE_LOW,
     SDO_ABORT_VALUE_RANGE,
-    ObjectAccessError,
 )
+from io_adapters.cia402_objects import ObjectAccessError
 from plant import layout as L
 
 U32_OFF = 0xFFFFFFFF
@@ -58,16 +77,25 @@ I32_MIN, I32_MAX = -2**31, 2**31 - 1
 OPTIONS = {0x6007: ("abort_connection_option", AbortConnectionOption),
            0x605A: ("quick_stop_option", QuickStopOption),
            0x605E: ("fault_reaction_option", FaultReactionOption)}
-#: position objects in increments: index -> field
-POSITIONS = {0x6065: "fe_window", 0x6067: "position_window"}
+#: distances in increments: index -> field (6065h's FFFFFFFFh is "off")
+POSITIONS = {0x6065: "fe_window", 0x6067: "position_window", 0x607C: "home_offset"}
 #: times in ms: index -> field (s)
 TIMES = {0x6066: "fe_time_s", 0x6068: "position_window_time_s"}
-#: decelerations in increments/s²: index -> field
-DECELERATIONS = {0x6084: "profile_decel", 0x6085: "quick_stop_decel"}
+#: speeds (increments/s) and accelerations (increments/s²) that must be > 0 (6081h may be
+#: 0: a move that never starts): (index, sub-index) -> field
+POSITIVE = {(0x6083, 0): "profile_acceleration", (0x6084, 0): "profile_decel",
+            (0x6085, 0): "quick_stop_decel", (0x6099, 1): "homing_speed_switch",
+            (0x6099, 2): "homing_speed_zero", (0x609A, 0): "homing_acceleration"}
+#: whole numbers stored as they come: (index, sub-index) -> field
+CODES = {(0x60C2, 1): "interpolation_value", (0x60C2, 2): "interpolation_index"}
+
+
+def _i32(value: float) -> int:
+    return min(max(round(value), I32_MIN), I32_MAX)
 
 
 class DriveObjects:
-    """The parameter objects of every axis's drive (see the module docstring).
+    """The objects of every axis's drive (see the module docstring).
 
     Args:
         drives: the drives in axis order.
@@ -79,78 +107,118 @@ class DriveObjects:
         self.rated_current_a = rated_current_a
         self._initial = [replace(d.params) for d in drives]
 
+    def cycle_s(self, axis: int) -> float:
+        return self.drives[axis].plant.pwm_period
+
     def read(self, axis: int, index: int, subindex: int) -> int:
         d = self.drives[axis]
         with d.lock:
             return self._read(d, index, subindex)
 
     def _read(self, d: EmulatedDrive, index: int, subindex: int) -> int:
-        p, rpc = d.params, d.rad_per_count
+        p, rpc, shift = d.params, d.rad_per_count, d.modes.shift_counts
+        key = (index, subindex)
         if index in OPTIONS:
             return getattr(p, OPTIONS[index][0])
         if index in POSITIONS:
             value = getattr(p, POSITIONS[index])
-            return U32_OFF if math.isinf(value) else min(round(value / rpc), U32_OFF - 1)
+            if math.isinf(value):
+                return U32_OFF
+            return _i32(value / rpc) if index == 0x607C else min(round(value / rpc),
+                                                                  U32_OFF - 1)
         if index in TIMES:
             return round(getattr(p, TIMES[index]) * 1e3)
-        if index in DECELERATIONS:
-            return min(round(getattr(p, DECELERATIONS[index]) / rpc), U32_OFF)
+        if key in POSITIVE or index == 0x6081:
+            value = getattr(p, POSITIVE.get(key, "profile_velocity"))
+            return min(round(value / rpc), U32_OFF)
+        if key in CODES:
+            return getattr(p, CODES[key])
+        if index == 0x1006:
+            return round(p.communication_cycle_s * 1e6)
+        if index == 0x6062:
+            return _i32(d.modes.demand / rpc + shift)
         if index == 0x6072:
             return min(round(p.max_current_a / self.rated_current_a * 1e3), 0xFFFF)
         if index == 0x607D:
             limit = p.limit_min if subindex == 1 else p.limit_max
-            return min(max(round(limit / rpc), I32_MIN), I32_MAX) if math.isfinite(limit) \
+            return _i32(limit / rpc + shift) if math.isfinite(limit) \
                 else (I32_MIN if limit < 0 else I32_MAX)
         if index == 0x6080:
             return 0 if math.isinf(p.max_speed) else min(round(p.max_speed / rpc), U32_OFF)
+        if index == 0x608F:
+            return d.plant.counts_per_mark if subindex == 1 else 1
+        if index == 0x6098:
+            return p.homing_method
         if index == 0x60F4:
-            return min(max(round(d.monitor.following_error / rpc), I32_MIN), I32_MAX)
+            return _i32(d.monitor.following_error / rpc)
         if index == 0x60FD:
             out = d.plant.out
             return ((DI_NEGATIVE_LIMIT if out[L.O_LIMIT_NEG] > 0.0 else 0)
-                    | (DI_POSITIVE_LIMIT if out[L.O_LIMIT_POS] > 0.0 else 0))
+                    | (DI_POSITIVE_LIMIT if out[L.O_LIMIT_POS] > 0.0 else 0)
+                    | (DI_HOME_SWITCH if out[L.O_HOME_SWITCH] > 0.0 else 0))
         raise ObjectAccessError(SDO_ABORT_NO_OBJECT, f"{index:04X}h is not a drive parameter")
 
-    def write(self, axis: int, index: int, subindex: int, value: int) -> None:
+    def write(self, axis: int, index: int, subindex: int, value: float) -> None:
         d = self.drives[axis]
         with d.lock:
             self._write(d, index, subindex, value)
 
-    def _write(self, d: EmulatedDrive, index: int, subindex: int, value: int) -> None:
+    def _write(self, d: EmulatedDrive, index: int, subindex: int, value: float) -> None:
         p, rpc = d.params, d.rad_per_count
+        key = (index, subindex)
         if index in OPTIONS:
             name, codes = OPTIONS[index]
             if value not in {int(c) for c in codes}:
                 raise ObjectAccessError(SDO_ABORT_VALUE_RANGE, f"{index:04X}h = {value}: "
                                         f"not one of {[int(c) for c in codes]}")
             if index == 0x605A:
-                d.set_quick_stop_option(value)
+                d.set_quick_stop_option(int(value))
             else:
-                setattr(p, name, value)
+                setattr(p, name, int(value))
         elif index in POSITIONS:
-            setattr(p, POSITIONS[index], math.inf if value == U32_OFF else value * rpc)
+            off = index == 0x6065 and value == U32_OFF
+            setattr(p, POSITIONS[index], math.inf if off else value * rpc)
         elif index in TIMES:
             setattr(p, TIMES[index], value * 1e-3)
-        elif index in DECELERATIONS:
+        elif key in POSITIVE:
             _positive(index, value)
-            setattr(p, DECELERATIONS[index], value * rpc)
+            setattr(p, POSITIVE[key], value * rpc)
+        elif key in CODES:
+            setattr(p, CODES[key], int(value))
+        elif index == 0x1006:
+            periods = value * 1e-6 / d.plant.pwm_period
+            if abs(periods - round(periods)) > 1e-6:
+                raise ObjectAccessError(SDO_ABORT_VALUE_RANGE, f"1006h = {value} µs is not a "
+                                        f"whole number of drive cycles "
+                                        f"({d.plant.pwm_period * 1e6:g} µs)")
+            p.communication_cycle_s = value * 1e-6
         elif index == 0x6072:
-            _positive(index, value)
-            current = value * self.rated_current_a * 1e-3
-            if current > p.current_max_a:
-                raise ObjectAccessError(SDO_ABORT_VALUE_HIGH, f"6072h = {value} per mille "
-                                        f"= {current:g} A is above the drive's peak "
-                                        f"{p.current_max_a:g} A")
-            p.max_current_a = current
+            self._max_current(p, value)
         elif index == 0x607D:
-            self._limit(p, subindex, value, rpc)
+            self._limit(p, subindex, value, rpc, d.modes.shift_counts)
         elif index == 0x6080:
             p.max_speed = math.inf if value == 0 else value * rpc
+        elif index == 0x6081:
+            p.profile_velocity = value * rpc
+        elif index == 0x6098:
+            if value not in METHODS:
+                raise ObjectAccessError(SDO_ABORT_VALUE_RANGE, f"6098h = {value}: homing "
+                                        f"methods offered: {sorted(METHODS)}")
+            p.homing_method = int(value)
+
+    def _max_current(self, p, value: float) -> None:
+        _positive(0x6072, value)
+        current = value * self.rated_current_a * 1e-3
+        if current > p.current_max_a:
+            raise ObjectAccessError(SDO_ABORT_VALUE_HIGH, f"6072h = {value} per mille "
+                                    f"= {current:g} A is above the drive's peak "
+                                    f"{p.current_max_a:g} A")
+        p.max_current_a = current
 
     @staticmethod
-    def _limit(p, subindex: int, value: int, rpc: float) -> None:
+    def _limit(p, subindex: int, value: float, rpc: float, shift: float) -> None:
         off = value == (I32_MIN if subindex == 1 else I32_MAX)
-        limit = (-math.inf if subindex == 1 else math.inf) if off else value * rpc
+        limit = (-math.inf if subindex == 1 else math.inf) if off else (value - shift) * rpc
         lo, hi = (limit, p.limit_max) if subindex == 1 else (p.limit_min, limit)
         if lo > hi:
             raise ObjectAccessError(SDO_ABORT_MAX_BELOW_MIN, f"607Dh: min {lo / rpc:.0f} > "
@@ -163,8 +231,9 @@ class DriveObjects:
             for f in fields(initial):
                 setattr(d.params, f.name, getattr(initial, f.name))
             d.set_quick_stop_option(initial.quick_stop_option)
+            d.modes.homing.reset()
 
 
-def _positive(index: int, value: int) -> None:
+def _positive(index: int, value: float) -> None:
     if value <= 0:
         raise ObjectAccessError(SDO_ABORT_VALUE_LOW, f"{index:04X}h = {value}: must be > 0")

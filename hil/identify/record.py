@@ -1,10 +1,16 @@
 """A measured servo trace in SI on a uniform time grid, whatever file it came from.
 
-Two sources:
+Three sources:
 
 * the servo-trace CSV of ``docs/trace-format.md`` (shared docs), read with
   :func:`hil.trace_file.read_trace`: ``t_s``, ``pos_set_mm``, ``pos_mm`` and ``iq_a`` (or
   ``force_n``) are required, ``_deg`` columns stand in for ``_mm`` on rotary tables;
+* the recording of ``hil run`` (its run folder, or its ``recording.arrows``), read with
+  :mod:`hil.runtime.record_reader` and mapped onto the same columns by
+  :mod:`hil.runtime.record_trace`: the longest stretch of consecutive ticks in which the
+  drive ran in CSP in OPERATION ENABLED (the drive knows the position setpoint only in
+  CSP), one axis (a run of several axes: export the axis with ``hil export RUN --to
+  csv``);
 * the EMPS benchmark's ``.mat`` files (``/work/shared/data/EMPS/SOURCE.md``): ``qg`` is the
   position setpoint, ``qm`` the motor encoder expressed at the load, and the force on the
   load is ``gtau * vir``; the dSPACE PD loop that produced them is kept as
@@ -20,7 +26,18 @@ from pathlib import Path
 
 import numpy as np
 
-from hil.trace_file import IDENTIFICATION, TIME_TOLERANCE, TraceFormatError, read_trace
+from hil.cia402 import State
+from hil.runtime.record_reader import Recording, RecordingError
+from hil.runtime.record_trace import axis_trace
+from hil.runtime.run_folder import RECORDING
+from hil.trace_file import (
+    IDENTIFICATION,
+    TIME_TOLERANCE,
+    TraceFormatError,
+    read_trace,
+    si_factor,
+)
+from io_adapters.messages import MODE_CSP
 
 #: variables an EMPS ``.mat`` file must hold (``pulses_N`` is optional)
 EMPS_VARIABLES = ("t", "qm", "qg", "vir", "gtau", "kp", "kv")
@@ -129,7 +146,8 @@ class Record:
 
 
 def load_record(path: str | Path) -> Record:
-    """Read a servo-trace ``.csv`` or an EMPS ``.mat`` file as a :class:`Record`.
+    """Read a servo-trace ``.csv``, an EMPS ``.mat`` file or a ``hil run`` recording (its
+    run folder or ``recording.arrows``) as a :class:`Record`.
 
     Raises:
         TraceFormatError: naming the file and the missing column or variable, a
@@ -141,8 +159,53 @@ def load_record(path: str | Path) -> Record:
         return _load_csv(path)
     if suffix == ".mat":
         return _load_mat(path)
+    if path.is_dir() or path.name == RECORDING:
+        return _load_run(path if path.is_dir() else path.parent)
     raise TraceFormatError(f"{path}: unknown record type {path.suffix!r}; give a servo-trace "
-                           ".csv (trace-format.md) or an EMPS benchmark .mat file")
+                           ".csv (trace-format.md), an EMPS benchmark .mat file or a hil run "
+                           "folder")
+
+
+def _longest_span(ok: np.ndarray, tick: np.ndarray) -> slice:
+    """The longest run of rows where ``ok`` holds on consecutive ticks (empty: none)."""
+    rows = np.flatnonzero(ok)
+    if rows.size == 0:
+        return slice(0, 0)
+    new = np.r_[True, (np.diff(rows) != 1) | (np.diff(tick[rows]) != 1)]
+    starts = np.flatnonzero(new)
+    lengths = np.diff(np.r_[starts, rows.size])
+    first = rows[starts[np.argmax(lengths)]]
+    return slice(first, first + int(lengths.max()))
+
+
+def _load_run(folder: Path) -> Record:
+    """The CSP stretch of a ``hil run`` recording (module docstring) in SI."""
+    try:
+        rec = Recording(folder)
+        trace = axis_trace(rec)
+        rows = rec.read([*trace.sources(), trace.prefix + "drive_state"])
+    except RecordingError as e:
+        raise TraceFormatError(str(e)) from e
+    ok = ((rows[trace.prefix + "sp_mode"] == MODE_CSP)
+          & (rows[trace.prefix + "drive_state"] == State.OPERATION_ENABLED))
+    span = _longest_span(ok, rows["tick"])
+    if span.stop - span.start < 2:
+        raise TraceFormatError(f"{rec.path}: no two consecutive ticks with the drive in CSP "
+                               "(6060h = 8) and OPERATION ENABLED: the drive knows the "
+                               "position setpoint only in CSP; identify the controller's "
+                               "trace.csv instead")
+    columns = trace.convert({k: v[span] for k, v in rows.items()})
+    u = trace.unit
+
+    def si(name: str) -> np.ndarray:
+        return columns[name] * si_factor(name)[0]
+
+    return Record(source=str(rec.path), t=np.arange(span.stop - span.start) * trace.period_s,
+                  pos_set=si(f"pos_set_{u}"), pos=si(f"pos_{u}"), effort=columns["iq_a"],
+                  effort_kind="iq", motor_pos=si(f"motor_pos_{u}"),
+                  vel_set=si(f"vel_set_{u}_min"), vel=si(f"vel_{u}_min"),
+                  meta={**trace.metadata(rec), "position_unit": "rad" if trace.rotary else "m",
+                        "ticks": f"{rows['tick'][span.start]}..{rows['tick'][span.stop - 1]}"})
 
 
 def _load_csv(path: Path) -> Record:

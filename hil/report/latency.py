@@ -13,16 +13,18 @@ smallest.  Every figure is over the ticks that ran (dropped ticks excluded).
 
 The run folder
 --------------
-``run.npz`` (``numpy.savez``), integer arrays of one slot per deadline the loop covered,
-tick k in slot k (``LoopStats.lateness_ns`` and ``compute_ns`` as the loop returned them)::
+``recording.arrows`` (:mod:`hil.runtime.record_reader`), one row per tick that ran, read
+here into one slot per deadline the loop covered (tick k in slot k)::
 
-    lateness_ns    int64[n]  wake-up time - deadline, ns; SKIPPED (int64 min) where the
-                             tick was dropped
-    compute_ns     int64[n]  end of the step - wake-up time, ns; SKIPPED where dropped
+    tick           int64     the deadline index of the row
+    lateness_ns    int64[n]  wake-up time - deadline, ns; NO_VALUE (int64 min) where no
+                             row has the tick: dropped by the ``skip`` overrun policy, or
+                             not recorded (the recording's writer fell behind)
+    compute_ns     int64[n]  end of the step - wake-up time, ns; NO_VALUE likewise
 
-and, when the run had an adapter, five round-trip stamps, int64[n] each, all five or none
+and, when the run had an adapter, four round-trip stamps, all four or none
 (``time.monotonic_ns()`` values; 0 = no stamp).  Only the tick that first used a newly
-received setpoint carries stamps; every other slot is 0 in all five::
+received setpoint carries stamps; every other row is 0 in all four::
 
     tick_start_ns  device clock at the start of that tick's step (read first thing in it)
     sp_t_ns        Setpoint.t_ns: controller clock when the controller sent the setpoint
@@ -30,9 +32,9 @@ received setpoint carries stamps; every other slot is 0 in all five::
                    kernel's receive stamp (io_adapters.udp), on serial when the adapter
                    returned it
     fb_t_ns        Feedback.t_ns: device clock when that tick's feedback was sent
-    fb_rx_ns       Feedback.rx_ns: controller clock when that feedback arrived; 0 where
-                   the controller side's stamp is not known (the emulator always writes 0:
-                   the pairing below fills it)
+
+The fifth, ``fb_rx_ns`` (Feedback.rx_ns: controller clock when that feedback arrived), is
+the controller's: 0 (unknown) until the pairing below fills it.
 
 ``report.json``, a JSON object; the keys read here (others are ignored)::
 
@@ -40,10 +42,12 @@ received setpoint carries stamps; every other slot is 0 in all five::
     "scheduling": SchedulingReport.as_dict()
     "adapter":    {"name": str (e.g. the URL), "stats": dataclasses.asdict(AdapterStats)},
                   or null / absent for a run without one
+    "recording":  {"ticks_not_recorded": int}; optional (0)
     "host":       hil.report.host.host_fingerprint() taken during the run; optional (the
                   report then takes the fingerprint of the machine it runs on)
 
-``loop.ticks + loop.skipped`` must equal n and ``loop.skipped`` the SKIPPED slots.
+``loop.ticks + loop.skipped`` must equal the slots (the last row's tick + 1), and the
+empty slots ``loop.skipped + recording.ticks_not_recorded``.
 
 The controller's folder
 -----------------------
@@ -60,12 +64,13 @@ Pairing (``load_run(RUN, controller=DIR)``): a run tick with stamps takes ``fb_r
 the row whose ``fb_sp_t_ns`` is its ``sp_t_ns`` and whose ``fb_t_ns`` is its ``fb_t_ns``:
 the very feedback that tick sent (``sp_t_ns`` alone is not enough: each feedback until the
 next setpoint arrives echoes the same one; a feedback is accepted once, so one row at
-most matches).  A run tick no row matches keeps run.npz's ``fb_rx_ns`` (0: its total and
+most matches).  A run tick no row matches keeps ``fb_rx_ns`` 0 (its total and
 transport stay unknown, left out of their figures) and is counted as an unmatched tick:
 the controller recorded no row then (the alignment and enable sequence before its
 recording, the disable after it), or it never read that feedback (lost, or superseded by
 a newer one before its tick).  A row no tick matches is counted as an unmatched row: the
-drive sent that feedback on a tick without a new setpoint.  run.npz is not rewritten.
+drive sent that feedback on a tick without a new setpoint.  The recording is not
+rewritten.
 
 The round trip and its parts
 ----------------------------
@@ -107,9 +112,9 @@ from hil.report.host import host_fingerprint
 from hil.rt.cyclictest import CyclictestError
 from hil.rt.loop import SKIPPED, Percentiles
 from hil.rt.scheduling import last_cpu
+from hil.runtime.record_reader import Recording, RecordingError
+from hil.runtime.run_folder import RECORDING, REPORT
 
-RUN_NPZ = "run.npz"
-RUN_JSON = "report.json"
 CONTROLLER_NPZ = "controller.npz"
 #: the controller.npz columns the pairing reads
 CONTROLLER_KEYS = ("fb_sp_t_ns", "fb_t_ns", "fb_rx_ns")
@@ -120,6 +125,8 @@ REPORT_PNG = "latency_hist.png"
 #: without a round trip
 NO_VALUE = SKIPPED
 STAMP_KEYS = ("tick_start_ns", "sp_t_ns", "sp_rx_ns", "fb_t_ns", "fb_rx_ns")
+#: the stamps a recording holds (``fb_rx_ns`` is the controller's)
+RECORDED_STAMPS = STAMP_KEYS[:4]
 PERCENTILE_DEFINITION = "nearest rank: the ceil(p/100 * n)-th smallest of n samples"
 #: lateness histogram: log-spaced bins from HIST_LOW_US up, HIST_BINS_PER_DECADE per decade
 HIST_LOW_US = 0.1
@@ -278,9 +285,40 @@ def pair_with_controller(stamps: dict[str, np.ndarray], compute_ns: np.ndarray,
                           unmatched_ticks=ticks.size - matched, unmatched_rows=len(rx_of))
 
 
+def _slots(columns: dict[str, np.ndarray], keys, n: int) -> dict[str, np.ndarray]:
+    """Each of ``keys`` in one slot per deadline (the row of tick k in slot k); where no
+    row has the tick, NO_VALUE for the loop's columns and 0 (no stamp) for the stamps."""
+    out = {}
+    tick = columns["tick"]
+    for key in keys:
+        slots = np.full(n, NO_VALUE if key in ("lateness_ns", "compute_ns") else 0, np.int64)
+        slots[tick] = columns[key]
+        out[key] = slots
+    return out
+
+
+def _read_recording(folder: Path) -> tuple[dict[str, np.ndarray], bool]:
+    """The loop's columns and the stamps (when recorded) of ``folder``'s recording."""
+    try:
+        rec = Recording(folder)
+        present = [k for k in RECORDED_STAMPS if k in rec.names]
+        if present and len(present) != len(RECORDED_STAMPS):
+            raise ReportError(f"{rec.path}: round-trip stamps need all of "
+                              f"{list(RECORDED_STAMPS)}, found only {present}")
+        stamped = bool(present)
+        columns = rec.read(["tick", "lateness_ns", "compute_ns", *present])
+    except RecordingError as e:
+        raise ReportError(str(e)) from e
+    tick = columns["tick"]
+    if tick.size and (tick.min() < 0 or np.any(np.diff(tick) <= 0)):
+        raise ReportError(f"{folder / RECORDING}: 'tick' must increase from 0")
+    return columns, stamped
+
+
 def load_run(folder: Path | str, controller: Path | str | None = None) -> RunData:
-    """Read ``run.npz`` and ``report.json`` of a run folder (keys: module docstring), and
-    pair its round trips with ``controller.npz`` in ``controller`` when given.
+    """Read ``recording.arrows`` and ``report.json`` of a run folder (keys: module
+    docstring), and pair its round trips with ``controller.npz`` in ``controller`` when
+    given.
 
     Raises:
         ReportError: a file is missing or unreadable, a key is missing or of the wrong
@@ -288,28 +326,14 @@ def load_run(folder: Path | str, controller: Path | str | None = None) -> RunDat
             for a run without round-trip stamps.
     """
     folder = Path(folder)
-    npz_path, json_path = folder / RUN_NPZ, folder / RUN_JSON
+    rec_path, json_path = folder / RECORDING, folder / REPORT
     try:
         meta = json.loads(json_path.read_text())
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
         raise ReportError(f"{json_path}: cannot read the run's report: {e}") from e
-    try:
-        with np.load(npz_path) as npz:
-            arrays = {k: npz[k] for k in npz.files}
-    except (OSError, ValueError) as e:
-        raise ReportError(f"{npz_path}: cannot read the recording: {e}") from e
     if not isinstance(meta, dict):
         raise ReportError(f"{json_path}: expected a JSON object")
-    for key in ("lateness_ns", "compute_ns"):
-        if key not in arrays:
-            raise ReportError(f"{npz_path}: no {key!r} (has {sorted(arrays)})")
-    stamped = [k for k in STAMP_KEYS if k in arrays]
-    if stamped and len(stamped) != len(STAMP_KEYS):
-        raise ReportError(f"{npz_path}: round-trip stamps need all of {list(STAMP_KEYS)}, "
-                          f"found only {stamped}")
-
-    lateness = _int_array(arrays, "lateness_ns", None, npz_path)
-    compute = _int_array(arrays, "compute_ns", lateness.size, npz_path)
+    columns, stamped = _read_recording(folder)
     loop, scheduling = meta.get("loop"), meta.get("scheduling")
     if not isinstance(loop, dict) or not isinstance(scheduling, dict):
         raise ReportError(f"{json_path}: needs the objects 'loop' (LoopStats.as_dict()) and "
@@ -317,11 +341,15 @@ def load_run(folder: Path | str, controller: Path | str | None = None) -> RunDat
     where = f"{json_path} 'loop'"
     period_ns = _count(loop, "period_ns", where, minimum=1)
     ticks, skipped = _count(loop, "ticks", where), _count(loop, "skipped", where)
-    dropped = int(np.count_nonzero(lateness == NO_VALUE))
-    if ticks + skipped != lateness.size or dropped != skipped:
-        raise ReportError(f"{npz_path}: {lateness.size} slots with {dropped} dropped, but "
-                          f"{where} says {ticks} ticks + {skipped} skipped (write "
-                          f"LoopStats.lateness_ns, not the loop's whole buffer)")
+    recording = meta.get("recording") or {}
+    lost = _count(recording, "ticks_not_recorded", f"{json_path} 'recording'") \
+        if "ticks_not_recorded" in recording else 0
+    tick = columns["tick"]
+    n = int(tick[-1]) + 1 if tick.size else 0
+    if ticks + skipped != n or n - tick.size != skipped + lost:
+        raise ReportError(f"{rec_path}: rows for {tick.size} of {n} deadlines, but {where} "
+                          f"says {ticks} ticks + {skipped} skipped and {json_path} "
+                          f"{lost} ticks not recorded")
     adapter = meta.get("adapter")
     if adapter is not None and not (isinstance(adapter, dict) and isinstance(
             adapter.get("name"), str) and isinstance(adapter.get("stats"), dict)):
@@ -331,10 +359,13 @@ def load_run(folder: Path | str, controller: Path | str | None = None) -> RunDat
     if host is not None and not isinstance(host, dict):
         raise ReportError(f"{json_path}: 'host' must be an object, got {host!r:.200}")
     if controller is not None and not stamped:
-        raise ReportError(f"{npz_path}: no round-trip stamps to pair with {controller}")
+        raise ReportError(f"{rec_path}: no round-trip stamps to pair with {controller}")
+    slots = _slots(columns, ("lateness_ns", "compute_ns",
+                             *(RECORDED_STAMPS if stamped else ())), n)
+    lateness, compute = slots.pop("lateness_ns"), slots.pop("compute_ns")
     round_trip = pairing = None
     if stamped:
-        stamps = {k: _int_array(arrays, k, lateness.size, npz_path) for k in STAMP_KEYS}
+        stamps = {**slots, "fb_rx_ns": np.zeros(n, dtype=np.int64)}
         if controller is not None:
             stamps["fb_rx_ns"], pairing = pair_with_controller(
                 stamps, compute, load_controller_stamps(controller), str(controller))

@@ -8,16 +8,28 @@ Life cycle, in this order (uvicorn's: one config, one server owning the life cyc
 signal handlers that only set a flag, a fixed shutdown order):
 
 1. **Configure**: the runtime settings come from the command line into a frozen
-   :class:`RuntimeConfig` (machine files have no ``[runtime]`` section); the machine file
-   is loaded and checked, the rate checked against its PWM frequency.  A bad file, key or
-   value is refused here (exit 2), before any adapter is opened.
-2. **Build**: the plant and the CiA 402 drive (:class:`hil.drive.EmulatedDrive`), the
-   kernel warmed by :data:`WARMUP_CYCLES` cycles on the same arrays (then reset), the
-   recording buffers and the :class:`~hil.rt.loop.RealTimeLoop` allocated and touched.
-3. **Open** the adapter, device role, draining (each tick uses the newest setpoint), and
-   print ``ready: URL`` on stdout (the port actually bound for ``udp://HOST:0``).  IPC is
-   set up before any priority change (see ``docs/platform-notes``: a SCHED_FIFO process
-   must not start helpers later).
+   :class:`~hil.runtime.emulator_config.RuntimeConfig` (machine files have no ``[runtime]``
+   section); the machine file
+   is loaded and checked, the rate checked against its PWM frequency, and each axis's
+   sub-steps per PWM period against what a real-time tick allows
+   (:func:`plant.substeps.realtime_limit`).  A bad file, key or value is refused here
+   (exit 2), before any adapter is opened.
+2. **Build**: the plant's kernels compiled (or loaded from numba's cache) with SIGTERM and
+   SIGINT left to end the process at once (a cold compile takes seconds inside numba,
+   where a Python handler would not run); then the plant and the CiA 402 drive
+   (:class:`hil.drive.EmulatedDrive`), the kernel warmed by :data:`WARMUP_CYCLES` cycles on
+   the same arrays (then reset; a signal ends the warm-up at the next cycle and the
+   daemon exits before opening anything), the recording's ring
+   (:class:`~hil.runtime.recording.Recorder`) and the
+   :class:`~hil.runtime.streaming_loop.StreamingLoop` allocated and touched.
+3. **Open** the run folder (:class:`~hil.runtime.run_folder.RunFolder`: made if missing,
+   writable, no previous run unless ``--force``, room for the recording of ``--duration``
+   or :data:`MIN_RECORD_S` at the rate, the figure in the message), the adapter (device
+   role, draining: each tick uses the newest setpoint), the recording's streams (schema
+   and metadata on disk, the writer warmed), and print ``ready: URL`` on stdout (the
+   port actually bound for ``udp://HOST:0``).  IPC and the writer thread are set up
+   before any priority change (see ``docs/platform-notes``: a SCHED_FIFO process must
+   not start helpers later).
 4. **Run** under :func:`hil.rt.scheduling.realtime_scheduling` (SCHED_FIFO, pinned, memory
    locked; ``--no-rt`` leaves the process as it is).  Each tick (:meth:`Emulator.step`):
    poll the newest setpoint (timeout 0), the :class:`~hil.runtime.watchdog.Watchdog`,
@@ -31,14 +43,20 @@ signal handlers that only set a flag, a fixed shutdown order):
    own threads (canopen's receive thread on ``can://``) run at SCHED_FIFO one below the
    loop, on its CPU (:func:`helper_threads_realtime`).
 5. **Stop** on ``--duration``, on SIGTERM/SIGINT (the handlers only set the loop's stop
-   flag), at ``--max-duration`` (the recording's capacity), or by the ``stop`` overrun
-   policy; then: the safe state (one cycle with controlword 0, disable voltage: the drive
-   leaves OPERATION ENABLED, torque off; a faulted drive stays in FAULT), real-time
-   scheduling undone, the adapter closed, ``run.npz`` written, ``report.json`` written
-   last (its presence means the run folder is complete).
+   flag), by the ``stop`` overrun policy, or when the recording cannot be written (a
+   full disk: the writer sets the same flag); then: the safe state (one cycle with
+   controlword 0, disable voltage: the drive leaves OPERATION ENABLED, torque off; a
+   faulted drive stays in FAULT), real-time scheduling undone, the adapter closed, the
+   recording's last rows and events (the safe state with its drive cycle, why the run
+   stopped) written and the streams closed, ``report.json`` written last (its presence
+   means the run folder is complete).
 
-The run folder (``--record DIR``) is what ``hil report RUN`` reads: ``run.npz``
-(:mod:`hil.runtime.recording`) and ``report.json`` (:meth:`Emulator.report`).
+The recording streams to disk while the loop runs (:mod:`hil.runtime.record_writer`:
+about a second of it in memory, whatever the duration), so ``--duration`` is bounded by
+the disk, not the memory.  The run folder (``--record DIR``) is what ``hil report RUN``,
+``hil identify`` and ``hil export`` read: ``recording.arrows``, ``events.arrows``
+(:mod:`hil.runtime.record_reader`) and ``report.json``
+(:func:`~hil.runtime.emulator_report.run_report`).
 
 **Several axes**: the machine file may be a manifest (:mod:`plant.machines`,
 ``configs/machines/``).  Then one plant and one CiA 402 drive per axis
@@ -59,17 +77,18 @@ plant stays in real time for a controller with a longer cycle.
 import argparse
 import math
 import os
+import signal
 import sys
 import threading
 import time
-from dataclasses import asdict, dataclass, field
-from pathlib import Path
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass, field, replace
 
 from hil.cia402 import DISABLE_VOLTAGE
 from hil.drive import DriveSet, EmulatedDrive
 from hil.drive.objects import DriveObjects
-from hil.report.host import host_fingerprint
-from hil.rt.loop import OverrunPolicy, RealTimeLoop
+from hil.rt.loop import OverrunPolicy
 from hil.rt.scheduling import last_cpu
 from hil.runtime.common import (
     EXIT_BAD_INPUT,
@@ -77,136 +96,59 @@ from hil.runtime.common import (
     EXIT_OK,
     RuntimeInputError,
     StopFlag,
-    check_cpu,
     check_link,
     eprint,
-    period_ns_of,
     scheduling,
-    scheduling_dict,
     served_url,
-    start_arg,
     start_positions,
     stop_on_signals,
-    write_json,
 )
-from hil.runtime.recording import RUN_NPZ, Recorder, units, write_npz
+from hil.runtime.emulator_config import (
+    RuntimeConfig,
+    Timing,
+    add_arguments,
+    resolve_timing,
+)
+from hil.runtime.emulator_report import final_events, metadata, run_report
+from hil.runtime.record_writer import ESTIMATED_SHARE, RING_S, RecordingWriter
+from hil.runtime.recording import Recorder, row_bytes
+from hil.runtime.run_events import EventCollector
+from hil.runtime.run_folder import REPORT, RESERVE_BYTES, RunFolder, human_bytes
+from hil.runtime.streaming_loop import StreamingLoop
 from hil.runtime.sync import ShiftableClock, SyncLock
 from hil.runtime.watchdog import Watchdog
 from io_adapters import AdapterError, Endpoint, open_endpoint
+from io_adapters.can_url import IN_PROCESS_ONLY, in_process_only
 from io_adapters.messages import axis_records, message_pair
 from plant import Plant
 from plant import layout as L
+from plant.assemble import check_substep_count
 from plant.config import MachineConfig
 from plant.errors import ConfigError
 from plant.machines import MachineSet, load_machine_set, single_axis
+from plant.substeps import realtime_limit, realtime_limit_text
+
+__all__ = ["Emulator", "RuntimeConfig", "Timing", "add_arguments", "helper_threads_realtime",
+           "main", "resolve_timing", "run_from_args", "signals_end_process"]
 
 #: drive cycles run on the plant before the clock starts (compiled code and caches warm)
 WARMUP_CYCLES = 2000
-#: default watchdog: this long without a setpoint (an EtherCAT sync-manager watchdog's
-#: usual 100 ms; shorter trips on the multi-millisecond pauses of a VM)
-DEFAULT_WATCHDOG_S = 0.1
-#: overruns in the first this-many seconds (start-up) never stop the loop
-GRACE_S = 0.1
-DEFAULT_MAX_DURATION_S = 120.0
 #: the longest a fault reaction may still brake in the safe state at shutdown, s of drive time
 SAFE_STATE_MAX_S = 5.0
-DEFAULT_RUN_DIR = "hil-run"
-RUN_JSON = "report.json"
+#: without --duration, the run folder must have room for at least this long a recording, s
+MIN_RECORD_S = 60.0
+#: the interpreter's thread switch interval while the loop runs, s: a loop waking up while
+#: the recording's writer thread holds the GIL waits for it at most this long (Python's
+#: default, 5 ms, would be 40 ticks at 8 kHz)
+GIL_SWITCH_S = 1e-4
 
 
-@dataclass(frozen=True)
-class RuntimeConfig:
-    """The daemon's settings, from the command line (SI unless named).
-
-    Attributes:
-        machine_file: the TOML machine file, or a manifest of several axes.
-        adapter_url: where the controller talks to the drive (``udp://``, ``serial://``).
-        run_dir: the run folder for ``run.npz`` and ``report.json``.
-        duration_s: run this long, or None: until SIGTERM/SIGINT (at most ``max_duration_s``).
-        max_duration_s: the recording's capacity without ``duration_s``, s.
-        rate_hz: loop rate, Hz; None: the plant's PWM frequency.
-        watchdog_cycles: ticks without a setpoint that fault the drive; None: 0.1 s worth.
-        overrun: "count", "skip" or "stop" (:class:`~hil.rt.loop.OverrunPolicy`).
-        stop_after: with "stop", the overrun (after the first 0.1 s) that stops the run.
-        realtime: request SCHED_FIFO, affinity, locked memory (else run as started).
-        cpu: the CPU to pin the loop to; None: the last CPU.
-        priority: SCHED_FIFO priority, 1-99.
-        start_cnc: the table's position at start in the CNC's unit (mm; deg on rotary
-            tables), for every axis, or per axis letter (:func:`~hil.runtime.common.start_arg`).
-    """
-    machine_file: Path
-    adapter_url: str
-    run_dir: Path = Path(DEFAULT_RUN_DIR)
-    duration_s: float | None = None
-    max_duration_s: float = DEFAULT_MAX_DURATION_S
-    rate_hz: float | None = None
-    watchdog_cycles: int | None = None
-    overrun: str = "count"
-    stop_after: int = 10
-    realtime: bool = True
-    cpu: int | None = None
-    priority: int = 80
-    start_cnc: float | dict = 0.0
-
-    def __post_init__(self):
-        positive = {"--duration (s)": self.duration_s, "--max-duration (s)": self.max_duration_s,
-                    "--rate (Hz)": self.rate_hz}
-        for option, value in positive.items():
-            if value is not None and not 0.0 < value < math.inf:
-                raise RuntimeInputError(f"{option} must be > 0 and finite, got {value}")
-        if self.watchdog_cycles is not None and self.watchdog_cycles < 1:
-            raise RuntimeInputError(f"--watchdog-cycles must be >= 1 cycle, got "
-                                    f"{self.watchdog_cycles}")
-        if not 1 <= self.priority <= 99:
-            raise RuntimeInputError(f"--priority must be 1..99 (SCHED_FIFO), got {self.priority}")
-        try:
-            OverrunPolicy(self.overrun, self.stop_after)
-        except ValueError as e:
-            raise RuntimeInputError(f"--overrun/--stop-after: {e}") from e
-        check_cpu(self.cpu)
-
-    @classmethod
-    def from_args(cls, args: argparse.Namespace) -> "RuntimeConfig":
-        """From the options :func:`add_arguments` declares."""
-        return cls(machine_file=Path(args.config), adapter_url=args.adapter,
-                   run_dir=Path(args.record), duration_s=args.duration,
-                   max_duration_s=args.max_duration, rate_hz=args.rate,
-                   watchdog_cycles=args.watchdog_cycles, overrun=args.overrun,
-                   stop_after=args.stop_after, realtime=not args.no_rt, cpu=args.cpu,
-                   priority=args.priority, start_cnc=args.start)
-
-
-@dataclass(frozen=True)
-class Timing:
-    """The loop's timing, resolved against the machine file."""
-    rate_hz: float
-    period_ns: int
-    cycles_per_tick: int
-    n_ticks: int
-    watchdog_cycles: int
-    grace_ticks: int
-
-
-def resolve_timing(rc: RuntimeConfig, cfg: MachineConfig) -> Timing:
-    """Rate, period and tick counts; refuses a rate that does not divide the PWM frequency."""
-    f_pwm = cfg.motor.pwm_frequency_hz
-    rate = rc.rate_hz or f_pwm
-    cycles = round(f_pwm / rate)
-    if cycles < 1 or abs(cycles * rate - f_pwm) > 1e-9 * f_pwm:
-        raise RuntimeInputError(f"--rate {rate:g} Hz: must be the PWM frequency {f_pwm:g} Hz "
-                                f"({cfg.path} [motor] pwm_frequency_hz) divided by a whole "
-                                f"number")
-    period_ns = period_ns_of(rate)
-    seconds = rc.duration_s if rc.duration_s is not None else rc.max_duration_s
-    return Timing(rate_hz=rate, period_ns=period_ns, cycles_per_tick=cycles,
-                  n_ticks=max(1, round(seconds * 1e9 / period_ns)),
-                  watchdog_cycles=rc.watchdog_cycles or max(1, round(DEFAULT_WATCHDOG_S * rate)),
-                  grace_ticks=round(GRACE_S * rate))
-
-
-def helper_threads_realtime(cpu: int, priority: int) -> dict[str, str]:
-    """Give every thread of this process but the loop's and the main one (an adapter's
-    receive thread: canopen's on ``can://``) SCHED_FIFO ``priority`` on ``cpu``; returns
+def helper_threads_realtime(cpu: int, priority: int,
+                            keep: tuple[threading.Thread | None, ...] = ()) -> dict[str, str]:
+    """Give every thread of this process but the loop's, the main one and those in
+    ``keep`` (the recording's writer, which must stay at normal priority off the loop's
+    CPU) -- an adapter's receive thread: canopen's on ``can://`` -- SCHED_FIFO
+    ``priority`` on ``cpu``; returns
     thread name -> what was done.  At normal priority such a thread, preempted while it
     holds the GIL, stalls the loop waiting behind it for milliseconds (priority
     inversion; measured on ``can://udp_multicast`` at 2 kHz: the emulator's lateness
@@ -215,7 +157,8 @@ def helper_threads_realtime(cpu: int, priority: int) -> dict[str, str]:
     starve the loop."""
     done = {}
     for t in threading.enumerate():
-        if t in (threading.main_thread(), threading.current_thread()) or t.native_id is None:
+        if (t in (threading.main_thread(), threading.current_thread(), *keep)
+                or t.native_id is None):
             continue
         try:
             os.sched_setaffinity(t.native_id, {cpu})
@@ -249,38 +192,89 @@ class Emulator:
         self.machine = m = cfg if isinstance(cfg, MachineSet) else single_axis(cfg)
         self.rc, self.cfg, self.log = rc, m.configs[0], log
         self.timing = t = resolve_timing(rc, self.cfg)  # one PWM period for all (manifest)
+        self.stop = stop or StopFlag()
         self.x0 = start_positions(m, rc.start_cnc)
         self.plants = tuple(Plant(c, table_pos=x) for c, x in zip(m.configs, self.x0))
         self.plant = self.plants[0]
         self._warm_up()
         self.sp, self.fb = message_pair(len(m.axes))
         self.watchdog = Watchdog(t.watchdog_cycles, t.period_ns * 1e-9, self._log)
-        self.recorder = Recorder(t.n_ticks, m.names if m.multi_axis else None)
-        self.loop = RealTimeLoop(t.period_ns, self.step, n_ticks=t.n_ticks,
-                                 policy=OverrunPolicy(rc.overrun, rc.stop_after, t.grace_ticks))
-        self.stop = stop or StopFlag()
+        self.recorder = Recorder(max(2, math.ceil(RING_S * t.rate_hz)),
+                                 tuple(c.machine.kind for c in m.configs),
+                                 m.names if m.multi_axis else None)
+        self.loop = StreamingLoop(t.period_ns, self.step, self.recorder, n_ticks=t.n_ticks,
+                                  policy=OverrunPolicy(rc.overrun, rc.stop_after,
+                                                       t.grace_ticks))
         self.stop.attach(self.loop)
+        self.events = EventCollector(m.names, self.drives, self.watchdog, self.recorder,
+                                     t.period_ns)
         self.endpoint: Endpoint | None = None
         self.sync_lock: SyncLock | None = None
         self.helper_threads: dict[str, str] = {}
         self.url = rc.adapter_url
         self.errors = AdapterErrors()
+        self.setpoints_heard = 0
+        self.folder: RunFolder | None = None
+        self.writer: RecordingWriter | None = None
+        self.recording_failure: str | None = None
 
     def _log(self, message: str) -> None:
         self.log(f"hil run: {message}")
 
     def _warm_up(self) -> None:
-        """Compile and warm the drives' path on the real arrays, then start afresh.
-        ``drives`` cycles every axis (:class:`DriveSet`); ``drive`` is axis 0's."""
+        """Warm the drives' path on the real arrays (the kernel is compiled by the
+        plant's first call), then start afresh; a stop request ends it at the next
+        cycle (``warmup_cycles``: how many ran).  ``drives`` cycles every axis
+        (:class:`DriveSet`); ``drive`` is axis 0's."""
         # the drives check [controller] for the CSP/CSV loops
         self.drives = DriveSet([EmulatedDrive(p) for p in self.plants])
         sp, fb = message_pair(len(self.plants))
-        for _ in range(WARMUP_CYCLES):
+        self.warmup_cycles = 0
+        while self.warmup_cycles < WARMUP_CYCLES and not self.stop.requested:
             self.drives.cycle(sp, fb)
+            self.warmup_cycles += 1
         for p, x in zip(self.plants, self.x0):
             p.reset(x)
         self.drives = DriveSet([EmulatedDrive(p) for p in self.plants])
         self.drive = self.drives[0]
+
+    def open_folder(self) -> RunFolder:
+        """Open and check the run folder (see the module docstring, 3.); raises
+        :class:`~hil.runtime.run_folder.RunFolderError`."""
+        rc, t = self.rc, self.timing
+        folder = RunFolder.open(rc.run_dir, rc.force)
+        seconds = rc.duration_s if rc.duration_s is not None else MIN_RECORD_S
+        per_s = self.bytes_per_s()
+        try:
+            folder.check_space(per_s * seconds + RESERVE_BYTES,
+                               f"{seconds:g} s at {t.rate_hz:g} Hz, {len(self.machine.axes)} "
+                               f"axis(es): {human_bytes(per_s)}/s, and "
+                               f"{human_bytes(RESERVE_BYTES)} held back for its end")
+            folder.hold_reserve()
+        except BaseException:
+            folder.close()
+            raise
+        self._log(f"run folder {rc.run_dir}: {human_bytes(folder.free_bytes())} free, room "
+                  f"for about {folder.free_bytes() / per_s / 3600:.3g} h of recording")
+        self.folder = folder
+        return folder
+
+    def bytes_per_s(self) -> float:
+        """The recording's expected growth on disk, bytes/s (compressed rows)."""
+        return row_bytes(len(self.machine.axes)) * ESTIMATED_SHARE * self.timing.rate_hz
+
+    def open_recording(self) -> None:
+        """Create the recording's streams in the open run folder (schema and metadata on
+        disk, the writer warmed); call after :meth:`open` (the metadata has the URL
+        served)."""
+        self.writer = RecordingWriter(self.folder, self.recorder, self.events,
+                                      metadata(self), self.timing.period_ns,
+                                      self._recording_failed)
+
+    def _recording_failed(self, message: str) -> None:
+        """From the writer thread: stop the loop (flags only); the safe state follows."""
+        self.recording_failure = message
+        self.loop.request_stop()
 
     def open(self, endpoint: Endpoint | None = None) -> str:
         """Open the adapter (device role, draining), or take ``endpoint``; returns the URL
@@ -329,6 +323,7 @@ class Emulator:
                 self.endpoint.send_feedback(fb)
             except AdapterError as e:
                 self._adapter_error("send", e)
+        self.setpoints_heard += heard
         self.recorder.record(k, heard, t_ns, sp, fb, drives)
 
     def _adapter_error(self, kind: str, err: AdapterError) -> None:
@@ -344,7 +339,8 @@ class Emulator:
         one cycle, or as many as a fault reaction still braking needs (at most
         :data:`SAFE_STATE_MAX_S` of drive time, run back to back as the loop has stopped);
         the last feedback sent to a controller still listening; returns the state reached
-        (per axis letter on a machine of several axes)."""
+        (per axis letter on a machine of several axes), with the drive cycle it was
+        reached in."""
         self.sp.controlword = DISABLE_VOLTAGE.value
         for _ in range(max(1, round(SAFE_STATE_MAX_S / self.plant.pwm_period))):
             self.drives.cycle(self.sp, self.fb)
@@ -357,111 +353,105 @@ class Emulator:
                 self._adapter_error("send", e)
         states = {name: {"state": d.sm.state.name, "statusword": f"0x{fb.statusword:04X}",
                          "plant_enable": float(d.plant.inp[L.I_ENABLE]),
-                         "error_code": f"0x{d.fault:04X}"}
+                         "error_code": f"0x{d.fault:04X}", "cycle": d.tick - 1}
                   for name, d, fb in zip(self.machine.names, self.drives.drives,
                                          axis_records(self.fb))}
         return states if self.machine.multi_axis else states[self.machine.names[0]]
 
     def run(self) -> dict:
         """Run the loop, then shut down in the fixed order; returns the report (also written
-        to the run folder).  The adapter must be open."""
+        to the run folder).  The adapter, the run folder and the recording must be open."""
         rc = self.rc
-        rc.run_dir.mkdir(parents=True, exist_ok=True)
         cpu = rc.cpu if rc.cpu is not None else last_cpu()
-        with scheduling(rc.realtime, cpu, rc.priority) as granted:
-            if granted is not None and granted.fifo.granted:
-                self.helper_threads = helper_threads_realtime(cpu, max(1, rc.priority - 1))
-            stats = self.loop.run()
-            safe = self.safe_state()
+        self.writer.start(cpu)
+        switch_interval = sys.getswitchinterval()
+        sys.setswitchinterval(GIL_SWITCH_S)
+        try:
+            with scheduling(rc.realtime, cpu, rc.priority) as granted:
+                if granted is not None and granted.fifo.granted:
+                    self.helper_threads = helper_threads_realtime(
+                        cpu, max(1, rc.priority - 1), keep=(self.writer.thread,))
+                stats = self.loop.run()
+                safe = self.safe_state()
+        finally:
+            sys.setswitchinterval(switch_interval)
         self.endpoint.close()
-        columns = self.recorder.columns(stats.lateness_ns, stats.compute_ns)
-        write_npz(rc.run_dir / RUN_NPZ, columns)
-        status = EXIT_FAILED if stats.stopped_by == "overruns" else EXIT_OK
-        report = self.report(stats, granted, safe, columns, status)
-        write_json(rc.run_dir / RUN_JSON, report)
+        self.writer.stop(final_events(self, stats, safe))
+        lateness, compute = self.writer.loop_percentiles()
+        stats = replace(stats, lateness_us=lateness, compute_us=compute)
+        failed = stats.stopped_by == "overruns" or self.writer.failed is not None
+        report = run_report(self, stats, granted, safe, EXIT_FAILED if failed else EXIT_OK)
+        try:
+            self.folder.write_json(REPORT, report)
+        except OSError as e:
+            self._log(f"cannot write {self.folder.path / REPORT}: {e.strerror or e}")
+            report["exit_status"] = EXIT_FAILED
+        finally:
+            self.folder.close()
         return report
 
-    def report(self, stats, granted, safe: dict, columns: dict, status: int) -> dict:
-        """``report.json``: the keys ``hil report`` reads (loop, scheduling, adapter, host)
-        and the daemon's own."""
-        rc, t = self.rc, self.timing
-        heard = columns["sp_new"] == 1
-        return {
-            "command": "hil run", "machine_file": str(rc.machine_file),
-            "machine": self.machine.name, "exit_status": status,
-            "axes": [{"name": a.name, "machine_file": a.config.path,
-                      "machine": a.config.machine.name} for a in self.machine.axes],
-            "runtime": {**{k: str(v) if isinstance(v, Path) else v
-                           for k, v in asdict(rc).items()},
-                        **asdict(t), "cpu_used": rc.cpu if rc.cpu is not None else last_cpu(),
-                        "pwm_frequency_hz": self.cfg.motor.pwm_frequency_hz},
-            "loop": stats.as_dict(), "scheduling": scheduling_dict(granted),
-            "adapter": {"name": self.url, "stats": asdict(self.endpoint.stats)},
-            "adapter_errors": asdict(self.errors),
-            "sync_lock": None if self.sync_lock is None else self.sync_lock.as_dict(),
-            "helper_threads": self.helper_threads,
-            "setpoints": {"ticks_with_new_setpoint": int(heard.sum()),
-                          "last_seq": int(self.sp.seq)},
-            "watchdog": self.watchdog.as_dict(), "safe_state": safe,
-            "faults": {name: d.faults.as_dict()
-                       for name, d in zip(self.machine.names, self.drives.drives)},
-            "recording": {"file": RUN_NPZ, "slots": len(stats.lateness_ns),
-                          "ticks": stats.ticks,
-                          "columns": units(self.machine.names if self.machine.multi_axis
-                                           else None)},
-            "host": host_fingerprint(),
-        }
 
-
-def add_arguments(p: argparse.ArgumentParser) -> None:
-    """The options of ``hil run``."""
-    p.add_argument("config", help="machine file (TOML), or a manifest of several axes "
-                   "(configs/machines/)")
-    p.add_argument("--adapter", required=True, metavar="URL",
-                   help="udp://HOST:PORT (port 0: any free one, printed) or serial://PATH")
-    p.add_argument("--duration", type=float, metavar="S",
-                   help="run S seconds (default: until SIGTERM/SIGINT)")
-    p.add_argument("--max-duration", type=float, default=DEFAULT_MAX_DURATION_S, metavar="S",
-                   help="without --duration: stop after S seconds; the recording is held in "
-                        "memory, about 300 bytes per tick (default %(default)s)")
-    p.add_argument("--record", default=DEFAULT_RUN_DIR, metavar="DIR",
-                   help="run folder for run.npz and report.json (default %(default)s)")
-    p.add_argument("--rate", type=float, metavar="HZ",
-                   help="loop rate (default: the plant's PWM frequency; must divide it)")
-    p.add_argument("--watchdog-cycles", type=int, metavar="N",
-                   help="ticks without a setpoint that fault the drive (default: 0.1 s)")
-    p.add_argument("--overrun", choices=("count", "skip", "stop"), default="count",
-                   help="what a late tick does (default %(default)s)")
-    p.add_argument("--stop-after", type=int, default=10, metavar="N",
-                   help="with --overrun stop: stop at the Nth overrun (default %(default)s)")
-    p.add_argument("--no-rt", action="store_true",
-                   help="no SCHED_FIFO, pinning or memory locking")
-    p.add_argument("--cpu", type=int, help="CPU to run the loop on (default: the last)")
-    p.add_argument("--priority", type=int, default=80, help="SCHED_FIFO priority (default 80)")
-    p.add_argument("--start", type=start_arg, default=0.0,
-                   help="table position at start, mm (deg on rotary tables), or per axis: "
-                        "X=10,Y=-5")
+@contextmanager
+def signals_end_process() -> Iterator[None]:
+    """SIGTERM and SIGINT end the process at once for the ``with`` block (the default
+    action, taken by the kernel): a Python handler would wait for numba's compiler to
+    return, seconds on a cold cache.  The previous handlers come back after it."""
+    previous = {s: signal.signal(s, signal.SIG_DFL) for s in (signal.SIGTERM, signal.SIGINT)}
+    try:
+        yield
+    finally:
+        for s, h in previous.items():
+            signal.signal(s, h)
 
 
 def run_from_args(args: argparse.Namespace) -> int:
     """``hil run``: configure, build, open, run; returns the exit status."""
+    try:
+        rc = RuntimeConfig.from_args(args)
+        if in_process_only(rc.adapter_url):
+            raise RuntimeInputError(f"--adapter {rc.adapter_url}: {IN_PROCESS_ONLY}")
+        machine = load_machine_set(rc.machine_file)
+        for cfg in machine.configs:
+            check_substep_count(cfg, realtime_limit(cfg.motor.pwm_frequency_hz),
+                                realtime_limit_text(cfg))
+        eprint("hil run: loading the plant's compiled kernels (a cold cache compiles them, "
+               "about 10 s; SIGTERM/SIGINT end the process meanwhile)")
+        with signals_end_process():
+            Plant(machine.configs[0])  # numba compiles here (or loads its cache)
+    except (ConfigError, RuntimeInputError) as e:
+        eprint(f"hil run: {e}")
+        return EXIT_BAD_INPUT
     stop = StopFlag()
     with stop_on_signals(stop.request):
         try:
-            rc = RuntimeConfig.from_args(args)
-            emulator = Emulator(rc, load_machine_set(rc.machine_file), stop)
+            emulator = Emulator(rc, machine, stop)
+            if stop.requested:
+                eprint("hil run: stopped by a signal while starting; nothing written")
+                return EXIT_OK
+            emulator.open_folder()
+        except (ConfigError, RuntimeInputError) as e:
+            eprint(f"hil run: {e}")
+            return EXIT_BAD_INPUT
+        try:
             url = emulator.open()
-        except (ConfigError, RuntimeInputError, AdapterError) as e:
+            emulator.open_recording()
+        except (AdapterError, OSError) as e:
+            if emulator.endpoint is not None:
+                emulator.endpoint.close()
+            emulator.folder.close()
             eprint(f"hil run: {e}")
             return EXIT_BAD_INPUT
         print(f"ready: {url}", flush=True)
         report = emulator.run()
     loop, lat = report["loop"], report["loop"]["lateness_us"]
-    print(f"hil run: {loop['ticks']} ticks at {emulator.timing.rate_hz:g} Hz, stopped by "
-          f"{loop['stopped_by']}; lateness p50 {lat['p50']:.1f} p99 {lat['p99']:.1f} p99.9 "
+    print(f"hil run: {loop['ticks']} ticks at {emulator.timing.rate_hz:g} Hz, stopped: "
+          f"{report['stopped']}; lateness p50 {lat['p50']:.1f} p99 {lat['p99']:.1f} p99.9 "
           f"{lat['p999']:.1f} max {lat['max']:.1f} µs; overruns {loop['overruns']}; "
           f"watchdog events {report['watchdog']['events_total']}; run folder {rc.run_dir}",
           flush=True)
+    if emulator.recording_failure is not None:
+        eprint(f"hil run: {emulator.recording_failure}; the axes were brought to their safe "
+               "state")
     return report["exit_status"]
 
 

@@ -1,41 +1,49 @@
-"""The emulator's recording: every tick in preallocated arrays, written once as ``run.npz``.
+"""The emulator's recording: one row per tick in a preallocated ring, drained to disk.
 
-Why ``.npz`` and not the servo-trace CSV: the emulator records at the PWM rate (8000 rows
-a second on the Arrow 500 X) with raw CiA 402 words and integer nanosecond stamps; text
-would be large, slow to write at shutdown and lossy for 64-bit stamps.  ``.npz`` keeps
-every dtype exactly and is what ``hil report RUN`` (:mod:`hil.report.latency`) reads.  The
-controller's servo trace (position-cycle rows, CNC units) is ``hil controller``'s
-``trace.csv``.
+The loop must neither allocate nor block, and a run may last a day, so nothing here grows
+with the run: :class:`Recorder` holds :attr:`Recorder.slots` rows (about one second, see
+:data:`hil.runtime.record_writer.RING_S`) in arrays allocated and touched before the clock
+starts.  The tick writes its row (:meth:`Recorder.record`, from the emulator's step; then
+:meth:`Recorder.end_tick` with the loop's own measurements, from
+:class:`~hil.runtime.streaming_loop.StreamingLoop`), and the writer thread
+(:mod:`hil.runtime.record_writer`) takes the committed rows out
+(:meth:`Recorder.pending`, :meth:`Recorder.columns`, :meth:`Recorder.release`).  A row the
+writer has not taken yet is never overwritten: when the ring is full the tick is not
+recorded but counted (:attr:`Recorder.lost`), and the loop keeps its period.
 
-One slot per deadline the loop covered (slot k = tick k; with the ``skip`` overrun policy
-a dropped tick's slot holds NaN, or 0 for integers), so ``lateness_ns``/``compute_ns``
-(``LoopStats``) line up with every column.  Columns (units in :data:`UNITS`):
+One row per tick that ran, tick k carrying ``tick = k`` (a deadline the ``skip`` overrun
+policy dropped has no row).  Columns (:data:`COLUMNS`: dtype, unit, meaning):
 
-* ``lateness_ns``, ``compute_ns`` -- the loop's own measurements;
+* ``tick``, ``lateness_ns``, ``compute_ns``: the loop's deadline index and measurements;
 * the round-trip stamps of :mod:`hil.report.latency` -- ``tick_start_ns``, ``sp_t_ns``,
-  ``sp_rx_ns``, ``fb_t_ns``, ``fb_rx_ns`` -- only on ticks that used a newly received
-  setpoint, 0 elsewhere; ``fb_rx_ns`` is always 0 (the controller's receive stamps are
-  in its own ``controller.npz``: ``hil report RUN --controller DIR`` pairs them in);
+  ``sp_rx_ns``, ``fb_t_ns`` -- only on ticks that used a newly received setpoint, 0
+  elsewhere (the controller's receive stamp is in its own ``controller.npz``: ``hil
+  report RUN --controller DIR`` pairs it in);
 * ``sp_new`` (1 on a tick that received a setpoint) and the setpoint the drive applied:
   ``sp_seq``, ``sp_controlword``, ``sp_mode``, ``sp_iq_ref_a``, ``sp_id_ref_a``,
   ``sp_ud_v``, ``sp_uq_v``, ``sp_target_position_counts``, ``sp_target_velocity_counts_s``,
   ``sp_velocity_offset_counts_s``;
-* the drive: ``fb_statusword``, ``fb_fault``, ``drive_state`` (:class:`hil.cia402.State`),
-  ``drive_enable`` (the plant's power stage, 0 = torque off);
-* the plant after the tick: ``plant_<name>`` for every name of :data:`plant.OUTPUTS`.
+* the drive: ``fb_statusword``, ``fb_fault`` (603Fh), ``drive_state``
+  (:class:`hil.cia402.State`), ``drive_enable`` (the plant's power stage, 0 = torque off);
+* the plant after the tick: ``plant_<name>`` for every name of :data:`plant.OUTPUTS`
+  (float64, but currents, voltages, forces and torques in float32: see
+  :data:`_PLANT_FLOAT32`).
 
 On a machine of several axes (:class:`hil.drive.DriveSet`) the loop's columns, the stamps,
 ``sp_new`` and ``sp_seq`` are common, and every other column is there once per axis with
 the axis letter in front: ``X_sp_iq_ref_a``, ``Y_plant_table_pos``, ``Y_drive_state``
-(:func:`units`).  A single-axis recording keeps the names above.
+(:func:`column_specs`).  A single-axis recording keeps the names above.  Each column's
+unit is its axis's: ``plant_table_pos`` is in m on a screw or linear axis, in rad on a
+rotary table.
 
-Memory: about 300 bytes per tick and axis, touched when allocated (no page faults in the
-loop).
+Each tick a drive's fault log grows (:class:`hil.drive.faults.FaultLog`) is noted in
+:attr:`Recorder.fault_marks`, so the events in the recording carry the tick they
+happened in (:mod:`hil.runtime.run_events`).
 """
 
-import os
+from collections import deque
+from dataclasses import dataclass
 from operator import attrgetter
-from pathlib import Path
 
 import numpy as np
 
@@ -43,96 +51,230 @@ from hil.drive import DriveSet, EmulatedDrive
 from io_adapters.messages import axis_records
 from plant import OUTPUTS
 from plant import layout as L
+from plant.sections import KINDS
+
+
+@dataclass(frozen=True)
+class ColumnSpec:
+    """One column of the recording.
+
+    Attributes:
+        name: its name in the file.
+        dtype: numpy dtype on disk.
+        unit: its unit ("1" for dimensionless, a CiA object for words).
+        doc: what it is (the channel comment of an MDF4 export).
+    """
+    name: str
+    dtype: str
+    unit: str
+    doc: str
+
 
 SP_FLOATS = ("iq_ref_a", "id_ref_a", "ud_v", "uq_v", "target_position_counts",
              "target_velocity_counts_s", "velocity_offset_counts_s")
-INTS = ("sp_new", "sp_seq", "sp_controlword", "sp_mode", "fb_statusword", "fb_fault",
-        "drive_state", "drive_enable")
-STAMPS = ("tick_start_ns", "sp_t_ns", "sp_rx_ns", "fb_t_ns", "fb_rx_ns")
-_PLANT_UNITS = {"status": "1", "time_s": "s", "motor_pos": "rad (m on linear motors)",
-                "motor_vel": "rad/s (m/s)", "table_pos": "m (rad on rotary tables)",
-                "table_vel": "m/s (rad/s)", "encoder_counts": "counts",
-                "scale_counts": "counts", "id_a": "A", "iq_a": "A", "id_meas_a": "A",
-                "iq_meas_a": "A", "torque": "N*m (N on linear motors)", "ud_v": "V",
-                "uq_v": "V", "nut_force_n": "N", "friction": "N (N*m on rotary tables)",
-                "limit_neg": "1", "limit_pos": "1", "end_stop_force_n": "N"}
-#: column -> unit
-UNITS = {"lateness_ns": "ns", "compute_ns": "ns", **{s: "ns" for s in STAMPS},
-         "sp_new": "1", "sp_seq": "1", "sp_controlword": "6040h", "sp_mode": "6060h",
-         "sp_iq_ref_a": "A", "sp_id_ref_a": "A", "sp_ud_v": "V", "sp_uq_v": "V",
-         "sp_target_position_counts": "counts", "sp_target_velocity_counts_s": "counts/s",
-         "sp_velocity_offset_counts_s": "counts/s", "fb_statusword": "6041h",
-         "fb_fault": "plant STATUS_* or 8130h", "drive_state": "hil.cia402.State",
-         "drive_enable": "1", **{f"plant_{n}": _PLANT_UNITS[n] for n in OUTPUTS}}
-RUN_NPZ = "run.npz"
-#: columns a multi-axis recording has once, not per axis
-COMMON = ("lateness_ns", "compute_ns", *STAMPS, "sp_new", "sp_seq")
+#: the loop's columns, written by :meth:`Recorder.end_tick`
+LOOP = ("tick", "lateness_ns", "compute_ns")
+STAMPS = ("tick_start_ns", "sp_t_ns", "sp_rx_ns", "fb_t_ns")
+#: per-axis integer columns
+AXIS_INTS = ("sp_controlword", "sp_mode", "fb_statusword", "fb_fault", "drive_state",
+             "drive_enable")
+#: a plant output's unit by the axis's kind (:data:`plant.sections.KINDS` order: screw,
+#: linear, rotary), or one unit for all, and its meaning
+_PLANT = {"status": ("1", "kernel status of the last call (plant.layout STATUS_*)"),
+          "time_s": ("s", "plant time at the end of the tick"),
+          "motor_pos": (("rad", "m", "rad"), "motor angle (linear motor: position)"),
+          "motor_vel": (("rad/s", "m/s", "rad/s"), "motor speed"),
+          "table_pos": (("m", "m", "rad"), "table position (true)"),
+          "table_vel": (("m/s", "m/s", "rad/s"), "table velocity (true)"),
+          "encoder_counts": ("counts", "motor encoder as measured"),
+          "scale_counts": ("counts", "linear scale as measured (0 without a scale)"),
+          "id_a": ("A", "d current (true)"), "iq_a": ("A", "q current (true)"),
+          "id_meas_a": ("A", "d current as measured"),
+          "iq_meas_a": ("A", "q current as measured"),
+          "torque": (("N*m", "N", "N*m"), "motor torque (linear motor: force)"),
+          "ud_v": ("V", "d voltage applied"), "uq_v": ("V", "q voltage applied"),
+          "nut_force_n": ("N", "axial force in the nut"),
+          "friction": (("N", "N", "N*m"), "table friction"),
+          "limit_neg": ("1", "negative limit switch (1: beyond it)"),
+          "limit_pos": ("1", "positive limit switch (1: beyond it)"),
+          "end_stop_force_n": ("N", "end-stop contact force, + toward +x"),
+          "home_switch": ("1", "home switch (1: on the cam)"),
+          "index_marks": ("1", "encoder index marks below its position (a whole number)")}
+#: plant outputs kept as float32: currents, voltages, forces and torques, whose 24-bit
+#: mantissa (a relative 6e-8) is far below their physical resolution (a current ADC's step
+#: is 1e-3 of full scale), which saves a quarter of the file.  Positions, velocities,
+#: counts and time stay float64: a 22-bit encoder's count at 100 rad is below float32's
+#: step there.
+_PLANT_FLOAT32 = frozenset({"id_a", "iq_a", "id_meas_a", "iq_meas_a", "torque", "ud_v", "uq_v",
+                            "nut_force_n", "friction", "end_stop_force_n"})
+#: common columns, in file order
+_COMMON = [
+    ColumnSpec("tick", "int64", "1", "deadline index of the tick (t = tick * period)"),
+    ColumnSpec("lateness_ns", "int64", "ns", "wake-up time - deadline"),
+    ColumnSpec("compute_ns", "int64", "ns", "end of the step - wake-up time"),
+    ColumnSpec("tick_start_ns", "int64", "ns", "drive clock at the start of a tick that "
+               "used a new setpoint (0: none)"),
+    ColumnSpec("sp_t_ns", "int64", "ns", "controller clock when that setpoint was sent"),
+    ColumnSpec("sp_rx_ns", "int64", "ns", "drive clock when that setpoint arrived"),
+    ColumnSpec("fb_t_ns", "int64", "ns", "drive clock when the tick's feedback was sent"),
+    ColumnSpec("sp_new", "uint8", "1", "1 on a tick that received a new setpoint"),
+    ColumnSpec("sp_seq", "uint32", "1", "sequence number of the setpoint applied"),
+]
+#: per-axis columns (without the axis prefix), in file order
+_AXIS = [
+    ColumnSpec("sp_controlword", "uint16", "-", "controlword 6040h applied"),
+    ColumnSpec("sp_mode", "int8", "-", "mode of operation 6060h applied (8 CSP, 9 CSV, "
+               "10 CST, -1 voltage)"),
+    ColumnSpec("fb_statusword", "uint16", "-", "statusword 6041h answered"),
+    ColumnSpec("fb_fault", "uint16", "-", "error code 603Fh answered (0: no fault)"),
+    ColumnSpec("drive_state", "uint8", "-", "CiA 402 state after the tick "
+               "(hil.cia402.State)"),
+    ColumnSpec("drive_enable", "uint8", "1", "power stage on (0: torque off)"),
+    ColumnSpec("sp_iq_ref_a", "float64", "A", "q-current setpoint (CST; feed-forward in "
+               "CSP/CSV)"),
+    ColumnSpec("sp_id_ref_a", "float64", "A", "d-current setpoint"),
+    ColumnSpec("sp_ud_v", "float64", "V", "d-voltage setpoint (voltage mode)"),
+    ColumnSpec("sp_uq_v", "float64", "V", "q-voltage setpoint (voltage mode)"),
+    ColumnSpec("sp_target_position_counts", "float64", "counts", "CSP target 607Ah"),
+    ColumnSpec("sp_target_velocity_counts_s", "float64", "counts/s", "CSV target 60FFh"),
+    ColumnSpec("sp_velocity_offset_counts_s", "float64", "counts/s",
+               "speed feed-forward 60B1h"),
+    *(ColumnSpec(f"plant_{n}", "float32" if n in _PLANT_FLOAT32 else "float64",
+                 *_PLANT.get(n, ("", "plant output")))
+      for n in OUTPUTS),
+]
+_KIND_INDEX = {kind: i for i, kind in enumerate(KINDS)}
+#: the plant outputs the recording documents (a new output without an entry in _PLANT is
+#: recorded with an empty unit; tests/test_recording.py asks for one)
+PLANT_DOCUMENTED = tuple(_PLANT)
 
 
-def units(axis_names: tuple[str, ...] | None = None) -> dict:
-    """Column -> unit: :data:`UNITS` for one axis (``axis_names`` None), else the common
-    columns and each per-axis column per axis letter."""
-    if axis_names is None:
-        return dict(UNITS)
-    out = {c: UNITS[c] for c in COMMON}
-    for a in axis_names:
-        out.update({f"{a}_{c}": u for c, u in UNITS.items() if c not in COMMON})
-    return out
+def column_specs(kinds: tuple[str, ...],
+                 axis_names: tuple[str, ...] | None = None) -> list[ColumnSpec]:
+    """The recording's columns in file order for axes of ``kinds`` (``[machine] kind``
+    each, which sets the plant outputs' units): one axis (``axis_names`` None: no
+    prefix), or the common columns and each per-axis column per axis letter."""
+    prefixes = ("",) if axis_names is None else tuple(f"{a}_" for a in axis_names)
+    if len(prefixes) != len(kinds):
+        raise ValueError(f"{len(kinds)} kinds for {len(prefixes)} axes")
+    return [*_COMMON, *(ColumnSpec(prefix + c.name, c.dtype, _unit(c.unit, kind), c.doc)
+                        for prefix, kind in zip(prefixes, kinds) for c in _AXIS)]
+
+
+def _unit(unit: str | tuple[str, ...], kind: str) -> str:
+    return unit if isinstance(unit, str) else unit[_KIND_INDEX[kind]]
+
+
+def units(kinds: tuple[str, ...], axis_names: tuple[str, ...] | None = None) -> dict[str, str]:
+    """Column -> unit (see :func:`column_specs`)."""
+    return {c.name: c.unit for c in column_specs(kinds, axis_names)}
+
+
+def row_bytes(n_axes: int) -> int:
+    """Bytes of one row of ``n_axes`` axes, uncompressed."""
+    return (sum(np.dtype(c.dtype).itemsize for c in _COMMON)
+            + n_axes * sum(np.dtype(c.dtype).itemsize for c in _AXIS))
 
 
 class Recorder:
-    """Preallocated per-tick buffers for ``capacity`` deadlines, of one axis
-    (``axis_names`` None: the single-axis column names) or of each axis named."""
+    """The ring of rows (see the module docstring) for axes of ``kinds`` (``[machine]
+    kind`` each): one axis (``axis_names`` None: the single-axis column names) or each
+    axis named.
 
-    def __init__(self, capacity: int, axis_names: tuple[str, ...] | None = None):
-        n_sp = len(SP_FLOATS)
-        n_axes = 1 if axis_names is None else len(axis_names)
-        self.capacity = capacity
+    Attributes:
+        slots: rows the ring holds.
+        committed: rows finished so far (by :meth:`end_tick`).
+        drained: rows the writer has taken (:meth:`release`).
+        lost: ticks not recorded because the ring was full.
+        last_lost_tick: the last of them (-1: none).
+        fault_marks: (tick, axis, fault events logged so far) each tick a drive's fault
+            log grew; the writer takes them out (a deque: one thread appends, the other
+            pops).
+    """
+
+    def __init__(self, slots: int, kinds: tuple[str, ...],
+                 axis_names: tuple[str, ...] | None = None):
+        if slots < 2:
+            raise ValueError(f"the ring needs at least 2 slots, got {slots}")
+        n_axes = len(kinds)
+        self.slots = slots
         self.axis_names = axis_names
-        self.floats = np.full((capacity, n_axes, n_sp + L.O_COUNT), np.nan)
-        self.ints = np.zeros((capacity, n_axes, len(INTS)), dtype=np.int64)
-        self.stamps = np.zeros((capacity, len(STAMPS)), dtype=np.int64)
+        self.specs = column_specs(kinds, axis_names)
+        # column-major: a run of rows of one column is contiguous, so the writer hands
+        # slices to the file without copying them
+        # np.full writes every page now: no page faults in the loop
+        self.common = np.full((len(_COMMON), slots), 0, dtype=np.int64)
+        self.ints = np.full((n_axes, len(AXIS_INTS), slots), 0, dtype=np.int64)
+        self.floats = np.full((n_axes, len(SP_FLOATS) + L.O_COUNT, slots), 0.0)
+        self.committed = 0
+        self.drained = 0
+        self.lost = 0
+        self.last_lost_tick = -1
+        self.fault_marks: deque[tuple[int, int, int]] = deque()
+        self._faults_seen = [0] * n_axes
+        self._skip = False
         self._sp_floats = attrgetter(*SP_FLOATS)
-        self._sp = slice(0, n_sp)
-        self._out = slice(n_sp, n_sp + L.O_COUNT)
+        self._n_sp = len(SP_FLOATS)
 
     def record(self, k: int, heard: bool, tick_start_ns: int, sp, fb,
                drives: EmulatedDrive | DriveSet) -> None:
-        """Slot ``k``: the setpoint applied, the drives' answer and the plants' outputs
-        (``sp``/``fb`` plain records or groups, ``drives`` one drive or a DriveSet)."""
-        rows, ints = self.floats[k], self.ints[k]
+        """Tick ``k``'s row: the setpoint applied, the drives' answer and the plants'
+        outputs (``sp``/``fb`` plain records or groups, ``drives`` one drive or a
+        DriveSet).  Not recorded (counted by :meth:`end_tick`) when the ring is full."""
         each = drives.drives if isinstance(drives, DriveSet) else (drives,)
+        for i, drive in enumerate(each):
+            n = drive.faults.n_events
+            if n != self._faults_seen[i]:
+                self._faults_seen[i] = n
+                self.fault_marks.append((k, i, n))
+        self._skip = self.committed - self.drained >= self.slots
+        if self._skip:
+            return
+        j, n_sp = self.committed % self.slots, self._n_sp
+        floats, ints = self.floats, self.ints
         for i, (s, f, drive) in enumerate(zip(axis_records(sp), axis_records(fb), each)):
-            row = rows[i]
-            row[self._sp] = self._sp_floats(s)
-            row[self._out] = drive.plant.out
-            ints[i] = (heard, sp.seq, s.controlword, s.mode, f.statusword, f.fault,
-                       drive.sm.state, drive.plant.inp[L.I_ENABLE])
-        if heard:
-            self.stamps[k] = (tick_start_ns, sp.t_ns, sp.rx_ns, fb.t_ns, 0)
+            floats[i, :n_sp, j] = self._sp_floats(s)
+            floats[i, n_sp:, j] = drive.plant.out
+            ints[i, :, j] = (s.controlword, s.mode, f.statusword, f.fault, drive.sm.state,
+                             drive.plant.inp[L.I_ENABLE])
+        self.common[3:, j] = ((tick_start_ns, sp.t_ns, sp.rx_ns, fb.t_ns, 1, sp.seq) if heard
+                              else (0, 0, 0, 0, 0, sp.seq))
 
-    def columns(self, lateness_ns: np.ndarray, compute_ns: np.ndarray) -> dict:
-        """Named 1-D columns over the slots the loop covered (``len(lateness_ns)``)."""
-        n = len(lateness_ns)
-        cols = {"lateness_ns": np.array(lateness_ns), "compute_ns": np.array(compute_ns)}
-        for i, name in enumerate(STAMPS):
-            cols[name] = self.stamps[:n, i].copy()
-        for a, prefix in enumerate(("",) if self.axis_names is None
-                                   else tuple(f"{x}_" for x in self.axis_names)):
-            for i, name in enumerate(INTS):
-                key = name if name in COMMON else prefix + name
-                if key not in cols:
-                    cols[key] = self.ints[:n, a, i].copy()
-            for i, name in enumerate(SP_FLOATS):
-                cols[f"{prefix}sp_{name}"] = self.floats[:n, a, i].copy()
-            for name, index in OUTPUTS.items():
-                cols[f"{prefix}plant_{name}"] = self.floats[:n, a, len(SP_FLOATS) + index].copy()
-        return cols
+    def end_tick(self, k: int, lateness_ns: int, compute_ns: int) -> None:
+        """Finish tick ``k``'s row with the loop's measurements (the loop calls this after
+        the step)."""
+        if self._skip:
+            self.lost += 1
+            self.last_lost_tick = k
+            return
+        self.common[:3, self.committed % self.slots] = (k, lateness_ns, compute_ns)
+        self.committed += 1
 
+    def pending(self) -> tuple[int, int]:
+        """(first, end) of the rows committed and not yet taken, as row numbers."""
+        return self.drained, self.committed
 
-def write_npz(path: Path, columns: dict) -> Path:
-    """Write the columns atomically: ``path`` is complete or absent."""
-    tmp = path.with_name(path.name + ".tmp.npz")
-    np.savez(tmp, **columns)
-    os.replace(tmp, path)
-    return path
+    def columns(self, start: int, stop: int) -> dict[str, np.ndarray]:
+        """Name -> rows ``start`` .. ``stop`` - 1 of each column, in the file's dtypes;
+        the rows must not wrap around the ring (``stop - start <= slots - start %
+        slots``).  Views into the ring where the dtype is int64 or float64: valid until
+        :meth:`release`."""
+        a = start % self.slots
+        b = a + stop - start
+        if b > self.slots:
+            raise ValueError(f"rows {start}..{stop} wrap around the ring of {self.slots}")
+        out = {}
+        for spec, values in zip(_COMMON, self.common[:, a:b]):
+            out[spec.name] = values.astype(spec.dtype, copy=False)
+        prefixes = ("",) if self.axis_names is None else tuple(f"{x}_" for x in self.axis_names)
+        n_ints = len(AXIS_INTS)
+        for i, prefix in enumerate(prefixes):
+            for spec, values in zip(_AXIS[:n_ints], self.ints[i, :, a:b]):
+                out[prefix + spec.name] = values.astype(spec.dtype, copy=False)
+            for spec, values in zip(_AXIS[n_ints:], self.floats[i, :, a:b]):
+                out[prefix + spec.name] = values.astype(spec.dtype, copy=False)
+        return out
+
+    def release(self, stop: int) -> None:
+        """The writer has taken every row before ``stop``: their slots may be reused."""
+        self.drained = stop

@@ -10,15 +10,17 @@ pause, a lost frame break it), and :func:`settled_rows` which servo-trace rows a
 enough from any break to match the lock-step simulation.
 
 A link whose master produces SYNC (``can://``, CANopen CiA 402: the controller endpoint
-has ``sync_producer``) works the other way round, as a CANopen network does: the drive's
-cycle follows SYNC, so the emulator moves its own ticks (:class:`SyncLock`, on a
-:class:`ShiftableClock`) to a fixed phase after each SYNC, and :func:`align` only sends
-SYNC on the controller's period until the drive answers and has locked.  The drive
-answers SYNC k with the TPDOs of the cycle SYNC k-1 started, so controller tick k reads
-drive cycle k-2: one tick more than lock-step timing (the endpoint's
-``feedback_delay_ticks``; :class:`hil.sim.LockStep` models it with the same option).
-The drive's clock is not on that wire (``drive_clock`` False): :func:`in_step` then
-checks the lag alone.
+has ``sync_producer``) works the other way round, as a CANopen network does: the drive
+keeps its own cycle (the PWM period) and takes the master's setpoint once per SYNC, so the
+emulator moves its ticks (:class:`SyncLock`, on a :class:`ShiftableClock`) to put each
+SYNC :data:`SYNC_PHASE` of a tick before the tick that takes it, as a drive synchronises
+its control cycle to SYNC; and :func:`align` only sends SYNC on the controller's period
+until the drive answers and has locked.  The drive answers SYNC k with the TPDOs of the
+newest tick before it, whose setpoint came with SYNC k-1, so a controller that sends SYNC
+every tick (``hil controller``) reads at tick k the drive's tick k-2: one tick more than
+lock-step timing (the endpoint's ``feedback_delay_ticks``; :class:`hil.sim.LockStep`
+models it with the same option).  The drive's clock is not on that wire (``drive_clock``
+False): :func:`in_step` then checks the lag alone.
 """
 
 import statistics
@@ -55,13 +57,13 @@ DELAYED_SETTLE_WINDOW_S = 0.5
 #: they move the following error by less than 2 µm, so only their own ticks count out.
 GLITCH_TICKS = 2
 U32 = 0xFFFFFFFF
-#: SYNC-locked drive: its tick comes this fraction of a period after SYNC is latched,
-#: and a tick whose SYNC is not latched yet waits up to SYNC_WAIT of a period for it.
-#: The SYNC must be latched before the tick's cycle (early side: the controller's
-#: lateness, the transport's and the receive thread's jitter: SYNC_PHASE + SYNC_WAIT)
-#: and the cycle's feedback written before the next SYNC (late side: the emulator's
-#: lateness plus its compute, ~0.1 ms at 2 kHz: 1 - SYNC_PHASE less that).  At 2 kHz:
-#: 0.32 ms early, about 0.25 ms late.
+#: SYNC-locked drive: the tick that takes a SYNC comes this fraction of a tick after the
+#: SYNC is latched, and that tick, when its SYNC is not latched yet, waits up to SYNC_WAIT
+#: of a tick for it.  The SYNC must be latched before the tick's cycle (early side: the
+#: master's lateness, the transport's and the receive thread's jitter: SYNC_PHASE +
+#: SYNC_WAIT) and the tick before must have written its feedback when the SYNC comes
+#: (late side: the emulator's lateness plus its compute, ~0.1 ms at 2 kHz: 1 - SYNC_PHASE
+#: less that).  At 2 kHz: 0.32 ms early, about 0.25 ms late.
 SYNC_PHASE = 0.3
 SYNC_WAIT = 0.35
 #: SYNCs whose median phase makes one correction of the drive's ticks
@@ -72,8 +74,9 @@ SYNC_DEADBAND = 0.05
 #: (the samples after a pause can mislead; the first correction after SYNC (re)starts
 #: is made in full)
 SYNC_MAX_STEP = 0.1
-#: a SYNC older than this many periods at a tick means SYNC stopped: the lock restarts
-SYNC_LOST_TICKS = 4
+#: a SYNC older than this many SYNC intervals at a tick means SYNC stopped: the lock
+#: restarts
+SYNC_LOST_INTERVALS = 4
 #: ticks the controller sends SYNC on its period before its loop starts (and at least
 #: until ALIGN_SAMPLES answers came): time for the drive to lock, a few corrections
 SYNC_ALIGN_TICKS = 8 * SYNC_LOCK_SAMPLES
@@ -279,30 +282,33 @@ class ShiftableClock:
 
 
 class SyncLock:
-    """The emulator's cycle locked to the master's SYNC (``can://``), as a CiA 402 drive
+    """The emulator's ticks locked to the master's SYNC (``can://``), as a CiA 402 drive
     synchronises its control cycle to SYNC: the loop's ticks are moved, on its
-    :class:`ShiftableClock`, so that each comes :data:`SYNC_PHASE` of a period after a
-    SYNC was latched.  Then every cycle takes the setpoint of one SYNC and its feedback is
-    written before the next, which sends it.  While SYNC comes, a tick whose SYNC is late
-    waits up to :data:`SYNC_WAIT` of a period for it (:attr:`wait_s`, the timeout of the
-    tick's receive) rather than run its cycle on the setpoint before.
+    :class:`ShiftableClock`, so that the tick that takes a SYNC's setpoint comes
+    :data:`SYNC_PHASE` of a tick after the SYNC was latched, whatever the communication
+    cycle (a SYNC every tick, or every few ticks: the drive interpolates in between).
+    The tick before a SYNC then wrote the feedback the SYNC sends.  While locked, the tick
+    due to take the next SYNC (the mean SYNC interval in ticks after the one that took the
+    last) waits up to :data:`SYNC_WAIT` of a tick for it (:attr:`wait_s`, the timeout of
+    that tick's receive) rather than run on the setpoint before, and so does every tick
+    after it until the SYNC comes (or the lock is lost); the ticks before it wait for
+    nothing.  With a SYNC every tick, every tick may wait.
 
     Call :meth:`update` once per tick, after the receive, with the endpoint's
     ``last_sync_ns``.  Each tick that sees a new SYNC measures its phase (its deadline
-    less the SYNC's latch time; one outside -1/2 to 1 period is a pause, not the phase,
-    and is left out); every :data:`SYNC_LOCK_SAMPLES` of them, the ticks move by the
-    median's distance from the target, taken the short way round the period, unless it
+    less the SYNC's latch time; one outside -1/2 to 1 tick is a late tick or a pause, not
+    the phase, and is left out); every :data:`SYNC_LOCK_SAMPLES` of them, the ticks move by
+    the median's distance from the target, taken the short way round the tick, unless it
     is within :data:`SYNC_DEADBAND`, and by :data:`SYNC_MAX_STEP` at most once locked.
-    Both loops run on one clock at one period, so after the first correction (a few ms
-    after SYNC starts) the phase only holds; a SYNC older than :data:`SYNC_LOST_TICKS`
-    periods at a tick starts the lock afresh.
+    Both loops run on one clock, so after the first correction the phase only holds; a
+    SYNC older than :data:`SYNC_LOST_INTERVALS` SYNC intervals at a tick starts the lock
+    afresh.
 
     Attributes:
         moves: corrections made.
         phase_ns: the last median phase measured (None before the first).
-        wait_s: how long this tick's receive may wait for SYNC: :data:`SYNC_WAIT` of a
-            period while SYNC comes (a SYNC seen within :data:`SYNC_LOST_TICKS`
-            periods), else 0.
+        interval_ns: the last interval between two SYNCs (0 before the second).
+        wait_s: how long the next tick's receive may wait for SYNC, s.
     """
 
     def __init__(self, clock: ShiftableClock, period_ns: int):
@@ -317,27 +323,40 @@ class SyncLock:
         self._last_sync_ns = 0
         self.moves = 0
         self.phase_ns: int | None = None
+        self.interval_ns = 0
+        self._mean_ns = 0  # the SYNC interval averaged over about SYNC_LOCK_SAMPLES
+        self._to_next = 0  # ticks from the next one to the one due to take the next SYNC
         self.wait_s = 0.0
         self._wait_s = SYNC_WAIT * period_ns * 1e-9
 
     def update(self, last_sync_ns: int) -> None:
         """This tick's view of the newest SYNC latch time (0: none yet)."""
+        if self._measure(last_sync_ns):  # the SYNC after this one is due so many ticks on
+            self._to_next = max(1, round(self._mean_ns / self.period_ns))
+        self._to_next -= 1
+        self.wait_s = self._wait_s if self._locked and self._to_next <= 0 else 0.0
+
+    def _measure(self, last_sync_ns: int) -> bool:
+        """Take this tick's view of the newest SYNC; True when it is a new one."""
         phase = self.clock.deadline_ns - last_sync_ns
         period = self.period_ns
         if last_sync_ns == self._last_sync_ns:
-            if phase > SYNC_LOST_TICKS * period:
+            if phase > SYNC_LOST_INTERVALS * max(self.interval_ns, period):
                 self._n = 0
-                self.wait_s = 0.0
                 self._locked = False
-            return
+            return False
+        if self._last_sync_ns:
+            self.interval_ns = last_sync_ns - self._last_sync_ns
+            self._mean_ns = round(self.interval_ns if not self._mean_ns else
+                                  self._mean_ns + (self.interval_ns - self._mean_ns)
+                                  / SYNC_LOCK_SAMPLES)
         self._last_sync_ns = last_sync_ns
-        self.wait_s = self._wait_s
         if not -period // 2 < phase < period:
-            return
+            return True
         self._phases[self._n] = phase
         self._n += 1
         if self._n < SYNC_LOCK_SAMPLES:
-            return
+            return True
         self._n = 0
         self.phase_ns = median = sorted(self._phases)[SYNC_LOCK_SAMPLES // 2]
         half = period // 2
@@ -348,9 +367,11 @@ class SyncLock:
         if abs(error) > self.deadband_ns:
             self.clock.shift(-error)
             self.moves += 1
+        return True
 
     def as_dict(self) -> dict:
         """In µs, JSON-ready."""
         return {"moves": self.moves, "target_us": self.target_ns / 1e3,
                 "phase_us": None if self.phase_ns is None else self.phase_ns / 1e3,
+                "sync_interval_us": self.interval_ns / 1e3,
                 "offset_us": self.clock.offset_ns / 1e3}

@@ -3,8 +3,12 @@
 Counted in ticks of the emulator's loop.  A tick *hears* the controller when the adapter
 returned a new, valid setpoint in it: malformed, refused, repeated and stale frames do not
 count, nor does a cycle the drive ran on its own (``can://`` without SYNC, or a SYNC with no
-process data since the one before).  ``silent`` is the number of ticks since the last one
-that heard it; before the first setpoint the controller is absent.
+process data since the one before).  A setpoint may stand for longer than one tick: over
+``can://`` the master's process data come once per communication cycle (1006h, SYNC) and
+the drive runs several ticks on them; such an endpoint says for how long in
+``heard_for_s`` (1.5 cycles), and the ticks within that time after a heard one are not
+silent either.  ``silent`` is the number of ticks since then; before the first setpoint
+the controller is absent.
 
 * The drive answers (the emulator sends feedback) only while ``silent < limit``: nobody is
   listening otherwise, and a serial link would fill up.
@@ -32,6 +36,7 @@ each).
 Nothing here allocates per tick except the event record when something changes.
 """
 
+import math
 from dataclasses import asdict, dataclass
 
 from hil.drive import DriveSet, EmulatedDrive
@@ -100,6 +105,7 @@ class Watchdog:
         self.period_s = period_s
         self.log = log
         self.silent = limit  # absent until the first setpoint
+        self._covered = 0    # ticks after the last heard one that its setpoint stands for
         self.tripped = False
         self.events: list[WatchdogEvent] = []
         self.n_events = 0
@@ -114,15 +120,18 @@ class Watchdog:
                endpoint=None) -> None:
         """Call once per tick before the drives' cycle: ``heard`` a new setpoint (``seq``);
         ``drive`` one drive or every axis's (:class:`~hil.drive.DriveSet`); ``endpoint``
-        the adapter whose link conditions count too (None: none)."""
+        the adapter whose link conditions and ``heard_for_s`` count too (None: none)."""
         drives = drive.drives if isinstance(drive, DriveSet) else (drive,)
         if len(self._conditions) != len(drives):
             self._conditions = [0] * len(drives)
         if heard:
             self.silent = 0
+            self._covered = math.ceil(getattr(endpoint, "heard_for_s", 0.0) / self.period_s) - 1
             if self.tripped:
                 self.tripped = False
                 self._event("recovered", tick, seq)
+        elif self._covered > 0:
+            self._covered -= 1
         elif self.silent < self.limit:
             self.silent += 1
         silent = self.silent >= self.limit

@@ -1,0 +1,173 @@
+"""``hil export RUN --to mdf4|csv``: a run's recording where engineers look at traces.
+
+::
+
+    hil export runs/r1 --to mdf4            # runs/r1/recording.mf4
+    hil export runs/r1 --to csv [--axis X]  # runs/r1/trace.csv (trace_X.csv, ... per axis)
+
+* **MDF4** (ASAM MDF 4.10 through asammdf; what ControlDesk, CANape and asammdf's GUI
+  open): one channel group ``recording`` with every column of the recording, its unit
+  and its meaning as the channel comment, on the master time ``t = tick * period``; a
+  channel group ``events`` (time, axis, source, kind, 603Fh code, drive cycle, reason);
+  the machine file(s) attached, the run's metadata in the file comment.
+* **CSV**: the servo-trace format of ``../shared/docs/trace-format.md`` per axis
+  (:mod:`hil.runtime.record_trace` says which recording column makes which trace
+  column), one row per tick on a uniform time base (a tick without a row -- dropped by
+  the ``skip`` overrun policy, or not recorded -- is a row of NaN), the run's events as
+  ``#`` comments before the header.
+
+Both are written batch by batch as the recording was (bounded memory, whatever its
+length).  An existing output file is refused unless ``--force``; a run folder whose
+recording was cut short (SIGKILL) exports what it holds, with a warning.
+"""
+
+import argparse
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+
+from hil.runtime.common import EXIT_BAD_INPUT, EXIT_OK, eprint
+from hil.runtime.record_reader import Recording, RecordingError
+from hil.runtime.record_trace import AxisTrace, axis_trace
+
+MDF_NAME = "recording.mf4"
+
+
+class ExportError(ValueError):
+    """An export that cannot be made; the message names the file and why."""
+
+
+def _fresh(path: Path, force: bool) -> Path:
+    if path.exists() and not force:
+        raise ExportError(f"{path} exists; give --force to replace it")
+    return path
+
+
+def _event_lines(rec: Recording) -> list[str]:
+    """One comment line per event: time (or 'after the loop'), axis, what and why."""
+    ev = rec.events()
+    lines = []
+    for i in range(ev["tick"].size):
+        when = (f"t = {ev['t_s'][i]:.6f} s (tick {ev['tick'][i]})" if ev["tick"][i] >= 0
+                else "after the loop")
+        code = f" {ev['code'][i]:04X}h" if ev["code"][i] else ""
+        cycle = f" drive cycle {ev['cycle'][i]}" if ev["cycle"][i] >= 0 else ""
+        axis = f" axis {ev['axis'][i]}" if ev["axis"][i] else ""
+        lines.append(f"# event {when}{axis}: {ev['source'][i]} {ev['kind'][i]}{code}"
+                     f"{cycle}: {ev['reason'][i]}")
+    return lines
+
+
+def export_csv(rec: Recording, out: Path, trace: AxisTrace, force: bool = False) -> Path:
+    """``out``: the servo trace of one axis (see the module docstring)."""
+    names = trace.names()
+    with open(_fresh(out, force), "w", encoding="utf-8") as f:
+        for key, value in trace.metadata(rec).items():
+            f.write(f"# {key}: {value}\n")
+        for line in _event_lines(rec):
+            f.write(line.replace("\n", " ") + "\n")
+        f.write(",".join(names) + "\n")
+        next_tick = 0
+        for rows in rec.batches(trace.sources()):
+            columns = _every_tick(trace.convert(rows), rows["tick"], next_tick, trace)
+            np.savetxt(f, np.column_stack([columns[n] for n in names]), fmt="%.17g",
+                       delimiter=",")
+            next_tick = int(rows["tick"][-1]) + 1
+    return out
+
+
+def _every_tick(columns: dict[str, np.ndarray], tick: np.ndarray, first: int,
+                trace: AxisTrace) -> dict[str, np.ndarray]:
+    """``columns`` on every tick from ``first`` to the last of ``tick``: a tick without a
+    row (dropped by the ``skip`` overrun policy, or not recorded) gets NaN, so that the
+    trace keeps its uniform time base."""
+    if tick.size and tick[0] == first and tick[-1] - first + 1 == tick.size:
+        return columns
+    every = np.arange(first, tick[-1] + 1)
+    out = {}
+    for name, values in columns.items():
+        out[name] = np.full(every.size, np.nan)
+        out[name][tick - first] = values
+    out["t_s"] = every * trace.period_s
+    return out
+
+
+def export_mdf4(rec: Recording, out: Path, force: bool = False) -> Path:
+    """``out``: the whole recording and its events as MDF4 (see the module docstring)."""
+    from asammdf import MDF, Signal  # only this export needs asammdf
+
+    period_s = rec.period_ns * 1e-9
+    mdf = MDF(version="4.10")
+    meta = {k: v for k, v in rec.meta.items() if k != "machine_files"}
+    mdf.header.comment = json.dumps(meta)
+    for path, text in rec.meta.get("machine_files", {}).items():
+        mdf.attach(text.encode(), file_name=Path(path).name, comment=f"machine file {path}",
+                   embedded=True)
+    group = None
+    for rows in rec.batches():
+        t = rows["tick"] * period_s
+        if group is None:
+            group = mdf.append([Signal(rows[n], t, unit=rec.units[n], name=n,
+                                       comment=rec.docs[n]) for n in rec.names],
+                               acq_name="recording", comment="hil run, one row per tick")
+        else:
+            mdf.extend(group, [(t, None), *((rows[n], None) for n in rec.names)])
+    ev = rec.events()
+    if ev["tick"].size:
+        end = (rows["tick"][-1] + 1) * period_s if group is not None else 0.0
+        t = np.where(ev["tick"] >= 0, ev["t_s"], end)
+        order = np.argsort(t, kind="stable")  # a channel group's time only goes forward
+        t, ev = t[order], {name: values[order] for name, values in ev.items()}
+
+        def text(name: str, comment: str) -> Signal:
+            return Signal(np.array([s.encode() for s in ev[name]]), t, name=name,
+                          comment=comment, encoding="utf-8")
+
+        mdf.append([text("axis", "axis letter (empty: all)"),
+                    text("source", "who logged it"), text("kind", "what happened"),
+                    Signal(ev["code"].astype(np.uint16), t, name="code",
+                           comment="the drive's error code 603Fh (0: none)"),
+                    Signal(ev["cycle"], t, name="cycle", comment="drive cycle (-1: none)"),
+                    text("reason", "why")],
+                   acq_name="events", comment="events of the run; after the loop: at the end")
+    mdf.save(_fresh(out, force), overwrite=True)
+    mdf.close()
+    return out
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """The options of ``hil export``."""
+    p.add_argument("run", help="run folder of hil run (recording.arrows, events.arrows)")
+    p.add_argument("--to", required=True, choices=("mdf4", "csv"), help="mdf4: the whole "
+                   "recording (ControlDesk, CANape, asammdf); csv: the servo trace per axis")
+    p.add_argument("--axis", help="csv: only this axis (default: every axis)")
+    p.add_argument("--out", metavar="PATH", help=f"mdf4: the file (default RUN/{MDF_NAME}); "
+                   "csv: the folder (default RUN)")
+    p.add_argument("--force", action="store_true", help="replace existing output files")
+
+
+def run_from_args(args: argparse.Namespace) -> int:
+    """``hil export``: returns the exit status."""
+    run = Path(args.run)
+    try:
+        rec = Recording(run)
+        if args.to == "mdf4":
+            outputs = [export_mdf4(rec, Path(args.out or run / MDF_NAME), args.force)]
+        else:
+            names = [args.axis] if args.axis else [a["name"] for a in rec.meta["axes"]]
+            folder = Path(args.out or run)
+            folder.mkdir(parents=True, exist_ok=True)
+            outputs = [export_csv(rec, folder / ("trace.csv" if len(rec.meta["axes"]) == 1
+                                                 else f"trace_{name}.csv"),
+                                  axis_trace(rec, name), args.force) for name in names]
+    except (RecordingError, ExportError, OSError) as e:
+        eprint(f"hil export: {e}")
+        return EXIT_BAD_INPUT
+    if rec.truncated:
+        eprint(f"hil export: {rec.path} was cut short (the run did not end cleanly); "
+               "exported what it holds")
+    for path in outputs:
+        print(f"hil export: {path} ({math.ceil(path.stat().st_size / 1e3)} kB)")
+    return EXIT_OK

@@ -1,0 +1,126 @@
+"""One axis of a recording as a servo trace (``../shared/docs/trace-format.md``): which
+recording columns make which trace column, in the trace's units (mm or deg, mm/min or
+deg/min, A).
+
+What the emulated drive sees is what it can trace: its setpoint as the controller sent it
+and its plant's sensors.  So, per row:
+
+===================  ==========================================================================
+trace column         from the recording
+===================  ==========================================================================
+``t_s``              ``tick`` times the period
+``pos_set_mm``       the CSP target 607Ah in table units; empty (NaN) in rows not in CSP
+``pos_mm``           the linear scale (``plant_scale_counts``); without one the motor encoder
+``vel_set_mm_min``   CSP: the speed feed-forward 60B1h; CSV: the target 60FFh; else NaN
+``vel_mm_min``       the table's velocity (the plant's, there is no velocity sensor)
+``iq_set_a``         CST: the q-current setpoint; else NaN (the drive's own speed loop's
+                     output is not recorded)
+``iq_a``             the measured q current
+``motor_pos_mm``     the motor encoder in table units
+===================  ==========================================================================
+
+Rotary tables have ``_deg`` columns.  Counts become table units through the axis's
+``table_per_count`` in the recording's metadata (the lead over the counts per
+revolution on a screw axis).
+"""
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from hil.runtime.record_reader import Recording, RecordingError
+from io_adapters.messages import MODE_CSP, MODE_CST, MODE_CSV
+
+#: the trace columns, in file order, without their unit suffix (see the module docstring)
+_COLUMNS = ("t_s", "pos_set", "pos", "vel_set", "vel", "iq_set_a", "iq_a", "motor_pos")
+
+
+@dataclass(frozen=True)
+class AxisTrace:
+    """How one axis of a recording becomes a servo trace.
+
+    Attributes:
+        name: the axis letter.
+        prefix: its column prefix in the recording ("" on a single-axis run).
+        rotary: positions are angles (deg in the trace).
+        table_per_count: table units (m or rad) per motor-encoder count.
+        scale_resolution_m: the linear scale's count, m (0: none).
+        period_s: the recording's sample time, s.
+    """
+    name: str
+    prefix: str
+    rotary: bool
+    table_per_count: float
+    scale_resolution_m: float
+    period_s: float
+
+    @property
+    def unit(self) -> str:
+        """The trace's position unit: "deg" or "mm"."""
+        return "deg" if self.rotary else "mm"
+
+    @property
+    def k(self) -> float:
+        """Trace position units per SI unit (deg/rad or mm/m)."""
+        return 180.0 / math.pi if self.rotary else 1e3
+
+    def names(self) -> list[str]:
+        """The trace's column names, in file order."""
+        u = self.unit
+        return [f"{c}_{u}" if c in ("pos_set", "pos", "motor_pos") else
+                f"{c}_{u}_min" if c in ("vel_set", "vel") else c for c in _COLUMNS]
+
+    def sources(self) -> list[str]:
+        """The recording columns :meth:`convert` needs."""
+        return ["tick", *(self.prefix + c for c in (
+            "sp_mode", "sp_target_position_counts", "sp_target_velocity_counts_s",
+            "sp_velocity_offset_counts_s", "sp_iq_ref_a", "plant_encoder_counts",
+            "plant_scale_counts", "plant_table_vel", "plant_iq_meas_a"))]
+
+    def convert(self, rows: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+        """Trace columns (name -> float array) of recording ``rows`` (:meth:`sources`)."""
+        p, k, per_count = self.prefix, self.k, self.table_per_count
+        mode = rows[p + "sp_mode"]
+        encoder = rows[p + "plant_encoder_counts"] * per_count
+        pos = (rows[p + "plant_scale_counts"] * self.scale_resolution_m
+               if self.scale_resolution_m else encoder)
+        vel_set = np.where(mode == MODE_CSP, rows[p + "sp_velocity_offset_counts_s"],
+                           np.where(mode == MODE_CSV, rows[p + "sp_target_velocity_counts_s"],
+                                    np.nan))
+        values = (rows["tick"] * self.period_s,
+                  np.where(mode == MODE_CSP, rows[p + "sp_target_position_counts"] * per_count,
+                           np.nan) * k,
+                  pos * k, vel_set * per_count * k * 60.0,
+                  rows[p + "plant_table_vel"] * k * 60.0,
+                  np.where(mode == MODE_CST, rows[p + "sp_iq_ref_a"], np.nan),
+                  rows[p + "plant_iq_meas_a"], encoder * k)
+        return {name: np.asarray(v, dtype=np.float64) for name, v in zip(self.names(), values)}
+
+    def metadata(self, rec: Recording) -> dict[str, str]:
+        """The trace header's ``# key: value`` lines."""
+        return {"sample_time_s": repr(self.period_s), "axis": self.name,
+                "machine": rec.meta.get("machine", ""),
+                "machine_file": rec.meta.get("machine_file", ""),
+                "source": f"hil run recording {rec.folder} (adapter {rec.meta.get('adapter')})"}
+
+
+def axis_trace(rec: Recording, axis: str | None = None) -> AxisTrace:
+    """The servo-trace view of ``axis`` (a letter; None: the only axis) of ``rec``.
+
+    Raises:
+        RecordingError: no such axis, or None on a recording of several axes.
+    """
+    axes = {a["name"]: a for a in rec.meta.get("axes", [])}
+    if axis is None:
+        if len(axes) != 1:
+            raise RecordingError(f"{rec.path}: the recording has axes {', '.join(axes)}: "
+                                 "name one")
+        axis = next(iter(axes))
+    if axis not in axes:
+        raise RecordingError(f"{rec.path}: no axis {axis!r} (has {', '.join(axes)})")
+    a = axes[axis]
+    return AxisTrace(name=axis, prefix=a["prefix"], rotary=a["kind"] == "rotary",
+                     table_per_count=float(a["table_per_count"]),
+                     scale_resolution_m=float(a["scale_resolution_m"]),
+                     period_s=rec.period_ns * 1e-9)

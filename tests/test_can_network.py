@@ -1,0 +1,150 @@
+"""Network management and the bus of the CANopen drive, frame by frame on python-can's
+``virtual`` bus: boot-up, the heartbeat producer (1017h) and the NMT states it reports,
+an NMT start refused for the bus load its PDO configuration would need, and the bus
+traffic written with python-can's ASC and BLF writers.
+
+References: CiA 301 (boot-up message 700h + node-ID with 00h; heartbeat state bytes 7Fh
+PRE-OPERATIONAL, 05h OPERATIONAL, 04h STOPPED; NMT reset communication restores 1017h;
+the EMCY layout); the worst-case frame lengths summed by hand (:func:`worst_frame_bits`
+of Davis et al., test_can_bus_time.py checks it); python-can's own log readers.
+"""
+
+import can
+import pytest
+
+from io_adapters import AdapterError, Feedback, Setpoint, open_endpoint
+from io_adapters.can_bus_time import worst_frame_bits
+from io_adapters.messages import MODE_CST
+from tests.test_can_cia402 import (  # noqa: F401  (no_leaked_threads: autouse)
+    frame,
+    no_leaked_threads,
+    recv_id,
+    sdo_write_u32,
+    virtual_channel,
+    wait_for,
+)
+
+NODE = 5
+QUERY = f"node={NODE}&rated_current_ma=28000"
+DEVICE = "&sync_timeout_ms=60000"  # no cycle on the drive's own clock between our SYNCs
+HEARTBEAT = 0x700 + NODE
+
+
+def states(bus: can.BusABC, n: int) -> list[int]:
+    """The state bytes of the next ``n`` heartbeats of the node."""
+    return [recv_id(bus, HEARTBEAT).data[0] for _ in range(n)]
+
+
+def test_boot_up_heartbeat_and_nmt_states():
+    channel = virtual_channel()
+    with can.Bus(interface="virtual", channel=channel) as bus, \
+            open_endpoint(f"can://virtual/{channel}?{QUERY}{DEVICE}", "device") as ep:
+        assert recv_id(bus, HEARTBEAT).data == bytearray([0x00])  # boot-up
+        bus.send(can.Message(arbitration_id=0x605, is_extended_id=False,
+                             data=bytes([0x2B, 0x17, 0x10, 0, 10, 0, 0, 0])))  # 1017h = 10 ms
+        assert recv_id(bus, 0x585).data[0] == 0x60
+        assert states(bus, 3) == [0x7F] * 3
+        for command, state, name in ((0x01, 0x05, "OPERATIONAL"), (0x02, 0x04, "STOPPED"),
+                                     (0x80, 0x7F, "PRE-OPERATIONAL")):
+            bus.send(frame(0x000, f"{command:02X}{NODE:02X}"))
+            wait_for(lambda name=name: ep.nmt_state == name, name)
+            assert states(bus, 3)[-1] == state, name  # the first may predate the command
+        bus.send(frame(0x000, f"82{NODE:02X}"))  # reset communication: 1017h back to 0
+        while recv_id(bus, HEARTBEAT).data[0] != 0x00:
+            pass  # heartbeats sent before the reset
+        assert ep.nmt_state == "PRE-OPERATIONAL"
+        with pytest.raises(AssertionError, match="no frame 0x705"):
+            recv_id(bus, HEARTBEAT)
+
+
+def emcy_frame(bus: can.BusABC) -> tuple[int, int, int, int]:
+    data = recv_id(bus, 0x080 + NODE).data
+    return (int.from_bytes(data[:2], "little"), data[2], int.from_bytes(data[3:5], "little"),
+            int.from_bytes(data[5:8], "little"))
+
+
+def test_a_start_the_bus_cannot_carry_is_refused_with_the_load():
+    """1006h = 250 µs with the default mapping: SYNC (1 byte) and eight PDOs of 3, 8, 4,
+    4, 5, 8 and 8 bytes need 850 bits per cycle at the worst, 340 % of 250 µs at
+    1 Mbit/s.  NMT start is refused (the node stays PRE-OPERATIONAL) with EMCY 8110h
+    carrying 3400 per mille and 250 µs, and our master says so; at 1 ms it starts and the
+    EMCY's error is reset."""
+    needed = sum(worst_frame_bits(n) for n in (1, 3, 8, 4, 4, 5, 8, 8))
+    assert needed == 850
+    channel = virtual_channel()
+    url = f"can://virtual/{channel}?{QUERY}"
+    with can.Bus(interface="virtual", channel=channel) as bus, \
+            open_endpoint(url + DEVICE, "device") as ep:
+        recv_id(bus, HEARTBEAT)
+        sdo_write_u32(bus, NODE, 0x1006, 0, 250)
+        bus.send(frame(0x000, f"01{NODE:02X}"))
+        assert emcy_frame(bus) == (0x8110, 0x11, round(needed / 250 * 1000), 250)
+        assert ep.nmt_state == "PRE-OPERATIONAL" and ep.stats.start_refused == 1
+        with open_endpoint(url, "controller") as master, \
+                pytest.raises(AdapterError, match="node 5 refused NMT start.*340 %"):
+            master.recv_feedback(Feedback(), 5.0)  # (it sent NMT start when opened)
+        sdo_write_u32(bus, NODE, 0x1006, 0, 1000)
+        bus.send(frame(0x000, f"01{NODE:02X}"))
+        wait_for(lambda: ep.nmt_state == "OPERATIONAL", "OPERATIONAL")
+        assert emcy_frame(bus)[:2] == (0, 0)  # error reset
+        assert ep.stats.bus_plan_load == pytest.approx(0.85)
+        assert ep.bus_plan().describe().startswith("85% of the bus: 850 bits per 1 ms")
+
+
+@pytest.mark.parametrize("suffix", [".asc", ".blf"])
+def test_the_bus_traffic_is_logged_for_can_tools(tmp_path, suffix):
+    """``log=FILE`` on the device side: python-can's reader for the suffix gets back the
+    boot-up, every SYNC, the master's RPDOs and the drive's TPDOs, directions marked.  (A
+    channel name ending in digits is no CAN channel number for the writer.)"""
+    channel = virtual_channel() + "4294967296"
+    log = tmp_path / f"bus{suffix}"
+    url = f"can://virtual/{channel}?{QUERY}"
+    with open_endpoint(f"{url}{DEVICE}&log={log}", "device") as device, \
+            open_endpoint(url, "controller") as master:
+        wait_for(lambda: device.nmt_state == "OPERATIONAL", "OPERATIONAL")
+        sp, got = Setpoint(mode=MODE_CST, controlword=6, iq_ref_a=2.8), Setpoint()
+        for k in range(5):
+            master.send_setpoint(sp)
+            assert device.recv_setpoint(got, 5.0)
+            device.send_feedback(Feedback(statusword=0x0231, encoder_counts=float(k)))
+        assert master.recv_feedback(Feedback(), 5.0)
+    frames = list(can.LogReader(log))
+    ids = [m.arbitration_id for m in frames]
+    assert ids[0] == HEARTBEAT and frames[0].data == bytearray([0]) and not frames[0].is_rx
+    assert ids.count(0x080) == 5 and ids.count(0x205) == 5 and ids.count(0x505) == 5
+    assert ids.count(0x185) == 4  # SYNC 2-5 answer the cycles before them
+    assert all(m.is_rx for m in frames if m.arbitration_id in (0x080, 0x205))
+    assert all(not m.is_rx for m in frames if m.arbitration_id == 0x185)
+    assert [m.timestamp for m in frames] == sorted(m.timestamp for m in frames)
+
+
+def test_a_log_name_without_a_can_suffix_is_refused():
+    with pytest.raises(AdapterError, match="a CAN log is one of"):
+        open_endpoint(f"can://virtual/x?{QUERY}&log=bus.txt", "device")
+
+
+def test_the_ticks_between_syncs_are_not_silence():
+    """The watchdog counts ticks (125 µs on the Arrow 500 X); a heard SYNC cycle stands for
+    1.5 communication cycles (1006h = 1 ms): the 11 ticks after it are not silent, the 12th
+    is, and at the 4th silent one a watchdog of 4 ticks gives the drive its cause."""
+    from hil.drive import EmulatedDrive
+    from hil.drive.faults import Cause
+    from hil.drive.objects import DriveObjects
+    from hil.runtime.watchdog import Watchdog
+    from plant import Plant
+    from plant.config import load_machine
+    from tests.conftest import CONFIGS
+    drive = EmulatedDrive(Plant(load_machine(CONFIGS / "arrow500_x.toml")))
+    with open_endpoint(f"can://virtual/{virtual_channel()}?{QUERY}{DEVICE}", "device") as ep:
+        ep.setpoint_bounds = (drive.setpoint_bounds(),)
+        ep.objects = DriveObjects([drive], ep.rated_current_a)
+        assert ep.heard_for_s == pytest.approx(1.5e-3)
+        dog = Watchdog(4, 125e-6, lambda line: None)
+        dog.update(True, 0, 1, drive, ep)
+        silences, causes = [], []
+        for tick in range(1, 16):
+            dog.update(False, tick, 1, drive, ep)
+            silences.append(dog.silent)
+            causes.append(bool(drive.link_causes & Cause.WATCHDOG))
+        assert silences == [0] * 11 + [1, 2, 3, 4]
+        assert causes == [False] * 14 + [True]  # 8250h for the drive (6007h acts on it)
