@@ -72,19 +72,24 @@ class Children:
                 p.stdout.close()
         assert all(p.returncode is not None for p in self.procs), "a child is still running"
 
-    def start(self, name: str, argv: list[str], ready: bool = False) -> subprocess.Popen:
-        """Start ``argv`` with stderr (and stdout unless ``ready``) to ``<name>.log``."""
+    def start(self, name: str, argv: list[str], ready: bool = False,
+              group: bool = False) -> subprocess.Popen:
+        """Start ``argv`` with stderr (and stdout unless ``ready``) to ``<name>.log``; in
+        a process group of its own (with its children) if ``group``."""
         with open(self.log_dir / f"{name}.log", "w") as log:
             proc = subprocess.Popen(argv, cwd=ROOT, env=ENV, text=True, stderr=log,
-                                    stdout=subprocess.PIPE if ready else log)
+                                    stdout=subprocess.PIPE if ready else log,
+                                    start_new_session=group)
         self.procs.append(proc)
         return proc
 
-    def emulator(self, config: Path, url: str, run_dir: Path, *extra) -> tuple:
-        """``hil run`` on ``config`` at ``url``; returns (process, URL served) once ready."""
+    def emulator(self, config: Path, url: str, run_dir: Path, *extra,
+                 group: bool = False) -> tuple:
+        """``hil run`` on ``config`` at ``url``; returns (process, URL served) once ready
+        (``group``: see :meth:`start`)."""
         proc = self.start("emulator", python_module(
             "hil.runtime.emulator", config, "--adapter", url, "--record", run_dir, *extra),
-            ready=True)
+            ready=True, group=group)
         return proc, wait_ready(proc, READY_S)
 
     def log(self, name: str) -> str:

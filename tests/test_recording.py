@@ -24,9 +24,9 @@ from hil.runtime.export import export_csv
 from hil.runtime.log_histogram import EXACT_NS, LogHistogram
 from hil.runtime.record_reader import Recording, RecordingError
 from hil.runtime.record_trace import AxisTrace
-from hil.runtime.record_writer import END_OF_STREAM, RING_S, RecordingWriter
+from hil.runtime.record_writer import RING_S, RecordingWriter
 from hil.runtime.recording import PLANT_DOCUMENTED, Recorder, column_specs, row_bytes
-from hil.runtime.run_events import EventCollector, RunEvent, _Overruns
+from hil.runtime.run_events import EventCollector, Overruns, RunEvent
 from hil.runtime.run_folder import (
     EVENTS,
     RECORDING,
@@ -35,6 +35,7 @@ from hil.runtime.run_folder import (
     RunFolder,
     RunFolderError,
 )
+from hil.runtime.stream_file import END_OF_STREAM
 from hil.runtime.streaming_loop import StreamingLoop
 from hil.runtime.watchdog import Watchdog
 from hil.trace_file import read_trace
@@ -105,7 +106,7 @@ def test_every_plant_output_is_documented_with_a_unit():
 
 def _writer(folder: Path, rig: Rig, failures: list) -> RecordingWriter:
     watchdog = Watchdog(800, PERIOD_NS * 1e-9, lambda line: None)
-    events = EventCollector(("X",), rig.drives, watchdog, rig.recorder, PERIOD_NS)
+    events = EventCollector(("X",), rig.drives, watchdog, rig.recorder)
     return RecordingWriter(RunFolder.open(folder), rig.recorder, events,
                            {"period_ns": PERIOD_NS, "axes": []}, PERIOD_NS, failures.append)
 
@@ -205,7 +206,7 @@ def test_overrun_events_are_the_runs_of_late_ticks_across_batches(late, cuts):
     lateness = np.where(late, PERIOD_NS, 0).astype(np.int64)
     compute = np.full(n, 1, dtype=np.int64)
     tick = np.arange(n, dtype=np.int64) + 100
-    scanner, out = _Overruns(PERIOD_NS), []
+    scanner, out = Overruns(PERIOD_NS), []
     bounds = [0, *sorted({c for c in cuts if c < n}), n]
     for a, b in zip(bounds, bounds[1:]):
         scanner.scan(tick[a:b], lateness[a:b], compute[a:b], out)
@@ -322,7 +323,7 @@ def test_the_streaming_loop_runs_until_asked_to_stop_and_hands_every_tick_over()
 
 
 def test_a_day_long_run_holds_no_more_in_memory_than_a_second_long_one(tmp_path):
-    """--duration 86400 at 8 kHz (691 million ticks; run.npz's buffers would have been
+    """--duration 86400 at 8 kHz (691 million ticks; the old in-memory buffers would have been
     205 GB): the emulator's ring and loop are those of a 1 s run (reference: the same
     emulator built for 1 s), about a second of rows."""
     def built(duration_s: float) -> Emulator:

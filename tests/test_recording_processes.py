@@ -14,6 +14,7 @@ import resource
 import signal
 import subprocess
 import threading
+import time
 from pathlib import Path
 
 import numpy as np
@@ -230,19 +231,48 @@ def test_the_csv_export_is_a_servo_trace(run_dir, tmp_path):
 
 # --- SIGKILL, a full disk ----------------------------------------------------------------
 
-def test_sigkill_mid_run_leaves_the_recording_up_to_its_last_flush(slow_config, tmp_path):
-    """SIGKILL while a controller exchanges with the drive: the recording opens (no end
-    marker) and holds the ticks up to at least the last feedback the controller received
-    minus the flush bound RING_S (both stamps of the drive's clock); the events open."""
+def _killed_mid_run(slow_config, tmp_path, group: bool) -> tuple[Path, int]:
+    """A run killed by SIGKILL while a controller exchanges with the drive: the emulator
+    alone, or its whole process group (the emulator and its writer process, as the OOM
+    killer or ``kill -9 -PGID`` would); returns the run folder and the drive's stamp of
+    the last feedback the controller received."""
     run = tmp_path / "run"
     sp, fb = Setpoint(), Feedback()
     with Children(tmp_path) as children:
-        proc, url = children.emulator(slow_config, "udp://127.0.0.1:0", run)
+        proc, url = children.emulator(slow_config, "udp://127.0.0.1:0", run, group=group)
         with open_endpoint(url, "controller") as ep:
             _answer(ep, sp, fb, 4000)  # about 2 s at 2 kHz
-            last_fb_ns = fb.t_ns
-            proc.send_signal(signal.SIGKILL)
+            if group:
+                os.killpg(proc.pid, signal.SIGKILL)
+            else:
+                proc.send_signal(signal.SIGKILL)
             assert proc.wait(timeout=EXIT_S) == -signal.SIGKILL
+    return run, fb.t_ns
+
+
+def test_sigkill_of_the_emulator_loses_nothing_its_writer_held(slow_config, tmp_path):
+    """SIGKILL of the emulator: its writer process sees its pipe close, writes what the
+    ring held and ends both streams: the recording closes cleanly (within a bounded wait)
+    and holds every tick up to the one before the last feedback the controller received
+    (the drive's stamps; the killed tick may have sent its feedback and not finished its
+    row); no report.json (the emulator did not finish)."""
+    run, last_fb_ns = _killed_mid_run(slow_config, tmp_path, group=False)
+    deadline = time.monotonic() + EXIT_S
+    while not Recording(run).closed_cleanly() and time.monotonic() < deadline:
+        time.sleep(0.05)
+    rec = Recording(run)
+    rows = rec.read(["tick", "tick_start_ns"])
+    assert rec.closed_cleanly() and not (run / REPORT).exists()
+    assert rows["tick"].tolist() == list(range(rows["tick"].size))
+    assert rows["tick_start_ns"].max() >= last_fb_ns - 500_000  # one period at 2 kHz
+
+
+def test_sigkill_of_the_process_group_leaves_the_recording_up_to_its_last_flush(slow_config,
+                                                                                tmp_path):
+    """SIGKILL of the emulator and its writer at once: the recording opens (no end
+    marker) and holds the ticks up to at least the last feedback the controller received
+    minus the flush bound RING_S (both stamps of the drive's clock); the events open."""
+    run, last_fb_ns = _killed_mid_run(slow_config, tmp_path, group=True)
     rec = Recording(run)
     rows = rec.read(["tick", "tick_start_ns"])
     assert not rec.closed_cleanly() and not (run / REPORT).exists()
@@ -251,20 +281,31 @@ def test_sigkill_mid_run_leaves_the_recording_up_to_its_last_flush(slow_config, 
     assert rec.events()["tick"].size >= 0
 
 
+def test_a_ring_that_cannot_be_made_is_refused_before_ready(tmp_path, warm_cache):
+    """RLIMIT_FSIZE of 100 kB, below the ring's 2.8 MB at 8 kHz: exit 2 before ``ready:``
+    with one line saying what could not be made and its size; nothing recorded."""
+    run = tmp_path / "run"
+    done = _run(tmp_path, ARROW, "--record", run, preexec_fn=_limit_file_size(100_000))
+    assert done.returncode == 2 and "ready:" not in done.stdout
+    assert "cannot make the recording's ring of 8000 rows (2.82 MB" in done.stderr
+    assert "Traceback" not in done.stderr and not (run / RECORDING).exists()
+
+
 def _limit_file_size(limit: int):
     def preexec() -> None:
         resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))
     return preexec
 
 
-def test_a_file_size_limit_stops_the_run_cleanly_with_a_readable_recording(tmp_path,
-                                                                          warm_cache):
-    """RLIMIT_FSIZE of 1 MB (EFBIG once the recording reaches it): exit 1 with one clear
-    line, the axis in its safe state, the recording cut back to its last complete batch
-    and closed with the end marker, report.json and the events complete and saying why."""
+def test_a_file_size_limit_stops_the_run_cleanly_with_a_readable_recording(slow_config,
+                                                                          tmp_path, warm_cache):
+    """RLIMIT_FSIZE of 1 MB (EFBIG once the recording reaches it; the ring's 0.7 MB of
+    shared memory at 2 kHz is a file too and fits): exit 1 with one clear line, the axis
+    in its safe state, the recording cut back to its last complete batch and closed with
+    the end marker, report.json and the events complete and saying why."""
     limit = 1_000_000
     run = tmp_path / "run"
-    done = _run(tmp_path, ARROW, "--record", run, preexec_fn=_limit_file_size(limit))
+    done = _run(tmp_path, slow_config, "--record", run, preexec_fn=_limit_file_size(limit))
     assert done.returncode == 1, done.stderr
     assert f"writing {run / RECORDING} failed: File too large" in done.stderr
     assert "the axes were brought to their safe state" in done.stderr

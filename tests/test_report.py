@@ -20,7 +20,6 @@ import pytest
 from hil.bench import adapters as bench_adapters
 from hil.report import host
 from hil.report.baseline import CyclictestBaseline
-from hil.report.render import markdown
 from hil.report.latency import (
     NO_VALUE,
     Pairing,
@@ -32,7 +31,8 @@ from hil.report.latency import (
     report_run,
     write_report,
 )
-from hil.runtime.record_writer import FORMAT, META_KEY
+from hil.report.render import markdown
+from hil.runtime.stream_file import FORMAT, META_KEY
 
 PERIOD_NS = 100_000
 N_RAN = 1000

@@ -20,7 +20,7 @@ from hil.study.analytic import ishigami, ishigami_indices
 from hil.study.circularity import CircularityExperiment
 from hil.study.distributions import Distribution
 from hil.study.evaluate import evaluate_chunk
-from hil.study.keys import StudySpecError
+from hil.study.keys import StudySpecError, _range, declared_field
 from hil.study.outputs import margins, step_metrics
 from hil.study.run import job_of
 from hil.study.sampling import design, monte_carlo, sobol_sequence
@@ -28,6 +28,7 @@ from hil.study.spec import load_study
 from hil.study.store import ResultStore
 from plant.config import load_machine
 from plant.errors import ConfigError
+from plant.schema import in_range, range_text
 
 ROOT = Path(__file__).resolve().parents[1]
 ARROW = ROOT / "configs" / "arrow500_x.toml"
@@ -313,3 +314,30 @@ def test_store_keeps_whole_files_records_refusals_and_refuses_another_study(tmp_
     other = load_study(write(tmp_path, GOOD.replace("samples = 4", "samples = 8"), "b.toml"))
     with pytest.raises(StudySpecError, match="another study"):
         ResultStore(tmp_path / "out", other)
+
+
+@pytest.mark.parametrize("section, key", [("motor", "resistance_ohm"), ("table", "mass_kg"),
+                                          ("coupling", "stiffness_nm_per_rad")])
+def test_a_keys_study_range_is_the_loaders_range(section, key):
+    """The study's range of a key admits exactly what the machine-file loader admits
+    (reference: plant.schema.in_range and range_text on the same declaration), 0 included
+    where the declaration says what 0 means ("not used" for a resistance)."""
+    meta = declared_field(section, key, "test").metadata
+    ref = _range(meta)
+    for value in (-1.0, 0.0, 1e-9, 1e-5, 1e-3, 1.0, 1e3, 1e6, 1e9, 1e15, 1e300):
+        assert ref.contains(value) == in_range(meta, value), value
+    assert ref.describe("UNIT").replace(" UNIT", "") == range_text(meta)
+
+
+def test_a_study_file_that_is_no_file_or_no_toml_is_refused_in_one_line(tmp_path):
+    """The machine-file reader's refusals (plant.config.read_toml) for a study file: a
+    directory, bytes that are not UTF-8, TOML with its line and column."""
+    with pytest.raises(StudySpecError, match="is a directory, not a study file"):
+        load_study(tmp_path)
+    bad = tmp_path / "latin1.toml"
+    bad.write_bytes(b"[study]\nname = \"K\xfchlung\"\n")
+    with pytest.raises(StudySpecError, match="not UTF-8"):
+        load_study(bad)
+    bad.write_text("[study]\nmethod = \n")
+    with pytest.raises(StudySpecError, match="line 2"):
+        load_study(bad)

@@ -33,54 +33,56 @@ class DriveSection:
     following_error_window_m: float = key(
         "m", "6065h following error window (CSP); 0: monitoring off (FFFFFFFFh). Absent: 1.5 "
         "times the following error at the maximum velocity without feed-forward, v_max/K_v "
-        "([controller]); off without [controller].", DERIVED, ge=0.0, only=LINEAR_KINDS)
+        "([controller]); off without [controller].", DERIVED, ge=0.0, le=50.0, only=LINEAR_KINDS)
     following_error_window_deg: float = key(
         "deg", "6065h following error window of a rotary table (see the _m key).", DERIVED,
-        ge=0.0, only="kind=rotary")
+        ge=0.0, le=3600.0, only="kind=rotary")
     following_error_time_s: float = key(
         "s", "6066h following error time out: how long the error may stay beyond the window.",
         0.01, ge=0.0, le=65.535)
     position_window_m: float = key(
         "m", "6067h position window: CSP target reached (statusword bit 10) within it.", 1e-5,
-        ge=0.0, only=LINEAR_KINDS)
+        ge=0.0, le=50.0, only=LINEAR_KINDS)
     position_window_deg: float = key("deg", "6067h position window of a rotary table.", 0.01,
-                                     ge=0.0, only="kind=rotary")
+                                     ge=0.0, le=3600.0, only="kind=rotary")
     position_window_time_s: float = key("s", "6068h position window time.", 0.01, ge=0.0,
                                         le=65.535)
     software_limit_min_m: float = key(
         "m", "607Dh:01 minimum software position limit. Absent: halfway from the start of "
         "the travel (0) to the negative limit switch ([table] limit_switch_overtravel_m).",
-        DERIVED, only=LINEAR_KINDS)
+        DERIVED, ge=-100.0, le=100.0, only=LINEAR_KINDS)
     software_limit_max_m: float = key(
         "m", "607Dh:02 maximum software position limit; equal to the minimum: limits off. "
         "Absent: halfway from the end of [table] travel_m to the positive limit switch.",
-        DERIVED, only=LINEAR_KINDS)
+        DERIVED, ge=-100.0, le=100.0, only=LINEAR_KINDS)
     software_limit_min_deg: float = key("deg", "607Dh:01 of a rotary table. Absent: off.",
-                                        0.0, only="kind=rotary")
+                                        0.0, ge=-3.6e6, le=3.6e6, only="kind=rotary")
     software_limit_max_deg: float = key("deg", "607Dh:02 of a rotary table; equal to the "
-                                        "minimum: off (the default).", 0.0, only="kind=rotary")
+                                        "minimum: off (the default).", 0.0, ge=-3.6e6,
+                                        le=3.6e6, only="kind=rotary")
     max_motor_speed_rpm: float = key(
         "rpm", "6080h maximum motor speed: speed commands are limited to it, 1.1 times it is "
         "an overspeed fault; 0: off. Absent: 1.2 times the [controller] maximum velocity at "
         "the motor, else the dq motor's no-load speed at the voltage limit, else off.",
-        DERIVED, ge=0.0, only="kind=screw|rotary")
+        DERIVED, ge=0.0, le=1e5, only="kind=screw|rotary")
     max_motor_speed_m_s: float = key("m/s", "6080h maximum speed of a linear motor (see the "
-                                     "rpm key).", DERIVED, ge=0.0, only="kind=linear")
+                                     "rpm key).", DERIVED, ge=0.0, le=100.0, only="kind=linear")
     max_current_a: float = key(
         "A", "6072h maximum torque, as the q-current limit the drive applies to every current "
-        "setpoint (<= [motor] current_max_a). Absent: [motor] current_max_a.", DERIVED, gt=0.0)
+        "setpoint (<= [motor] current_max_a). Absent: [motor] current_max_a.", DERIVED, gt=0.0,
+        le=5000.0)
     quick_stop_deceleration_m_s2: float = key(
         "m/s^2", "6085h quick stop deceleration. Absent: half the acceleration the motor gives "
-        "the axis at [motor] current_max_a.", DERIVED, gt=0.0, only=LINEAR_KINDS)
+        "the axis at [motor] current_max_a.", DERIVED, gt=0.0, le=1e4, only=LINEAR_KINDS)
     quick_stop_deceleration_deg_s2: float = key(
         "deg/s^2", "6085h quick stop deceleration of a rotary table.", DERIVED, gt=0.0,
-        only="kind=rotary")
+        le=1e7, only="kind=rotary")
     profile_deceleration_m_s2: float = key(
         "m/s^2", "6084h profile deceleration, the slow down ramp. Absent: the [controller] "
-        "maximum acceleration, else the quick stop deceleration.", DERIVED, gt=0.0,
+        "maximum acceleration, else the quick stop deceleration.", DERIVED, gt=0.0, le=1e4,
         only=LINEAR_KINDS)
     profile_deceleration_deg_s2: float = key("deg/s^2", "6084h of a rotary table.", DERIVED,
-                                             gt=0.0, only="kind=rotary")
+                                             gt=0.0, le=1e7, only="kind=rotary")
     quick_stop_option: int = key("1", "605Ah quick stop option code, 1-8.", 2, ge=1, le=8)
     fault_reaction_option: int = key(
         "1", "605Eh fault reaction option code: 0 torque off, 1 slow down ramp, 2 quick stop "
@@ -91,10 +93,10 @@ class DriveSection:
         ge=0, le=3)
     continuous_current_a: float = key(
         "A", "I2t: the current the drive carries without end (< [motor] current_max_a). "
-        "Absent: half of [motor] current_max_a.", DERIVED, gt=0.0)
+        "Absent: half of [motor] current_max_a.", DERIVED, gt=0.0, le=5000.0)
     overload_time_s: float = key(
         "s", "I2t: how long [motor] current_max_a may flow from cold before the over-current "
-        "fault (2310h).", 1.0, gt=0.0)
+        "fault (2310h).", 1.0, gt=0.0, le=3600.0)
     communication_cycle_s: float = key(
         "s", "1006h communication cycle period on CANopen: the SYNC period the drive takes its "
         "setpoints at and interpolates them over (60C2h), in whole PWM periods.", 0.001,

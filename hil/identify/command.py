@@ -13,7 +13,8 @@ from hil.trace_file import TraceFormatError
 
 
 def add_arguments(p) -> None:
-    p.add_argument("trace", type=Path, help="servo-trace CSV, or an EMPS .mat record")
+    p.add_argument("trace", type=Path,
+                   help="servo-trace CSV, an EMPS .mat record, or a hil run folder")
     p.add_argument("--config", type=Path, required=True, help="machine file to start from")
     p.add_argument("--out", type=Path, required=True, help="folder for the report")
     p.add_argument("--validate", type=Path, metavar="TRACE2",

@@ -15,9 +15,9 @@ starts); the clock wakes the loop at that deadline, ``step(k)`` runs, and the lo
 
 into int64 arrays allocated when the loop is built and written through before the clock
 starts (no page faults later).  A tick keeps nothing allocated: CPython's integers for the
-timestamps are freed as they go, and traced memory does not grow over a run.  A tick *overruns* when its step ends after the next deadline.  What
-follows is the :class:`OverrunPolicy`'s choice, after Simulink Real-Time's and dSPACE's
-overload options:
+timestamps are freed as they go, and traced memory does not grow over a run.  A tick
+*overruns* when its step ends after the next deadline.  What follows is the
+:class:`OverrunPolicy`'s choice, after Simulink Real-Time's and dSPACE's overload options:
 
 * ``"count"``: keep going; the following ticks run late until the loop has caught up;
 * ``"skip"``: drop the deadlines already missed and wait for the next future one; the
@@ -139,6 +139,63 @@ class LoopStats:
                 "compute_us": self.compute_us.as_dict()}
 
 
+@dataclass(frozen=True)
+class TickCounts:
+    """What :func:`run_ticks` counted (see :class:`LoopStats` for the fields)."""
+    ticks: int
+    overruns: int
+    grace_overruns: int
+    skipped: int
+    stopped_by: StopReason
+    wall_s: float
+    cpu_s: float
+
+
+def run_ticks(loop, end_tick: Callable[[int, int, int], None], n: int) -> TickCounts:
+    """The tick discipline of :class:`RealTimeLoop` and
+    :class:`hil.runtime.streaming_loop.StreamingLoop` (module docstring): ``loop.step(k)``
+    at ``t0 + k * loop.period_ns`` for k < ``n``, ``end_tick(k, lateness_ns,
+    compute_ns)`` after each, ``loop.policy`` on an overrun, ``loop.stop_requested``
+    checked before every tick, waits on ``loop.clock``."""
+    step, now_ns, sleep_until = loop.step, loop.clock.now_ns, loop.clock.sleep_until
+    period = loop.period_ns
+    skip = loop.policy.action == "skip"
+    stop_after = loop.policy.stop_after if loop.policy.action == "stop" else 0
+    grace = loop.policy.grace_ticks
+    ticks = overruns = grace_overruns = skipped = 0
+    stopped_by: StopReason = "completed"
+
+    wall0, cpu0 = time.monotonic_ns(), time.process_time_ns()
+    t0 = now_ns() + period
+    k = 0
+    while k < n:
+        if loop.stop_requested:
+            stopped_by = "stop_flag"
+            break
+        deadline = t0 + k * period
+        wake = sleep_until(deadline)
+        step(k)
+        end = now_ns()
+        end_tick(k, wake - deadline, end - wake)
+        ticks += 1
+        if end <= deadline + period:
+            k += 1
+            continue
+        if k < grace:
+            grace_overruns += 1
+        else:
+            overruns += 1
+            if overruns == stop_after:
+                stopped_by = "overruns"
+                break
+        k_next = min((end - t0) // period + 1, n) if skip else k + 1
+        skipped += k_next - k - 1
+        k = k_next
+    return TickCounts(ticks, overruns, grace_overruns, skipped, stopped_by,
+                      (time.monotonic_ns() - wall0) * 1e-9,
+                      (time.process_time_ns() - cpu0) * 1e-9)
+
+
 class RealTimeLoop:
     """Call ``step(k)`` at ``t0 + k * period_ns`` for k = 0 .. n_ticks - 1.
 
@@ -170,60 +227,29 @@ class RealTimeLoop:
         self.clock = clock if clock is not None else MonotonicClock.for_period(self.period_ns)
         self.lateness_ns = np.full(self.n_ticks, SKIPPED, dtype=np.int64)
         self.compute_ns = np.full(self.n_ticks, SKIPPED, dtype=np.int64)
-        self._stop_requested = False
+        self.stop_requested = False
 
     def request_stop(self) -> None:
         """Stop before the next tick (safe to call from a signal handler).  The request
         stays: a later :meth:`run` returns at once."""
-        self._stop_requested = True
+        self.stop_requested = True
 
     def run(self) -> LoopStats:
         """Run the ticks (until done, stopped by the policy, or asked to stop)."""
-        self.lateness_ns.fill(SKIPPED)
-        self.compute_ns.fill(SKIPPED)
-        step, now_ns, sleep_until = self.step, self.clock.now_ns, self.clock.sleep_until
         lateness, compute = self.lateness_ns, self.compute_ns
-        period, n = self.period_ns, self.n_ticks
-        skip = self.policy.action == "skip"
-        stop_after = self.policy.stop_after if self.policy.action == "stop" else 0
-        grace = self.policy.grace_ticks
-        ticks = overruns = grace_overruns = skipped = 0
-        stopped_by: StopReason = "completed"
+        lateness.fill(SKIPPED)
+        compute.fill(SKIPPED)
 
-        wall0, cpu0 = time.monotonic_ns(), time.process_time_ns()
-        t0 = now_ns() + period
-        k = 0
-        while k < n:
-            if self._stop_requested:
-                stopped_by = "stop_flag"
-                break
-            deadline = t0 + k * period
-            wake = sleep_until(deadline)
-            step(k)
-            end = now_ns()
-            lateness[k] = wake - deadline
-            compute[k] = end - wake
-            ticks += 1
-            if end <= deadline + period:
-                k += 1
-                continue
-            if k < grace:
-                grace_overruns += 1
-            else:
-                overruns += 1
-                if overruns == stop_after:
-                    stopped_by = "overruns"
-                    break
-            k_next = min((end - t0) // period + 1, n) if skip else k + 1
-            skipped += k_next - k - 1
-            k = k_next
-        wall_ns, cpu_ns = time.monotonic_ns() - wall0, time.process_time_ns() - cpu0
+        def end_tick(k: int, late_ns: int, compute_ns: int) -> None:
+            lateness[k] = late_ns
+            compute[k] = compute_ns
 
-        done = slice(0, ticks + skipped)
+        c = run_ticks(self, end_tick, self.n_ticks)
+        done = slice(0, c.ticks + c.skipped)
         ran = lateness[done] != SKIPPED
         return LoopStats(
-            period_ns=period, lateness_ns=lateness[done], compute_ns=compute[done],
-            ticks=ticks, overruns=overruns, grace_overruns=grace_overruns, skipped=skipped,
-            stopped_by=stopped_by, wall_s=wall_ns * 1e-9, cpu_s=cpu_ns * 1e-9,
+            period_ns=self.period_ns, lateness_ns=lateness[done], compute_ns=compute[done],
+            ticks=c.ticks, overruns=c.overruns, grace_overruns=c.grace_overruns,
+            skipped=c.skipped, stopped_by=c.stopped_by, wall_s=c.wall_s, cpu_s=c.cpu_s,
             lateness_us=Percentiles.of_ns_in_us(lateness[done][ran]),
             compute_us=Percentiles.of_ns_in_us(compute[done][ran]))

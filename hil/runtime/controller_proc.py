@@ -102,7 +102,7 @@ CTRL_SIGNALS = ("t", "x_set", "v_set", "a_set", "x_act", "v_act", "v_cmd", "w_se
 #: The integer columns: the loop's deadline index, 1 when new feedback came, the lag
 #: (ticks between the setpoint the feedback answers and the one sent last tick: 0 =
 #: lock-step timing), the feedback's round trip (ns), and its stamps that pair it with
-#: the emulator's run.npz (``hil report RUN --controller DIR``): its sp_t_ns and t_ns (the
+#: the emulator's recording (``hil report RUN --controller DIR``): its sp_t_ns and t_ns (the
 #: setpoint it answers, its send on the drive's clock) and its rx_ns (this clock); the
 #: last four 0 without new feedback
 __all__ = [

@@ -13,7 +13,7 @@ loopback, then the following error beside the lock-step simulation and the timin
    baseline; :mod:`hil.report.latency`), its round-trip split printed.
 
 Every child gets a timeout and is killed if still running when the demo leaves.  Files go
-to ``--out``: ``emulator/`` (run.npz, report.json), ``controller/`` (trace.csv,
+to ``--out``: ``emulator/`` (the run folder), ``controller/`` (trace.csv,
 controller.npz, summary.json), ``lockstep/`` (trace.csv, sim.png), the latency report
 (report.md, report_latency.json, latency_hist.png), the two logs and ``demo.json``.
 Exit status 0 when both processes finished cleanly and neither the controller nor the

@@ -26,10 +26,10 @@ signal handlers that only set a flag, a fixed shutdown order):
    writable, no previous run unless ``--force``, room for the recording of ``--duration``
    or :data:`MIN_RECORD_S` at the rate, the figure in the message), the adapter (device
    role, draining: each tick uses the newest setpoint), the recording's streams (schema
-   and metadata on disk, the writer warmed), and print ``ready: URL`` on stdout (the
-   port actually bound for ``udp://HOST:0``).  IPC and the writer thread are set up
-   before any priority change (see ``docs/platform-notes``: a SCHED_FIFO process must
-   not start helpers later).
+   and metadata on disk by the writer process, warmed), and print ``ready: URL`` on
+   stdout (the port actually bound for ``udp://HOST:0``).  IPC, the writer process and
+   its threads here are set up before any priority change (see ``docs/platform-notes``:
+   a SCHED_FIFO process must not start helpers later).
 4. **Run** under :func:`hil.rt.scheduling.realtime_scheduling` (SCHED_FIFO, pinned, memory
    locked; ``--no-rt`` leaves the process as it is).  Each tick (:meth:`Emulator.step`):
    poll the newest setpoint (timeout 0), the :class:`~hil.runtime.watchdog.Watchdog`,
@@ -41,18 +41,21 @@ signal handlers that only set a flag, a fixed shutdown order):
    and a tick whose SYNC is late waits a little for it; lateness is then measured
    against the moved deadlines, and the compute time includes that wait.  An adapter's
    own threads (canopen's receive thread on ``can://``) run at SCHED_FIFO one below the
-   loop, on its CPU (:func:`helper_threads_realtime`).
+   loop, on its CPU (:func:`hil.rt.scheduling.helper_threads_realtime`), and so do the
+   recording's threads here; the writer process stays at normal priority off the loop's
+   CPU.
 5. **Stop** on ``--duration``, on SIGTERM/SIGINT (the handlers only set the loop's stop
    flag), by the ``stop`` overrun policy, or when the recording cannot be written (a
-   full disk: the writer sets the same flag); then: the safe state (one cycle with
+   full disk: the writer's message sets the same flag); then: the safe state (one cycle with
    controlword 0, disable voltage: the drive leaves OPERATION ENABLED, torque off; a
    faulted drive stays in FAULT), real-time scheduling undone, the adapter closed, the
    recording's last rows and events (the safe state with its drive cycle, why the run
    stopped) written and the streams closed, ``report.json`` written last (its presence
    means the run folder is complete).
 
-The recording streams to disk while the loop runs (:mod:`hil.runtime.record_writer`:
-about a second of it in memory, whatever the duration), so ``--duration`` is bounded by
+The recording streams to disk while the loop runs (:mod:`hil.runtime.record_writer`: a
+separate process reads the ring in shared memory, about a second of it, whatever the
+duration), so ``--duration`` is bounded by
 the disk, not the memory.  The run folder (``--record DIR``) is what ``hil report RUN``,
 ``hil identify`` and ``hil export`` read: ``recording.arrows``, ``events.arrows``
 (:mod:`hil.runtime.record_reader`) and ``report.json``
@@ -76,10 +79,8 @@ plant stays in real time for a controller with a longer cycle.
 
 import argparse
 import math
-import os
 import signal
 import sys
-import threading
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -89,7 +90,7 @@ from hil.cia402 import DISABLE_VOLTAGE
 from hil.drive import DriveSet, EmulatedDrive
 from hil.drive.objects import DriveObjects
 from hil.rt.loop import OverrunPolicy
-from hil.rt.scheduling import last_cpu
+from hil.rt.scheduling import helper_threads_realtime, last_cpu
 from hil.runtime.common import (
     EXIT_BAD_INPUT,
     EXIT_FAILED,
@@ -128,7 +129,7 @@ from plant.errors import ConfigError
 from plant.machines import MachineSet, load_machine_set, single_axis
 from plant.substeps import realtime_limit, realtime_limit_text
 
-__all__ = ["Emulator", "RuntimeConfig", "Timing", "add_arguments", "helper_threads_realtime",
+__all__ = ["Emulator", "RuntimeConfig", "Timing", "add_arguments",
            "main", "resolve_timing", "run_from_args", "signals_end_process"]
 
 #: drive cycles run on the plant before the clock starts (compiled code and caches warm)
@@ -138,35 +139,10 @@ SAFE_STATE_MAX_S = 5.0
 #: without --duration, the run folder must have room for at least this long a recording, s
 MIN_RECORD_S = 60.0
 #: the interpreter's thread switch interval while the loop runs, s: a loop waking up while
-#: the recording's writer thread holds the GIL waits for it at most this long (Python's
-#: default, 5 ms, would be 40 ticks at 8 kHz)
+#: another thread of the process (an adapter's receive thread, the recording's event
+#: thread) holds the GIL waits for it at most this long (Python's default, 5 ms, would be
+#: 40 ticks at 8 kHz)
 GIL_SWITCH_S = 1e-4
-
-
-def helper_threads_realtime(cpu: int, priority: int,
-                            keep: tuple[threading.Thread | None, ...] = ()) -> dict[str, str]:
-    """Give every thread of this process but the loop's, the main one and those in
-    ``keep`` (the recording's writer, which must stay at normal priority off the loop's
-    CPU) -- an adapter's receive thread: canopen's on ``can://`` -- SCHED_FIFO
-    ``priority`` on ``cpu``; returns
-    thread name -> what was done.  At normal priority such a thread, preempted while it
-    holds the GIL, stalls the loop waiting behind it for milliseconds (priority
-    inversion; measured on ``can://udp_multicast`` at 2 kHz: the emulator's lateness
-    p99.9 2.4-3.4 ms, 50-100 µs with this).  One below the loop on the loop's CPU, it
-    runs while the loop sleeps; it never spins (it blocks in its receive), so it cannot
-    starve the loop."""
-    done = {}
-    for t in threading.enumerate():
-        if (t in (threading.main_thread(), threading.current_thread(), *keep)
-                or t.native_id is None):
-            continue
-        try:
-            os.sched_setaffinity(t.native_id, {cpu})
-            os.sched_setscheduler(t.native_id, os.SCHED_FIFO, os.sched_param(priority))
-            done[t.name] = f"SCHED_FIFO {priority} on CPU {cpu}"
-        except OSError as e:
-            done[t.name] = f"left as it was: {e}"
-    return done
 
 
 @dataclass
@@ -206,8 +182,7 @@ class Emulator:
                                   policy=OverrunPolicy(rc.overrun, rc.stop_after,
                                                        t.grace_ticks))
         self.stop.attach(self.loop)
-        self.events = EventCollector(m.names, self.drives, self.watchdog, self.recorder,
-                                     t.period_ns)
+        self.events = EventCollector(m.names, self.drives, self.watchdog, self.recorder)
         self.endpoint: Endpoint | None = None
         self.sync_lock: SyncLock | None = None
         self.helper_threads: dict[str, str] = {}
@@ -272,7 +247,8 @@ class Emulator:
                                       self._recording_failed)
 
     def _recording_failed(self, message: str) -> None:
-        """From the writer thread: stop the loop (flags only); the safe state follows."""
+        """From the recording's answer thread: stop the loop (flags only); the safe state
+        follows."""
         self.recording_failure = message
         self.loop.request_stop()
 
@@ -369,8 +345,7 @@ class Emulator:
         try:
             with scheduling(rc.realtime, cpu, rc.priority) as granted:
                 if granted is not None and granted.fifo.granted:
-                    self.helper_threads = helper_threads_realtime(
-                        cpu, max(1, rc.priority - 1), keep=(self.writer.thread,))
+                    self.helper_threads = helper_threads_realtime(cpu, max(1, rc.priority - 1))
                 stats = self.loop.run()
                 safe = self.safe_state()
         finally:
@@ -429,8 +404,8 @@ def run_from_args(args: argparse.Namespace) -> int:
                 eprint("hil run: stopped by a signal while starting; nothing written")
                 return EXIT_OK
             emulator.open_folder()
-        except (ConfigError, RuntimeInputError) as e:
-            eprint(f"hil run: {e}")
+        except (ConfigError, RuntimeInputError, OSError) as e:
+            eprint(f"hil run: {e.strerror if type(e) is OSError else e}")
             return EXIT_BAD_INPUT
         try:
             url = emulator.open()

@@ -21,8 +21,8 @@ from pathlib import Path
 import numpy as np
 
 from hil.runtime.arrow import pa
-from hil.runtime.record_writer import END_OF_STREAM, FORMAT, META_KEY
 from hil.runtime.run_folder import EVENTS, RECORDING
+from hil.runtime.stream_file import END_OF_STREAM, FORMAT, META_KEY
 
 
 class RecordingError(ValueError):

@@ -2,17 +2,17 @@
 
 The loop must neither allocate nor block, and a run may last a day, so nothing here grows
 with the run: :class:`Recorder` holds :attr:`Recorder.slots` rows (about one second, see
-:data:`hil.runtime.record_writer.RING_S`) in arrays allocated and touched before the clock
-starts.  The tick writes its row (:meth:`Recorder.record`, from the emulator's step; then
-:meth:`Recorder.end_tick` with the loop's own measurements, from
-:class:`~hil.runtime.streaming_loop.StreamingLoop`), and the writer thread
-(:mod:`hil.runtime.record_writer`) takes the committed rows out
-(:meth:`Recorder.pending`, :meth:`Recorder.columns`, :meth:`Recorder.release`).  A row the
+:data:`hil.runtime.record_writer.RING_S`) in shared memory allocated and touched before
+the clock starts (:mod:`hil.runtime.ring`).  The tick writes its row
+(:meth:`Recorder.record`, from the emulator's step; then :meth:`Recorder.end_tick` with
+the loop's own measurements, from :class:`~hil.runtime.streaming_loop.StreamingLoop`), and
+the writer process (:mod:`hil.runtime.record_process`) takes the committed rows out of
+the same memory.  A row the
 writer has not taken yet is never overwritten: when the ring is full the tick is not
 recorded but counted (:attr:`Recorder.lost`), and the loop keeps its period.
 
 One row per tick that ran, tick k carrying ``tick = k`` (a deadline the ``skip`` overrun
-policy dropped has no row).  Columns (:data:`COLUMNS`: dtype, unit, meaning):
+policy dropped has no row).  Columns (:func:`column_specs`: dtype, unit, meaning):
 
 * ``tick``, ``lateness_ns``, ``compute_ns``: the loop's deadline index and measurements;
 * the round-trip stamps of :mod:`hil.report.latency` -- ``tick_start_ns``, ``sp_t_ns``,
@@ -48,6 +48,7 @@ from operator import attrgetter
 import numpy as np
 
 from hil.drive import DriveSet, EmulatedDrive
+from hil.runtime.ring import RingLayout, SharedRing
 from io_adapters.messages import axis_records
 from plant import OUTPUTS
 from plant import layout as L
@@ -183,38 +184,48 @@ class Recorder:
 
     Attributes:
         slots: rows the ring holds.
+        ring: its memory, shared with the writer process
+            (:class:`~hil.runtime.ring.SharedRing`).
         committed: rows finished so far (by :meth:`end_tick`).
         drained: rows the writer has taken (:meth:`release`).
         lost: ticks not recorded because the ring was full.
         last_lost_tick: the last of them (-1: none).
         fault_marks: (tick, axis, fault events logged so far) each tick a drive's fault
-            log grew; the writer takes them out (a deque: one thread appends, the other
-            pops).
+            log grew; the writer's event thread takes them out (a deque: one thread
+            appends, the other pops).
     """
 
     def __init__(self, slots: int, kinds: tuple[str, ...],
                  axis_names: tuple[str, ...] | None = None):
-        if slots < 2:
-            raise ValueError(f"the ring needs at least 2 slots, got {slots}")
-        n_axes = len(kinds)
         self.slots = slots
         self.axis_names = axis_names
         self.specs = column_specs(kinds, axis_names)
         # column-major: a run of rows of one column is contiguous, so the writer hands
         # slices to the file without copying them
-        # np.full writes every page now: no page faults in the loop
-        self.common = np.full((len(_COMMON), slots), 0, dtype=np.int64)
-        self.ints = np.full((n_axes, len(AXIS_INTS), slots), 0, dtype=np.int64)
-        self.floats = np.full((n_axes, len(SP_FLOATS) + L.O_COUNT, slots), 0.0)
-        self.committed = 0
-        self.drained = 0
-        self.lost = 0
-        self.last_lost_tick = -1
+        self.ring = SharedRing(_layout(slots, len(kinds), axis_names))
+        self.common, self.ints, self.floats = self.ring.common, self.ring.ints, self.ring.floats
+        self._counters = self.ring.counters
         self.fault_marks: deque[tuple[int, int, int]] = deque()
-        self._faults_seen = [0] * n_axes
+        self._faults_seen = [0] * len(kinds)
         self._skip = False
         self._sp_floats = attrgetter(*SP_FLOATS)
         self._n_sp = len(SP_FLOATS)
+
+    @property
+    def committed(self) -> int:
+        return self.ring.committed
+
+    @property
+    def drained(self) -> int:
+        return self.ring.drained
+
+    @property
+    def lost(self) -> int:
+        return self.ring.lost
+
+    @property
+    def last_lost_tick(self) -> int:
+        return self.ring.last_lost_tick
 
     def record(self, k: int, heard: bool, tick_start_ns: int, sp, fb,
                drives: EmulatedDrive | DriveSet) -> None:
@@ -227,10 +238,12 @@ class Recorder:
             if n != self._faults_seen[i]:
                 self._faults_seen[i] = n
                 self.fault_marks.append((k, i, n))
-        self._skip = self.committed - self.drained >= self.slots
+        counters = self._counters
+        committed = counters[0]
+        self._skip = committed - counters[1] >= self.slots
         if self._skip:
             return
-        j, n_sp = self.committed % self.slots, self._n_sp
+        j, n_sp = committed % self.slots, self._n_sp
         floats, ints = self.floats, self.ints
         for i, (s, f, drive) in enumerate(zip(axis_records(sp), axis_records(fb), each)):
             floats[i, :n_sp, j] = self._sp_floats(s)
@@ -243,38 +256,37 @@ class Recorder:
     def end_tick(self, k: int, lateness_ns: int, compute_ns: int) -> None:
         """Finish tick ``k``'s row with the loop's measurements (the loop calls this after
         the step)."""
+        counters = self._counters
         if self._skip:
-            self.lost += 1
-            self.last_lost_tick = k
+            counters[2] += 1
+            counters[3] = k
             return
-        self.common[:3, self.committed % self.slots] = (k, lateness_ns, compute_ns)
-        self.committed += 1
+        self.common[:3, counters[0] % self.slots] = (k, lateness_ns, compute_ns)
+        counters[0] += 1  # after the row: the writer reads rows below this count
 
     def pending(self) -> tuple[int, int]:
         """(first, end) of the rows committed and not yet taken, as row numbers."""
-        return self.drained, self.committed
+        return self.ring.pending()
 
     def columns(self, start: int, stop: int) -> dict[str, np.ndarray]:
-        """Name -> rows ``start`` .. ``stop`` - 1 of each column, in the file's dtypes;
-        the rows must not wrap around the ring (``stop - start <= slots - start %
-        slots``).  Views into the ring where the dtype is int64 or float64: valid until
-        :meth:`release`."""
-        a = start % self.slots
-        b = a + stop - start
-        if b > self.slots:
-            raise ValueError(f"rows {start}..{stop} wrap around the ring of {self.slots}")
-        out = {}
-        for spec, values in zip(_COMMON, self.common[:, a:b]):
-            out[spec.name] = values.astype(spec.dtype, copy=False)
-        prefixes = ("",) if self.axis_names is None else tuple(f"{x}_" for x in self.axis_names)
-        n_ints = len(AXIS_INTS)
-        for i, prefix in enumerate(prefixes):
-            for spec, values in zip(_AXIS[:n_ints], self.ints[i, :, a:b]):
-                out[prefix + spec.name] = values.astype(spec.dtype, copy=False)
-            for spec, values in zip(_AXIS[n_ints:], self.floats[i, :, a:b]):
-                out[prefix + spec.name] = values.astype(spec.dtype, copy=False)
-        return out
+        """Name -> rows ``start`` .. ``stop`` - 1 of each column (see
+        :meth:`hil.runtime.ring.SharedRing.columns`)."""
+        return self.ring.columns(start, stop)
 
     def release(self, stop: int) -> None:
-        """The writer has taken every row before ``stop``: their slots may be reused."""
-        self.drained = stop
+        """Every row before ``stop`` has been taken: their slots may be reused."""
+        self.ring.release(stop)
+
+
+def _layout(slots: int, n_axes: int, axis_names: tuple[str, ...] | None) -> RingLayout:
+    """Where each column of :func:`column_specs` lives in the ring."""
+    prefixes = ("",) if axis_names is None else tuple(f"{x}_" for x in axis_names)
+    n_ints = len(AXIS_INTS)
+    columns = [(c.name, c.dtype, "common", 0, row) for row, c in enumerate(_COMMON)]
+    for axis, prefix in enumerate(prefixes):
+        columns += [(prefix + c.name, c.dtype, "ints", axis, row)
+                    for row, c in enumerate(_AXIS[:n_ints])]
+        columns += [(prefix + c.name, c.dtype, "floats", axis, row)
+                    for row, c in enumerate(_AXIS[n_ints:])]
+    return RingLayout(slots, n_axes, len(_COMMON), n_ints, len(_AXIS) - n_ints,
+                      tuple(columns))

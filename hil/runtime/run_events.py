@@ -5,10 +5,12 @@ The real-time path only appends what it already kept: a drive's
 :class:`~hil.drive.faults.FaultLog` its events (with the drive cycle), the
 :class:`~hil.runtime.watchdog.Watchdog` its events (with the tick), the
 :class:`~hil.runtime.recording.Recorder` a mark per tick a fault log grew and its count of
-ticks it could not record.  :class:`EventCollector`, called by the writer thread each
-flush, turns those into :class:`RunEvent` rows; overruns it finds in the rows themselves
-(a tick whose lateness plus compute time passes the period ended after the next deadline:
-the loop's own definition), one event per run of consecutive late ticks.
+ticks it could not record.  :class:`EventCollector`, called each flush by the recording's
+event thread in the emulator's process, turns those into :class:`RunEvent` rows, sent to
+the writer process; overruns the writer process finds in the rows themselves
+(:class:`Overruns`: a tick whose lateness plus compute time passes the period ended after
+the next deadline, the loop's own definition), one event per run of consecutive late
+ticks.
 
 ``tick`` is the loop's deadline index (``t_s = tick * period``); -1 for what happens
 outside the loop (the safe state after it).  A fault logged in the safe state has its
@@ -16,13 +18,15 @@ drive cycle (PWM periods since the drive was built) and tick -1.
 """
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from hil.drive import DriveSet
-from hil.drive.faults import FaultLog
-from hil.runtime.recording import Recorder
-from hil.runtime.watchdog import Watchdog
+if TYPE_CHECKING:  # the writer process imports this module without the drives
+    from hil.drive import DriveSet
+    from hil.drive.faults import FaultLog
+    from hil.runtime.recording import Recorder
+    from hil.runtime.watchdog import Watchdog
 
 #: overrun events written; later ones are counted in report.json only
 MAX_OVERRUN_EVENTS = 10_000
@@ -53,8 +57,9 @@ class RunEvent:
     count: int = 1
 
 
-class _Overruns:
-    """Runs of consecutive late rows, carried across batches."""
+class Overruns:
+    """Runs of consecutive late rows, carried across batches (the writer process scans
+    each batch it writes)."""
 
     def __init__(self, period_ns: int):
         self.period_ns = period_ns
@@ -64,6 +69,7 @@ class _Overruns:
 
     def scan(self, tick: np.ndarray, lateness: np.ndarray, compute: np.ndarray,
              out: list[RunEvent]) -> None:
+        """Append to ``out`` the runs that end in these rows (ns columns)."""
         excess = lateness + compute - self.period_ns
         rows = np.flatnonzero(excess > 0)
         if rows.size == 0 or rows[0] != 0:
@@ -80,6 +86,7 @@ class _Overruns:
                 self.close(out)
 
     def close(self, out: list[RunEvent]) -> None:
+        """Append the run still open, if any (the rows have ended)."""
         if self.open is None:
             return
         first, count, worst = self.open
@@ -92,29 +99,40 @@ class _Overruns:
                             f"{count} tick(s) from here ended after the next deadline, the "
                             f"latest by {worst / 1e3:.1f} µs", count=count))
 
+    def finish(self) -> list[RunEvent]:
+        """The run still open and the count of runs not listed, once the rows have ended."""
+        out: list[RunEvent] = []
+        self.close(out)
+        if self.dropped:
+            out.append(RunEvent(-1, "", "loop", "overruns not listed",
+                                f"{self.dropped} more runs of overruns after the first "
+                                f"{MAX_OVERRUN_EVENTS} (report.json counts them)",
+                                count=self.dropped))
+        return out
+
 
 class EventCollector:
-    """Turns what the drives, the watchdog and the recorder logged into events.
+    """Turns what the drives, the watchdog and the recorder logged into events, in the
+    emulator's process (overruns are found by the writer process in the rows,
+    :class:`Overruns`).
 
     Args:
         names: the axis letters, in the drives' order.
         drives: every axis's drive.
         watchdog: the emulator's watchdog.
         recorder: the ring (fault marks, ticks not recorded).
-        period_ns: the loop's period.
     """
 
-    def __init__(self, names: tuple[str, ...], drives: DriveSet, watchdog: Watchdog,
-                 recorder: Recorder, period_ns: int):
+    def __init__(self, names: tuple[str, ...], drives: "DriveSet", watchdog: "Watchdog",
+                 recorder: "Recorder"):
         self.names, self.drives = names, drives
         self.watchdog, self.recorder = watchdog, recorder
-        self.overruns = _Overruns(period_ns)
         self._faults_done = [0] * len(names)
         self._watchdog_done = 0
         self._lost_done = 0
 
-    def collect(self, rows: dict[str, np.ndarray]) -> list[RunEvent]:
-        """The events up to the rows just drained (``rows``: their columns)."""
+    def collect(self) -> list[RunEvent]:
+        """The events logged since the last call."""
         out: list[RunEvent] = []
         marks = self.recorder.fault_marks
         while marks:
@@ -128,16 +146,13 @@ class EventCollector:
             out.append(RunEvent(e.tick, self.names[e.axis] if e.axis >= 0 else "",
                                 "link" if link else "watchdog", e.kind,
                                 e.message(self.watchdog.period_s)))
-        self.overruns.scan(rows["tick"], rows["lateness_ns"], rows["compute_ns"], out)
         self._lost(out)
         return out
 
     def finish(self) -> list[RunEvent]:
-        """What remains once the loop has stopped: an overrun run still open, ticks not
-        recorded, faults logged in the safe state (tick -1), and what was only counted."""
-        out: list[RunEvent] = []
-        self.overruns.close(out)
-        self._lost(out)
+        """What remains once the loop has stopped: ticks not recorded, faults logged in
+        the safe state (tick -1), and what was only counted."""
+        out: list[RunEvent] = self.collect()
         for axis, d in enumerate(self.drives.drives):
             self._faults(axis, d.faults.n_events, -1, out)
             kept = len(d.faults.events)
@@ -146,11 +161,6 @@ class EventCollector:
                 out.append(RunEvent(-1, self.names[axis], "drive", "faults not listed",
                                     f"{more} fault events after the first {kept} were "
                                     "counted only (the drive keeps that many)", count=more))
-        if self.overruns.dropped:
-            out.append(RunEvent(-1, "", "loop", "overruns not listed",
-                                f"{self.overruns.dropped} more runs of overruns after the "
-                                f"first {MAX_OVERRUN_EVENTS} (report.json counts them)",
-                                count=self.overruns.dropped))
         kept = len(self.watchdog.events)
         if self.watchdog.n_events > kept:
             more = self.watchdog.n_events - kept
@@ -160,7 +170,7 @@ class EventCollector:
         return out
 
     def _faults(self, axis: int, n: int, tick: int, out: list[RunEvent]) -> None:
-        log: FaultLog = self.drives.drives[axis].faults
+        log: "FaultLog" = self.drives.drives[axis].faults
         kept = log.events
         for e in kept[self._faults_done[axis]:min(n, len(kept))]:
             kind = "fault" if e.kind == "fault" else "fault reset"

@@ -104,7 +104,7 @@ class RunFolder:
             os.close(fd)
 
     def release_reserve(self) -> None:
-        """Give the reserve back (idempotent; safe from the writer thread)."""
+        """Give the reserve back (idempotent; safe from the recording's answer thread)."""
         if self._reserved:
             self._reserved = False
             self.unlink(_RESERVE)

@@ -15,14 +15,13 @@ sink has the samples (:meth:`hil.runtime.record_writer.RecordingWriter.loop_perc
 """
 
 import sys
-import time
 from collections.abc import Callable
 from typing import Protocol
 
 import numpy as np
 
 from hil.rt.clock import Clock, MonotonicClock
-from hil.rt.loop import LoopStats, OverrunPolicy, Percentiles, StopReason
+from hil.rt.loop import LoopStats, OverrunPolicy, Percentiles, run_ticks
 
 
 class TickSink(Protocol):
@@ -59,54 +58,19 @@ class StreamingLoop:
         self.n_ticks = n_ticks
         self.policy = policy
         self.clock = clock if clock is not None else MonotonicClock.for_period(self.period_ns)
-        self._stop_requested = False
+        self.stop_requested = False
 
     def request_stop(self) -> None:
         """Stop before the next tick (safe from a signal handler or another thread)."""
-        self._stop_requested = True
+        self.stop_requested = True
 
     def run(self) -> LoopStats:
         """Run the ticks (until done, stopped by the policy, or asked to stop)."""
-        step, end_tick = self.step, self.sink.end_tick
-        now_ns, sleep_until = self.clock.now_ns, self.clock.sleep_until
-        period = self.period_ns
-        n = sys.maxsize if self.n_ticks is None else self.n_ticks
-        skip = self.policy.action == "skip"
-        stop_after = self.policy.stop_after if self.policy.action == "stop" else 0
-        grace = self.policy.grace_ticks
-        ticks = overruns = grace_overruns = skipped = 0
-        stopped_by: StopReason = "completed"
-
-        wall0, cpu0 = time.monotonic_ns(), time.process_time_ns()
-        t0 = now_ns() + period
-        k = 0
-        while k < n:
-            if self._stop_requested:
-                stopped_by = "stop_flag"
-                break
-            deadline = t0 + k * period
-            wake = sleep_until(deadline)
-            step(k)
-            end = now_ns()
-            end_tick(k, wake - deadline, end - wake)
-            ticks += 1
-            if end <= deadline + period:
-                k += 1
-                continue
-            if k < grace:
-                grace_overruns += 1
-            else:
-                overruns += 1
-                if overruns == stop_after:
-                    stopped_by = "overruns"
-                    break
-            k_next = min((end - t0) // period + 1, n) if skip else k + 1
-            skipped += k_next - k - 1
-            k = k_next
-        wall_ns, cpu_ns = time.monotonic_ns() - wall0, time.process_time_ns() - cpu0
+        c = run_ticks(self, self.sink.end_tick,
+                      sys.maxsize if self.n_ticks is None else self.n_ticks)
         none = Percentiles.of_ns_in_us(np.empty(0, dtype=np.int64))
         empty = np.empty(0, dtype=np.int64)
-        return LoopStats(period_ns=period, lateness_ns=empty, compute_ns=empty, ticks=ticks,
-                         overruns=overruns, grace_overruns=grace_overruns, skipped=skipped,
-                         stopped_by=stopped_by, wall_s=wall_ns * 1e-9, cpu_s=cpu_ns * 1e-9,
-                         lateness_us=none, compute_us=none)
+        return LoopStats(period_ns=self.period_ns, lateness_ns=empty, compute_ns=empty,
+                         ticks=c.ticks, overruns=c.overruns, grace_overruns=c.grace_overruns,
+                         skipped=c.skipped, stopped_by=c.stopped_by, wall_s=c.wall_s,
+                         cpu_s=c.cpu_s, lateness_us=none, compute_us=none)

@@ -28,24 +28,32 @@ class StudySpecError(ConfigError):
 
 @dataclass(frozen=True)
 class Range:
-    """A key's physical range: ``low`` < or <= value <= ``high`` (infinite: unbounded)."""
+    """A key's physical range: ``low`` < or <= value <= ``high`` (infinite: unbounded),
+    and 0 besides where ``zero`` says what 0 means (:func:`plant.schema.key`)."""
     low: float = -math.inf
     low_open: bool = False
     high: float = math.inf
+    zero: str | None = None
 
     def contains(self, value: float) -> bool:
         """True when ``value`` is inside."""
+        if value == 0.0 and self.zero:
+            return True
         above = value > self.low if self.low_open else value >= self.low
         return above and value <= self.high
 
     def describe(self, unit: str) -> str:
-        """The range in words, e.g. '> 0 N/m', '>= 0 and <= 2 1', 'any value (kg)'."""
+        """The range in words, e.g. '> 0 N/m', '>= 0 and <= 2 1', '0 (off) or > 1 s',
+        'any value (kg)'."""
         parts = []
         if self.low > -math.inf:
             parts.append(f"{'>' if self.low_open else '>='} {self.low:g} {unit}")
         if self.high < math.inf:
             parts.append(f"<= {self.high:g} {unit}")
-        return " and ".join(parts) if parts else f"any value ({unit})"
+        if not parts:
+            return f"any value ({unit})"
+        text = " and ".join(parts)
+        return f"0 ({self.zero}) or {text}" if self.zero else text
 
 
 @dataclass(frozen=True)
@@ -86,10 +94,11 @@ def declared_field(section: str, key: str, where: str):
 
 
 def _range(meta: dict) -> Range:
+    high = math.inf if meta["le"] is None else meta["le"]
+    zero = meta.get("zero")
     if meta["gt"] is not None:
-        return Range(meta["gt"], True, math.inf if meta["le"] is None else meta["le"])
-    return Range(-math.inf if meta["ge"] is None else meta["ge"], False,
-                 math.inf if meta["le"] is None else meta["le"])
+        return Range(meta["gt"], True, high, zero)
+    return Range(-math.inf if meta["ge"] is None else meta["ge"], False, high, zero)
 
 
 def nominal_value(cfg: MachineConfig, section: str, key: str) -> float | None:

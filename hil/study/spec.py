@@ -42,8 +42,6 @@ import hashlib
 from dataclasses import dataclass, replace
 from pathlib import Path
 
-import tomllib
-
 from hil.controller.config import load_controller
 from hil.study.analytic import AnalyticExperiment
 from hil.study.circularity import CircularityExperiment
@@ -64,6 +62,7 @@ from hil.study.keys import (
 )
 from hil.study.machine import MachineSource, read_machine
 from plant.assemble import build
+from plant.config import read_toml
 from plant.errors import ConfigError
 from plant.schema import key
 
@@ -302,11 +301,9 @@ def load_study(path: str | Path) -> Study:
     path = Path(path)
     where = str(path)
     try:
-        raw = tomllib.loads(path.read_text())
-    except FileNotFoundError as exc:
-        raise StudySpecError(f"{path}: no such study file") from exc
-    except tomllib.TOMLDecodeError as exc:
-        raise StudySpecError(f"{path}: not valid TOML: {exc}") from exc
+        raw = read_toml(path, "study file")
+    except ConfigError as exc:
+        raise StudySpecError(str(exc)) from exc
     for name in raw:
         if name not in SECTIONS:
             raise StudySpecError(f"{where}: unknown section [{name}] (sections: "
