@@ -6,9 +6,10 @@ metadata); a recording with one plant value changed must be reported as not matc
 that channel and tick.
 
 Setup: the Arrow 500 X at 2 kHz PWM (``runtime_helpers.SLOW_2KHZ``), a short program (a
-20 mm rapid and back, about 0.4 s).  The second run kills the controller (SIGKILL) in the
-middle of its program, so the emulator's watchdog trips and the drive's fault reaction
-brakes the axis: the replay must reproduce those decisions too.
+20 mm rapid and back, about 0.4 s).  The second run stops the controller (SIGSTOP) once the
+drive is enabled, so the emulator's watchdog trips and the drive's fault reaction brakes
+the axis -- the replay must reproduce those decisions too -- and continues it (SIGCONT):
+``hil controller`` must then exit 1 naming the drive's watchdog fault.
 """
 
 import json
@@ -61,10 +62,10 @@ def enabled_in_recording(run: Path) -> bool:
         return False
 
 
-def loopback(folder: Path, config: Path, kill: bool) -> Path:
-    """One loopback run of PROGRAM; returns the emulator's run folder.  With ``kill`` the
-    controller is killed (SIGKILL) once the drive is enabled, and the emulator runs on
-    until its watchdog has tripped."""
+def loopback(folder: Path, config: Path, pause: bool) -> tuple[Path, int, str]:
+    """One loopback run of PROGRAM; returns the emulator's run folder, the controller's
+    exit status and log.  With ``pause`` the controller is stopped (SIGSTOP) once the drive
+    is enabled, and continued (SIGCONT) once the emulator's watchdog has tripped."""
     program = folder / "short.nc"
     program.write_text(PROGRAM)
     run = folder / "emulator"
@@ -75,15 +76,15 @@ def loopback(folder: Path, config: Path, kill: bool) -> Path:
         ctl = children.start("controller", python_module(
             "hil.runtime.controller_proc", config, "--adapter", url, "--program", program,
             "--out", folder / "controller", *pin))
-        if kill:
+        if pause:
             wait_for("enabled drive", lambda: enabled_in_recording(run), children)
-            ctl.send_signal(signal.SIGKILL)
+            ctl.send_signal(signal.SIGSTOP)
             wait_for("watchdog trip", lambda: "watchdog: no setpoint" in
                      children.log("emulator"), children)
-        else:
-            assert ctl.wait(timeout=EXIT_S) == 0, children.log("controller")
+            ctl.send_signal(signal.SIGCONT)
+        status = ctl.wait(timeout=EXIT_S)
         assert terminate(emulator) == 0, children.log("emulator")
-    return run
+        return run, status, children.log("controller")
 
 
 @pytest.fixture(scope="module")
@@ -93,17 +94,20 @@ def config(tmp_path_factory) -> Path:
 
 @pytest.fixture(scope="module")
 def completed(config, tmp_path_factory) -> Path:
-    return loopback(tmp_path_factory.mktemp("completed"), config, kill=False)
+    run, status, log = loopback(tmp_path_factory.mktemp("completed"), config, pause=False)
+    assert status == 0, log
+    return run
 
 
 @pytest.fixture(scope="module")
-def tripped(config, tmp_path_factory) -> Path:
-    return loopback(tmp_path_factory.mktemp("tripped"), config, kill=True)
+def tripped(config, tmp_path_factory) -> tuple[Path, int, str]:
+    return loopback(tmp_path_factory.mktemp("tripped"), config, pause=True)
 
 
 def test_hil_replay_of_a_loopback_run_matches_its_recording(completed):
     out = subprocess.run([sys.executable, "-m", "hil.cli", "replay", completed, "--json"],
-                         cwd=ROOT, env=ENV, capture_output=True, text=True, timeout=300)
+                         check=False, cwd=ROOT, env=ENV, capture_output=True, text=True,
+                         timeout=300)
     assert out.returncode == 0, out.stderr
     result = json.loads(out.stdout)
     rows = Recording(completed).read(["tick", "sp_new", "drive_state"])
@@ -114,12 +118,21 @@ def test_hil_replay_of_a_loopback_run_matches_its_recording(completed):
 
 
 def test_the_watchdog_trip_and_fault_reaction_replay_too(tripped):
-    result = replay_run(tripped)
-    report = json.loads((tripped / "report.json").read_text())
+    run, _, _ = tripped
+    result = replay_run(run)
+    report = json.loads((run / "report.json").read_text())
     assert report["watchdog"]["events"][0]["kind"] == "tripped"
-    faults = Recording(tripped).read(["fb_fault"])["fb_fault"]
+    faults = Recording(run).read(["fb_fault"])["fb_fault"]
     assert (faults == 0x8250).any()  # the watchdog's error code, latched in the run
     assert result.matches, result.line()
+
+
+def test_the_controller_exits_1_and_says_the_watchdog_faulted_the_drive(tripped):
+    _, status, log = tripped
+    last = log.strip().splitlines()[-1]
+    assert status == 1, log
+    assert last.startswith("hil controller: FAIL: alarm 25201"), log
+    assert "603Fh = 8250h (no valid setpoint within the watchdog time)" in last
 
 
 def rewrite_recording(src: Path, dst: Path, column: str, row: int, factor: float) -> float:

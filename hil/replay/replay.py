@@ -45,7 +45,7 @@ from hil.runtime.common import RuntimeInputError, StopFlag
 from hil.runtime.emulator import Emulator
 from hil.runtime.emulator_config import RuntimeConfig
 from hil.runtime.record_reader import Recording, RecordingError
-from hil.runtime.recording import AXIS_INTS, SP_FLOATS
+from hil.runtime.recording import SP_FLOATS
 from io_adapters.messages import axis_records
 from plant.errors import ConfigError
 from plant.machines import load_machine_set
@@ -233,7 +233,7 @@ def replay_run(folder: Path | str, tolerance: float = TOLERANCE) -> ReplayResult
         rc = _runtime(meta, machine_file, where)
         _check_ticks(ticks, rc.overrun, where)
         try:
-            with Progress("replay: building the plant (a cold cache compiles it)") as p:
+            with Progress("replay: building the plant (a cold cache compiles it)"):
                 emu = Emulator(rc, load_machine_set(machine_file), StopFlag(), log=lambda m: None)
         except (ConfigError, RuntimeInputError) as e:
             raise ReplayError(f"{where}: the recorded machine files do not load: {e}") from e
