@@ -18,7 +18,7 @@ started; :meth:`Progress.close` ends it with the phase's duration.
 import sys
 import time
 from collections.abc import Callable
-from typing import TextIO
+from typing import Self, TextIO
 
 #: a phase shorter than this shows no progress, s
 QUIET_S = 2.0
@@ -55,7 +55,7 @@ class Progress:
         self._last_step = 0
         self._open_line = False
 
-    def __enter__(self) -> "Progress":
+    def __enter__(self) -> Self:
         return self
 
     def __exit__(self, *exc) -> None:

@@ -20,7 +20,6 @@ import pytest
 from hil.bench import adapters as bench_adapters
 from hil.report import host
 from hil.report.baseline import CyclictestBaseline
-from hil.report.render import markdown
 from hil.report.latency import (
     NO_VALUE,
     Pairing,
@@ -32,6 +31,7 @@ from hil.report.latency import (
     report_run,
     write_report,
 )
+from hil.report.render import markdown
 from hil.runtime.record_writer import FORMAT, META_KEY
 
 PERIOD_NS = 100_000
@@ -208,8 +208,8 @@ def test_written_report_has_json_markdown_with_units_and_pngs(tmp_path):
                  "| -5.000 µs | 64.990 µs | 69.890 µs | 69.980 µs | 69.990 µs |",  # slack
                  # wake-up latency: the loop's lateness + its 40 µs spin, cyclictest's own
                  "| wake-up latency, loop | 45.0 µs | 49.9 µs | 50.0 µs | 50.0 µs | 90.000 % |",
-                 "| wake-up latency, cyclictest 100 µs | 5.0 µs | 6.0 µs | 250.0 µs | 250.0 µs "
-                 "| 0.200 % |",
+                 ("| wake-up latency, cyclictest 100 µs | 5.0 µs | 6.0 µs | 250.0 µs | 250.0 µs "
+                 "| 0.200 % |"),
                  "| 50.000 µs | 54.900 µs | 59.800 µs | 59.900 µs | 59.900 µs |",  # transport
                  "Period 100.000 µs (10000 Hz); 1000 ticks run; 1 overruns; 1 missed ticks",
                  "| fifo | yes | SCHED_FIFO priority 80 |", "| lost | 0 |", "PREEMPT_RT",

@@ -38,7 +38,8 @@ def cfg():
     return load_machine(ARROW)
 
 
-def run(cfg, tmp_path, one_way_ns: np.ndarray | None = None, late_ns: int = 30_000):
+def run(cfg, tmp_path, one_way_ns: np.ndarray | None = None, late_ns: int = 30_000,
+        emulator_late_ns: int = 0):
     ctrl = Controller(cfg, T)
     res = ctrl.scale_res
     assert res > 0.0 and ctrl.polarity == 1.0 and ctrl.sec.position_cycle_ratio == 16
@@ -59,7 +60,8 @@ def run(cfg, tmp_path, one_way_ns: np.ndarray | None = None, late_ns: int = 30_0
         seq[t_next] = seq_next
     sp_t = 10**9 + tick * 125_000
     one_way = np.full(N_DRIVE, 20_000) if one_way_ns is None else one_way_ns
-    rec = {"tick": tick, "sp_new": new, "sp_seq": seq.astype(np.uint32),
+    rec = {"tick": tick, "lateness_ns": np.where(tick == 1000, emulator_late_ns, 0),
+           "sp_new": new, "sp_seq": seq.astype(np.uint32),
            "sp_t_ns": np.where(new == 1, sp_t, 0), "sp_rx_ns": np.where(new == 1, sp_t + one_way, 0),
            "plant_time_s": (tick + 1) * T, "plant_scale_counts": counts,
            "plant_encoder_counts": np.zeros(N_DRIVE)}
@@ -104,8 +106,8 @@ def test_the_tolerance_follows_from_the_transport_delay_and_jitter(cfg, tmp_path
     one_way[500] = 80_000
     cost, res = run(cfg, tmp_path, one_way)
     t = cost.tolerance
-    assert (t.delay_s, t.jitter_s, t.controller_lateness_s) == pytest.approx(
-        (20e-6, 60e-6, 30e-6))
+    assert (t.delay_s, t.jitter_s, t.controller_lateness_s, t.emulator_lateness_s) == \
+        pytest.approx((20e-6, 60e-6, 30e-6, 0.0))
     assert t.late_ticks == 1  # 110 µs < T
     assert t.v_max == pytest.approx(V) and t.a_max == pytest.approx(0.0, abs=1e-6)
     assert t.value == pytest.approx(LOOP_PEAK * V * T + 2 * res)
@@ -114,3 +116,6 @@ def test_the_tolerance_follows_from_the_transport_delay_and_jitter(cfg, tmp_path
     t = run(cfg, tmp_path, one_way)[0].tolerance
     assert t.late_ticks == math.ceil(330e-6 / T) == 3
     assert t.value == pytest.approx(LOOP_PEAK * V * 3 * T + 2 * res)
+    # a drive tick 1 ms late in the program (drive tick 1000): 1.33 ms, eleven ticks
+    t = run(cfg, tmp_path, one_way, emulator_late_ns=1_000_000)[0].tolerance
+    assert t.emulator_lateness_s == pytest.approx(1e-3) and t.late_ticks == 11

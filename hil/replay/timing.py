@@ -41,10 +41,12 @@ measurement's quantisation leave with perfect timing.
 **Tolerance** (what the verdict checks the timing cost against), derived from this run's
 measured transport:
 
-* ``D = delay + jitter``: the setpoint's one-way delay (``sp_rx_ns - sp_t_ns``, one host's
-  clock on loopback) p50 plus its jitter (max - p50), plus the controller's worst
-  lateness in the program (a late tick sends late): the latest a setpoint came after it
-  was due to be sent.
+* ``D = delay + jitter + controller lateness + emulator lateness``: the setpoint's one-way
+  delay (``sp_rx_ns - sp_t_ns``, one host's clock on loopback) p50 plus its jitter
+  (max - p50), plus the controller's worst lateness in the program (a late tick sends
+  late) and the emulator's (a late drive tick falls behind the controller: the setpoints
+  that come meanwhile are taken late or drained): the furthest the exchange of one tick
+  moved from the lock-step's.
 * A setpoint later than its tick is applied ``m = max(1, ceil(D / T))`` ticks late (T the
   period; any lateness past the deadline costs a whole tick).  Meanwhile the drive holds
   the previous target, at most ``v_max * m * T`` behind (``v_max`` the largest speed of
@@ -108,6 +110,7 @@ class Tolerance:
         delay_s: the setpoints' one-way delay, p50.
         jitter_s: their max - p50.
         controller_lateness_s: the controller's worst lateness in the program.
+        emulator_lateness_s: the emulator's worst lateness in the program.
         late_ticks: m.
         v_max, a_max: the largest speed and acceleration of the lock-step's commanded
             path (m/s, m/s²; rad/s, rad/s² rotary).
@@ -117,6 +120,7 @@ class Tolerance:
     delay_s: float
     jitter_s: float
     controller_lateness_s: float
+    emulator_lateness_s: float
     late_ticks: int
     v_max: float
     a_max: float
@@ -241,8 +245,8 @@ def timing_cost(rec: dict, npz: dict, lockstep_trace, cfg: MachineConfig,
     """The timing cost of a run (see the module docstring).
 
     Args:
-        rec: the recording's columns (tick, sp_new, sp_seq, sp_t_ns, sp_rx_ns,
-            plant_time_s, plant_scale_counts, plant_encoder_counts).
+        rec: the recording's columns (tick, lateness_ns, sp_new, sp_seq, sp_t_ns,
+            sp_rx_ns, plant_time_s, plant_scale_counts, plant_encoder_counts).
         npz: the controller's ``controller.npz`` columns (k, tick, fb_new, lag_ticks,
             fb_time_s, lateness_ns).
         lockstep_trace: the lock-step simulation's trace.csv.
@@ -289,7 +293,8 @@ def _tolerance(rec: dict, npz: dict, read_tick: np.ndarray, ls, ctrl: Controller
     """The tolerance of the module docstring from the program's ticks (drive ticks
     ``read_tick[0]`` .. ``read_tick[-1]``, the controller's rows of ``npz``)."""
     tick = rec["tick"]
-    window = (tick >= read_tick[0]) & (tick <= read_tick[-1]) & (rec["sp_new"] == 1)
+    program = (tick >= read_tick[0]) & (tick <= read_tick[-1])
+    window = program & (rec["sp_new"] == 1)
     one_way = (rec["sp_rx_ns"][window].astype(np.int64)
                - rec["sp_t_ns"][window].astype(np.int64)) * 1e-9
     delay = float(np.median(one_way))
@@ -297,7 +302,8 @@ def _tolerance(rec: dict, npz: dict, read_tick: np.ndarray, ls, ctrl: Controller
     lateness = npz["lateness_ns"]
     k = npz["k"][(npz["k"] >= 0) & (npz["k"] < lateness.size)]
     ctl_late = float(lateness[k].max()) * 1e-9 if k.size else 0.0
-    m = max(1, math.ceil((delay + jitter + ctl_late) / period_s))
+    emu_late = max(0.0, float(rec["lateness_ns"][program].max()) * 1e-9)
+    m = max(1, math.ceil((delay + jitter + ctl_late + emu_late) / period_s))
     dt = float(np.median(np.diff(ls.column("t_s"))))
     v = np.diff(ls.si(ls.resolve("pos_set_mm"))) / dt
     v_max = float(np.abs(v).max()) if v.size else 0.0
@@ -305,4 +311,4 @@ def _tolerance(rec: dict, npz: dict, read_tick: np.ndarray, ls, ctrl: Controller
     resolution = ctrl.scale_res or ctrl.rad_per_count * ctrl.ratio
     mt = m * period_s
     value = LOOP_PEAK * (v_max * mt + 0.5 * a_max * mt ** 2) + 2.0 * resolution
-    return Tolerance(delay, jitter, ctl_late, m, v_max, a_max, resolution, value)
+    return Tolerance(delay, jitter, ctl_late, emu_late, m, v_max, a_max, resolution, value)

@@ -65,6 +65,7 @@ from hil.runtime.demo_verdict import (
     check_processes,
     check_replay,
     check_timing,
+    timing_budget,
 )
 from hil.runtime.record_reader import Recording, RecordingError
 from plant.config import MachineConfig, load_machine
@@ -199,9 +200,7 @@ def _cost_rows(cost: TimingCost | str, k: float, unit: str) -> list[str]:
             f"{cost.diff_max_t_s:.4f} s, rms {cost.diff_rms * k:.2f} over {cost.rows} rows; "
             f"{cost.clean_diff * k:.2f} before the first late setpoint"),
             (f"  tolerance {t.value * k:.2f} {unit}: {LOOP_PEAK:g} x (v_max x m T + a_max x "
-            f"(m T)²/2) + 2 counts, m = {t.late_ticks} tick(s) from transport "
-            f"{t.delay_s * 1e6:.1f} µs + jitter {t.jitter_s * 1e6:.1f} µs + controller "
-            f"lateness {t.controller_lateness_s * 1e6:.1f} µs"),
+             f"(m T)²/2) + 2 counts, m = {t.late_ticks} tick(s) from {timing_budget(t)}"),
             (f"  setpoints due {cost.setpoints}: on time {cost.on_time}, late {cost.late}, "
             f"early {cost.early}, missed {cost.missed}; ticks without a new setpoint "
             f"{cost.held_ticks}; {len(cost.runs)} run(s) of late/missed setpoints")]

@@ -11,7 +11,8 @@ A demo run passes when all of these hold, and fails naming each that does not:
    watchdog trip and no drive fault event; the lock-step simulation raised no alarm.
 3. **The timing cost is within its tolerance**: max |FE_replay - FE_lockstep| on the
    program's servo-trace rows is within what this run's measured transport delay and
-   jitter can cause (:mod:`hil.replay.timing`, where the tolerance is derived).
+   jitter and the two loops' lateness can cause (:mod:`hil.replay.timing`, where the
+   tolerance is derived): a larger difference is something other than timing.
 
 A step that could not be made (a child that did not start, a replay refused) is a reason
 of its own; the steps after it that need its files are not judged.
@@ -20,7 +21,7 @@ of its own; the steps after it that need its files are not judged.
 from dataclasses import dataclass, field
 
 from hil.replay import ReplayResult
-from hil.replay.timing import TimingCost
+from hil.replay.timing import TimingCost, Tolerance
 from hil.runtime.common import EXIT_OK
 
 
@@ -89,6 +90,12 @@ def check_timing(v: Verdict, cost: TimingCost | str, k: float, unit: str) -> Non
     elif not cost.within:
         t = cost.tolerance
         v.fail(f"timing cost {cost.diff_max * k:.2f} {unit} beyond its tolerance "
-               f"{t.value * k:.2f} {unit} ({t.late_ticks} tick(s) late from transport "
-               f"{t.delay_s * 1e6:.1f} µs + jitter {t.jitter_s * 1e6:.1f} µs + controller "
-               f"lateness {t.controller_lateness_s * 1e6:.1f} µs)")
+               f"{t.value * k:.2f} {unit} ({t.late_ticks} tick(s) late from "
+               f"{timing_budget(t)})")
+
+
+def timing_budget(t: Tolerance) -> str:
+    """What the tolerance's ticks come from, in words with µs."""
+    return (f"transport {t.delay_s * 1e6:.1f} µs + jitter {t.jitter_s * 1e6:.1f} µs + "
+            f"controller lateness {t.controller_lateness_s * 1e6:.1f} µs + emulator "
+            f"lateness {t.emulator_lateness_s * 1e6:.1f} µs")
