@@ -13,9 +13,14 @@ started; :meth:`Progress.close` ends it with the phase's duration.
         for k in range(n_ticks):
             ...
             p.update(k + 1)
+
+A phase that blocks in one call (numba compiling, a child process running) passes
+``ticking=True``: a thread then updates the line with the time alone until the phase
+ends.
 """
 
 import sys
+import threading
 import time
 from collections.abc import Callable
 from typing import Self, TextIO
@@ -39,10 +44,13 @@ class Progress:
         unit: what ``total`` counts, shown with counts ("ticks").
         stream: where to write (stderr by default); a terminal when its ``isatty()`` says so.
         clock: seconds, monotonic (time.monotonic by default).
+        ticking: update the line from a thread of its own until :meth:`close` (a phase
+            that blocks in one call).
     """
 
     def __init__(self, label: str, total: int | None = None, unit: str = "",
-                 stream: TextIO | None = None, clock: Callable[[], float] = time.monotonic):
+                 stream: TextIO | None = None, clock: Callable[[], float] = time.monotonic,
+                 ticking: bool = False):
         self.label = label
         self.total = total
         self.unit = unit
@@ -54,6 +62,17 @@ class Progress:
         self._last_t = -float("inf")
         self._last_step = 0
         self._open_line = False
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self._ticker = None
+        if ticking:
+            self._ticker = threading.Thread(target=self._tick, name=f"progress: {label}",
+                                            daemon=True)
+            self._ticker.start()
+
+    def _tick(self) -> None:
+        while not self._stop.wait(TERMINAL_EVERY_S):
+            self.update()
 
     def __enter__(self) -> Self:
         return self
@@ -70,6 +89,10 @@ class Progress:
 
     def update(self, done: int | None = None) -> None:
         """``done`` of the work is done (None: only the time goes on)."""
+        with self._lock:
+            self._update(done)
+
+    def _update(self, done: int | None) -> None:
         now = self.clock()
         elapsed = now - self.t0
         if elapsed < QUIET_S:
@@ -94,6 +117,10 @@ class Progress:
 
     def close(self, note: str = "") -> None:
         """End the phase: a last line with its duration (and ``note``) if any was shown."""
+        if self._ticker is not None:
+            self._stop.set()
+            self._ticker.join()
+            self._ticker = None
         if not self.shown:
             return
         elapsed = self.clock() - self.t0

@@ -2,6 +2,7 @@
 (one per tenth of the work) when piped.  Time is a clock the test sets, never the wall."""
 
 import io
+import time
 
 from hil.progress import QUIET_S, Progress
 
@@ -66,3 +67,14 @@ def test_piped_progress_without_a_total_prints_every_five_seconds():
             p.update()
     assert out.getvalue().splitlines() == ["waiting: 2 s", "waiting: 7 s", "waiting: 12 s",
                                            "waiting: done in 12.0 s"]
+
+
+def test_a_ticking_phase_shows_its_time_while_the_caller_blocks():
+    out, clock = io.StringIO(), Clock()
+    p = Progress("compiling", stream=out, clock=clock, ticking=True)
+    clock.t += QUIET_S + 1.0  # the caller is busy: only the thread updates
+    deadline = time.monotonic() + 10.0
+    while not out.getvalue() and time.monotonic() < deadline:
+        time.sleep(0.01)
+    p.close()
+    assert out.getvalue().splitlines() == ["compiling: 3 s", "compiling: done in 3.0 s"]

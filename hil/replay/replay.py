@@ -233,7 +233,8 @@ def replay_run(folder: Path | str, tolerance: float = TOLERANCE) -> ReplayResult
         rc = _runtime(meta, machine_file, where)
         _check_ticks(ticks, rc.overrun, where)
         try:
-            with Progress("replay: building the plant (a cold cache compiles it)"):
+            with Progress("replay: building the plant (a cold cache compiles it)",
+                          ticking=True):
                 emu = Emulator(rc, load_machine_set(machine_file), StopFlag(), log=lambda m: None)
         except (ConfigError, RuntimeInputError) as e:
             raise ReplayError(f"{where}: the recorded machine files do not load: {e}") from e

@@ -257,7 +257,8 @@ def _baseline(period_ns: int, seconds: float) -> tuple[CyclictestBaseline | None
     """cyclictest at the run's period on the loop's CPU, and a note on what was run."""
     interval_us = max(1, round(period_ns / 1e3))
     try:
-        with Progress(f"hil demo: cyclictest, {interval_us} µs for {seconds:g} s"):
+        with Progress(f"hil demo: cyclictest, {interval_us} µs for {seconds:g} s",
+                      ticking=True):
             baseline = run_cyclictest_baseline(interval_us, seconds, cpu=last_cpu())
     except CyclictestError as e:
         return None, f"cyclictest failed: {e}"
