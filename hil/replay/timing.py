@@ -76,6 +76,8 @@ from plant.config import MachineConfig
 LOOP_PEAK = 2.0
 #: late runs listed in full in the printed summary (all are in the JSON)
 SHOWN_RUNS = 5
+#: the offset (ticks) of a setpoint that was never applied
+MISSED = 2 ** 31
 
 
 class TimingError(ValueError):
@@ -196,7 +198,7 @@ def _feedback_phase(rec: dict, npz: dict) -> int:
 
 def _setpoints(rec: dict, first: int, last: int) -> tuple[dict, np.ndarray, np.ndarray]:
     """Counts of the setpoints due in ticks first..last, and per faulty one its due tick
-    and how late it came (ticks; > 0 late, < 0 early, None-like 2**31 missed)."""
+    and how late it came (ticks; > 0 late, < 0 early, :data:`MISSED`)."""
     tick = rec["tick"].astype(np.int64)
     seq = rec["sp_seq"].astype(np.int64)
     window = (tick >= first) & (tick <= last)
@@ -216,10 +218,6 @@ def _setpoints(rec: dict, first: int, last: int) -> tuple[dict, np.ndarray, np.n
               "held_ticks": int((window & (rec["sp_new"] == 0)).sum())}
     bad = offset != 0
     return counts, due_seq[bad] + e, offset[bad]
-
-
-#: offset of a missed setpoint
-MISSED = 2 ** 31
 
 
 def _runs(due: np.ndarray, offset: np.ndarray, row_tick: np.ndarray,
