@@ -39,7 +39,7 @@ def cfg():
 
 
 def run(cfg, tmp_path, one_way_ns: np.ndarray | None = None, late_ns: int = 30_000,
-        emulator_late_ns: int = 0):
+        emulator_late_ns: int = 0, lost: range = range(0)):
     ctrl = Controller(cfg, T)
     res = ctrl.scale_res
     assert res > 0.0 and ctrl.polarity == 1.0 and ctrl.sec.position_cycle_ratio == 16
@@ -65,10 +65,12 @@ def run(cfg, tmp_path, one_way_ns: np.ndarray | None = None, late_ns: int = 30_0
            "sp_t_ns": np.where(new == 1, sp_t, 0), "sp_rx_ns": np.where(new == 1, sp_t + one_way, 0),
            "plant_time_s": (tick + 1) * T, "plant_scale_counts": counts,
            "plant_encoder_counts": np.zeros(N_DRIVE)}
+    keep = ~np.isin(tick, lost)  # rows the recording's writer lost
+    rec = {name: values[keep] for name, values in rec.items()}
     lateness = np.zeros(N_CTRL, dtype=np.int64)
     lateness[700] = late_ns
     npz = {"k": k, "tick": k.astype(float), "fb_new": np.ones(N_CTRL, dtype=np.int64),
-           "lag_ticks": np.zeros(N_CTRL, dtype=np.int64), "fb_time_s": rec["plant_time_s"][k + D],
+           "lag_ticks": np.zeros(N_CTRL, dtype=np.int64), "fb_time_s": (k + D + 1) * T,
            "lateness_ns": lateness}
     rows = k[k % 16 == 0]
     trace = write_trace(tmp_path / "lockstep.csv", {
@@ -119,3 +121,8 @@ def test_the_tolerance_follows_from_the_transport_delay_and_jitter(cfg, tmp_path
     # a drive tick 1 ms late in the program (drive tick 1000): 1.33 ms, eleven ticks
     t = run(cfg, tmp_path, one_way, emulator_late_ns=1_000_000)[0].tolerance
     assert t.emulator_lateness_s == pytest.approx(1e-3) and t.late_ticks == 11
+
+
+def test_ticks_without_a_row_say_nothing_about_their_setpoints(cfg, tmp_path):
+    cost, _ = run(cfg, tmp_path, lost=range(800, 810))
+    assert (cost.setpoints, cost.on_time, cost.late, cost.missed) == (983, 980, 1, 2)

@@ -28,7 +28,9 @@ cost.
 program's ticks that received one.  Every ``s`` due in the program's window is *on time*
 (first applied at its tick), *late* (first applied later; by how many ticks), *early*
 (applied before its tick: the phase moved), or *missed* (never applied: a newer one was
-taken first).  Ticks that received nothing held the previous setpoint.
+taken first).  Ticks that received nothing held the previous setpoint.  Only setpoints
+due on recorded ticks count (the recording has no row for a tick the skip policy dropped
+or the recording's writer lost).
 
 **Attribution, per run of them**: consecutive faulty setpoints (due on consecutive ticks)
 form one run; the following-error difference a run caused is the largest ``|dFE|`` on
@@ -197,8 +199,9 @@ def _feedback_phase(rec: dict, npz: dict) -> int:
 
 
 def _setpoints(rec: dict, first: int, last: int) -> tuple[dict, np.ndarray, np.ndarray]:
-    """Counts of the setpoints due in ticks first..last, and per faulty one its due tick
-    and how late it came (ticks; > 0 late, < 0 early, :data:`MISSED`)."""
+    """Counts of the setpoints due in the recorded ticks first..last (a tick without a row
+    -- dropped by the skip policy, or not recorded -- says nothing), and per faulty one its
+    due tick and how late it came (ticks; > 0 late, < 0 early, :data:`MISSED`)."""
     tick = rec["tick"].astype(np.int64)
     seq = rec["sp_seq"].astype(np.int64)
     window = (tick >= first) & (tick <= last)
@@ -208,7 +211,7 @@ def _setpoints(rec: dict, first: int, last: int) -> tuple[dict, np.ndarray, np.n
     e = int(np.median(tick[new] - seq[new]))
     seqs, idx = np.unique(seq[new], return_index=True)
     applied = tick[new][idx]
-    due_seq = np.arange(first - e, last - e + 1)
+    due_seq = tick[window] - e
     pos = np.clip(np.searchsorted(seqs, due_seq), 0, seqs.size - 1)
     found = seqs[pos] == due_seq
     offset = np.where(found, applied[pos] - (due_seq + e), MISSED)
