@@ -131,7 +131,8 @@ def test_the_controller_exits_1_and_says_the_watchdog_faulted_the_drive(tripped)
     _, status, log = tripped
     last = log.strip().splitlines()[-1]
     assert status == 1, log
-    assert last.startswith("hil controller: FAIL: alarm 25201"), log
+    # paused mid-move, the NC may see its contour monitoring (25050) go first on resuming
+    assert last.startswith("hil controller: FAIL: alarm 25") and "alarm 25201" in last, log
     assert "603Fh = 8250h (no valid setpoint within the watchdog time)" in last
 
 
