@@ -13,6 +13,7 @@
     hil eds CONFIG --adapter can://... [--out DIR]
     hil study SPEC.toml [--out DIR] [--workers N | --scheduler tcp://HOST:8786] [--fresh]
     hil report RUN [--cyclictest] [--controller DIR]
+    hil replay RUN [--tolerance REL] [--json]
     hil export RUN --to mdf4|csv [--axis X] [--out PATH] [--force]
     hil soak [--minutes N] [--rate HZ] [--no-rt] [--out DIR]
     hil config-keys [--markdown]
@@ -251,6 +252,12 @@ def build_parser() -> argparse.ArgumentParser:
                    help="hil controller's --out folder: pair its controller.npz with the "
                         "run for the round trip's total and transport")
     r.set_defaults(func=cmd_report)
+
+    from hil.replay import command as replay_command
+    rp = sub.add_parser("replay", help="re-run a recorded run offline on the setpoints it "
+                        "applied and compare it with its recording")
+    replay_command.add_arguments(rp)
+    rp.set_defaults(func=replay_command.run_from_args)
 
     from hil.runtime import controller_proc, demo, emulator, export, soak
 

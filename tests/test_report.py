@@ -196,21 +196,50 @@ def test_host_is_taken_now_when_the_run_recorded_none():
 
 # -- the files -------------------------------------------------------------------------------
 
-def test_written_report_has_json_markdown_with_units_and_a_png(tmp_path):
-    report = build_report(synthetic_run(), CyclictestBaseline.from_histogram(HISTOGRAM, 100))
-    paths = write_report(tmp_path, report)
-    assert [p.name for p in paths] == ["report_latency.json", "report.md", "latency_hist.png"]
+def test_written_report_has_json_markdown_with_units_and_pngs(tmp_path):
+    run = synthetic_run()
+    report = build_report(run, CyclictestBaseline.from_histogram(HISTOGRAM, 100))
+    paths = write_report(tmp_path, report, run)
+    assert [p.name for p in paths] == ["report_latency.json", "report.md", "latency_hist.png",
+                                       "latency_time.png"]
     assert json.loads(paths[0].read_text()) == report
     md = paths[1].read_text()
     for text in ("| 0.010 µs | 5.000 µs | 9.900 µs | 9.990 µs | 10.000 µs |",  # lateness
                  "| -5.000 µs | 64.990 µs | 69.890 µs | 69.980 µs | 69.990 µs |",  # slack
-                 "| 5 µs | 5 µs | 6 µs | 250 µs | 250 µs |",  # cyclictest
+                 # wake-up latency: the loop's lateness + its 40 µs spin, cyclictest's own
+                 "| wake-up latency, loop | 45.0 µs | 49.9 µs | 50.0 µs | 50.0 µs | 90.000 % |",
+                 ("| wake-up latency, cyclictest 100 µs | 5.0 µs | 6.0 µs | 250.0 µs | 250.0 µs "
+                 "| 0.200 % |"),
                  "| 50.000 µs | 54.900 µs | 59.800 µs | 59.900 µs | 59.900 µs |",  # transport
                  "Period 100.000 µs (10000 Hz); 1000 ticks run; 1 overruns; 1 missed ticks",
                  "| fifo | yes | SCHED_FIFO priority 80 |", "| lost | 0 |", "PREEMPT_RT",
-                 "![tick lateness histogram](latency_hist.png)"):
+                 "![tick lateness histogram](latency_hist.png)",
+                 "![lateness and compute time over the run](latency_time.png)"):
         assert text in md, text
-    assert paths[2].read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    for png in paths[2:]:
+        assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_wake_up_latency_is_spin_plus_lateness_where_the_sleep_overshot():
+    # 100 µs period: the clock spins the last 40 µs.  900 ticks woke on time after the spin
+    # (0.2 µs late: a clock read), 100 slept past the margin by 1..100 µs
+    lateness = np.r_[np.full(900, 200), 1000 * np.arange(1, 101)].astype(np.int64)
+    w = build_report(synthetic_run(lateness_ns=lateness, compute_ns=np.full(1000, 30_000),
+                                   round_trip=None))["wakeup"]
+    assert w["spin_us"] == 40.0
+    loop = w["loop"]
+    assert loop["beyond_spin"] == 0.099  # the 1 µs one is within a clock read's allowance
+    # p50 falls among the hidden ones; p99 is the 990th smallest: 90 µs past, + 40 µs spin
+    assert loop["wakeup_us"] == {"p50": None, "p99": 130.0, "p999": 139.0, "max": 140.0}
+    assert loop["lateness_us"] == {"p50": 0.2, "p99": 90.0, "p999": 99.0, "max": 100.0}
+
+
+def test_cyclictest_lateness_after_the_spin_is_its_latency_less_the_spin():
+    base = CyclictestBaseline.from_histogram(HISTOGRAM, interval_us=100)
+    cyc = build_report(synthetic_run(), base)["wakeup"]["cyclictest"]
+    assert cyc["wakeup_us"] == {"p50": 5.0, "p99": 6.0, "p999": 250.0, "max": 250.0}
+    assert cyc["lateness_us"] == {"p50": 0.0, "p99": 0.0, "p999": 210.0, "max": 210.0}
+    assert cyc["beyond_spin"] == 2 / 1000  # the two overflows; every bin is below 40 µs
 
 
 def test_load_run_derives_the_parts_from_the_stamps(tmp_path):

@@ -2,9 +2,13 @@
 
 :func:`load_run` reads a run folder into a :class:`RunData`, pairing its round trips with
 the controller's recording when given one; :func:`build_report` reduces it to a JSON-ready
-dict; :func:`write_report` writes ``report_latency.json``, ``report.md`` and
-``latency_hist.png`` into a folder.  :func:`report_run` does all three, with an optional
-cyclictest baseline at the run's period (:mod:`hil.report.baseline`).
+dict; :func:`write_report` writes ``report_latency.json``, ``report.md``,
+``latency_hist.png`` and, given the run, ``latency_time.png`` (lateness and compute time
+over the run) into a folder.  :func:`report_run` does all of it, with an optional
+cyclictest baseline at the run's period (:mod:`hil.report.baseline`).  The loop's
+wake-up latency and its lateness after the spin are each set beside cyclictest's
+(:mod:`hil.report.wakeup`): the recording's lateness is measured after the loop's spin,
+cyclictest's latency before any, so they are not compared directly.
 
 Percentiles are nearest rank, as :mod:`hil.rt` computes them
 (:meth:`hil.rt.loop.Percentiles.of_ns_in_us`): the p-th percentile of n samples is the
@@ -109,6 +113,7 @@ import numpy as np
 
 from hil.report.baseline import CyclictestBaseline, run_cyclictest_baseline
 from hil.report.host import host_fingerprint
+from hil.report.wakeup import wakeup_report
 from hil.rt.cyclictest import CyclictestError
 from hil.rt.loop import SKIPPED, Percentiles
 from hil.rt.scheduling import last_cpu
@@ -121,6 +126,7 @@ CONTROLLER_KEYS = ("fb_sp_t_ns", "fb_t_ns", "fb_rx_ns")
 REPORT_JSON = "report_latency.json"
 REPORT_MD = "report.md"
 REPORT_PNG = "latency_hist.png"
+TIMELINE_PNG = "latency_time.png"
 #: a slot with no value: the loop's marker of a dropped tick, also used for a tick
 #: without a round trip
 NO_VALUE = SKIPPED
@@ -432,6 +438,7 @@ def build_report(run: RunData, cyclictest: CyclictestBaseline | None = None) -> 
                         "transport_us", "wait_us", "compute_us"} or null,
          "adapter": {"name", "stats"} or null, "scheduling", "host", "host_source",
          "cyclictest": {"interval_us", "samples", "overflows", "latency_us"} or null,
+         "wakeup": hil.report.wakeup.wakeup_report(...),
          "histogram": {"edges_us", "lateness_counts", "cyclictest_counts"},
          "percentiles"}
 
@@ -461,22 +468,28 @@ def build_report(run: RunData, cyclictest: CyclictestBaseline | None = None) -> 
         "host": run.host if run.host is not None else host_fingerprint(),
         "host_source": "run" if run.host is not None else "report",
         "cyclictest": baseline,
+        "wakeup": wakeup_report(lateness, run.period_ns, cyclictest),
         "histogram": _histogram(lateness, cyclictest),
         "percentiles": PERCENTILE_DEFINITION,
     }
 
 
-def write_report(folder: Path | str, report: dict) -> list[Path]:
-    """Write ``report_latency.json``, ``report.md`` and ``latency_hist.png`` into
-    ``folder``; returns their paths."""
-    from hil.report.render import markdown, plot_histogram
+def write_report(folder: Path | str, report: dict, run: RunData | None = None) -> list[Path]:
+    """Write ``report_latency.json``, ``report.md``, ``latency_hist.png`` and, given the
+    ``run`` the report was built from, ``latency_time.png`` into ``folder``; returns their
+    paths."""
+    from hil.report.render import markdown, plot_histogram, plot_timeline
 
     folder = Path(folder)
     json_path, md_path, png_path = folder / REPORT_JSON, folder / REPORT_MD, folder / REPORT_PNG
     json_path.write_text(json.dumps(report, indent=1, allow_nan=False) + "\n")
-    md_path.write_text(markdown(report, title=folder.name, histogram_png=REPORT_PNG))
+    md_path.write_text(markdown(report, title=folder.name, histogram_png=REPORT_PNG,
+                                timeline_png=None if run is None else TIMELINE_PNG))
     plot_histogram(report, png_path)
-    return [json_path, md_path, png_path]
+    if run is None:
+        return [json_path, md_path, png_path]
+    return [json_path, md_path, png_path,
+            plot_timeline(run.lateness_ns, run.compute_ns, run.period_ns, folder / TIMELINE_PNG)]
 
 
 def report_run(folder: Path | str, cyclictest_s: float | None = None,
@@ -502,5 +515,5 @@ def report_run(folder: Path | str, cyclictest_s: float | None = None,
             if baseline is None:
                 note("cyclictest is not installed (apt-get install rt-tests): no baseline")
     report = build_report(run, baseline)
-    write_report(folder, report)
+    write_report(folder, report, run)
     return report

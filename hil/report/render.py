@@ -1,10 +1,16 @@
-"""The latency report for people: a Markdown page and a lateness histogram (PNG).
+"""The latency report for people: a Markdown page, a lateness histogram and a plot of
+lateness and compute time over the run (PNG).
 
-Both read only the dict :func:`hil.report.latency.build_report` returns.  Every figure
-in the Markdown carries its unit.
+The page and the histogram read only the dict :func:`hil.report.latency.build_report`
+returns; the plot over time takes the per-tick arrays.  Every figure in the Markdown
+carries its unit.
 """
 
 from pathlib import Path
+
+import numpy as np
+
+from hil.report.wakeup import KEYS
 
 NEGATIVE_WAIT = ("A negative wait: the setpoint arrived after its tick had started but "
                  "before the daemon polled for it inside the step (microseconds, more when "
@@ -16,6 +22,12 @@ NO_PAIRING = ("Total and transport need the controller's receive stamps: "
               "`hil report RUN --controller DIR` pairs them from its controller.npz.")
 QUANTILES = (("min", "min"), ("p50", "p50"), ("p99", "p99"), ("p999", "p99.9"),
              ("max", "max"))
+WAKEUP_TEXT = ("The loop sleeps until {spin:.0f} µs before each deadline and spins from "
+               "there.  Its wake-up latency (how late the sleep returned: what cyclictest "
+               "measures) is known only where it passed the spin margin (spin + lateness); "
+               "below, the spin hides it.  Its lateness after the spin is what the recording "
+               "holds; cyclictest's equivalent is max(0, latency − spin), what this loop "
+               "would have seen with cyclictest's wake-ups.")
 
 
 def _cell(text) -> str:
@@ -40,11 +52,9 @@ def _table_head(first: str) -> list[str]:
 
 def _timing(report: dict) -> list[str]:
     lines = ["## Tick timing", ""] + _table_head("quantity")
-    lines.append(_row("tick lateness (wake-up − deadline)", report["lateness_us"]))
+    lines.append(_row("tick lateness after the spin (wake-up − deadline)",
+                      report["lateness_us"]))
     base = report["cyclictest"]
-    if base is not None:
-        lines.append(_row(f"cyclictest wake-up latency, {base['interval_us']} µs interval "
-                          f"(baseline)", base["latency_us"], decimals=0))
     lines.append(_row("compute time (end of step − wake-up)", report["compute_us"]))
     lines.append(_row("slack (period − compute − lateness; worst = min)", report["slack_us"]))
     lines.append("")
@@ -54,6 +64,33 @@ def _timing(report: dict) -> list[str]:
         lines.append(f"cyclictest: {base['samples']} wake-ups in 1 µs bins (whole µs, "
                      f"truncated), {base['overflows']} past the histogram's range; run when "
                      f"the report was made, on the same CPU and priority the loop asks for.")
+    return lines + [""] + _wakeup(report)
+
+
+def _wakeup_cells(q: dict, none: str) -> str:
+    return " | ".join(none if q[k] is None else f"{q[k]:.1f} µs" for k in KEYS)
+
+
+def _wakeup(report: dict) -> list[str]:
+    """Wake-up latency and lateness after the spin, each beside cyclictest's."""
+    w = report["wakeup"]
+    spin, loop, cyc = w["spin_us"], w["loop"], w["cyclictest"]
+    hidden = f"≤ {spin:.0f} µs"
+    share = "—" if loop["beyond_spin"] is None else f"{100 * loop['beyond_spin']:.3f} %"
+    lines = [f"## Wake-up latency and lateness after the {spin:.0f} µs spin", "",
+             WAKEUP_TEXT.format(spin=spin), "",
+             "| quantity | p50 | p99 | p99.9 | max | later than the spin |",
+             "|---|--:|--:|--:|--:|--:|",
+             f"| wake-up latency, loop | {_wakeup_cells(loop['wakeup_us'], hidden)} | {share} |"]
+    if cyc is not None:
+        cshare = "—" if cyc["beyond_spin"] is None else f"{100 * cyc['beyond_spin']:.3f} %"
+        lines.append(f"| wake-up latency, cyclictest {cyc['interval_us']} µs | "
+                     f"{_wakeup_cells(cyc['wakeup_us'], '—')} | {cshare} |")
+    lines.append(f"| lateness after the spin, loop | {_wakeup_cells(loop['lateness_us'], '—')} "
+                 f"| |")
+    if cyc is not None:
+        lines.append(f"| lateness after the spin, cyclictest (max(0, latency − spin)) | "
+                     f"{_wakeup_cells(cyc['lateness_us'], '—')} | |")
     return lines + [""]
 
 
@@ -124,8 +161,10 @@ def _host(report: dict) -> list[str]:
             + [f"| {key} | {_cell(value)} |" for key, value in rows] + [""])
 
 
-def markdown(report: dict, title: str, histogram_png: str) -> str:
-    """The report as Markdown, linking the histogram image ``histogram_png``."""
+def markdown(report: dict, title: str, histogram_png: str,
+             timeline_png: str | None = None) -> str:
+    """The report as Markdown, linking the histogram image ``histogram_png`` and the plot
+    over time ``timeline_png`` (None: none)."""
     period_us = report["period_us"]
     summary = (f"Period {period_us:.3f} µs ({1e6 / period_us:.0f} Hz); {report['ticks']} ticks "
                f"run; {report['overruns']} overruns; {report['missed_ticks']} missed ticks "
@@ -135,6 +174,8 @@ def markdown(report: dict, title: str, histogram_png: str) -> str:
     lines += _timing(report) + _round_trip(report) + _adapter(report)
     lines += _scheduling(report) + _host(report)
     lines += [f"![tick lateness histogram]({histogram_png})", ""]
+    if timeline_png is not None:
+        lines += [f"![lateness and compute time over the run]({timeline_png})", ""]
     return "\n".join(lines)
 
 
@@ -167,6 +208,39 @@ def plot_histogram(report: dict, path: Path) -> Path:
     ax.set_title(f"Tick lateness, period {report['period_us']:.3f} µs")
     ax.grid(alpha=0.3, which="both")
     ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def plot_timeline(lateness_ns: np.ndarray, compute_ns: np.ndarray, period_ns: int,
+                  path: Path) -> Path:
+    """Lateness and compute time of every tick over the run (µs, one slot per deadline,
+    ``hil.report.latency.NO_VALUE`` where a tick did not run), the period marked on the
+    compute time and lateness + compute (an overrun above it)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from hil.report.latency import NO_VALUE
+
+    ran = np.flatnonzero(lateness_ns != NO_VALUE)
+    t_s = ran * period_ns * 1e-9
+    late, comp = lateness_ns[ran] / 1e3, compute_ns[ran] / 1e3
+    fig, (ax1, ax2) = plt.subplots(2, 1, figsize=(9, 5.5), sharex=True)
+    ax1.plot(t_s, late, ",", color="C0")
+    ax1.set_ylabel("lateness after the spin (µs)")
+    ax1.set_title(f"Every tick of the run, period {period_ns / 1e3:.3f} µs")
+    ax2.plot(t_s, comp, ",", color="C2", label="compute time")
+    ax2.plot(t_s, late + comp, ",", color="C3", alpha=0.4, label="lateness + compute")
+    ax2.axhline(period_ns / 1e3, color="k", linestyle="--", label="period (overrun above)")
+    ax2.set_ylabel("µs")
+    ax2.set_xlabel("time since the loop started (s)")
+    for ax in (ax1, ax2):
+        ax.grid(alpha=0.3)
+    ax2.legend(fontsize=8, markerscale=20, loc="upper right")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)

@@ -48,6 +48,9 @@ leaving OPERATION ENABLED, after a fault or the emulator's watchdog, is alarm 25
 the drive's error code; ``summary.json`` lists every alarm with its number, axis, text,
 tick and time, and stderr prints one line each), no feedback comes for
 ``--feedback-timeout`` cycles, or the axis is not where the program starts (``--start``).
+The last line on stderr of a failed run is ``hil controller: FAIL: <reasons>``: each
+alarm, and the drive's error code 603Fh in words when a drive reported a fault (8250h: the
+emulator's watchdog found no valid setpoint in time).
 """
 
 import argparse
@@ -67,6 +70,7 @@ from hil.controller.interpolator import plan
 from hil.controller.machine import MachineController
 from hil.controller.path import read_path_program
 from hil.controller.program import ProgramError, read_program
+from hil.drive.faults import ERROR_CODE, TEXT
 from hil.rt.clock import MonotonicClock
 from hil.rt.loop import OverrunPolicy, RealTimeLoop
 from hil.runtime.common import (
@@ -111,6 +115,8 @@ __all__ = [
     "ControllerProcess",
     "ControllerRunConfig",
     "add_arguments",
+    "failure_reasons",
+    "fault_text",
     "main",
     "run_from_args",
 ]
@@ -281,6 +287,12 @@ class ControllerProcess:
             mctrl.run_profiles(self.profiles)
             self.running = True
 
+    def drive_faults(self) -> list[str]:
+        """The error code 603Fh of each axis whose last feedback reported one, in words."""
+        names = self.machine.names
+        return [f"axis {name}: the drive reported 603Fh = {f.fault:04X}h "
+                f"({fault_text(f.fault)})" for name, f in zip(names, self.fbs) if f.fault]
+
     def _fail(self, reason: str) -> None:
         self.result = reason
         self.loop.request_stop()
@@ -321,6 +333,19 @@ class ControllerProcess:
             except AdapterError:
                 self.adapter_errors += 1
             time.sleep(self.period_s)
+
+
+def fault_text(code: int) -> str:
+    """A drive's error code 603Fh in words (:data:`hil.drive.faults.TEXT`)."""
+    texts = [TEXT[cause] for cause, c in ERROR_CODE.items() if c == code]
+    return " or ".join(texts) if texts else "a code this emulator does not use"
+
+
+def failure_reasons(summary: dict, drive_faults: list[str]) -> list[str]:
+    """Why a run failed, one phrase each: every alarm, else the result; then the drives'
+    faults (``drive_faults``, :meth:`ControllerProcess.drive_faults`)."""
+    reasons = [a["message"] for a in summary["alarms"]] or [summary["result"]]
+    return reasons + drive_faults
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -378,11 +403,8 @@ def run_from_args(args: argparse.Namespace) -> int:
           f"{fe_max if fe_max is None else format(fe_max, '.4g')} {u}; round trip p50 "
           f"{rt['p50']:.1f} p99 {rt['p99']:.1f} µs; summary in {rc.out_dir / 'summary.json'}",
           flush=True)
-    if summary["alarms"]:
-        for alarm in summary["alarms"]:
-            eprint(f"hil controller: {alarm['message']}")
-    elif summary["exit_status"] != EXIT_OK:
-        eprint(f"hil controller: {summary['result']}")
+    if summary["exit_status"] != EXIT_OK:
+        eprint(f"hil controller: FAIL: {'; '.join(failure_reasons(summary, proc.drive_faults()))}")
     return summary["exit_status"]
 
 

@@ -1,5 +1,5 @@
 """``hil demo``: the emulator and the simulated controller as two processes over UDP
-loopback, then the following error beside the lock-step simulation and the timing.
+loopback, the run replayed and set beside the lock-step simulation, and a verdict.
 
 1. ``hil run`` (``python -m hil.runtime.emulator``) on the machine file, ``udp://127.0.0.1:0``
    (a free port, read back from its ``ready:`` line), on the last CPU;
@@ -7,19 +7,26 @@ loopback, then the following error beside the lock-step simulation and the timin
    with the part program, on the first CPU when there are two or more;
 3. when the controller is done, SIGTERM to the emulator (its clean stop: safe state,
    recording and report written);
-4. ``hil sim`` of the same program (:func:`hil.commands.run_sim`), and the comparison;
+4. the three traces (:mod:`hil.replay.timing`): ``hil sim`` of the same program
+   (:func:`hil.commands.run_sim`, the lock-step), the **replay** of the emulator's run on
+   the setpoints it applied (:func:`hil.replay.replay_run`, checked against the
+   **recording** to 1e-9), and the **timing cost** lock-step - replay, with the late and
+   missed setpoints counted and the following-error difference each run of them caused;
 5. the latency report of the emulator's run with its round trips paired with the
-   controller's rows (``hil report emulator --controller controller``, no cyclictest
-   baseline; :mod:`hil.report.latency`), its round-trip split printed.
+   controller's rows (``hil report emulator --controller controller``; wake-up latency
+   and lateness each beside a cyclictest of the same period when rt-tests is installed;
+   :mod:`hil.report.latency`);
+6. the verdict, the last line printed: ``PASS`` or ``FAIL: <reasons>``
+   (:mod:`hil.runtime.demo_verdict`).
 
-Every child gets a timeout and is killed if still running when the demo leaves.  Files go
-to ``--out``: ``emulator/`` (the run folder), ``controller/`` (trace.csv,
-controller.npz, summary.json), ``lockstep/`` (trace.csv, sim.png), the latency report
-(report.md, report_latency.json, latency_hist.png), the two logs and ``demo.json``.
-Exit status 0 when both processes finished cleanly and neither the controller nor the
-lock-step simulation raised an alarm, 1 otherwise (the reason printed: the alarms, from the
-controller's ``summary.json``, one line each), 2 when the machine file or the program is
-refused (before anything starts).
+Every child gets a timeout and is killed if still running when the demo leaves; each phase
+longer than two seconds shows its progress on stderr (:mod:`hil.progress`).  Files go to
+``--out``: ``emulator/`` (recording.arrows, events.arrows, report.json and the latency
+report: report.md, report_latency.json, latency_hist.png, latency_time.png),
+``controller/`` (trace.csv, controller.npz, summary.json), ``lockstep/`` (trace.csv,
+sim.png), the two logs and ``demo.json`` (the replay, the timing cost, the verdict).  Exit
+status 0 on PASS, 1 on FAIL, 2 when the machine file or the program is refused (before
+anything starts).
 """
 
 import argparse
@@ -31,7 +38,6 @@ import signal
 import subprocess
 import sys
 import time
-from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
@@ -39,11 +45,29 @@ import numpy as np
 from hil.commands import run_sim
 from hil.controller.config import clamp_codes, load_controller
 from hil.controller.program import ProgramError, read_program
+from hil.progress import Progress
+from hil.replay import ReplayError, ReplayResult, replay_run
+from hil.replay.timing import (
+    LOOP_PEAK,
+    SHOWN_RUNS,
+    TimingCost,
+    timing_cost,
+)
+from hil.report.baseline import CyclictestBaseline, run_cyclictest_baseline
 from hil.report.latency import build_report, load_run, write_report
+from hil.report.wakeup import wakeup_rows
+from hil.rt.cyclictest import CyclictestError
+from hil.rt.scheduling import last_cpu
 from hil.runtime.common import EXIT_BAD_INPUT, EXIT_FAILED, EXIT_OK, eprint, write_json
-from hil.runtime.sync import settled_rows
-from hil.trace_file import read_trace
-from plant.config import load_machine
+from hil.runtime.demo_verdict import (
+    Verdict,
+    check_processes,
+    check_replay,
+    check_timing,
+    timing_budget,
+)
+from hil.runtime.record_reader import Recording
+from plant.config import MachineConfig, load_machine
 from plant.errors import ConfigError
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -53,71 +77,27 @@ DEFAULT_PROGRAM = ROOT / "programs" / "demo_moves.nc"
 READY_TIMEOUT_S = 120.0
 #: longest wait for the controller beyond its program, and for the emulator's stop
 CHILD_TIMEOUT_S = 120.0
+#: how often a wait for a child looks again (and updates its progress line), s
+POLL_S = 0.25
+#: the cyclictest baseline run after the loopback run, s
+DEFAULT_CYCLICTEST_S = 5.0
 
 
 class DemoError(RuntimeError):
     """A child process did not start or finish as expected; the message says which."""
 
 
-@dataclass(frozen=True)
-class FollowingErrorComparison:
-    """Following error (pos_set - pos) of two servo traces, row by row (position-control
-    cycles from the program's start), in the traces' unit (mm or deg).
-
-    Attributes:
-        rows: rows compared (of the shorter trace, where the mask allows).
-        max_a, rms_a: the first trace's (the loopback's) following error on those rows.
-        max_b, rms_b: the second's (the lock-step simulation's) on those rows.
-        diff_max, diff_rms: of the row-by-row difference.
-        final_a, final_b: the last row's actual position.
-    """
-    rows: int
-    max_a: float
-    rms_a: float
-    max_b: float
-    rms_b: float
-    diff_max: float
-    diff_rms: float
-    final_a: float
-    final_b: float
-
-
-def _max_rms(x: np.ndarray) -> tuple[float, float]:
-    if x.size == 0:
-        return math.nan, math.nan
-    return float(np.abs(x).max()), float(np.sqrt(np.mean(x ** 2)))
-
-
-def compare_following_error(trace_a: Path, trace_b: Path,
-                            mask: np.ndarray | None = None) -> FollowingErrorComparison:
-    """Compare the following error of two servo-trace files on the rows ``mask`` (of
-    ``trace_a``'s rows) selects, all by default (see the class)."""
-    a, b = read_trace(trace_a), read_trace(trace_b)
-    set_name, pos_name = a.resolve("pos_set_mm"), a.resolve("pos_mm")
-    fe_a = a.column(set_name) - a.column(pos_name)
-    fe_b = b.column(set_name) - b.column(pos_name)
-    n = min(fe_a.size, fe_b.size)
-    keep = np.ones(n, bool) if mask is None else mask[:n]
-    fe_a, fe_b = fe_a[:n][keep], fe_b[:n][keep]
-    return FollowingErrorComparison(int(keep.sum()), *_max_rms(fe_a), *_max_rms(fe_b),
-                                    *_max_rms(fe_a - fe_b), float(a.column(pos_name)[-1]),
-                                    float(b.column(pos_name)[-1]))
-
-
-def settled_mask(controller_dir: Path, summary: dict) -> np.ndarray:
-    """The controller's trace rows clear of any timing fault (:func:`settled_rows`)."""
-    with np.load(controller_dir / "controller.npz") as npz:
-        cols = {k: npz[k] for k in ("lag_ticks", "fb_time_s", "tick")}
-    return settled_rows(cols, summary["trace_every_ticks"], summary["period_ns"] * 1e-9)
-
-
-def wait_ready(proc: subprocess.Popen, timeout_s: float) -> str:
-    """The URL of the emulator's ``ready: URL`` line on its stdout."""
+def wait_ready(proc: subprocess.Popen, timeout_s: float,
+               progress: Progress | None = None) -> str:
+    """The URL of the emulator's ``ready: URL`` line on its stdout (``progress`` updated
+    while it compiles and warms up)."""
     deadline = time.monotonic() + timeout_s
     with selectors.DefaultSelector() as sel:
         sel.register(proc.stdout, selectors.EVENT_READ)
         while (left := deadline - time.monotonic()) > 0:
-            if sel.select(left):
+            if progress is not None:
+                progress.update()
+            if sel.select(min(left, POLL_S)):
                 line = proc.stdout.readline()
                 if line.startswith("ready: "):
                     return line[len("ready: "):].strip()
@@ -125,6 +105,18 @@ def wait_ready(proc: subprocess.Popen, timeout_s: float) -> str:
                     raise DemoError(f"the emulator exited with {proc.wait()} before it was "
                                     "ready")
     raise DemoError(f"the emulator was not ready within {timeout_s:g} s")
+
+
+def _wait(proc: subprocess.Popen, timeout_s: float, progress: Progress) -> int:
+    """``proc``'s exit status (``progress`` updated meanwhile); TimeoutExpired after
+    ``timeout_s``."""
+    deadline = time.monotonic() + timeout_s
+    while (status := proc.poll()) is None:
+        if time.monotonic() > deadline:
+            raise subprocess.TimeoutExpired(proc.args, timeout_s)
+        progress.update()
+        time.sleep(POLL_S)
+    return status
 
 
 def _python(module: str, *args) -> list[str]:
@@ -145,7 +137,8 @@ def run_pair(config: Path, program: Path, out: Path, realtime: bool) -> tuple[in
                                            "--cpu", cpus[-1], *rt),
                                    stdout=subprocess.PIPE, stderr=emu_log, text=True, env=env)
             children.append(emu)
-            url = wait_ready(emu, READY_TIMEOUT_S)
+            with Progress("hil demo: emulator compiling and warming up") as shown:
+                url = wait_ready(emu, READY_TIMEOUT_S, shown)
             eprint(f"hil demo: emulator ready on {url}; controller running {program.name}")
             pin = ["--cpu", cpus[0]] if len(cpus) > 1 else []
             ctl = subprocess.Popen(_python("hil.runtime.controller_proc", config, "--adapter", url,
@@ -153,7 +146,8 @@ def run_pair(config: Path, program: Path, out: Path, realtime: bool) -> tuple[in
                                            *pin, *rt),
                                    stdout=ctl_log, stderr=subprocess.STDOUT, env=env)
             children.append(ctl)
-            ctl_status = ctl.wait(timeout=CHILD_TIMEOUT_S)
+            with Progress("hil demo: controller and emulator running") as shown:
+                ctl_status = _wait(ctl, CHILD_TIMEOUT_S, shown)
             emu.send_signal(signal.SIGTERM)
             emu_status = emu.wait(timeout=CHILD_TIMEOUT_S)
             emu_log.write(emu.stdout.read())
@@ -176,21 +170,10 @@ def _timing_rows(emulator: dict, controller: dict) -> list[str]:
     return rows
 
 
-def _fe_rows(label: str, cmp: FollowingErrorComparison, k: float, rows: int) -> list[str]:
-    if not cmp.rows:
-        return [f"  {label}: none of {rows} rows"]
-    share = f"{100 * cmp.diff_max / cmp.max_b:.2f} %"
-    return [f"  {label}: {cmp.rows} of {rows} rows",
-            f"    loopback    {cmp.max_a * k:9.2f} {cmp.rms_a * k:8.2f}",
-            f"    lock-step   {cmp.max_b * k:9.2f} {cmp.rms_b * k:8.2f}",
-            f"    difference  {cmp.diff_max * k:9.2f} {cmp.diff_rms * k:8.2f}   "
-            + f"({share} of the lock-step maximum)"]
-
-
 def _round_trip_rows(rt: dict) -> list[str]:
     """The round trip's parts (p50, p99) from the latency report's ``round_trip``."""
-    rows = [f"round trip setpoint → feedback, µs    p50      p99   ({rt['samples']} setpoints, "
-            f"{rt['pairing']['matched']} paired with the controller's rows)"]
+    rows = [(f"round trip setpoint → feedback, µs    p50      p99   ({rt['samples']} setpoints, "
+            f"{rt['pairing']['matched']} paired with the controller's rows)")]
     for label, key in (("transport", "transport_us"), ("wait for tick", "wait_us"),
                        ("compute", "compute_us"), ("total", "total_us")):
         q = rt[key]
@@ -204,29 +187,88 @@ def _one_way(controller: dict) -> str:
     return "unknown (no shared clock)" if one_way is None else f"{one_way:.1f}"
 
 
-def summary_lines(every: FollowingErrorComparison, settled: FollowingErrorComparison,
-                  emulator: dict, controller: dict, unit: str,
-                  round_trip: dict) -> list[str]:
-    """The demo's printed summary (micrometres for the following error on mm axes);
-    ``round_trip`` is the latency report's."""
-    k, shown = (1e3, "µm") if unit == "mm" else (1.0, unit)
-    fb = controller["feedback"]
-    n = max(1, controller["ticks_recorded"])
+def _cost_rows(cost: TimingCost | str, k: float, unit: str) -> list[str]:
+    """The three traces and the timing cost (positions times ``k`` in ``unit``)."""
+    if isinstance(cost, str):
+        return [f"timing cost: not computed ({cost})"]
+    t = cost.tolerance
+    rows = [f"following error, {unit}                       max",
+            f"  lock-step (hil sim)                 {cost.fe_max_lockstep * k:9.2f}",
+            f"  replay of the real timing           {cost.fe_max_replay * k:9.2f}",
+            (f"timing cost (replay - lock-step FE), {unit}: max {cost.diff_max * k:.2f} at t = "
+            f"{cost.diff_max_t_s:.4f} s, rms {cost.diff_rms * k:.2f} over {cost.rows} rows; "
+            f"{cost.clean_diff * k:.2f} before the first late setpoint"),
+            (f"  tolerance {t.value * k:.2f} {unit}: {LOOP_PEAK:g} x (v_max x m T + a_max x "
+             f"(m T)²/2) + 2 counts, m = {t.late_ticks} tick(s) from {timing_budget(t)}"),
+            (f"  setpoints due {cost.setpoints}: on time {cost.on_time}, late {cost.late}, "
+            f"early {cost.early}, missed {cost.missed}; ticks without a new setpoint "
+            f"{cost.held_ticks}; {len(cost.runs)} run(s) of late/missed setpoints")]
+    for run in sorted(cost.runs, key=lambda r: -r.fe_diff)[:SHOWN_RUNS]:
+        rows.append(f"    at drive tick {run.first_tick}: {run.setpoints} setpoint(s) (late "
+                    f"{run.late}, early {run.early}, missed {run.missed}, worst "
+                    f"+{run.worst_ticks} ticks) -> FE difference up to {run.fe_diff * k:.2f} "
+                    f"{unit}")
+    return rows
+
+
+def summary_lines(replay: ReplayResult | str, cost: TimingCost | str,
+                  scale: tuple[float, str], emulator: dict, controller: dict,
+                  latency: dict, baseline_note: str) -> list[str]:
+    """The demo's printed summary: the replay against the recording, the three traces and
+    the timing cost (``scale``: factor and unit of positions), the loops' timing and the
+    round trip (``latency``: the latency report), how the cyclictest baseline was made."""
+    recording = (f"recording = replay: {replay.line()}" if not isinstance(replay, str)
+                 else f"recording = replay: not checked ({replay})")
     return [
-        f"following error, {shown}         max      rms",
-        *_fe_rows("every row", every, k, every.rows),
-        *_fe_rows("rows clear of timing faults", settled, k, every.rows),
-        f"  final position: loopback {every.final_a:.4f} {unit}, lock-step "
-        + f"{every.final_b:.4f} {unit}",
+        recording, *_cost_rows(cost, *scale),
         *_timing_rows(emulator, controller),
-        *_round_trip_rows(round_trip),
+        *wakeup_rows(latency, baseline_note),
+        *_round_trip_rows(latency["round_trip"]),
         f"transport one way (measured while aligning), µs   {_one_way(controller)}",
-        f"controller ticks at lock-step timing: {100 * fb['ticks_in_step'] / n:.2f} %",
     ]
 
 
-def run_demo(config: Path, program: Path, out: Path, realtime: bool) -> int:
-    """The whole demo; returns the exit status."""
+def _read_json(path: Path) -> dict | None:
+    return json.loads(path.read_text()) if path.exists() else None
+
+
+def _replay(run: Path) -> ReplayResult | str:
+    """The replay of ``run``, or why it could not be made."""
+    try:
+        return replay_run(run)
+    except ReplayError as e:
+        return str(e)
+
+
+def _timing_cost(out: Path, cfg: MachineConfig, lockstep: Path) -> TimingCost | str:
+    """The timing cost of the demo's run (:mod:`hil.replay.timing`), or why it could not
+    be computed."""
+    try:
+        rec = Recording(out / "emulator")
+        with np.load(out / "controller" / "controller.npz") as npz:
+            ctl = {k: npz[k] for k in npz.files}
+        return timing_cost(rec.read(), ctl, lockstep, cfg, rec.period_ns * 1e-9)
+    except (OSError, ValueError, KeyError) as e:  # RecordingError, TimingError, a trace
+        return str(e)
+
+
+def _baseline(period_ns: int, seconds: float) -> tuple[CyclictestBaseline | None, str]:
+    """cyclictest at the run's period on the loop's CPU, and a note on what was run."""
+    interval_us = max(1, round(period_ns / 1e3))
+    try:
+        with Progress(f"hil demo: cyclictest, {interval_us} µs for {seconds:g} s",
+                      ticking=True):
+            baseline = run_cyclictest_baseline(interval_us, seconds, cpu=last_cpu())
+    except CyclictestError as e:
+        return None, f"cyclictest failed: {e}"
+    if baseline is None:
+        return None, "cyclictest is not installed (apt-get install rt-tests)"
+    return baseline, f"cyclictest {interval_us} µs for {seconds:g} s after the run"
+
+
+def run_demo(config: Path, program: Path, out: Path, realtime: bool,
+             cyclictest_s: float = DEFAULT_CYCLICTEST_S) -> int:
+    """The whole demo; returns the exit status (0 PASS, 1 FAIL, 2 refused input)."""
     try:  # refuse bad input before any process starts
         cfg = load_machine(config)
         read_program(program, axis="C" if cfg.machine.kind == "rotary" else "X",
@@ -235,43 +277,46 @@ def run_demo(config: Path, program: Path, out: Path, realtime: bool) -> int:
         eprint(f"hil demo: {e}")
         return EXIT_BAD_INPUT
     out.mkdir(parents=True, exist_ok=True)
-    summary_file = out / "controller" / "summary.json"
-    summary_file.unlink(missing_ok=True)  # an earlier run's alarms are not this run's
+    for stale in (out / "controller" / "summary.json", out / "emulator" / "report.json"):
+        stale.unlink(missing_ok=True)  # an earlier run's files are not this run's
+    verdict = Verdict()
     try:
         emu_status, ctl_status = run_pair(config, program, out, realtime)
     except (DemoError, subprocess.TimeoutExpired) as e:
-        eprint(f"hil demo: {e}; logs in {out}")
+        verdict.fail(f"{e}; logs in {out}")
+        print(verdict.line())
         return EXIT_FAILED
-    controller = json.loads(summary_file.read_text()) if summary_file.exists() else {}
-    alarms = controller.get("alarms", [])
-    if (emu_status, ctl_status) != (EXIT_OK, EXIT_OK) or alarms:
-        eprint(f"hil demo: emulator exited with {emu_status}, controller with {ctl_status}; "
-               f"logs in {out}")
-        for alarm in alarms:
-            eprint(f"hil demo: the controller raised {alarm['message']}")
+    controller = _read_json(out / "controller" / "summary.json") or {}
+    emulator = _read_json(out / "emulator" / "report.json")
+    replay = _replay(out / "emulator")
+    check_replay(verdict, replay)
+    check_processes(verdict, emu_status, ctl_status, controller, emulator)
+    if emulator is None or not controller:
+        print(verdict.line())
         return EXIT_FAILED
     sim = run_sim(config, program, out / "lockstep", 0.0, None, None)
-    if sim["alarms"]:
-        for alarm in sim["alarms"]:
-            eprint(f"hil demo: the lock-step simulation raised {alarm['message']}")
-        return EXIT_FAILED
-    emulator = json.loads((out / "emulator" / "report.json").read_text())
-    loopback = out / "controller" / "trace.csv"
-    every = compare_following_error(loopback, Path(sim["trace"]))
-    settled = compare_following_error(loopback, Path(sim["trace"]),
-                                      settled_mask(out / "controller", controller))
-    unit = "deg" if "following_error_max_deg" in controller else "mm"
-    latency = build_report(load_run(out / "emulator", controller=out / "controller"))
-    write_report(out, latency)
+    for alarm in sim["alarms"]:
+        verdict.fail(f"the lock-step simulation raised {alarm['message']}")
+    cost = _timing_cost(out, cfg, Path(sim["trace"]))
+    k, shown = (1e6, "µm") if cfg.machine.kind != "rotary" else (1e3 * 180 / math.pi, "mdeg")
+    check_timing(verdict, cost, k, shown)
+    baseline, note = (_baseline(controller["period_ns"], cyclictest_s) if cyclictest_s > 0
+                      else (None, "no cyclictest (--cyclictest-seconds 0)"))
+    run = load_run(out / "emulator", controller=out / "controller")
+    latency = build_report(run, baseline)
+    write_report(out / "emulator", latency, run)
     print(f"hil demo: {emulator['machine']}, {program.name}, "
           f"{1e9 / controller['period_ns']:g} Hz over {emulator['adapter']['name']}")
-    print("\n".join(summary_lines(every, settled, emulator, controller, unit,
-                                  latency["round_trip"])))
+    print("\n".join(summary_lines(replay, cost, (k, shown), emulator, controller, latency,
+                                  note)))
     print(f"files in {out}/")
-    write_json(out / "demo.json", {"following_error": asdict(every),
-                                   "following_error_settled": asdict(settled), "unit": unit,
-                                   "emulator_exit": emu_status, "controller_exit": ctl_status})
-    return EXIT_OK
+    write_json(out / "demo.json", {
+        "replay": replay if isinstance(replay, str) else replay.as_dict(),
+        "timing_cost": cost if isinstance(cost, str) else cost.as_dict(),
+        "emulator_exit": emu_status, "controller_exit": ctl_status,
+        "verdict": verdict.line(), "reasons": verdict.reasons})
+    print(verdict.line())
+    return EXIT_OK if verdict.passed else EXIT_FAILED
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -283,12 +328,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", default="demo-out", help="folder for every file (default "
                    "%(default)s)")
     p.add_argument("--no-rt", action="store_true", help="both processes without SCHED_FIFO")
+    p.add_argument("--cyclictest-seconds", type=float, default=DEFAULT_CYCLICTEST_S,
+                   metavar="S", help="cyclictest at the run's period after it, for the "
+                   "timing report (default %(default)g s; 0: none)")
 
 
 def run_from_args(args: argparse.Namespace) -> int:
     """``hil demo``: returns the exit status."""
     return run_demo(Path(args.config).resolve(), Path(args.program).resolve(),
-                    Path(args.out).resolve(), not args.no_rt)
+                    Path(args.out).resolve(), not args.no_rt, args.cyclictest_seconds)
 
 
 def main(argv: list[str] | None = None) -> int:

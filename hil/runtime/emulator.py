@@ -300,7 +300,7 @@ class Emulator:
             except AdapterError as e:
                 self._adapter_error("send", e)
         self.setpoints_heard += heard
-        self.recorder.record(k, heard, t_ns, sp, fb, drives)
+        self.recorder.record(k, heard, t_ns, sp, fb, drives, refused)
 
     def _adapter_error(self, kind: str, err: AdapterError) -> None:
         count = getattr(self.errors, kind) + 1

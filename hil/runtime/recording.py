@@ -19,6 +19,8 @@ policy dropped has no row).  Columns (:func:`column_specs`: dtype, unit, meaning
   ``sp_rx_ns``, ``fb_t_ns`` -- only on ticks that used a newly received setpoint, 0
   elsewhere (the controller's receive stamp is in its own ``controller.npz``: ``hil
   report RUN --controller DIR`` pairs it in);
+* ``sp_refused`` (bit ``a`` set when the adapter refused axis ``a``'s setpoint in the
+  tick: the drive latched a fault for it; :mod:`hil.replay` needs it);
 * ``sp_new`` (1 on a tick that received a setpoint) and the setpoint the drive applied:
   ``sp_seq``, ``sp_controlword``, ``sp_mode``, ``sp_iq_ref_a``, ``sp_id_ref_a``,
   ``sp_ud_v``, ``sp_uq_v``, ``sp_target_position_counts``, ``sp_target_velocity_counts_s``,
@@ -120,6 +122,8 @@ _COMMON = [
     ColumnSpec("fb_t_ns", "int64", "ns", "drive clock when the tick's feedback was sent"),
     ColumnSpec("sp_new", "uint8", "1", "1 on a tick that received a new setpoint"),
     ColumnSpec("sp_seq", "uint32", "1", "sequence number of the setpoint applied"),
+    ColumnSpec("sp_refused", "uint32", "1", "bit a: the adapter refused axis a's setpoint "
+               "in the tick (0: none)"),
 ]
 #: per-axis columns (without the axis prefix), in file order
 _AXIS = [
@@ -228,10 +232,11 @@ class Recorder:
         return self.ring.last_lost_tick
 
     def record(self, k: int, heard: bool, tick_start_ns: int, sp, fb,
-               drives: EmulatedDrive | DriveSet) -> None:
+               drives: EmulatedDrive | DriveSet, refused: int = 0) -> None:
         """Tick ``k``'s row: the setpoint applied, the drives' answer and the plants'
         outputs (``sp``/``fb`` plain records or groups, ``drives`` one drive or a
-        DriveSet).  Not recorded (counted by :meth:`end_tick`) when the ring is full."""
+        DriveSet), ``refused`` the adapter's refused axes (bit mask).  Not recorded
+        (counted by :meth:`end_tick`) when the ring is full."""
         each = drives.drives if isinstance(drives, DriveSet) else (drives,)
         for i, drive in enumerate(each):
             n = drive.faults.n_events
@@ -250,8 +255,8 @@ class Recorder:
             floats[i, n_sp:, j] = drive.plant.out
             ints[i, :, j] = (s.controlword, s.mode, f.statusword, f.fault, drive.sm.state,
                              drive.plant.inp[L.I_ENABLE])
-        self.common[3:, j] = ((tick_start_ns, sp.t_ns, sp.rx_ns, fb.t_ns, 1, sp.seq) if heard
-                              else (0, 0, 0, 0, 0, sp.seq))
+        self.common[3:, j] = ((tick_start_ns, sp.t_ns, sp.rx_ns, fb.t_ns, 1, sp.seq, refused)
+                              if heard else (0, 0, 0, 0, 0, sp.seq, refused))
 
     def end_tick(self, k: int, lateness_ns: int, compute_ns: int) -> None:
         """Finish tick ``k``'s row with the loop's measurements (the loop calls this after
