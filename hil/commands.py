@@ -5,7 +5,7 @@ tables); everything inside is SI.
 """
 
 import json
-import sys
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -17,6 +17,7 @@ from hil.figures import plot_sim, plot_step
 from hil.measure.frequency_response import bandwidth_hz, bode_plot, peaks, write_csv
 from hil.measure.runs import bode, current_step, position_step, speed_step, write_step_csv
 from hil.measure.trace import TraceConfigError, TraceRecorder, Trigger
+from hil.progress import Progress
 from hil.sim import LockStep, servo_trace_columns
 from hil.trace_file import write_trace
 from plant.assemble import transmission_ratio
@@ -28,10 +29,13 @@ SETTLE_S = 0.2
 PEAK_RANGE_DB = 20.0
 
 
-def _progress(label: str):
-    def show(fraction: float) -> None:
-        print(f"\r{label} {100 * fraction:5.1f} %", end="", file=sys.stderr, flush=True)
-    return show
+#: a fraction of the work is shown as this many parts (hil.progress counts whole steps)
+_PARTS = 1000
+
+
+def _progress(p: Progress) -> Callable[[float], None]:
+    """A fraction-done callback (what LockStep.run and the PRBS runs call) feeding ``p``."""
+    return lambda fraction: p.update(round(_PARTS * fraction))
 
 
 def _axis_letter(cfg: MachineConfig, axis: str | None) -> str:
@@ -91,8 +95,8 @@ def run_sim(config: Path, program: Path, out: Path, start: float, axis: str | No
     ls = LockStep(cfg, x0, axis=prog.axis)
     ls.enable()
     ls.ctrl.run_profile(profile)
-    res = ls.run(profile.duration_s + SETTLE_S, _progress("simulating"))
-    print(file=sys.stderr)
+    with Progress("simulating", total=_PARTS) as p:
+        res = ls.run(profile.duration_s + SETTLE_S, _progress(p))
     out.mkdir(parents=True, exist_ok=True)
     meta = {"machine": str(config), "program": str(program), "axis": prog.axis,
             "source": "hil sim (lock-step)"}
@@ -153,9 +157,9 @@ def run_bode(config: Path, loop: str, amplitude: float, offset: float, order: in
     if loop == "speed":
         ratio = transmission_ratio(cfg)
         amplitude, offset = amplitude / k / 60.0 / ratio, offset / k / 60.0 / ratio
-    m = bode(cfg, loop, amplitude, offset, order=order, periods=periods, x0=at / k,
-             progress=_progress(f"{loop}-loop PRBS"))
-    print(file=sys.stderr)
+    with Progress(f"{loop}-loop PRBS", total=_PARTS) as p:
+        m = bode(cfg, loop, amplitude, offset, order=order, periods=periods, x0=at / k,
+                 progress=_progress(p))
     out.mkdir(parents=True, exist_ok=True)
     bode_plot(m.response, out / f"bode_{loop}.png",
               f"{cfg.machine.name}: {loop}-loop frequency response")

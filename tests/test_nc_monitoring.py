@@ -532,11 +532,14 @@ def test_the_controller_process_stops_a_runaway_axis_and_exits_1(tmp_path):
 
 
 def test_demo_fails_and_says_why_when_the_controller_raised_an_alarm(tmp_path):
-    """``hil demo`` on the same runaway machine file: exit 1, the alarm printed."""
+    """``hil demo`` on the same runaway machine file: exit 1, its verdict (the last line)
+    FAIL naming the alarm."""
     config = reversed_2khz(tmp_path)
     with Children(tmp_path) as children:
         demo = children.start("demo", python_module("hil.runtime.demo", "--config", config,
                                                      "--out", tmp_path / "out"))
         assert demo.wait(timeout=300) == 1
         log = children.log("demo")
-    assert "hil demo: the controller raised alarm 25050 axis X contour monitoring at t =" in log
+    verdict = log.strip().splitlines()[-1]
+    assert verdict.startswith("FAIL: ")
+    assert "the controller raised alarm 25050 axis X contour monitoring at t =" in verdict

@@ -282,12 +282,13 @@ def test_sigkill_of_the_process_group_leaves_the_recording_up_to_its_last_flush(
 
 
 def test_a_ring_that_cannot_be_made_is_refused_before_ready(tmp_path, warm_cache):
-    """RLIMIT_FSIZE of 100 kB, below the ring's 2.8 MB at 8 kHz: exit 2 before ``ready:``
+    """RLIMIT_FSIZE of 100 kB, below the ring's 2.9 MB at 8 kHz: exit 2 before ``ready:``
     with one line saying what could not be made and its size; nothing recorded."""
     run = tmp_path / "run"
     done = _run(tmp_path, ARROW, "--record", run, preexec_fn=_limit_file_size(100_000))
     assert done.returncode == 2 and "ready:" not in done.stdout
-    assert "cannot make the recording's ring of 8000 rows (2.82 MB" in done.stderr
+    assert "cannot make the recording's ring of 8000 rows (" in done.stderr
+    assert "MB of shared memory): File too large" in done.stderr
     assert "Traceback" not in done.stderr and not (run / RECORDING).exists()
 
 
