@@ -1,4 +1,5 @@
-"""``hil bench plant``: kernel speed per machine file against an uncompiled reference.
+"""``hil bench plant``: kernel speed per machine file against an uncompiled reference and
+against the same sub-step in C.
 
 For each config the compiled kernel is warmed, then called once per PWM
 period (as a real-time loop calls it) for ``seconds`` of wall time; the
@@ -6,18 +7,37 @@ result is ns per sub-step and the real-time factor (simulated / wall time).
 The reference is the *same kernel source* run uncompiled by CPython on NumPy
 arrays (``NUMBA_DISABLE_JIT=1`` in a child process, same machine file, same
 inputs) — the plain NumPy step of the same equations — measured in the same
-call; ``speedup_vs_reference`` is the ratio.  ``cold_start_s`` is the time a
-fresh process needs to import, load the machine file and make its first
-kernel call with numba's on-disk cache warm (the goal is <= 5 s).
+call; ``speedup_vs_reference`` is the ratio.
+
+The C baseline (issue 12 part 7) is :mod:`hil.bench.csubstep`, the sub-step ported to C
+with the same equations in the same floating-point order (bit-identical results), built
+``-O2 -ffp-contract=off``.  Both are timed the same way, in the same run, for ``seconds``
+each: one call per PWM period from a compiled loop (a C loop for C, a numba loop for the
+kernel), so neither pays Python's call overhead; ``ratio_to_c`` is
+``loop_ns_per_step / c_ns_per_step`` (the goal: <= 1.3).  The three are null for the
+models the port does not carry (everything but the d-q motor on a screw with the lumped
+solver) or when no C compiler is installed (the reason goes to stderr).
+
+``cold_start_s`` is the time a fresh process needs to import, load the machine file and
+make its first kernel call with numba's on-disk cache warm (the goal is <= 5 s);
+``cold_compile_s`` the same with an empty cache (the cache on: what the first run after a
+change of the plant's source costs; the goal is < 20 s).
 """
 
 import json
 import os
 import subprocess
 import sys
+import tempfile
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
+
+from numba import njit
+
+from hil.bench.csubstep import CCompilerMissing, CStep
+from plant.kernel import axis_step_nb
 
 _PROBE = """
 import json, sys, time
@@ -33,9 +53,16 @@ print(json.dumps({"cold_start_s": cold, "ns_per_step": ns}))
 """
 
 
+#: kernel calls per timed batch of the compiled loops (C and numba)
+_BATCH = 2000
+
+
 @dataclass(frozen=True)
 class PlantBench:
-    """One config's figures (the JSON object ``hil bench plant --json`` prints)."""
+    """One config's figures (the JSON object ``hil bench plant --json`` prints).
+
+    Times are ns per sub-step; ``c_ns_per_step``, ``loop_ns_per_step`` and ``ratio_to_c``
+    are None where the C port does not run (see the module's doc)."""
     config: str
     ns_per_step: float
     substep_s: float
@@ -44,12 +71,53 @@ class PlantBench:
     speedup_vs_reference: float
     sub_per_pwm: int
     cold_start_s: float
+    cold_compile_s: float
+    c_ns_per_step: float | None
+    loop_ns_per_step: float | None
+    ratio_to_c: float | None
+
+
+@njit(cache=True, error_model="numpy")
+def _kernel_calls(p, s, inp, out, n_sub, calls):
+    """``calls`` kernel calls of ``n_sub`` sub-steps from compiled code (no Python)."""
+    for _ in range(calls):
+        axis_step_nb(p, s, inp, out, n_sub)
+
+
+def _time_batches(run_batch: Callable[[], float], seconds: float) -> float:
+    """Run ``run_batch`` (returns its own ns) for ~``seconds``; the fastest batch's ns:
+    the machine's other load only ever adds time, so the minimum is the step's cost."""
+    run_batch()
+    best = float("inf")
+    t_end = time.perf_counter() + seconds
+    while True:
+        best = min(best, run_batch())
+        if time.perf_counter() >= t_end:
+            return best
+
+
+def time_compiled_loops(plant, cstep: CStep, seconds: float) -> tuple[float, float]:
+    """(numba, C) ns per sub-step of one PWM period per call, called from a compiled loop,
+    each on its own copy of ``plant``'s arrays with its inputs, ~``seconds`` each."""
+    n = plant.sub_per_pwm
+    k_arrays = (plant.params.copy(), plant.state.copy(), plant.inp.copy(), plant.out.copy())
+    c_arrays = (plant.params.copy(), plant.state.copy(), plant.inp.copy(), plant.out.copy())
+
+    def numba_batch() -> float:
+        t0 = time.perf_counter_ns()
+        _kernel_calls(*k_arrays, n, _BATCH)
+        return time.perf_counter_ns() - t0
+
+    def c_batch() -> float:
+        return cstep.time_calls(*c_arrays, n, _BATCH)
+
+    per_step = _BATCH * n
+    return (_time_batches(numba_batch, seconds) / per_step,
+            _time_batches(c_batch, seconds) / per_step)
 
 
 def time_kernel(plant, seconds: float) -> float:
     """ns per sub-step of ``plant``'s kernel called once per PWM period for ~``seconds``."""
-    from plant.kernel import axis_step_nb
-
     p, s, inp, out, n = plant.params, plant.state, plant.inp, plant.out, plant.sub_per_pwm
     axis_step_nb(p, s, inp, out, n)
     calls = 0
@@ -65,10 +133,12 @@ def time_kernel(plant, seconds: float) -> float:
     return (now - t0) / (calls * n) * 1e9
 
 
-def _child(config: Path, seconds: float, jit: bool) -> dict:
+def _child(config: Path, seconds: float, jit: bool, cache_dir: str | None = None) -> dict:
     env = dict(os.environ)
     if not jit:
         env["NUMBA_DISABLE_JIT"] = "1"
+    if cache_dir is not None:
+        env["NUMBA_CACHE_DIR"] = cache_dir
     res = subprocess.run([sys.executable, "-c", _PROBE, str(config), str(seconds)],
                          capture_output=True, text=True, env=env, check=False)
     if res.returncode != 0:
@@ -76,26 +146,58 @@ def _child(config: Path, seconds: float, jit: bool) -> dict:
     return json.loads(res.stdout.strip().splitlines()[-1])
 
 
-def bench_config(config: Path, seconds: float, ref_seconds: float) -> PlantBench:
-    """Measure one machine file (compiled, reference, cold start)."""
+def cold_compile_s(config: Path) -> float:
+    """Seconds a fresh process takes to its first kernel call with an empty numba cache
+    (the cache on, written as it compiles), in a temporary cache folder."""
+    with tempfile.TemporaryDirectory(prefix="hil-bench-cold-") as empty:
+        return _child(config, 0.0, jit=True, cache_dir=empty)["cold_start_s"]
+
+
+def c_baseline() -> tuple[CStep | None, str | None]:
+    """The C port, built and loaded; or (None, why not)."""
+    try:
+        return CStep(), None
+    except (CCompilerMissing, RuntimeError, OSError) as err:
+        return None, f"no C baseline, c_ns_per_step and ratio_to_c are null: {err}"
+
+
+def bench_config(config: Path, seconds: float, ref_seconds: float,
+                 cstep: CStep | None = None) -> PlantBench:
+    """Measure one machine file (compiled, reference, cold start and compile; against
+    ``cstep`` when given and it carries the config's models)."""
     from plant import Plant
 
     plant = Plant.from_file(config)
     plant.set_input(iq_ref_a=0.1 * plant.config.motor.current_max_a)
+    loop_ns = c_ns = None
+    if cstep is not None and cstep.supports(plant.params):
+        loop_ns, c_ns = time_compiled_loops(plant, cstep, seconds)
     ns = time_kernel(plant, seconds)
     cold = _child(config, 0.0, jit=True)["cold_start_s"]
     ref = _child(config, ref_seconds, jit=False)["ns_per_step"]
     return PlantBench(config=config.stem, ns_per_step=ns, substep_s=plant.dt,
                       realtime_factor=plant.dt / (ns * 1e-9), reference_ns_per_step=ref,
                       speedup_vs_reference=ref / ns, sub_per_pwm=plant.sub_per_pwm,
-                      cold_start_s=cold)
+                      cold_start_s=cold, cold_compile_s=cold_compile_s(config),
+                      c_ns_per_step=c_ns, loop_ns_per_step=loop_ns,
+                      ratio_to_c=None if c_ns is None else loop_ns / c_ns)
 
 
-def run(configs: list[Path], seconds: float, ref_seconds: float, progress=None) -> list[dict]:
-    """Benchmark every config; returns the JSON-ready rows."""
+def run(configs: list[Path], seconds: float, ref_seconds: float, progress=None,
+        note: Callable[[str], None] = lambda message: print(message, file=sys.stderr)
+        ) -> list[dict]:
+    """Benchmark every config; returns the JSON-ready rows.
+
+    Args:
+        progress: receives each :class:`PlantBench` as it is done.
+        note: receives the reason when there is no C baseline.
+    """
+    cstep, why_not = c_baseline()
+    if why_not is not None:
+        note(why_not)
     rows = []
     for cfg in configs:
-        row = bench_config(cfg, seconds, ref_seconds)
+        row = bench_config(cfg, seconds, ref_seconds, cstep)
         rows.append(asdict(row))
         if progress is not None:
             progress(row)
