@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from plant import layout
+from plant.effects.friction import STRIBECK_CUTOFF
 
 SOURCE = Path(__file__).resolve().parent / "substep.c"
 #: the compiler flags: optimised as a release build, no contraction into FMA (bit-identity)
@@ -43,12 +44,14 @@ def compiler() -> str | None:
 
 
 def layout_header() -> str:
-    """``layout.h``: every index and selector of :mod:`plant.layout` as a ``#define``."""
+    """``layout.h``: every index and selector of :mod:`plant.layout` as a ``#define``, and
+    the effects' constants the port uses."""
     lines = ["/* written by hil.bench.csubstep from plant/layout.py: do not edit */"]
     for name in sorted(vars(layout)):
         value = getattr(layout, name)
         if name.startswith(_PREFIXES) and type(value) is int:
             lines.append(f"#define {name} {value}")
+    lines.append(f"#define STRIBECK_CUTOFF {STRIBECK_CUTOFF!r}")
     return "\n".join(lines) + "\n"
 
 

@@ -6,10 +6,11 @@
  * quantization, the measurement delay ring -- with the same equations in the same
  * floating-point order, built with -ffp-contract=off (no fused multiply-add) so that its
  * state is bit-identical to the numba kernel's.  It reads and writes the same flat arrays
- * (plant/layout.py); the indices come from layout.h, which hil.bench.csubstep writes from
- * plant.layout at build time.  Other models (first-order and commutation motors, rigid and
- * two-mass mechanics, the TLM solver, presliding friction) are not ported: c_supports()
- * says whether a params vector is one this file runs.
+ * (plant/layout.py); the indices (and STRIBECK_CUTOFF) come from layout.h, which
+ * hil.bench.csubstep writes from plant.layout at build time.  Other models (first-order
+ * and commutation motors, rigid and two-mass mechanics, the TLM solver, presliding
+ * friction) are not ported: c_supports() says whether a params vector is one this file
+ * runs.
  */
 #include <math.h>
 #include <stdint.h>
@@ -280,7 +281,8 @@ static double sliding_friction(const double *p, double v) {
     double vs = p[P_FR_STRIBECK_V];
     if (vs > 0.0) {
         double r = v / vs;
-        level += (p[P_FR_STATIC] - p[P_FR_COULOMB]) * exp(-(r * r));
+        double x = r * r;
+        if (x < STRIBECK_CUTOFF) level += (p[P_FR_STATIC] - p[P_FR_COULOMB]) * exp(-x);
     }
     if (v > 0.0) return viscous_friction(p, v) - level;
     if (v < 0.0) return viscous_friction(p, v) + level;
