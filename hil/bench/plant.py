@@ -77,7 +77,7 @@ class PlantBench:
     ratio_to_c: float | None
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", _nrt=False)
 def _kernel_calls(p, s, inp, out, n_sub, calls):
     """``calls`` kernel calls of ``n_sub`` sub-steps from compiled code (no Python)."""
     for _ in range(calls):
