@@ -18,7 +18,8 @@ from tests.conftest import CONFIGS
 @pytest.mark.skipif(compiler() is None, reason="no C compiler on PATH: no C baseline to "
                     "report (apt-get install gcc)")
 def test_bench_plant_reports_the_c_step_and_the_ratio_to_it():
-    """Arrow 500 X: C and numba figures, ratio_to_c = loop / C; EMPS (first-order motor,
+    """Arrow 500 X: C and numba figures, ratio_to_c = loop / C, the two timed runs ending
+    in the same state; EMPS (first-order motor,
     rigid mechanics, not ported): the three are null.  Cold start and cold compile are
     reported for both."""
     res = subprocess.run([sys.executable, "-m", "hil.cli", "bench", "plant", "--json",
@@ -30,7 +31,9 @@ def test_bench_plant_reports_the_c_step_and_the_ratio_to_it():
     assert arrow["config"] == "arrow500_x" and emps["config"] == "emps"
     assert arrow["c_ns_per_step"] > 0.0 and arrow["loop_ns_per_step"] > 0.0
     assert arrow["ratio_to_c"] == arrow["loop_ns_per_step"] / arrow["c_ns_per_step"]
+    assert arrow["c_same_state"] is True  # timed from the same state: still the same bits
     assert emps["c_ns_per_step"] is None and emps["ratio_to_c"] is None
+    assert emps["c_same_state"] is None
     for row in (arrow, emps):
         assert row["ns_per_step"] > 0.0
         assert row["cold_start_s"] > 0.0

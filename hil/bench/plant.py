@@ -11,12 +11,13 @@ call; ``speedup_vs_reference`` is the ratio.
 
 The C baseline (issue 12 part 7) is :mod:`hil.bench.csubstep`, the sub-step ported to C
 with the same equations in the same floating-point order (bit-identical results), built
-``-O2 -ffp-contract=off``.  Both are timed the same way, in the same run, for ``seconds``
-each: one call per PWM period from a compiled loop (a C loop for C, a numba loop for the
-kernel), so neither pays Python's call overhead; ``ratio_to_c`` is
-``loop_ns_per_step / c_ns_per_step`` (the goal: <= 1.3).  The three are null for the
-models the port does not carry (everything but the d-q motor on a screw with the lumped
-solver) or when no C compiler is installed (the reason goes to stderr).
+``-O2 -ffp-contract=off``.  Both are timed the same way, in the same run, for ``seconds``:
+one call per PWM period from a compiled loop (a C loop for C, a numba loop for the
+kernel), so neither pays Python's call overhead, in alternating batches from the same
+state (they stay bit-identical: ``c_same_state``); each figure is its fastest batch.
+``ratio_to_c`` is ``loop_ns_per_step / c_ns_per_step`` (the goal: <= 1.3).  These are
+null for the models the port does not carry (everything but the d-q motor on a screw
+with the lumped solver) or when no C compiler is installed (the reason goes to stderr).
 
 ``cold_start_s`` is the time a fresh process needs to import, load the machine file and
 make its first kernel call with numba's on-disk cache warm (the goal is <= 5 s);
@@ -25,6 +26,7 @@ change of the plant's source costs; the goal is < 20 s), and ``cold_compile_cpu_
 CPU time it took, which the machine's other load inflates far less than the wall time.
 """
 
+import itertools
 import json
 import os
 import subprocess
@@ -62,8 +64,9 @@ _BATCH = 2000
 class PlantBench:
     """One config's figures (the JSON object ``hil bench plant --json`` prints).
 
-    Times are ns per sub-step; ``c_ns_per_step``, ``loop_ns_per_step`` and ``ratio_to_c``
-    are None where the C port does not run (see the module's doc)."""
+    Times are ns per sub-step; ``c_ns_per_step``, ``loop_ns_per_step``, ``ratio_to_c``
+    and ``c_same_state`` (the C port and the kernel ended the timing with the same state,
+    bit for bit) are None where the C port does not run (see the module's doc)."""
     config: str
     ns_per_step: float
     substep_s: float
@@ -77,6 +80,7 @@ class PlantBench:
     c_ns_per_step: float | None
     loop_ns_per_step: float | None
     ratio_to_c: float | None
+    c_same_state: bool | None
 
 
 @njit(cache=True, error_model="numpy", _nrt=False)
@@ -86,36 +90,37 @@ def _kernel_calls(p, s, inp, out, n_sub, calls):
         axis_step_nb(p, s, inp, out, n_sub)
 
 
-def _time_batches(run_batch: Callable[[], float], seconds: float) -> float:
-    """Run ``run_batch`` (returns its own ns) for ~``seconds``; the fastest batch's ns:
-    the machine's other load only ever adds time, so the minimum is the step's cost."""
-    run_batch()
-    best = float("inf")
-    t_end = time.perf_counter() + seconds
-    while True:
-        best = min(best, run_batch())
-        if time.perf_counter() >= t_end:
-            return best
+@dataclass(frozen=True)
+class CompiledLoopTimes:
+    """ns per sub-step of the numba kernel and of the C port, each called once per PWM
+    period from a compiled loop; ``same_state``: both ended with the same bits."""
+    numba_ns: float
+    c_ns: float
+    same_state: bool
 
 
-def time_compiled_loops(plant, cstep: CStep, seconds: float) -> tuple[float, float]:
-    """(numba, C) ns per sub-step of one PWM period per call, called from a compiled loop,
-    each on its own copy of ``plant``'s arrays with its inputs, ~``seconds`` each."""
+def time_compiled_loops(plant, cstep: CStep, seconds: float) -> CompiledLoopTimes:
+    """Time the numba kernel and the C port on copies of ``plant``'s arrays (its inputs
+    held) for ~``seconds``: batches of :data:`_BATCH` calls, alternating, so that both see
+    the same load and the same stretch of trajectory; each figure is its fastest batch (the
+    machine's other load only ever adds time)."""
     n = plant.sub_per_pwm
     k_arrays = (plant.params.copy(), plant.state.copy(), plant.inp.copy(), plant.out.copy())
     c_arrays = (plant.params.copy(), plant.state.copy(), plant.inp.copy(), plant.out.copy())
-
-    def numba_batch() -> float:
+    best_k = best_c = float("inf")
+    t_end = time.perf_counter() + seconds
+    for batch in itertools.count():
         t0 = time.perf_counter_ns()
         _kernel_calls(*k_arrays, n, _BATCH)
-        return time.perf_counter_ns() - t0
-
-    def c_batch() -> float:
-        return cstep.time_calls(*c_arrays, n, _BATCH)
-
+        k_ns = time.perf_counter_ns() - t0
+        c_ns = cstep.time_calls(*c_arrays, n, _BATCH)
+        if batch > 0:  # the first batch warms caches and branch predictors
+            best_k, best_c = min(best_k, k_ns), min(best_c, c_ns)
+            if time.perf_counter() >= t_end:
+                break
     per_step = _BATCH * n
-    return (_time_batches(numba_batch, seconds) / per_step,
-            _time_batches(c_batch, seconds) / per_step)
+    return CompiledLoopTimes(numba_ns=best_k / per_step, c_ns=best_c / per_step,
+                             same_state=bool((k_arrays[1] == c_arrays[1]).all()))
 
 
 def time_kernel(plant, seconds: float) -> float:
@@ -148,12 +153,12 @@ def _child(config: Path, seconds: float, jit: bool, cache_dir: str | None = None
     return json.loads(res.stdout.strip().splitlines()[-1])
 
 
-def cold_compile(config: Path) -> tuple[float, float]:
-    """(wall, CPU) seconds a fresh process takes to its first kernel call with an empty
-    numba cache (the cache on, written as it compiles), in a temporary cache folder."""
+def cold_compile(config: Path) -> dict:
+    """The probe's answer for a fresh process with an empty numba cache (the cache on,
+    written as it compiles; a temporary folder): ``cold_start_s`` and ``cold_start_cpu_s``
+    are then the cold compile's wall and CPU seconds up to the first kernel call."""
     with tempfile.TemporaryDirectory(prefix="hil-bench-cold-") as empty:
-        res = _child(config, 0.0, jit=True, cache_dir=empty)
-    return res["cold_start_s"], res["cold_start_cpu_s"]
+        return _child(config, 0.0, jit=True, cache_dir=empty)
 
 
 def c_baseline() -> tuple[CStep | None, str | None]:
@@ -172,20 +177,22 @@ def bench_config(config: Path, seconds: float, ref_seconds: float,
 
     plant = Plant.from_file(config)
     plant.set_input(iq_ref_a=0.1 * plant.config.motor.current_max_a)
-    loop_ns = c_ns = None
+    loops = None
     if cstep is not None and cstep.supports(plant.params):
-        loop_ns, c_ns = time_compiled_loops(plant, cstep, seconds)
+        loops = time_compiled_loops(plant, cstep, seconds)
     ns = time_kernel(plant, seconds)
     cold = _child(config, 0.0, jit=True)["cold_start_s"]
     ref = _child(config, ref_seconds, jit=False)["ns_per_step"]
-    compile_wall, compile_cpu = cold_compile(config)
+    compiled = cold_compile(config)
     return PlantBench(config=config.stem, ns_per_step=ns, substep_s=plant.dt,
                       realtime_factor=plant.dt / (ns * 1e-9), reference_ns_per_step=ref,
                       speedup_vs_reference=ref / ns, sub_per_pwm=plant.sub_per_pwm,
-                      cold_start_s=cold, cold_compile_s=compile_wall,
-                      cold_compile_cpu_s=compile_cpu,
-                      c_ns_per_step=c_ns, loop_ns_per_step=loop_ns,
-                      ratio_to_c=None if c_ns is None else loop_ns / c_ns)
+                      cold_start_s=cold, cold_compile_s=compiled["cold_start_s"],
+                      cold_compile_cpu_s=compiled["cold_start_cpu_s"],
+                      c_ns_per_step=None if loops is None else loops.c_ns,
+                      loop_ns_per_step=None if loops is None else loops.numba_ns,
+                      ratio_to_c=None if loops is None else loops.numba_ns / loops.c_ns,
+                      c_same_state=None if loops is None else loops.same_state)
 
 
 def run(configs: list[Path], seconds: float, ref_seconds: float, progress=None,
