@@ -1,5 +1,6 @@
-"""The kernel after the speed work of issue 12 part 7 (inlined effects, unsigned indexing,
-the Stribeck cut-off) against the kernel before it, bit for bit.
+"""The kernel after the speed work of issue 12 part 7 (inlined effects, non-negative
+offsets, no reference counting, the Stribeck cut-off) against the kernel before it, bit
+for bit.
 
 The reference (tests/data/kernel_reference.json, written by tests/kernel_reference.py
 from the kernel as it was) holds state and outputs of every machine file in configs/ and
