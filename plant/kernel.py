@@ -23,7 +23,7 @@ One sub-step, in order:
 The outputs give the true states (positions, velocities, currents, forces) as they are
 and the measured ones (encoder and scale counts, measured currents) through the delay.
 
-Speed (issue 12 part 7; within 1.1-1.3x of the same sub-step in C, hil.bench.csubstep):
+Speed (issue 12 part 7; about 1.1x the same sub-step in C, hil.bench.csubstep, measured):
 the effects of every sub-step are inlined into it (``inline="always"``; the once-per-PWM
 and once-per-call parts stay calls), the flat offsets are taken as non-negative
 (:func:`plant.effects.index.offset`) so numba does not wrap the indices, and the kernel
