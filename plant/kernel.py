@@ -22,6 +22,13 @@ One sub-step, in order:
 
 The outputs give the true states (positions, velocities, currents, forces) as they are
 and the measured ones (encoder and scale counts, measured currents) through the delay.
+
+Speed (issue 12 part 7; about 1.1x the same sub-step in C, hil.bench.csubstep, measured):
+the effects of every sub-step are inlined into it (``inline="always"``; the once-per-PWM
+and once-per-call parts stay calls), the flat offsets are taken as non-negative
+(:func:`plant.effects.index.offset`) so numba does not wrap the indices, and the kernel
+is compiled without reference counting (see :func:`axis_step_nb`).  None of it changes a
+bit of the results (``tests/test_kernel_speed.py``).
 """
 
 from numba import njit
@@ -37,6 +44,7 @@ from plant.effects.commutation import commutation_control, commutation_substep
 from plant.effects.delay import delay_push, measured_delayed
 from plant.effects.end_stop import end_stop_force, limit_switches
 from plant.effects.friction import presliding_update, table_friction
+from plant.effects.index import offset
 from plant.effects.pitch import pitch_error
 from plant.effects.pmsm import (
     dq_current_control,
@@ -166,7 +174,7 @@ def pwm_event(p, s, inp, omega_m):
         commutation_control(p, s, inp[I_IQ_REF], omega_m)
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def motor_substep(p, s, inp, omega_m):
     """Advance the motor's electrical state one sub-step; return its torque (N·m or N).
 
@@ -201,7 +209,7 @@ def motor_substep(p, s, inp, omega_m):
     return torque
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def nut_coupling(p, s, ro, nr, ao, na):
     """Nut force (N, pushing the table forward) at the nut's present place on the screw.
 
@@ -210,9 +218,10 @@ def nut_coupling(p, s, ro, nr, ao, na):
     with the same weights, which keeps the coupling energy-consistent while
     the place moves with the table (seed 003's moving nut).
     """
+    ro, nr, ao, na = offset(ro), offset(nr), offset(ao), offset(na)
     pos = (p[P_NUT_S0] + s[S_TABLE_X]) / p[P_SEG_LEN]
     j = int(pos)
-    j = 0 if j < 0 else (na - 2 if j > na - 2 else j)
+    j = offset(0 if j < 0 else (na - 2 if j > na - 2 else j))
     w = pos - j
     w = 0.0 if w < 0.0 else (1.0 if w > 1.0 else w)
     theta = (1.0 - w) * s[ro + 1 + j] + w * s[ro + 2 + j]
@@ -240,15 +249,15 @@ def nut_coupling(p, s, ro, nr, ao, na):
     return f
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def screw_mechanics(p, s, load, dt, lumped):
     """One sub-step of motor - coupling - screw - nut - table (torque already in scratch)."""
-    ro = int(p[P_SOFF_ROT])
-    nr = int(p[P_N_ROT])
-    ao = int(p[P_SOFF_AX])
-    na = int(p[P_N_AX])
-    por = int(p[P_OFF_ROT])
-    poa = int(p[P_OFF_AX])
+    ro = offset(p[P_SOFF_ROT])
+    nr = offset(p[P_N_ROT])
+    ao = offset(p[P_SOFF_AX])
+    na = offset(p[P_N_AX])
+    por = offset(p[P_OFF_ROT])
+    poa = offset(p[P_OFF_AX])
     f_nut = nut_coupling(p, s, ro, nr, ao, na)
     s[S_NUT_F] = f_nut
     v = s[S_TABLE_V]
@@ -275,7 +284,7 @@ def screw_mechanics(p, s, load, dt, lumped):
         presliding_update(p, s, x_old, s[S_TABLE_X])
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def lumped_mechanics(p, s, load, dt):
     """One sub-step of the rigid or two-mass chain; the table moves with the last node.
 
@@ -287,10 +296,10 @@ def lumped_mechanics(p, s, load, dt):
     the table's share, below 1e-1 by the loader's slope bound and ~1e-3 for real screws.
     The end stops act on the table like the load does.
     """
-    ro = int(p[P_SOFF_ROT])
-    nr = int(p[P_N_ROT])
-    por = int(p[P_OFF_ROT])
-    last = nr - 1
+    ro = offset(p[P_SOFF_ROT])
+    nr = offset(p[P_N_ROT])
+    por = offset(p[P_OFF_ROT])
+    last = offset(nr - 1)
     ratio = p[P_LEAD_RATIO]
     fr = ro + 2 * nr
     u_dot = ratio * s[ro + nr + last]
@@ -316,12 +325,12 @@ def lumped_mechanics(p, s, load, dt):
         presliding_update(p, s, x_old, s[S_TABLE_X])
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def substep(p, s, inp):
     """Advance the axis by one sub-step of p[P_DT]."""
     dt = p[P_DT]
-    ro = int(p[P_SOFF_ROT])
-    nr = int(p[P_N_ROT])
+    ro = offset(p[P_SOFF_ROT])
+    nr = offset(p[P_N_ROT])
     omega_m = s[ro + nr]
     if s[S_SUB_COUNT] == 0.0:
         pwm_event(p, s, inp, omega_m)
@@ -333,12 +342,13 @@ def substep(p, s, inp):
     lumped = p[P_SOLVER] == SOLVER_LUMPED
     screw = p[P_MECH_MODEL] == MECH_SCREW
     if lumped:
-        chain_internal_forces(p, int(p[P_OFF_ROT]), s, ro, nr)
+        chain_internal_forces(p, offset(p[P_OFF_ROT]), s, ro, nr)
         if screw:
-            chain_internal_forces(p, int(p[P_OFF_AX]), s, int(p[P_SOFF_AX]), int(p[P_N_AX]))
+            chain_internal_forces(p, offset(p[P_OFF_AX]), s, offset(p[P_SOFF_AX]),
+                                  offset(p[P_N_AX]))
     else:
         chain_clear_forces(s, ro, nr)
-        chain_clear_forces(s, int(p[P_SOFF_AX]), int(p[P_N_AX]))
+        chain_clear_forces(s, offset(p[P_SOFF_AX]), offset(p[P_N_AX]))
     s[ro + 2 * nr] += torque
     load = inp[I_LOAD] + p[P_EXT_LOAD]
     if screw:
@@ -367,8 +377,8 @@ def check_state(p, s):
 @njit(cache=True, error_model="numpy")
 def write_outputs(p, s, out, status):
     """Fill ``out`` (layout O_*) from the state."""
-    ro = int(p[P_SOFF_ROT])
-    nr = int(p[P_N_ROT])
+    ro = offset(p[P_SOFF_ROT])
+    nr = offset(p[P_N_ROT])
     out[O_STATUS] = status
     out[O_TIME] = s[S_TIME]
     out[O_MOTOR_POS] = s[ro]
@@ -393,7 +403,12 @@ def write_outputs(p, s, out, status):
     out[O_INDEX] = index_marks(p, enc)
 
 
-@njit(cache=True, error_model="numpy")
+# _nrt=False: compiled without numba's reference counting, inherited by every function
+# it calls.  The kernel never allocates, and with counting on, each array passed into an
+# inlined or called effect was an atomic increment and decrement per sub-step: about half
+# the step's time (issue 12 part 7).  An allocation anywhere in the kernel now fails to
+# compile, which the real-time path wants anyway.
+@njit(cache=True, error_model="numpy", _nrt=False)
 def axis_step_nb(p, s, inp, out, n_sub):
     """Advance ``n_sub`` sub-steps with ``inp`` held; fill ``out``; return a status code.
 

@@ -9,8 +9,8 @@ call that never ends in practice).  So the count is bounded twice:
 * by the plant, for every use (:data:`MAX_SUB_PER_PWM`): beyond it even an offline
   simulation runs far slower than real time;
 * by ``hil run``, for real time (:func:`realtime_limit`): a sub-step costs the compiled
-  kernel at most :data:`SUBSTEP_COST_S` (the plant benchmark's goal; 0.3 µs measured on
-  the Arrow 500 X, README), and the kernel gets :data:`KERNEL_SHARE` of each period, the
+  kernel at most :data:`SUBSTEP_COST_S` (the plant benchmark's goal; about 0.08 µs
+  measured on the Arrow 500 X since issue 12 part 7, README), and the kernel gets :data:`KERNEL_SHARE` of each period, the
   rest being the drive's, the adapter's and the recording's.
 
 A machine file over a bound is refused before anything runs (:func:`refusal`), naming the
@@ -25,7 +25,7 @@ from dataclasses import fields, replace
 from plant.config import MachineConfig
 
 #: the most sub-steps per PWM period the plant takes (a thousand sub-steps of the
-#: kernel's 0.3-1 µs: a PWM period of 125 µs simulated in 0.3-1 ms)
+#: kernel's 0.1-1 µs: a PWM period of 125 µs simulated in 0.1-1 ms)
 MAX_SUB_PER_PWM = 1000
 #: why :data:`MAX_SUB_PER_PWM` holds, for :func:`refusal`
 PLANT_LIMIT = f"the plant takes at most {MAX_SUB_PER_PWM}"

@@ -31,6 +31,8 @@ long runs; its frequency error is ``(omega * dt)**2 / 24`` (relative).
 
 from numba import njit
 
+from plant.effects.index import offset
+
 
 def params_size(n: int) -> int:
     """Number of params entries a chain of ``n`` nodes uses."""
@@ -55,36 +57,44 @@ def dead_zone(delta, gap):
     return 0.0
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def chain_internal_forces(p, po, s, so, n):
     """Write the chain's own spring, damper and ground forces into the scratch area.
 
     Overwrites ``s[so+2n : so+3n]``; external forces are added afterwards.  The
     link force is carried to the next node in a local variable rather than
-    through memory, which keeps the loop free of store-to-load stalls.
+    through memory, which keeps the loop free of store-to-load stalls.  The blocks'
+    offsets are taken once as non-negative (:func:`plant.effects.index.offset`), so
+    no access in the loop wraps; ``n`` >= 1.
     """
-    xo = so
-    vo = so + n
-    fo = so + 2 * n
+    xo = offset(so)
+    vo = offset(so + n)
+    fo = offset(so + 2 * n)
+    c_gnd = offset(po + n)
+    k_gnd = offset(po + 2 * n)
+    k_link = offset(po + 3 * n)
+    c_link = offset(po + 4 * n - 1)
+    gaps = offset(po + 5 * n - 2)
+    last = offset(n - 1)
     carry = 0.0
     x = s[xo]
     v = s[vo]
     for i in range(n - 1):
         x_next = s[xo + i + 1]
         v_next = s[vo + i + 1]
-        gap = p[po + 5 * n - 2 + i]
+        gap = p[gaps + i]
         de = dead_zone(x_next - x, gap)
-        fl = p[po + 3 * n + i] * de
+        fl = p[k_link + i] * de
         if de != 0.0 or gap <= 0.0:
-            fl += p[po + 4 * n - 1 + i] * (v_next - v)
-        s[fo + i] = carry + fl - p[po + 2 * n + i] * x - p[po + n + i] * v
+            fl += p[c_link + i] * (v_next - v)
+        s[fo + i] = carry + fl - p[k_gnd + i] * x - p[c_gnd + i] * v
         carry = -fl
         x = x_next
         v = v_next
-    s[fo + n - 1] = carry - p[po + 3 * n - 1] * x - p[po + 2 * n - 1] * v
+    s[fo + last] = carry - p[k_gnd + last] * x - p[c_gnd + last] * v
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def chain_step(p, po, s, so, n, dt, hold):
     """Semi-implicit Euler update from the forces in the scratch area:
     v += dt * f / m, then x += dt * v.  Node ``hold`` (-1: none) is held at rest
@@ -113,7 +123,7 @@ def chain_energy(p, po, s, so, n):
     return e
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def chain_clear_forces(s, so, n):
     """Zero the force scratch area (the TLM solver takes external forces only)."""
     for i in range(n):

@@ -12,7 +12,7 @@ from numba import njit
 from plant.layout import P_COG_AMP, P_COG_N, P_COG_ORDER, P_COG_PHASE
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def cogging_torque(p, theta_e):
     """Cogging torque (N·m, or N) at electrical angle ``theta_e`` (rad)."""
     t = 0.0

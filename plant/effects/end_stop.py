@@ -25,7 +25,7 @@ from plant.layout import (
 )
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def end_stop_force(p, x, v):
     """Force of the end stops on the table at position ``x`` (m) and velocity ``v`` (m/s):
     N, + pushing toward +x; 0 inside the stroke."""

@@ -20,7 +20,7 @@ from plant.layout import (P_PITCH_AMP, P_PITCH_LINEAR, P_PITCH_N, P_PITCH_PHASE,
                           P_PITCH_WAVENUMBER)
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def pitch_error(p, u):
     """(e, de/du, d2e/du2) at nominal table position ``u`` (m): the error in m, its
     slope (m/m) and its curvature (1/m)."""

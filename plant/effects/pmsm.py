@@ -89,7 +89,7 @@ def limit_voltage(ud, uq, umax):
     return ud, uq
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def dq_substep(p, s, ud, uq, omega_m):
     """Advance i_d, i_q over one sub-step with the voltages held; return the torque of the
     currents at the sub-step's start (see :func:`plant.kernel.motor_substep`)."""
@@ -119,7 +119,7 @@ def freewheel(i, u_link, inductance, dt):
     return 0.0
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def dq_torque(p, i_d, i_q):
     """Electromagnetic torque (N·m; N for linear motors) of the d-q currents."""
     return 1.5 * p[P_POLE_PAIRS] * (p[P_PSI] * i_q + (p[P_LD] - p[P_LQ]) * i_d * i_q)

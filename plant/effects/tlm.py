@@ -57,6 +57,8 @@ refuses TLM for chains with gaps.
 
 from numba import njit
 
+from plant.effects.index import offset
+
 
 @njit(cache=True, error_model="numpy", inline="always")
 def node_inertia(p, po, n, i, dt):
@@ -89,45 +91,59 @@ def tlm_init(p, po, s, so, n, dt):
         s[so + 4 * n - 1 + i] = f + z * vb
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def tlm_waves(p, po, s, so, n, dt):
     """Carry the waves across every line: incident waves of t+dt from ends at t."""
+    vo = offset(so + n)
+    wa = offset(so + 3 * n)
+    wb = offset(so + 4 * n - 1)
+    k_link = offset(po + 3 * n)
     for i in range(n - 1):
-        z = p[po + 3 * n + i] * dt
-        ia = so + 3 * n + i
-        ib = so + 4 * n - 1 + i
-        ca = s[ia]
-        s[ia] = s[ib] - 2.0 * z * s[so + n + i + 1]
-        s[ib] = ca + 2.0 * z * s[so + n + i]
+        z = p[k_link + i] * dt
+        ca = s[wa + i]
+        s[wa + i] = s[wb + i] - 2.0 * z * s[vo + i + 1]
+        s[wb + i] = ca + 2.0 * z * s[vo + i]
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def tlm_nodes(p, po, s, so, n, dt):
     """Backward-Euler solve of every node against its lines' Thevenin sources.
 
     Node i: ``m (v' - v)/dt = f_ext + c_b[i-1] - c_a[i] - (Z[i-1] + Z[i]) v'
     - k_gnd (x + dt v') - c_gnd v' + c[i-1](v[i-1] - v') + c[i](v[i+1] - v')``
     with ``m`` from ``node_inertia`` and the neighbours' old velocities;
-    then ``x += dt v'``.
+    then ``x += dt v'``.  The blocks' offsets are taken once as non-negative
+    (:func:`plant.effects.index.offset`); the left neighbour's entries are read at
+    ``i - 1`` only for ``i > 0``.
     """
+    xo = offset(so)
+    vo = offset(so + n)
+    fo = offset(so + 2 * n)
+    wa = offset(so + 3 * n)
+    wb = offset(so + 4 * n - 1)
+    c_gnd = offset(po + n)
+    k_gnd = offset(po + 2 * n)
+    k_link = offset(po + 3 * n)
+    c_link = offset(po + 4 * n - 1)
     v_left = 0.0
     for i in range(n):
-        v = s[so + n + i]
+        v = s[vo + i]
         m = node_inertia(p, po, n, i, dt)
-        kg = p[po + 2 * n + i]
-        num = m * v / dt + s[so + 2 * n + i] - kg * s[so + i]
-        den = m / dt + p[po + n + i] + kg * dt
+        kg = p[k_gnd + i]
+        num = m * v / dt + s[fo + i] - kg * s[xo + i]
+        den = m / dt + p[c_gnd + i] + kg * dt
         if i > 0:
-            c = p[po + 4 * n - 2 + i]
-            num += s[so + 4 * n - 2 + i] + c * v_left
-            den += p[po + 3 * n + i - 1] * dt + c
+            left = offset(i - 1)
+            c = p[c_link + left]
+            num += s[wb + left] + c * v_left
+            den += p[k_link + left] * dt + c
         if i < n - 1:
-            c = p[po + 4 * n - 1 + i]
-            num += c * s[so + n + i + 1] - s[so + 3 * n + i]
-            den += p[po + 3 * n + i] * dt + c
+            c = p[c_link + i]
+            num += c * s[vo + i + 1] - s[wa + i]
+            den += p[k_link + i] * dt + c
         v_new = num / den
-        s[so + n + i] = v_new
-        s[so + i] += dt * v_new
+        s[vo + i] = v_new
+        s[xo + i] += dt * v_new
         v_left = v
 
 
