@@ -5,7 +5,7 @@
     hil controller CONFIG --adapter URL --program FILE [--out DIR] ...
     hil validate [--json] [--out DIR | --no-plots] [--only NAME ...] [--strict]
     hil bench plant [--json] [--config FILE ...] [--seconds S]
-    hil bench loop [--rate 1000,4000,8000] [--seconds S] [--with-plant] [--json]
+    hil bench loop [--rate 1000,4000,8000] [--seconds S] [--with-plant [--adapter udp]] [--json]
     hil bench adapters [--n N] [--adapter udp|serial] [--json]
     hil bench fuzz [--frames N] [--seed N] [--json]
     hil bench can [--config FILE] [--program FILE] [--sync-hz HZ] [--group G] [--json]
@@ -64,7 +64,10 @@ def cmd_bench_plant(args) -> int:
                   f"real-time factor {r['realtime_factor']:6.1f}  reference "
                   f"{r['reference_ns_per_step']:9.0f} ns  "
                   f"speed-up {r['speedup_vs_reference']:6.0f}x  "
-                  f"cold start {r['cold_start_s']:.1f} s")
+                  f"cold start {r['cold_start_s']:.1f} s  "
+                  f"cold compile {r['cold_compile_s']:.1f} s"
+                  + (f"  C {r['c_ns_per_step']:.0f} ns, ratio_to_c {r['ratio_to_c']:.2f}"
+                     if r.get("ratio_to_c") is not None else ""))
     return 0
 
 
@@ -72,7 +75,10 @@ def cmd_bench_loop(args) -> int:
     from hil.bench.loop import main_rows
 
     rates = [int(r) for r in args.rate.split(",")]
-    rows = main_rows(rates, args.seconds, args.with_plant)
+    if args.adapter and not args.with_plant:
+        _eprint("hil bench loop: --adapter needs --with-plant")
+        return 2
+    rows = main_rows(rates, args.seconds, args.with_plant, adapter=args.adapter)
     if args.json:
         print(json.dumps(rows, indent=1))
     else:
@@ -217,6 +223,8 @@ def build_parser() -> argparse.ArgumentParser:
     bl.add_argument("--seconds", type=float, default=5.0, help="run per rate and tool, s")
     bl.add_argument("--with-plant", action="store_true",
                     help="step the Arrow 500 X plant every tick")
+    bl.add_argument("--adapter", choices=("udp",), help="step the plant behind this adapter, "
+                    "a controller process on the other end (needs --with-plant)")
     bl.add_argument("--json", action="store_true")
     bl.set_defaults(func=cmd_bench_loop)
 

@@ -141,7 +141,7 @@ def _serve_raw_serial(path: str, request_bytes: int, reply: bytes, conn) -> None
 
 
 @contextmanager
-def _server(serve: Callable, *args) -> Iterator[object]:
+def server(serve: Callable, *args) -> Iterator[object]:
     """Start ``serve(*args, conn)`` in a spawned process; yields what it sends once ready
     (a UDP port, or None); on exit asks it to stop and waits for it."""
     kind = serve.__name__
@@ -230,8 +230,8 @@ def _adapter_round_trips(url: str, stack: ExitStack) -> Callable[[np.ndarray], N
 
 
 def _udp(stack: ExitStack, request_bytes: int, reply_bytes: int) -> _Pair:
-    device_port = stack.enter_context(_server(_serve_adapter, "udp://127.0.0.1:0"))
-    echo_port = stack.enter_context(_server(_serve_raw_udp, bytes(reply_bytes)))
+    device_port = stack.enter_context(server(_serve_adapter, "udp://127.0.0.1:0"))
+    echo_port = stack.enter_context(server(_serve_raw_udp, bytes(reply_bytes)))
     sock = stack.enter_context(socket.socket(socket.AF_INET, socket.SOCK_DGRAM))
     sock.bind(("127.0.0.1", 0))
     sock.connect(("127.0.0.1", echo_port))
@@ -254,8 +254,8 @@ def _serial(stack: ExitStack, request_bytes: int, reply_bytes: int) -> _Pair:
     adapter = _adapter_round_trips(f"serial://fd/{adapter_fd}", stack)  # owns adapter_fd
     _, fd, raw_there = stack.enter_context(_pty_pair())
     stack.callback(os.close, fd)
-    stack.enter_context(_server(_serve_adapter, f"serial://{adapter_there}"))
-    stack.enter_context(_server(_serve_raw_serial, raw_there, request_bytes, bytes(reply_bytes)))
+    stack.enter_context(server(_serve_adapter, f"serial://{adapter_there}"))
+    stack.enter_context(server(_serve_raw_serial, raw_there, request_bytes, bytes(reply_bytes)))
     request = bytes(request_bytes)
 
     def raw(out_ns: np.ndarray) -> None:

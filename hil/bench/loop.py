@@ -39,7 +39,7 @@ from collections.abc import Callable
 from contextlib import ExitStack
 from pathlib import Path
 
-from hil.bench.adapters import _server
+from hil.bench.adapters import server
 from hil.rt.cyclictest import CyclictestError, run_cyclictest
 from hil.rt.loop import OverrunPolicy, RealTimeLoop
 from hil.rt.scheduling import SchedulingRequest, last_cpu, realtime_scheduling
@@ -143,7 +143,7 @@ def adapter_step(stack: ExitStack, adapter: str, config: Path = PLANT_CONFIG
     if adapter not in ADAPTERS:
         raise ValueError(f"adapter must be one of {ADAPTERS}, got {adapter!r}")
     ep = stack.enter_context(open_endpoint("udp://127.0.0.1:0", "device"))
-    stack.enter_context(_server(square_wave_controller, f"udp://127.0.0.1:{ep.address[1]}"))
+    stack.enter_context(server(square_wave_controller, f"udp://127.0.0.1:{ep.address[1]}"))
     step = PlantOverAdapter(ep, config)
     for k in range(PLANT_WARMUP_CALLS):
         step(k)
