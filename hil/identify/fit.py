@@ -27,6 +27,7 @@ import numpy as np
 
 from hil.identify.effects import FORCE, LIBRARY, POSITION, REPLAY, Context, Term
 from hil.identify.effects.base import correlation
+from hil.identify.conventions import read_conventions
 from hil.identify.model import Model
 from hil.identify.motion import Drive, motion
 from hil.identify.record import Record
@@ -105,6 +106,7 @@ class Identification:
         """Run the greedy search; returns self."""
         self._t0 = time.monotonic()
         cfg = load_machine(self.config)
+        read_conventions(self.rec, cfg)  # a header the replay cannot honour: refused first
         self.drive = Drive.of(cfg)
         self.motion = motion(self.rec, self.drive, self.cutoff_hz)
         self.ctx = Context.of(cfg, self.drive, self.rec, self.motion)
