@@ -234,6 +234,12 @@ class Axis:
             y = sol.y[:, -1].copy()
             if sol.status != 1:
                 break
+            if sol.t[-1] <= t + 1e-9 * dt:
+                # a zero at the interval's start (the load just released): slide through it
+                sol = solve_ivp(self._rhs, (t, dt), y, args=(i_set, slide), rtol=RTOL,
+                                atol=ATOL, max_step=dt)
+                y = sol.y[:, -1].copy()
+                break
             t = float(sol.t[-1])
             y[3] = 0.0
             if not p.two_mass:

@@ -25,7 +25,8 @@ RECORD_EVERY = 4
 PREROLL_S = 0.5
 ADC_BITS = 12
 LEAD = 0.01
-TWO_MASS = {"mechanics": {"model": "two_mass"}, "coupling": {"stiffness_nm_per_rad": 200.0}}
+TWO_MASS = {"mechanics": {"model": "two_mass"},
+            "coupling": {"stiffness_nm_per_rad": 1000.0, "damping_nms_per_rad": 0.03}}
 
 
 @dataclass(frozen=True)
