@@ -206,3 +206,11 @@ def test_preroll_gives_back_a_trace_that_starts_after_a_dwell(tmp_path):
     np.testing.assert_allclose(rep.pos, rec.pos, rtol=0, atol=1e-12)
     cold = replay(cfg, dataclasses.replace(rec, meta={**rec.meta, "preroll_s": "0"}))
     assert np.abs(cold.pos - rec.pos).max() > 20 * cfg.sensors.scale_resolution_m
+
+
+def test_a_sample_time_off_the_pwm_clock_is_refused_naming_it():
+    t = np.arange(200) * 1.3e-3  # 5.2 periods of 4 kHz
+    rec = Record(source="trace.csv", t=t, pos_set=np.zeros(200), pos=np.zeros(200),
+                 effort=np.zeros(200), effort_kind="iq")
+    with pytest.raises(ConventionError, match="sample_time_s 0.0013 s is not a whole number"):
+        replay(load_machine(BASE), rec)

@@ -41,7 +41,7 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
-from hil.controller.config import axis_limits, load_controller
+from hil.controller.config import ControllerSection, axis_limits, load_controller
 from hil.controller.interpolator import ProfileSamples
 from hil.controller.loops import PositionLoop
 from hil.drive import EmulatedDrive
@@ -94,8 +94,8 @@ def replay(cfg: MachineConfig, rec: Record, progress=None) -> Replay:
         rec: the measured record.
         progress: optional callable(fraction done), called about 20 times.
     Raises:
-        ValueError: the record's sample time is no whole number of PWM periods.
-        ConventionError: a convention of the record's header the replay cannot honour
+        ConventionError: the record's sample time is no whole number of PWM periods, a
+            convention of the record's header the replay cannot honour
             (naming the key), or a sample time and position cycle of which neither is a
             whole multiple of the other.
         ConfigError: an NC record and a machine file without ``[controller]``.
@@ -130,12 +130,14 @@ def errors(rec: Record, rep: Replay, start: int = ERROR_START) -> dict[str, floa
     return out
 
 
-def _periods(plant: Plant, dt: float, what: str) -> int:
-    """PWM periods per record sample of ``dt`` seconds; ValueError when not whole."""
+def _periods(plant: Plant, rec: Record) -> int:
+    """PWM periods per record sample; ConventionError when not whole."""
+    dt = rec.dt
     n = round(dt / plant.pwm_period)
     if n < 1 or abs(n * plant.pwm_period - dt) > PERIOD_TOLERANCE * dt:
-        raise ValueError(f"record sample time {dt:g} s is not a whole number of the plant's "
-                         f"PWM periods ({plant.pwm_period:g} s){what}")
+        raise ConventionError(f"{rec.source}: sample_time_s {dt:g} s is not a whole number "
+                              f"of the plant's PWM periods ({plant.pwm_period:g} s, [motor] "
+                              "pwm_frequency_hz): the replay samples the plant's basic clock")
     return n
 
 
@@ -143,7 +145,7 @@ def _replay_emps(cfg: MachineConfig, rec: Record, progress) -> Replay:
     """The EMPS dSPACE PD loop around the plant (:func:`_emps_loop`)."""
     loop = rec.emps
     plant = Plant(cfg, table_pos=float(rec.pos[0]))
-    n_per = _periods(plant, rec.dt, "")
+    n_per = _periods(plant, rec)
     p = plant.params
     m_per_count = plant.built.ratio / p[L.P_ENC_COUNTS_PER_RAD]
     pulses = loop.pulses_v if loop.pulses_v is not None else np.zeros(rec.n)
@@ -202,11 +204,11 @@ class _Grid:
     step: int
 
 
-def _grid(rec: Record, plant: Plant, sec, path) -> _Grid:
+def _grid(rec: Record, plant: Plant, sec: ControllerSection, path: str) -> _Grid:
     """The record's sample time against the position cycle: either a whole multiple of the
     other (the trace-format convention), else a ConventionError naming the key."""
     ratio_pos = sec.position_cycle_ratio
-    every = _periods(plant, rec.dt, "")
+    every = _periods(plant, rec)
     if ratio_pos % every == 0:
         return _Grid(every, ratio_pos, ratio_pos // every)
     if every % ratio_pos == 0:
