@@ -156,7 +156,7 @@ def _line(r: dict) -> str:
 def table(result: dict) -> str:
     """The bench as a Markdown table (ratios: current / position / motor encoder)."""
     lines = ["| trace | axis | undeclared | added (in order) | named first | before / floor "
-             "| after / floor | truth / floor | identify, s |", "|---|---|---|---|---|---|---|---|---|"]
+             "| after / floor | truth / floor | identify, s |", "|---" * 9 + "|"]
     for r in result["rows"]:
         lines.append(
             f"| {r['case']} | {r['axis']} | {', '.join(r['undeclared'])} | "
