@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 
 from hil.bench.identify import ratios, run, table
-from hil.bench.identify_gen.axis import Axis, axis_params
+from hil.bench.identify_gen.axis import Axis, axis_params, nut_travel
 from hil.bench.identify_gen.cases import CI_CASES, LINEAR, ROTARY, SCREW, TWO_MASS
 from hil.bench.identify_gen.trajectory import moves
 from hil.identify.floor import replay_floor
@@ -97,3 +97,14 @@ def test_reduced_bench_names_every_undeclared_effect_first(ci_bench):
         assert row["named_first"], (row["case"], row["added"])
         assert set(row["found"]) == set(row["undeclared"])
     assert ratios({"iq_rms_a": 2.0}, {"iq_rms_a": 1.0}) == {"iq_rms_a": 2.0}
+
+
+def test_the_table_starts_at_the_setpoint_despite_the_pitch_error():
+    """nut_travel inverts pitch_position: with 4 µm of pitch error the axis starts with its
+    table (what the scale reads) exactly at the given position, as the plant does."""
+    cfg = load_machine(SCREW, {"pitch_error": {"periods_m": [0.025], "amplitudes_m": [4e-6],
+                                               "linear_ppm": 30.0}})
+    p = axis_params(cfg)
+    for x in (0.09, 0.2137):
+        assert Axis(p, x).table_position == pytest.approx(x, abs=1e-13)
+        assert abs(nut_travel(p, x) - x) > 1e-6  # the nut stands off by the pitch error

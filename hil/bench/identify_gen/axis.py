@@ -132,6 +132,18 @@ def pitch_position(p: AxisParams, u: float) -> float:
     return u + e + p.pitch_linear * u
 
 
+def nut_travel(p: AxisParams, x: float) -> float:
+    """The nut's nominal travel u that puts the table at ``x`` (the inverse of
+    :func:`pitch_position`, by fixed-point iteration: |e'| << 1)."""
+    u = x
+    for _ in range(50):
+        u_next = x - (pitch_position(p, u) - u)
+        if abs(u_next - u) < 1e-15:
+            break
+        u = u_next
+    return u
+
+
 class Axis:
     """The axis's state and its integration over one interval at a held current setpoint.
 
@@ -141,9 +153,11 @@ class Axis:
     """
 
     def __init__(self, p: AxisParams, x0: float):
+        """At rest with the table at ``x0`` (m or rad)."""
         self.p = p
-        self.y = np.array([x0, 0.0, x0, 0.0, 0.0, 0.0])
-        self.x_rev = x0
+        u0 = nut_travel(p, x0) if p.pitch else x0
+        self.y = np.array([u0, 0.0, u0, 0.0, 0.0, 0.0])
+        self.x_rev = u0
         self.direction = 0.0
         self.stuck = p.presliding is None and p.fh > 0.0
 
