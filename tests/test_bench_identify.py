@@ -107,4 +107,4 @@ def test_the_table_starts_at_the_setpoint_despite_the_pitch_error():
     p = axis_params(cfg)
     for x in (0.09, 0.2137):
         assert Axis(p, x).table_position == pytest.approx(x, abs=1e-13)
-        assert abs(nut_travel(p, x) - x) > 1e-6  # the nut stands off by the pitch error
+        assert abs(nut_travel(p, x) - x) > 1e-7  # the nut stands off by the pitch error
