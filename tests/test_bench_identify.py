@@ -82,12 +82,13 @@ def test_truth_replayed_with_the_headers_conventions_is_at_the_floor(ci_bench):
 
 def test_estimated_floor_against_the_generators_true_noise(ci_bench, tmp_path):
     """hil.identify.floor's estimate from the trace alone against the generator's measured
-    minus true signals: positions within 5 %; the current within 30 % above (the speed
-    loop's chatter on the encoder counts is high-frequency content the estimate counts)."""
+    minus true signals: positions within 5 %; the current from 15 % below (noise under one
+    ADC step: its rounding is not white) to 30 % above (the speed loop's chatter on the
+    encoder counts is high-frequency content the estimate counts)."""
     for row in ci_bench["rows"]:
         est = replay_floor(load_record(ci_bench["out"] / "traces" / row["case"] / "trace.csv"))
         for key, true in row["floor"].items():
-            rel = (1.0, 1.3) if key == "iq_rms_a" else (0.95, 1.05)
+            rel = (0.85, 1.3) if key == "iq_rms_a" else (0.95, 1.05)
             assert rel[0] * true <= est[key] <= rel[1] * true, (row["case"], key, est, true)
 
 

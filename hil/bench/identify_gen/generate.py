@@ -40,7 +40,7 @@ class Recording:
 
     Attributes:
         columns: the trace's columns in the file's units (mm, mm/min, A or deg).
-        floor: rms of measured minus true per channel: ``iq_rms_a``, ``pos_rms_um`` (or
+        floor: deviation of measured minus true per channel: ``iq_rms_a``, ``pos_rms_um`` (or
             ``_urad``), ``motor_pos_rms_um``: what no model can explain.
         meta: the header's conventions.
     """
