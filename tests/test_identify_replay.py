@@ -22,6 +22,7 @@ from scipy.io import loadmat, savemat
 from hil.controller.config import axis_limits, load_controller
 from hil.controller.interpolator import plan
 from hil.controller.program import parse_program
+from hil.identify.conventions import ConventionError
 from hil.identify.record import Record, load_record
 from hil.identify.replay import Replay, errors, replay
 from hil.sim import LockStep, servo_trace_columns
@@ -136,19 +137,36 @@ def test_emps_replay_without_the_missing_friction_is_far_off():
 
 
 PROGRAM = "G90 G71\nG1 X20 F6000\nG4 F0.05\nG0 X0\nM30\n"
+DWELL_FIRST = "G90 G71\nG4 F0.01\nG1 X20 F6000\nG4 F0.05\nG0 X0\nM30\n"
 
 
-def _lockstep_trace(cfg, tmp_path, program=PROGRAM):
+def trace_columns(res, every: int, vel_set: str = "feedforward", cycle: int = 1) -> dict:
+    """``hil.sim``'s servo-trace columns with ``vel_set_mm_min`` as trace-format.md defines it
+    (the interpolator's velocity, the speed feed-forward), or as the whole speed command;
+    the first sample on a tick that is a multiple of ``cycle`` (the position cycle, where
+    the replay takes a trace's t = 0)."""
+    cols = servo_trace_columns(res, every)
+    rows = np.flatnonzero(res["tick"] % every == 0)
+    if vel_set == "feedforward":
+        cols["vel_set_mm_min"] = res["v_set"][rows] * 60e3
+    skip = int(np.argmax(res["tick"][rows] % cycle == 0))
+    return {k: (v[skip:] - v[skip]) if k == "t_s" else v[skip:] for k, v in cols.items()}
+
+
+def _lockstep_trace(cfg, tmp_path, program=PROGRAM, vel_set="feedforward", every=None,
+                    meta=None):
     """Simulate ``program`` from 0 in lock step (as ``hil sim``), write the servo trace
-    at the position-control cycle and read it back as a Record."""
+    every ``every`` PWM periods (default: the position-control cycle) with ``vel_set`` the
+    feed-forward or the speed command, and read it back as a Record."""
     profile = plan(parse_program(program, "X", 0.0), axis_limits(cfg, load_controller(cfg)))
     ls = LockStep(cfg, 0.0)
     ls.enable()
     ls.ctrl.run_profile(profile)
     res = ls.run(profile.duration_s + 0.05)
     path = write_trace(tmp_path / "trace.csv",
-                       servo_trace_columns(res, ls.ctrl.sec.position_cycle_ratio),
-                       {"machine": cfg.path})
+                       trace_columns(res, every or ls.ctrl.sec.position_cycle_ratio, vel_set,
+                                     ls.ctrl.sec.position_cycle_ratio),
+                       {"machine": cfg.path, "vel_set_column": vel_set, **(meta or {})})
     return load_record(path)
 
 
@@ -171,15 +189,17 @@ def test_nc_replay_gives_back_a_lockstep_trace_up_to_noise(tmp_path):
 
 def test_nc_replay_recovers_the_speed_feed_forward(tmp_path):
     """Arrow 500 X (speed feed-forward with the symmetrising delay, linear scale, dq motor;
-    noise off in both): the feed-forward recovered from the recorded speed command gives
-    the trace back to one scale count and one current LSB (the recovery's last-digit
-    rounding can flip a quantisation step); without the vel_set column the setpoint's
-    central difference stands in and the error stays below 2 µm on this jerk-limited move."""
+    noise off in both): with vel_set the feed-forward (trace-format.md), or the whole speed
+    command from which it is recovered, the replay gives the trace back to one scale count
+    and one current LSB (the file's mm/min rounding can flip a quantisation step); without
+    the vel_set column the setpoint's central difference stands in and the error stays
+    below 2 µm on this jerk-limited move."""
     cfg = load_machine(CONFIGS / "arrow500_x.toml", {"sensors": {"current_noise_a": 0.0}})
-    rec = _lockstep_trace(cfg, tmp_path)
-    rep = replay(cfg, rec)
-    assert np.abs(rep.pos - rec.pos).max() <= cfg.sensors.scale_resolution_m * (1 + 1e-9)
-    assert np.abs(rep.effort - rec.effort).max() <= cfg.sensors.current_lsb_a * (1 + 1e-9)
+    for vel_set in ("feedforward", "speed_command"):
+        rec = _lockstep_trace(cfg, tmp_path, vel_set=vel_set)
+        rep = replay(cfg, rec)
+        assert np.abs(rep.pos - rec.pos).max() <= cfg.sensors.scale_resolution_m * (1 + 1e-9)
+        assert np.abs(rep.effort - rec.effort).max() <= cfg.sensors.current_lsb_a * (1 + 1e-9)
     estimated = replay(cfg, dataclasses.replace(rec, vel_set=None))
     assert np.abs(estimated.pos - rec.pos).max() < 2e-6
 
@@ -196,18 +216,40 @@ def test_nc_replay_with_a_wrong_mass_is_worse(tmp_path):
     assert off["pos_rms_um"] > 100.0 * max(same["pos_rms_um"], 1e-6)
 
 
-def test_nc_replay_needs_the_position_cycle(tmp_path):
-    """A trace written every second position cycle cannot be fed cycle by cycle."""
+def test_nc_replay_of_a_trace_sampled_every_second_position_cycle(tmp_path):
+    """LD386 traced every second position cycle: the setpoints between samples are fine-
+    interpolated linearly, as the NC's own fine interpolator would from those points.  A
+    chord misses a setpoint of acceleration a by at most a T^2 / 8 (T the sample time); the
+    replayed positions stay within that of the lock-step's (the program dwells first: the
+    trace's first sample must find the axis at rest)."""
     cfg = load_machine(CONFIGS / "ld386_linear.toml")
-    profile = plan(parse_program(PROGRAM, "X", 0.0), axis_limits(cfg, load_controller(cfg)))
-    ls = LockStep(cfg, 0.0)
-    ls.enable()
-    ls.ctrl.run_profile(profile)
-    res = ls.run(0.05)
-    path = write_trace(tmp_path / "sparse.csv",
-                       servo_trace_columns(res, 2 * ls.ctrl.sec.position_cycle_ratio))
-    with pytest.raises(ValueError, match="position-control cycle"):
-        replay(cfg, load_record(path))
+    every = 2 * load_controller(cfg).position_cycle_ratio
+    rec = _lockstep_trace(cfg, tmp_path, program=DWELL_FIRST, every=every)
+    rep = replay(cfg, rec)
+    chord = axis_limits(cfg, load_controller(cfg)).acceleration * rec.dt ** 2 / 8.0
+    assert rep.status == 0 and np.abs(rep.pos - rec.pos).max() < chord
+
+
+def test_nc_replay_with_a_position_cycle_of_two_samples(tmp_path):
+    """A 2 ms position cycle against a 1 ms trace (the header's position_loop_sample_time_s)
+    replays: the trace written by the same lock step, its position cycle set to 2 ms in the
+    machine file, every 1 ms, is given back to the current noise; the position exactly."""
+    cfg = load_machine(CONFIGS / "ld386_linear.toml")
+    pwm = 1.0 / cfg.motor.pwm_frequency_hz
+    sec = load_controller(cfg)
+    slow = load_machine(CONFIGS / "ld386_linear.toml", {"controller": {
+        "position_cycle_ratio": 2 * sec.position_cycle_ratio,
+        "ipo_cycle_ratio": 2 * sec.ipo_cycle_ratio}})
+    period_s = 2 * sec.position_cycle_ratio * pwm
+    rec = _lockstep_trace(slow, tmp_path, program=DWELL_FIRST, every=sec.position_cycle_ratio,
+                          meta={"position_loop_sample_time_s": repr(period_s)})
+    assert rec.dt == pytest.approx(period_s / 2)
+    rep = replay(cfg, rec)  # the machine file says 1 ms; the header 2 ms
+    assert rep.status == 0
+    np.testing.assert_allclose(rep.pos, rec.pos, rtol=0, atol=1e-12)
+    with pytest.raises(ConventionError, match="neither is a whole multiple"):
+        replay(cfg, dataclasses.replace(rec, meta={**rec.meta,
+                                                   "position_loop_sample_time_s": "0.0015"}))
 
 
 def test_errors_follow_their_definition():

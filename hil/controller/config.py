@@ -51,6 +51,25 @@ class ControllerSection:
                                  ge=0.0, le=2.0)
     torque_ff: bool = key("-", "Torque (acceleration) feed-forward from the interpolator's "
                           "acceleration and the axis inertia.", False)
+    feedforward_interpolation: str = key("-", "Speed feed-forward between position cycles: "
+                                         "'hold' (held per position cycle) or 'linear' "
+                                         "(interpolated at every speed cycle towards the next "
+                                         "position cycle's value, a fine interpolation); "
+                                         "'linear': hil identify's replay only so far.", "hold",
+                                         choices=("hold", "linear"))
+    speed_actual_filter_s: float = key("s", "Time constant of the first-order filter on the "
+                                       "measured motor speed (p1441 class); 0: none; hil "
+                                       "identify's replay only so far.", 0.0, ge=0.0, le=1.0)
+    speed_antiwindup: str = key("-", "Anti-windup of the speed integrator at the current "
+                                "limit: 'conditional' (no integration that drives further "
+                                "into the limit), 'clamp' (the integrator itself held within "
+                                "the limit) or 'none'; the last two: hil identify's replay "
+                                "only so far.", "conditional",
+                                choices=("conditional", "clamp", "none"))
+    current_delay_cycles: int = key("1", "Computation delay of the current setpoint in PWM "
+                                    "periods: the drive applies the speed loop's output this "
+                                    "many periods later; hil identify's replay only so far.",
+                                    0, ge=0, le=64)
     speedctrl_equiv_time_s: float = key("s", "Equivalent time constant of the closed speed "
                                         "loop (MD32810); delays the position setpoint of the P "
                                         "path when feed-forward is on.", 0.0, ge=0.0, le=1.0)

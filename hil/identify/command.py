@@ -22,7 +22,8 @@ def add_arguments(p) -> None:
     p.add_argument("--min-explained", type=float, default=0.05,
                    help="share of a residual's energy an effect must explain (default 0.05)")
     p.add_argument("--floor-factor", type=float, default=1.5,
-                   help="a residual within this factor of its noise floor is done (1.5)")
+                   help="done when every replay channel is within this factor of its "
+                        "noise floor (1.5)")
     p.add_argument("--max-steps", type=int, default=6, help="most effects added (6)")
     p.add_argument("--refine-nfev", type=int, default=10,
                    help="iterations of the closed-loop refinement (0: off; default 10)")

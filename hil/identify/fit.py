@@ -7,14 +7,15 @@ itself to its residual alone, and takes the one that explains the largest share 
 residual's energy (the simplest when several explain within 10 % of the best).  The
 effect's parameters are then fitted jointly with every term of its domain — the base
 parameters (mass, viscous friction, ...) are freed again — and the config with the
-effects added is replayed in closed loop against the record: a step that does not make
-the replay better on some channel, or makes it clearly worse on one, is undone (the
-inverse model can mistake one effect for another; the closed loop settles it).  At the
+effects added is replayed in closed loop against the record: a step is kept only when
+the replay's errors, each over its channel's measurement noise floor, gain more than
+its added parameters cost (:func:`hil.identify.floor.judge`, an information criterion);
+the inverse model can mistake one effect for another, the closed loop settles it.  At the
 end the single-coefficient force terms are refined on the replay itself.
 
-It stops when no effect explains ``min_explained`` of the residual, when every residual
-is at its noise floor (``floor_factor`` times the measurement noise estimated from the
-record's content above the filter corner), or after ``max_steps``.  A delay is looked
+It stops when no effect explains ``min_explained`` of its residual, when every replay
+channel is within ``floor_factor`` of its noise floor (:func:`hil.identify.floor.
+replay_floor`), or after ``max_steps``.  A delay is looked
 for last, through the replay, because it is the expensive one and no residual shows it.
 """
 
@@ -27,6 +28,8 @@ import numpy as np
 
 from hil.identify.effects import FORCE, LIBRARY, POSITION, REPLAY, Context, Term
 from hil.identify.effects.base import correlation
+from hil.identify.conventions import read_conventions
+from hil.identify.floor import judge, replay_floor
 from hil.identify.model import Model
 from hil.identify.motion import Drive, motion
 from hil.identify.record import Record
@@ -67,7 +70,8 @@ class Identification:
         config: the machine file to start from.
         rec: the record (see :func:`hil.identify.record.load_record`).
         min_explained: smallest share of a residual's energy an effect must explain.
-        floor_factor: a residual within this factor of its noise floor is done.
+        floor_factor: a replay whose every channel is within this factor of its noise
+            floor is done.
         max_steps: most effects added.
         refine_nfev: closed-loop refinement's budget of least-squares iterations (0: off).
         cutoff_hz: low-pass corner of the inverse model (None: a tenth of the sample rate).
@@ -77,7 +81,9 @@ class Identification:
         log: optional callable(str) for progress lines.
 
     After :meth:`fit`: ``steps`` (the effects added, in order), ``rejected`` and
-    ``skipped`` (effect -> why), ``refinement``, ``error_before``/``error_after`` (replay
+    ``skipped`` (effect -> why), ``proposals`` (every step tried, kept or not, with its
+    parameters, errors before and after and the reason), ``floor`` (the replay channels'
+    noise floors), ``refinement``, ``error_before``/``error_after`` (replay
     errors), ``residual_before``/``residual_after`` (domain -> residual, shape (n,)),
     ``replay_before``/``replay_after``, ``friction_before``/``friction_after`` (v -> force),
     ``unexplained`` (the signature of what is left), and ``model`` (the terms; its
@@ -95,6 +101,7 @@ class Identification:
     steps: list[Step] = field(default_factory=list)
     skipped: dict = field(default_factory=dict)
     rejected: dict = field(default_factory=dict)
+    proposals: list = field(default_factory=list)
     refinement: dict = field(default_factory=dict)
 
     def _say(self, text: str) -> None:
@@ -105,6 +112,7 @@ class Identification:
         """Run the greedy search; returns self."""
         self._t0 = time.monotonic()
         cfg = load_machine(self.config)
+        read_conventions(self.rec, cfg)  # a header the replay cannot honour: refused first
         self.drive = Drive.of(cfg)
         self.motion = motion(self.rec, self.drive, self.cutoff_hz)
         self.ctx = Context.of(cfg, self.drive, self.rec, self.motion)
@@ -115,10 +123,16 @@ class Identification:
         self.residual_before = {d: self.model.residual(d) for d in self.domains()}
         self.friction_before = friction_curve(self.model)
         self.model_before_inertia = float(self.model.term("inertia").coef[0])
-        self._say(f"error before: {_fmt(self.error_before)}")
+        self.floor = replay_floor(self.rec)
+        # independent samples: the inverse model's band, 2 f_c per second
+        self.n_eff = self.rec.n * 2.0 * self.motion.cutoff_hz * self.rec.dt
+        self._say(f"error before: {_fmt(self.error_before)}; noise floor {_fmt(self.floor)}")
         err = self.error_before
         for _ in range(self.max_steps + len(LIBRARY)):
             if len(self.steps) >= self.max_steps:
+                break
+            if self._replay_at_floor(err):
+                self._say(f"every channel within {self.floor_factor}x its noise floor")
                 break
             term = self._best()
             if term is None:
@@ -128,16 +142,21 @@ class Identification:
             if term.effect.domain != REPLAY:
                 self.model.refit(term.effect.domain)
             new = record_errors(self.rec, self.model.replay())
-            why = _not_confirmed(err, new)
-            if why:
+            verdict = judge(err, new, self.floor, max(1, term.effect.n_coef(term.shape)),
+                            self.n_eff)
+            self.proposals.append({"effect": term.effect.name, "params": term.params(self.ctx),
+                                   "evidence": term.evidence, "error_before": err,
+                                   "error_after": new, "accepted": verdict.keep,
+                                   "reason": verdict.reason})
+            if not verdict.keep:
                 self.model.restore(saved)
-                self.rejected[term.effect.name] = why
-                self._say(f"rejected {term.effect.name}: {why}")
+                self.rejected[term.effect.name] = verdict.reason
+                self._say(f"rejected {term.effect.name}: {verdict.reason}")
                 continue
             err = new
             self.steps.append(Step(term.effect.name, term.params(self.ctx), term.evidence, err))
             self._say(f"added {term.effect.name} ({term.evidence.get('text', '')}); "
-                      f"error {_fmt(err)}")
+                      f"{verdict.reason}")
         if self.refine_nfev > 0 and self.steps:
             self._refine()
         self.replay_after = self.model.replay()
@@ -197,13 +216,13 @@ class Identification:
         """The residual domains this record has: force, and position with two sensors."""
         return [FORCE] + ([POSITION] if self.motion.dx is not None else [])
 
+    def _replay_at_floor(self, err: dict) -> bool:
+        """Every replay channel within ``floor_factor`` of its noise floor."""
+        return all(isinstance(err.get(k), float) and err[k] <= self.floor_factor * f
+                   for k, f in self.floor.items())
+
     def noise_floor(self, domain: str) -> float:
         return self.motion.noise_force if domain == FORCE else self.motion.noise_dx
-
-    def _at_floor(self, effect) -> bool:
-        """Whether the residual an effect would explain is already at its noise floor."""
-        rms = self.model.residual_rms(effect.domain, effect.mask(self.ctx))
-        return rms <= self.floor_factor * self.noise_floor(effect.domain)
 
     def _candidates(self, domains) -> list[Term]:
         out = []
@@ -219,8 +238,6 @@ class Identification:
                 continue
             have = self.model.term(effect.name)
             if have is not None and (have.added or not effect.correctable):
-                continue
-            if effect.domain != REPLAY and self._at_floor(effect):
                 continue
             residual = self.model.residual(effect.domain) if effect.domain != REPLAY else None
             self._say(f"  trying {effect.name}")
@@ -265,29 +282,6 @@ class Identification:
                      if self.drive.kind == "screw" else None} for f, a in peaks]
             out[domain] = info
         return out
-
-
-#: a step must lower one replay error by this share ...
-CONFIRM_GAIN = 0.01
-#: ... and raise none by more than this share
-CONFIRM_LOSS = 0.10
-
-
-def _not_confirmed(before: dict, after: dict) -> str:
-    """Why the closed-loop replay does not confirm a step ('' when it does): an effect is
-    kept only when the replay gets better on some channel and not clearly worse on any —
-    the inverse model can mistake one effect for another, the closed loop settles it."""
-    if "status" in after:
-        return f"the replay failed ({after['status']})"
-    keys = [k for k in after if k.endswith("_rms_um") or k.endswith("_rms_urad")
-            or k in ("iq_rms_a", "force_rms_n")]
-    worse = [k for k in keys if after[k] > (1 + CONFIRM_LOSS) * before.get(k, math.inf)]
-    if worse:
-        return "the replay got worse: " + ", ".join(
-            f"{k} {before[k]:.4g} -> {after[k]:.4g}" for k in worse)
-    if not any(after[k] < (1 - CONFIRM_GAIN) * before.get(k, 0.0) for k in keys):
-        return "the replay did not get better"
-    return ""
 
 
 def friction_curve(model: Model):

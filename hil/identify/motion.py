@@ -22,8 +22,12 @@ import numpy as np
 from scipy.signal import butter, sosfiltfilt
 
 from hil.identify.record import Record
+from hil.trace_file import TraceFormatError
 from plant.assemble import build_chains, reflected_inertia, transmission_ratio
 from plant.config import MachineConfig
+
+#: fewest samples a record needs: the filter's start-up edges are left out of every fit
+MIN_SAMPLES = 100
 
 
 @dataclass(frozen=True)
@@ -151,6 +155,9 @@ def motion(rec: Record, drive: Drive, cutoff_hz: float | None = None) -> Motion:
         raise ValueError(f"cutoff_hz must lie between 0 and the Nyquist frequency {fs / 2} Hz, "
                          f"got {fc}")
     sos = butter(4, fc / (fs / 2.0), output="sos")
+    if rec.n <= MIN_SAMPLES:
+        raise TraceFormatError(f"{rec.source}: {rec.n} samples; the inverse model's "
+                               f"zero-phase filter needs more than {MIN_SAMPLES}")
     x = sosfiltfilt(sos, rec.pos)
     v = derivative(x, rec.dt)
     a = derivative(v, rec.dt)

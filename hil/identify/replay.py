@@ -17,18 +17,21 @@ to the measurement) and keeps every quantisation (encoder, scale, current LSB).
   pulse(k) at the sample where pulses_N switches.  The plant starts at rest at the record's
   first measured position (the reference model starts at 0; the EMPS records start within
   8 µm of it).  ``Replay.effort`` is gtau u(k), the measured one gtau vir(k).
-* **NC records** (servo-trace CSV of this project's controller): the machine file's
-  ``[controller]`` (:class:`~hil.controller.nc.Controller`) and the emulated drive in lock
-  step, the record's position setpoints fed to the position loop once per position cycle
-  (the record's sample time must be that cycle: ``hil sim`` writes its trace there).  The
-  speed feed-forward the NC sent is not a column of the trace; it is recovered exactly from
-  the recorded speed command, v_ff = (v_cmd - K_v e) / w_ff with e the record's own
-  position-loop error, or, without a ``vel_set`` column, estimated as the central
-  difference of the position setpoint (a few µm of following error on jerk-limited moves).
-  The acceleration for the torque feed-forward is the central difference of v_ff.  The
-  signals are taken where the trace takes them (:func:`hil.sim.servo_trace_columns`): the
-  position and motor encoder the controller read and the current measured at the start
-  of the position cycle's PWM period.
+* **NC records** (servo traces): the machine file's ``[controller]`` with the record's
+  conventions (:mod:`hil.identify.conventions`: the header's keys override the machine
+  file's; :class:`~hil.identify.trace_controller.TraceController`) and the emulated drive in
+  lock step.  The position cycle and the record's sample time are whole multiples of one
+  another: the record's setpoints are fed once per position cycle (every m-th sample when
+  the cycle is m samples) or, when a sample spans several cycles, linearly fine-interpolated
+  between samples.  The drive is enabled at the first setpoint and, with a header
+  ``preroll_s``, held there at rest that long before t = 0.  The speed feed-forward is the
+  ``vel_set`` column (trace-format.md); where the header says the column is the whole speed
+  command, it is recovered exactly, v_ff = (v_cmd - K_v e) / w_ff with e the record's own
+  position-loop error; without the column, the central difference of the position setpoint
+  stands in (a few µm of following error on jerk-limited moves).  The acceleration for the
+  torque feed-forward is the central difference of v_ff.  The signals are taken where the
+  trace takes them (:func:`hil.sim.servo_trace_columns`): the position and motor encoder
+  the controller read and the current measured at the start of the sample's PWM period.
 """
 
 import dataclasses
@@ -38,16 +41,22 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
-from hil.controller.config import axis_limits, load_controller
+from hil.controller.config import ControllerSection, axis_limits, load_controller
 from hil.controller.interpolator import ProfileSamples
 from hil.controller.loops import PositionLoop
-from hil.controller.nc import Controller
 from hil.drive import EmulatedDrive
+from hil.identify.conventions import (
+    Conventions,
+    ConventionError,
+    apply_conventions,
+    read_conventions,
+)
 from hil.identify.record import Record
+from hil.identify.trace_controller import TraceController
 from io_adapters.messages import Feedback, Setpoint
 from plant import Plant
 from plant import layout as L
-from plant.config import MachineConfig
+from plant.config import ConfigError, MachineConfig
 from plant.kernel import axis_step_nb
 
 #: how far a record's sample time may be from a whole number of plant periods (relative)
@@ -85,8 +94,10 @@ def replay(cfg: MachineConfig, rec: Record, progress=None) -> Replay:
         rec: the measured record.
         progress: optional callable(fraction done), called about 20 times.
     Raises:
-        ValueError: the record's sample time is no whole number of PWM periods (EMPS) or
-            not the position-control cycle (NC).
+        ConventionError: the record's sample time is no whole number of PWM periods, a
+            convention of the record's header the replay cannot honour
+            (naming the key), or a sample time and position cycle of which neither is a
+            whole multiple of the other.
         ConfigError: an NC record and a machine file without ``[controller]``.
     """
     quiet = dataclasses.replace(cfg, sensors=dataclasses.replace(cfg.sensors,
@@ -119,12 +130,14 @@ def errors(rec: Record, rep: Replay, start: int = ERROR_START) -> dict[str, floa
     return out
 
 
-def _periods(plant: Plant, dt: float, what: str) -> int:
-    """PWM periods per record sample of ``dt`` seconds; ValueError when not whole."""
+def _periods(plant: Plant, rec: Record) -> int:
+    """PWM periods per record sample; ConventionError when not whole."""
+    dt = rec.dt
     n = round(dt / plant.pwm_period)
     if n < 1 or abs(n * plant.pwm_period - dt) > PERIOD_TOLERANCE * dt:
-        raise ValueError(f"record sample time {dt:g} s is not a whole number of the plant's "
-                         f"PWM periods ({plant.pwm_period:g} s){what}")
+        raise ConventionError(f"{rec.source}: sample_time_s {dt:g} s is not a whole number "
+                              f"of the plant's PWM periods ({plant.pwm_period:g} s, [motor] "
+                              "pwm_frequency_hz): the replay samples the plant's basic clock")
     return n
 
 
@@ -132,7 +145,7 @@ def _replay_emps(cfg: MachineConfig, rec: Record, progress) -> Replay:
     """The EMPS dSPACE PD loop around the plant (:func:`_emps_loop`)."""
     loop = rec.emps
     plant = Plant(cfg, table_pos=float(rec.pos[0]))
-    n_per = _periods(plant, rec.dt, "")
+    n_per = _periods(plant, rec)
     p = plant.params
     m_per_count = plant.built.ratio / p[L.P_ENC_COUNTS_PER_RAD]
     pulses = loop.pulses_v if loop.pulses_v is not None else np.zeros(rec.n)
@@ -176,16 +189,55 @@ def _emps_loop(p, s, inp, out, n_sub, dt, m_per_count, qr, pulses, gain, kv, v_m
     return L.STATUS_OK
 
 
-def _feed_forward(rec: Record, loop: PositionLoop) -> np.ndarray:
-    """The speed feed-forward v_set (m/s, shape (n,)) the NC added to the P path: exact
-    from the recorded speed command where there is one and it is below the velocity limit
-    (a clipped command hides it), else the setpoint's central difference."""
+@dataclass(frozen=True)
+class _Grid:
+    """How the record's samples meet the controller's cycles (all in PWM periods).
+
+    Attributes:
+        every: record sample time.
+        ipo: spacing of the setpoints fed to the controller: the record's samples, or every
+            ``step``-th of them when the position cycle is a multiple of the sample time.
+        step: record samples per fed setpoint.
+    """
+    every: int
+    ipo: int
+    step: int
+
+
+def _grid(rec: Record, plant: Plant, sec: ControllerSection, path: str) -> _Grid:
+    """The record's sample time against the position cycle: either a whole multiple of the
+    other (the trace-format convention), else a ConventionError naming the key."""
+    ratio_pos = sec.position_cycle_ratio
+    every = _periods(plant, rec)
+    if ratio_pos % every == 0:
+        return _Grid(every, ratio_pos, ratio_pos // every)
+    if every % ratio_pos == 0:
+        return _Grid(every, every, 1)
+    raise ConventionError(
+        f"{rec.source}: sample time {rec.dt:g} s is {every} PWM periods, the position cycle "
+        f"is {ratio_pos} ([controller] position_cycle_ratio of {path}, or the header's "
+        "position_loop_sample_time_s): neither is a whole multiple of the other")
+
+
+def _feed_forward(rec: Record, conv: Conventions, loop: PositionLoop, step: int) -> np.ndarray:
+    """The speed feed-forward (m/s, shape (n,)) the NC added to the P path.
+
+    ``vel_set`` is that feed-forward (trace-format.md) unless the header says it is the
+    whole speed command (``vel_set_column: speed_command``); then it is recovered exactly
+    where the command is below the velocity limit (a clipped command hides it),
+    v_ff = (v_cmd - K_v e) / w_ff with e the record's own position-loop error at every
+    ``step``-th sample (the position cycles).  Without the column, the setpoint's central
+    difference stands in."""
     v_est = np.gradient(rec.pos_set, rec.dt)
-    if rec.vel_set is None or loop.ff == 0.0:
+    if rec.vel_set is None:
         return v_est
-    v_ff = np.empty(rec.n)
+    if conv.vel_set_column == "feedforward":
+        return rec.vel_set.copy()
+    if loop.ff == 0.0:
+        return v_est
+    v_ff = v_est.copy()
     loop.reset(float(rec.pos[0]))
-    for k in range(rec.n):
+    for k in range(0, rec.n, step):
         loop.step(float(rec.pos_set[k]), 0.0, float(rec.pos[k]))
         v_ff[k] = (rec.vel_set[k] - loop.kv * loop.error) / loop.ff
     clipped = np.abs(rec.vel_set) >= loop.v_lim * (1.0 - CLIP_TOLERANCE)
@@ -193,24 +245,9 @@ def _feed_forward(rec: Record, loop: PositionLoop) -> np.ndarray:
     return v_ff
 
 
-def _replay_nc(cfg: MachineConfig, rec: Record, progress) -> Replay:
-    """The machine file's NC and drive in lock step, the record's setpoints fed once per
-    position-control cycle."""
-    sec = load_controller(cfg)
-    x0 = float(rec.pos_set[0])
-    plant = Plant(cfg, table_pos=x0)
-    ratio_pos = sec.position_cycle_ratio
-    every = _periods(plant, rec.dt, f"; an NC record must be sampled at the position-control "
-                                    f"cycle, {ratio_pos} PWM periods")
-    if every != ratio_pos:
-        raise ValueError(f"{rec.source}: sample time {rec.dt:g} s is {every} PWM periods, the "
-                         f"position-control cycle of {cfg.path} is {ratio_pos}; the replay "
-                         "needs one record sample per position cycle")
-    period_pos = ratio_pos * plant.pwm_period
-    # one "IPO point" per position cycle: the record's setpoints are the fine setpoints
-    section = dataclasses.replace(sec, ipo_cycle_ratio=ratio_pos)
-    ctrl = Controller(cfg, plant.pwm_period, x0, section=section)
-    drive = EmulatedDrive(plant)
+def _start(ctrl: TraceController, drive: EmulatedDrive, x0: float, preroll_s: float,
+           path) -> tuple[Setpoint, Feedback]:
+    """Enable the drive, then hold ``x0`` for the record's pre-roll at rest."""
     sp, fb = Setpoint(), Feedback()
     for _ in range(ctrl.enable_timeout_ticks * 2):
         if ctrl.enabled:
@@ -218,10 +255,48 @@ def _replay_nc(cfg: MachineConfig, rec: Record, progress) -> Replay:
         ctrl.tick(fb, sp)
         drive.cycle(sp, fb)
     else:
-        raise RuntimeError(f"{cfg.path}: drive not enabled: {ctrl.enable.reason}")
+        raise RuntimeError(f"{path}: drive not enabled: {ctrl.enable.reason}")
+    ticks = round(preroll_s / ctrl.period)
+    if ticks > 0:
+        n_ipo = ticks // ctrl.sec.ipo_cycle_ratio + 2
+        zero = np.zeros(n_ipo)
+        ctrl.run_points(ProfileSamples(zero, np.full(n_ipo, x0), zero, zero))
+        for _ in range(ticks):
+            ctrl.tick(fb, sp)
+            drive.cycle(sp, fb)
+    return sp, fb
+
+
+def _replay_nc(cfg: MachineConfig, rec: Record, progress) -> Replay:
+    """The machine file's NC (with the record's conventions) and drive in lock step, the
+    record's setpoints fed once per position cycle or once per sample, whichever is the
+    longer."""
+    conv = read_conventions(rec, cfg)
+    cfg = apply_conventions(cfg, conv)
+    try:
+        sec = load_controller(cfg)
+    except ConfigError as exc:
+        if conv.overrides.get("controller"):
+            raise ConventionError(f"{rec.source}: the header's conventions "
+                                  f"{conv.given} make no valid [controller]: {exc}") from None
+        raise
+    x0 = float(rec.pos_set[0])
+    plant = Plant(cfg, table_pos=x0)
+    grid = _grid(rec, plant, sec, cfg.path)
+    period_pos = sec.position_cycle_ratio * plant.pwm_period
+    section = dataclasses.replace(sec, ipo_cycle_ratio=grid.ipo)
+    ctrl = TraceController(cfg, plant.pwm_period, x0, section)
+    drive = EmulatedDrive(plant)
+    sp, fb = _start(ctrl, drive, x0, conv.preroll_s, cfg.path)
     v_lim = axis_limits(cfg, sec).velocity
-    v_set = _feed_forward(rec, PositionLoop(sec, period_pos, v_lim))
-    ctrl.run_points(ProfileSamples(rec.t, rec.pos_set, v_set, np.gradient(v_set, rec.dt)))
+    v_set = _feed_forward(rec, conv, PositionLoop(sec, period_pos, v_lim), grid.step)
+    fed = slice(0, rec.n, grid.step)
+    v_fed = v_set[fed]
+    ctrl.run_points(ProfileSamples(rec.t[fed], rec.pos_set[fed], v_fed,
+                                   np.gradient(v_fed, rec.dt * grid.step)))
+    # the feed-forward of the next position cycle, for a linear fine interpolation
+    v_pos = np.interp(np.arange(rec.n * grid.every // sec.position_cycle_ratio + 2)
+                      * period_pos, rec.t[fed], v_fed)
     n = rec.n
     pos, vel, effort = np.full(n, math.nan), np.full(n, math.nan), np.full(n, math.nan)
     motor_pos = np.full(n, math.nan)
@@ -229,12 +304,17 @@ def _replay_nc(cfg: MachineConfig, rec: Record, progress) -> Replay:
     out = plant.out
     every_report = max(1, n // 20)
     row = 0
+    first = None  # the tick of the first position cycle: the record's t = 0
     while row < n:
+        k = ctrl.tick_count
+        if k % sec.position_cycle_ratio == 0:
+            first = k if first is None else first
+            ctrl.set_next_feed_forward(float(v_pos[(k - first) // sec.position_cycle_ratio + 1]))
         ctrl.tick(fb, sp)
         drive.cycle(sp, fb)
         if drive.fault:
             return Replay(pos, effort, motor_pos, vel, int(drive.fault))
-        if (ctrl.tick_count - 1) % ratio_pos == 0:
+        if first is not None and (k - first) % grid.every == 0:
             pos[row] = ctrl.x_act
             effort[row] = fb.iq_a * per_amp
             motor_pos[row] = ctrl.theta_act * ctrl.ratio

@@ -49,6 +49,11 @@ def _clean(obj):
     return obj
 
 
+def over_floor(err: dict, floor: dict) -> dict:
+    """Each replay error over its channel's noise floor."""
+    return {k: err[k] / f for k, f in floor.items() if isinstance(err.get(k), float) and f > 0}
+
+
 def summary(ident: Identification, validation: dict | None, elapsed_s: float,
             reference: dict | None = None) -> dict:
     """The content of report.json."""
@@ -62,6 +67,10 @@ def summary(ident: Identification, validation: dict | None, elapsed_s: float,
         "error_before": ident.error_before, "error_after": ident.error_after,
         "validation": validation or {},
         "noise_floor": {d: ident.noise_floor(d) for d in ident.domains()},
+        "replay_noise_floor": ident.floor,
+        "error_before_over_floor": over_floor(ident.error_before, ident.floor),
+        "error_after_over_floor": over_floor(ident.error_after, ident.floor),
+        "proposals": ident.proposals,
         "refinement": ident.refinement, "rejected": ident.rejected,
         "unexplained": ident.unexplained, "not_looked_for": ident.skipped,
         "thresholds": {"min_explained": ident.min_explained,
@@ -136,9 +145,17 @@ def markdown(rep: dict) -> str:
                   "replay's effort error): " + ", ".join(
                       f"{k} coefficient {_fmt(ref['coefficients_before'][k])} -> "
                       f"{_fmt(v)}" for k, v in ref["coefficients_after"].items())]
-    if rep.get("rejected"):
-        lines += ["", "Proposed but not confirmed by the closed-loop replay: " + "; ".join(
-            f"`{k}` ({v})" for k, v in rep["rejected"].items())]
+    lines += ["", "Noise floor of the replay channels: " + ", ".join(
+        f"{k} {_fmt(v)}" for k, v in rep["replay_noise_floor"].items())
+        + "; error over it before: " + ", ".join(
+        f"{k} {v:.3g}" for k, v in rep["error_before_over_floor"].items())
+        + "; after: " + ", ".join(f"{k} {v:.3g}" for k, v in rep["error_after_over_floor"].items())]
+    if rep.get("proposals"):
+        lines += ["", "## Every proposal, kept or not", ""]
+        for i, prop in enumerate(rep["proposals"], 1):
+            params = ", ".join(f"{k} = {_fmt(v)}" for k, v in prop["params"].items())
+            lines += [f"{i}. `{prop['effect']}` {'kept' if prop['accepted'] else 'rejected'}"
+                      f" — {params}", f"   - {prop['reason']}"]
     lines += ["", "## What is left", ""]
     for domain, info in rep["unexplained"].items():
         unit_d = "N" if domain == FORCE else "m"

@@ -113,9 +113,16 @@ class Backlash(Effect):
 
 class Compliance(Effect):
     """An elastic train: table minus motor position proportional to the transmitted
-    force (the motor's force less what accelerates the motor side)."""
+    force (the motor's force less what accelerates the motor side).
+
+    A rigid machine file becomes a damped two-mass one: the stiffness from the position
+    residual, the damping (which that residual barely shows) chosen by the closed-loop
+    replay among the damping ratios ``ZETAS`` of the two-mass mode (undamped, a spring
+    found this way can make a replay with the record's loop timing unstable)."""
     name = "compliance"
     domain = POSITION
+    #: damping ratios of the two-mass mode tried on the replay when the file was rigid
+    ZETAS = (0.0, 0.02, 0.05, 0.1, 0.2, 0.4)
 
     def unavailable(self, ctx):
         if ctx.m.dx is None:
@@ -142,9 +149,27 @@ class Compliance(Effect):
         if base is not None:
             coef = coef + base.coef
         k = 1.0 / coef[0] if coef[0] > 0 else math.inf
+        shape = {}
+        text = ""
+        if ctx.cfg.mechanics.model == "rigid" and math.isfinite(k):
+            shape = {"zeta": self._damping_by_replay(ctx, coef, model)}
+            text = f", damping ratio {shape['zeta']:g} by the replay"
         ev["text"] = (f"motor minus table position follows the transmitted force (r = "
-                      f"{ev['corr_with_force']:.2f}): stiffness {k:.4g} at the table")
-        return Term(self, {}, coef, True, ev)
+                      f"{ev['corr_with_force']:.2f}): stiffness {k:.4g} at the table{text}")
+        return Term(self, shape, coef, True, ev)
+
+    def _damping_by_replay(self, ctx, coef, model) -> float:
+        """The damping ratio of ZETAS whose replay has the smallest floor-normalised cost."""
+        from hil.identify.fit import record_errors
+        from hil.identify.floor import normalised_cost, replay_floor
+        floor = replay_floor(ctx.rec)
+        best, best_cost = self.ZETAS[0], math.inf
+        for zeta in self.ZETAS:
+            rep = model.replay(extra=self.overrides(ctx, {"zeta": zeta}, coef, model))
+            cost = normalised_cost(record_errors(ctx.rec, rep), floor)
+            if cost < best_cost:
+                best, best_cost = zeta, cost
+        return best
 
     def columns(self, ctx, shape):
         return -transmitted_force(ctx)[:, None]
@@ -155,13 +180,24 @@ class Compliance(Effect):
     def params(self, ctx, shape, coef):
         k = 1.0 / coef[0] if coef[0] > 0 else math.inf
         unit = "stiffness_nm_per_rad" if ctx.drive.kind == "rotary" else "stiffness_n_per_m"
-        return {unit: k}
+        out = {unit: k}
+        if "zeta" in shape:
+            out["damping_ratio"] = shape["zeta"]
+        return out
 
     def overrides(self, ctx, shape, coef, model):
-        k_rad = ctx.drive.ratio ** 2 / coef[0] if coef[0] > 0 else 1e12
+        r = ctx.drive.ratio
+        k_rad = r ** 2 / coef[0] if coef[0] > 0 else 1e12
         out = {"coupling": {"stiffness_nm_per_rad": float(k_rad)}}
         if ctx.cfg.mechanics.model == "rigid":
             out["mechanics"] = {"model": "two_mass"}
+            if "zeta" in shape:
+                # c = 2 zeta sqrt(k m_eq) of the mode between motor side and load side
+                m1 = ctx.drive.motor_mass
+                m2 = ctx.drive.mass - m1
+                m_eq = m1 * m2 / (m1 + m2)
+                c_table = 2.0 * shape["zeta"] * math.sqrt(k_rad / r ** 2 * m_eq)
+                out["coupling"]["damping_nms_per_rad"] = float(c_table * r ** 2)
         return out
 
 

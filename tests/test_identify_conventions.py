@@ -1,0 +1,216 @@
+"""The controller's conventions of a record (hil.identify.conventions, TraceController).
+
+References:
+* the header's keys: trace-format.md's table (units, ranges, what each key sets);
+* TraceController against the emulator's own Controller fed the same feedback (open loop,
+  so both see identical inputs): with every key at its default the two are the same; each
+  convention changes exactly what it names, checked against an independent computation
+  (scipy's lfilter for the speed filter, np.interp for the fine interpolation, a shifted
+  array for the computation delay, the integrator by hand for the anti-windup modes);
+* the pre-roll: a lock-step run that dwells before its trace starts is given back exactly
+  by a replay told the dwell, not without it (a constant force sags the axis meanwhile).
+"""
+
+import dataclasses
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.signal import lfilter
+
+from hil.controller.blocks import PI
+from hil.controller.config import axis_limits, load_controller
+from hil.controller.interpolator import ProfileSamples, plan
+from hil.controller.program import parse_program
+from hil.controller.nc import Controller
+from hil.identify.conventions import ConventionError, read_conventions
+from hil.identify.record import Record, load_record
+from hil.identify.replay import replay
+from hil.identify.trace_controller import ClampPI, TraceController, WindupPI
+from hil.sim import LockStep
+from hil.trace_file import write_trace
+from hil.drive import EmulatedDrive
+from io_adapters.messages import Feedback, Setpoint
+from plant import Plant
+from plant.config import load_machine
+from tests.test_identify_replay import trace_columns
+
+DATA = Path(__file__).parent / "data"
+BASE = DATA / "ident_screw.toml"
+
+
+def _record(meta: dict) -> Record:
+    t = np.arange(10) * 1e-3
+    return Record(source="trace.csv", t=t, pos_set=t, pos=t, effort=t, effort_kind="iq",
+                  meta=meta)
+
+
+def test_header_keys_become_machine_file_keys():
+    """trace-format.md's keys: cycle times in whole PWM periods (4 kHz here), the ADC's
+    step 2 FS / 2^bits, the feed-forward factor as weight, the rest by name."""
+    cfg = load_machine(BASE)
+    conv = read_conventions(_record({
+        "position_loop_sample_time_s": "0.002", "speed_loop_sample_time_s": "0.0005",
+        "current_loop_sample_time_s": "0.00025", "feedforward_interpolation": "linear",
+        "velocity_feedforward_factor": "0.8", "speed_actual_filter_s": "0.0008",
+        "speed_antiwindup": "clamp", "current_delay_cycles": "1", "current_adc_bits": "12",
+        "current_adc_full_scale_a": "20", "encoder_counts_per_rev": "4096",
+        "scale_resolution_m": "1e-6", "preroll_s": "0.5", "vel_set_column": "speed_command"}),
+        cfg)
+    assert conv.overrides == {
+        "controller": {"position_cycle_ratio": 8, "ipo_cycle_ratio": 8, "speed_cycle_ratio": 2,
+                       "feedforward_interpolation": "linear", "speed_ff": True,
+                       "speed_ff_weight": 0.8, "speed_actual_filter_s": 0.0008,
+                       "speed_antiwindup": "clamp", "current_delay_cycles": 1},
+        "sensors": {"current_lsb_a": 40.0 / 4096, "encoder_counts_per_rev": 4096,
+                    "scale_resolution_m": 1e-6}}
+    assert conv.preroll_s == 0.5 and conv.vel_set_column == "speed_command"
+    plain = read_conventions(_record({"machine": "x.toml"}), cfg)
+    assert plain.overrides == {} and plain.preroll_s == 0.0
+    assert plain.vel_set_column == "feedforward"
+
+
+@pytest.mark.parametrize("meta,match", [
+    ({"position_loop_sample_time_s": "0.0013"}, "position_loop_sample_time_s = 0.0013 s is "
+                                                "not a whole number of the machine file's PWM"),
+    ({"position_loop_sample_time_s": "0.0015"}, "neither is a whole multiple"),
+    ({"current_loop_sample_time_s": "0.0005"}, "current loop runs once per PWM period"),
+    ({"feedforward_interpolation": "spline"}, "feedforward_interpolation = 'spline': must be "
+                                              "one of 'hold', 'linear'"),
+    ({"speed_actual_filter_s": "-1"}, "speed_actual_filter_s = '-1': must be a number >= 0"),
+    ({"current_adc_bits": "12"}, "current_adc_full_scale_a missing"),
+    ({"current_adc_bits": "12.5", "current_adc_full_scale_a": "20"}, "must be a whole number"),
+    ({"preroll_s": "soon"}, "preroll_s = 'soon'"),
+    ({"vel_set_column": "command"}, "vel_set_column = 'command'"),
+])
+def test_a_convention_the_replay_cannot_honour_is_refused_naming_the_key(meta, match):
+    with pytest.raises(ConventionError, match=match):
+        read_conventions(_record(meta), load_machine(BASE))
+
+
+def test_identify_cli_refuses_a_bad_header_in_one_line(tmp_path):
+    """`hil identify` prints the error naming the key and exits 2: no traceback."""
+    n = 500
+    cols = {"t_s": np.arange(n) * 1e-3, "pos_set_mm": np.zeros(n), "pos_mm": np.zeros(n),
+            "iq_a": np.zeros(n)}
+    trace = write_trace(tmp_path / "t.csv", cols, {"position_loop_sample_time_s": "0.0015"})
+    done = subprocess.run([sys.executable, "-m", "hil.cli", "identify", str(trace), "--config",
+                           str(BASE), "--out", str(tmp_path / "out"), "--quiet"],
+                          capture_output=True, text=True, timeout=300)
+    assert done.returncode == 2, done.stderr
+    assert "position_loop_sample_time_s" in done.stderr and "Traceback" not in done.stderr
+
+
+def _open_loop(sec_over: dict, ticks: int = 400):
+    """The base Controller and a TraceController with ``sec_over``, both fed the same
+    feedback sequence (a motor turning at a varying speed, counts of the config's
+    encoder) and the same setpoint ramp; returns per tick (w_act, w_set, iq_ref) of each."""
+    cfg = load_machine(BASE)
+    sec = load_controller(cfg)
+    pwm = 1.0 / cfg.motor.pwm_frequency_hz
+    base = Controller(cfg, pwm, 0.0, section=sec)
+    mine = TraceController(cfg, pwm, 0.0, dataclasses.replace(sec, **sec_over))
+    n_ipo = ticks // sec.ipo_cycle_ratio + 2
+    t = np.arange(n_ipo) * pwm * sec.ipo_cycle_ratio
+    v = 0.05 * np.sin(2 * np.pi * 20 * t)
+    ipo = ProfileSamples(t, np.cumsum(v) * pwm * sec.ipo_cycle_ratio, v, np.gradient(v, t))
+    counts_per_rad = cfg.sensors.encoder_counts_per_rev / (2 * np.pi)
+    out = {}
+    for name, ctrl in (("base", base), ("mine", mine)):
+        fb, sp = Feedback(), Setpoint()
+        drive = EmulatedDrive(Plant(cfg))
+        while not ctrl.enabled:  # a real drive enables; the feedback is synthetic after
+            ctrl.tick(fb, sp)
+            drive.cycle(sp, fb)
+        ctrl.run_points(ipo)
+        rows = []
+        for k in range(ticks):
+            theta = 30.0 * np.sin(2 * np.pi * 7 * k * pwm)
+            fb.encoder_counts = float(np.floor(theta * counts_per_rad))
+            fb.scale_counts = float(np.floor(theta * 0.01 / (2 * np.pi) / 5e-8))
+            if name == "mine" and ctrl.tick_count % sec.position_cycle_ratio == 0:
+                j = (ctrl.tick_count // sec.position_cycle_ratio) % 10_000
+                ctrl.set_next_feed_forward(0.01 * j)
+            ctrl.tick(fb, sp)
+            rows.append((ctrl.w_act, ctrl.w_set, sp.iq_ref_a, ctrl.tick_count - 1))
+        out[name] = np.array(rows)
+    return out, sec, pwm
+
+
+def test_trace_controller_with_defaults_is_the_controller():
+    out, _, _ = _open_loop({})
+    np.testing.assert_array_equal(out["mine"], out["base"])
+
+
+def test_speed_actual_filter_is_a_first_order_lag_of_the_measured_speed():
+    tau = 0.002
+    out, sec, pwm = _open_loop({"speed_actual_filter_s": tau})
+    a = np.exp(-pwm * sec.speed_cycle_ratio / tau)
+    raw = out["base"][:, 0]
+    np.testing.assert_allclose(out["mine"][:, 0], lfilter([1 - a], [1, -a], raw), atol=1e-9)
+
+
+def test_current_delay_shifts_the_current_setpoint_by_whole_pwm_periods():
+    out, _, _ = _open_loop({"current_delay_cycles": 2})
+    np.testing.assert_array_equal(out["mine"][2:, 2], out["base"][:-2, 2])
+    assert np.all(out["mine"][:2, 2] == 0.0)
+
+
+def test_linear_feed_forward_interpolates_between_position_cycles():
+    """Between position cycles the speed setpoint moves linearly from this cycle's
+    feed-forward towards the next one's (given by set_next_feed_forward); the P part is
+    held: w_set - w_ff is constant within a position cycle."""
+    out, sec, _ = _open_loop({"feedforward_interpolation": "linear"})
+    mine, base = out["mine"], out["base"]
+    n = sec.position_cycle_ratio
+    ticks = mine[:, 3].astype(int)
+    on_cycle = ticks % n == 0
+    np.testing.assert_array_equal(mine[on_cycle, 1], base[on_cycle, 1])
+    assert not np.allclose(mine[~on_cycle, 1], base[~on_cycle, 1])
+
+
+def test_pi_antiwindup_modes_by_hand():
+    """kp 1, ki T 0.5, limit 1, error 4 then -1: conditional (the emulator's PI) stops
+    integrating into the limit, clamp holds the integrator at the limit, none winds up."""
+    for cls, integ in ((PI, [0.0, -0.5]), (ClampPI, [1.0, 0.5]), (WindupPI, [2.0, 1.5])):
+        pi = cls(1.0, 2.0, 1.0, 1.0)
+        assert pi.step(4.0) == 1.0 and pi.integ == integ[0]
+        pi.step(-1.0)
+        assert pi.integ == integ[1], cls.__name__
+
+
+def test_preroll_gives_back_a_trace_that_starts_after_a_dwell(tmp_path):
+    """A 150 N constant force on the test screw axis: the lock-step run dwells 0.3 s, its
+    trace is cut 0.2 s in.  The replay told ``preroll_s: 0.2`` gives it back to the
+    current noise (positions exactly); without it the axis starts unsettled and the
+    positions differ by the sag the speed integrator has not yet taken out."""
+    over = {"table": {"external_force_n": 150.0}, "sensors": {"current_noise_a": 0.0}}
+    cfg = load_machine(BASE, over)
+    sec = load_controller(cfg)
+    profile_prog = "G90 G71\nG4 F0.3\nG1 X10 F3000\nG4 F0.05\nM30\n"
+    profile = plan(parse_program(profile_prog, "X", 0.0), axis_limits(cfg, sec))
+    ls = LockStep(cfg, 0.0)
+    ls.enable()
+    ls.ctrl.run_profile(profile)
+    res = ls.run(profile.duration_s + 0.05)
+    cols = trace_columns(res, sec.position_cycle_ratio, cycle=sec.position_cycle_ratio)
+    cut = int(round(0.2 / (sec.position_cycle_ratio / cfg.motor.pwm_frequency_hz)))
+    cols = {k: (v[cut:] - v[cut]) if k == "t_s" else v[cut:] for k, v in cols.items()}
+    preroll = float(cols["t_s"][1]) * cut  # the cut's time, a whole number of cycles
+    rec = load_record(write_trace(tmp_path / "t.csv", cols,
+                                  {"vel_set_column": "feedforward",
+                                   "preroll_s": repr(preroll)}))
+    rep = replay(cfg, rec)
+    np.testing.assert_allclose(rep.pos, rec.pos, rtol=0, atol=1e-12)
+    cold = replay(cfg, dataclasses.replace(rec, meta={**rec.meta, "preroll_s": "0"}))
+    assert np.abs(cold.pos - rec.pos).max() > 20 * cfg.sensors.scale_resolution_m
+
+
+def test_a_sample_time_off_the_pwm_clock_is_refused_naming_it():
+    t = np.arange(200) * 1.3e-3  # 5.2 periods of 4 kHz
+    rec = Record(source="trace.csv", t=t, pos_set=np.zeros(200), pos=np.zeros(200),
+                 effort=np.zeros(200), effort_kind="iq")
+    with pytest.raises(ConventionError, match="sample_time_s 0.0013 s is not a whole number"):
+        replay(load_machine(BASE), rec)
