@@ -10,6 +10,7 @@
     hil bench fuzz [--frames N] [--seed N] [--json]
     hil bench can [--config FILE] [--program FILE] [--sync-hz HZ] [--group G] [--json]
     hil bench study [--samples N] [--seconds S] [--json]
+    hil bench identify [--ci] [--cases NAME ...] [--out DIR] [--workers N] [--json]
     hil eds CONFIG --adapter can://... [--out DIR]
     hil study SPEC.toml [--out DIR] [--workers N | --scheduler tcp://HOST:8786] [--fresh]
     hil report RUN [--cyclictest] [--controller DIR]
@@ -245,6 +246,11 @@ def build_parser() -> argparse.ArgumentParser:
                          "lock-step simulation: following error, overruns, bus load")
     bench_can.add_arguments(bc)
     bc.set_defaults(func=bench_can.run_from_args)
+    from hil.bench import identify as bench_identify
+    bi = bsub.add_parser("identify", help="hil identify on traces of an independent "
+                         "simulator with undeclared effects: named first, error / floor, time")
+    bench_identify.add_arguments(bi)
+    bi.set_defaults(func=bench_identify.run_from_args)
     from hil.bench import study as bench_study
     bst = bsub.add_parser("study", help="hil study's samples/s on 1 and 2 local workers, "
                           "per-task overhead against a bare simulation")
