@@ -138,13 +138,19 @@ def exchange(ep, sp, fb, n: int, seq=None, iq: float = 0.0) -> None:
         ep.send_setpoint(sp)
 
 
+#: feedbacks the enable sequence may take (0.2 s at 2 kHz)
+ENABLE_CYCLES = 400
+
+
 def enable(ep, sp, fb) -> EnableSequencer:
     """The CiA 402 enable sequence (a fault reset first if the drive is in FAULT) over
-    ``ep``, answering each feedback; the sequencer once OPERATION ENABLED."""
-    seq = EnableSequencer(timeout_cycles=50)
+    ``ep``, answering each feedback; the sequencer once OPERATION ENABLED.  The budget,
+    ENABLE_CYCLES feedbacks, covers a backlog of stale feedback datagrams queued while a
+    loaded machine held this process off the CPU (50 were not enough under load)."""
+    seq = EnableSequencer(timeout_cycles=ENABLE_CYCLES)
     seq.enable()
     exchange(ep, sp, fb, 1, seq)
-    for _ in range(50):
+    for _ in range(ENABLE_CYCLES):
         exchange(ep, sp, fb, 1, seq)
         if seq.done:
             return seq

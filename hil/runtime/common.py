@@ -11,6 +11,7 @@ import json
 import math
 import os
 import signal
+import subprocess
 import sys
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager, nullcontext
@@ -184,3 +185,14 @@ class StopFlag:
         self._loop = loop
         if self.requested:
             loop.request_stop()
+
+
+def reap(children: list[subprocess.Popen]) -> None:
+    """Kill what still runs of ``children`` and wait for each; close the first one's
+    stdout (the emulator's, read for its ``ready:`` line).  For a ``finally`` block."""
+    for child in children:
+        if child.poll() is None:
+            child.kill()
+            child.wait()
+    if children and children[0].stdout is not None:
+        children[0].stdout.close()

@@ -58,7 +58,7 @@ from hil.report.latency import build_report, load_run, write_report
 from hil.report.wakeup import wakeup_rows
 from hil.rt.cyclictest import CyclictestError
 from hil.rt.scheduling import last_cpu
-from hil.runtime.common import EXIT_BAD_INPUT, EXIT_FAILED, EXIT_OK, eprint, write_json
+from hil.runtime.common import EXIT_BAD_INPUT, EXIT_FAILED, EXIT_OK, eprint, reap, write_json
 from hil.runtime.demo_verdict import (
     Verdict,
     check_processes,
@@ -152,12 +152,7 @@ def run_pair(config: Path, program: Path, out: Path, realtime: bool) -> tuple[in
             emu_status = emu.wait(timeout=CHILD_TIMEOUT_S)
             emu_log.write(emu.stdout.read())
         finally:
-            for child in children:
-                if child.poll() is None:
-                    child.kill()
-                    child.wait()
-            if children:
-                children[0].stdout.close()
+            reap(children)
     return emu_status, ctl_status
 
 

@@ -37,7 +37,7 @@ from pathlib import Path
 import numpy as np
 
 from hil.rt.loop import Percentiles
-from hil.runtime.common import EXIT_BAD_INPUT, EXIT_FAILED, EXIT_OK, eprint, write_json
+from hil.runtime.common import EXIT_BAD_INPUT, EXIT_FAILED, EXIT_OK, eprint, reap, write_json
 from hil.runtime.demo import (
     DEFAULT_CONFIG,
     READY_TIMEOUT_S,
@@ -222,12 +222,7 @@ def run_children(args: argparse.Namespace, out: Path) -> tuple[int, int, dict]:
             emu.send_signal(signal.SIGTERM)
             emu_status = emu.wait(timeout=EXIT_S)
         finally:
-            for child in children:
-                if child.poll() is None:
-                    child.kill()
-                    child.wait()
-            if children:
-                children[0].stdout.close()
+            reap(children)
     return emu_status, master.returncode, samples
 
 
