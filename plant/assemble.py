@@ -14,8 +14,8 @@ stiffest mode is off by at most 1 %, the modes a controller sees, far below
 it, by much less).  The dampers are explicit too: a damper c on a mass m decays
 as 1 - dt c/m per sub-step, unstable beyond dt c/m = 2, so omega_max is the larger
 of the stiffest natural frequency and the largest |s| of the damped mechanics
-(:func:`mechanics_rate`, issue 14 part 2).  The electrical states use exact exponential decay and
-impose no limit.  A table with a stroke adds its end stops: the chains' modes with a stop
+(:func:`mechanics_rate`, issue 14 part 2).  The electrical states use exact exponential
+decay and impose no limit.  A table with a stroke adds its end stops: the chains' modes with a stop
 in contact and the contact's own rate (:mod:`plant.end_stops`) count toward omega_max.
 The count of sub-steps is bounded (:mod:`plant.substeps`): a machine file asking for more
 is refused with the largest stiffness that fits.

@@ -35,16 +35,15 @@ PLANT_LIMIT = f"the plant takes at most {MAX_SUB_PER_PWM}"
 SUBSTEP_COST_S = 1e-6
 #: the share of real time the kernel may take in ``hil run``
 KERNEL_SHARE = 0.5
-#: the stiffnesses that set the mechanics' highest natural frequency: (section, key)
-STIFFNESS_KEYS = (("coupling", "stiffness_nm_per_rad"), ("screw", "nut_stiffness_n_per_m"),
-                  ("screw", "thrust_bearing_stiffness_n_per_m"),
-                  ("screw", "youngs_modulus_pa"), ("screw", "shear_modulus_pa"),
-                  ("table", "end_stop_stiffness_n_per_m"),
-                  # heavy dampers add their own rate c/m (plant.assemble.mechanics_rate)
-                  ("coupling", "damping_nms_per_rad"), ("screw", "nut_damping_ns_per_m"),
-                  ("screw", "axial_damping_ns_per_m"),
-                  ("screw", "torsional_damping_nms_per_rad"),
-                  ("screw", "thrust_bearing_damping_ns_per_m"))
+#: the stiffnesses and dampers that set the mechanics' fastest rate: (section, key)
+RATE_KEYS = (("coupling", "stiffness_nm_per_rad"), ("screw", "nut_stiffness_n_per_m"),
+             ("screw", "thrust_bearing_stiffness_n_per_m"),
+             ("screw", "youngs_modulus_pa"), ("screw", "shear_modulus_pa"),
+             ("table", "end_stop_stiffness_n_per_m"),
+             # heavy dampers add their own rate c/m (plant.assemble.mechanics_rate)
+             ("coupling", "damping_nms_per_rad"), ("screw", "nut_damping_ns_per_m"),
+             ("screw", "axial_damping_ns_per_m"), ("screw", "torsional_damping_nms_per_rad"),
+             ("screw", "thrust_bearing_damping_ns_per_m"))
 #: where a key's range starts at 0, the bisection's bottom relative to its value
 _FLOOR = 1e-9
 #: the bisection stops when the bracket is this narrow (relative)
@@ -77,7 +76,7 @@ def largest_fitting(cfg: MachineConfig, section: str, key: str, n_max: int,
                     substeps_of: Callable[[MachineConfig], int]) -> float | None:
     """The largest value of ``[section] key`` (the others as they are) for which
     ``substeps_of`` gives at most ``n_max``, to 0.1 %; None when even the bottom of the
-    key's range needs more.  ``substeps_of`` must grow with the stiffness."""
+    key's range needs more.  ``substeps_of`` must grow with the key's value."""
     hi = getattr(getattr(cfg, section), key)
     lo = _field(cfg, section, key).metadata["ge"] or _FLOOR * hi
     if substeps_of(_with(cfg, section, key, lo)) > n_max:
@@ -103,7 +102,7 @@ def refusal(cfg: MachineConfig, n: int, n_max: int, why: str, omega_max: float,
              f"{omega_max / (2 * math.pi):.4g} Hz, at "
              f"[simulation] max_omega_dt = {sim.max_omega_dt:g}, and {why}")
     fixes = []
-    for section, key in STIFFNESS_KEYS:
+    for section, key in RATE_KEYS:
         part = getattr(cfg, section)
         if part is None or getattr(part, key) <= 0.0:  # absent, or automatic
             continue

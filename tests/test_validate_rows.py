@@ -29,8 +29,7 @@ KNOWN_DISAGREEMENTS = (
 )
 
 #: the verification rows that fail today, each a bug with its fix in the row's note:
-#: machine-file comments and a cogging order that
-#: their own values contradict
+#: machine-file comments and a cogging order that their own values contradict
 KNOWN_BUGS = {
     "arrow500_x.toml: damping of the screw torsion mode (1894 Hz)",
     "arrow500_x.toml: damping of the axial path mode (134 Hz)",

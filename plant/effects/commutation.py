@@ -23,7 +23,10 @@ q axis (i_d = -|I| sin gamma, i_q = I cos gamma) the d-q voltage equations split
 
 and the converter has to apply both within its limit, U^2 + U_perp^2 <= U_Z^2.  The
 coil's PI therefore gets what U_perp leaves of U_Z (:func:`coil_voltage_limit`); without
-it the envelope of eq. 8-10 is optimistic by omega_e L I (issue 14 part 5).
+it the envelope of eq. 8-10 is optimistic by omega_e L I (issue 14 part 5).  Where U_perp
+alone exceeds U_Z (beyond omega_max without field weakening, the current braking) the coil
+gets 0 V and its current, -K omega / R, is no longer one the converter holds at its angle:
+the one-coil model leaves its validity there (a drive would trip on overcurrent).
 """
 
 import math

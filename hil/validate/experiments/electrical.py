@@ -309,8 +309,8 @@ def field_weakening(out_dir: Path | None, config: Path = GEISS) -> list[Result]:
             model = held_speed_torque(config, omega, frac * drive.i_max, weak)
             rows.append(Result(f"torque at {omega:.1f} rad/s ({s:g} omega_max), {label}",
                                ref, model, "N*m", within(model, ref, abs_=tol),
-                               "seed 001 eq. 4-6, 8-10 + I_max, eq. 2 on the d-q voltage with omega_e L (own "
-                               "implementation)",
+                               "seed 001 eq. 4-6, 8-10 + I_max, eq. 2 on the d-q voltage "
+                               "with omega_e L (own implementation)",
                                f"±{tol:.2g} N*m (0.1 % of K_0 I_max)", VERIFICATION))
             ax[0, 0].plot(omega, model, "o", color=lines[0].get_color())
     ax[0, 0].axvline(drive.omega_m_max, ls=":", color="k")
