@@ -11,8 +11,11 @@ stable for omega_max*dt < 2 and with a relative frequency error of about
 (omega*dt)^2/24.  The automatic sub-step is the PWM period divided by the
 smallest whole number n with omega_max*dt <= max_omega_dt (default 0.5: the
 stiffest mode is off by at most 1 %, the modes a controller sees, far below
-it, by much less).  The electrical states use exact exponential decay and
-impose no limit.  A table with a stroke adds its end stops: the chains' modes with a stop
+it, by much less).  The dampers are explicit too: a damper c on a mass m decays
+as 1 - dt c/m per sub-step, unstable beyond dt c/m = 2, so omega_max is the larger
+of the stiffest natural frequency and the largest |s| of the damped mechanics
+(:func:`mechanics_rate`, issue 14 part 2).  The electrical states use exact exponential
+decay and impose no limit.  A table with a stroke adds its end stops: the chains' modes with a stop
 in contact and the contact's own rate (:mod:`plant.end_stops`) count toward omega_max.
 The count of sub-steps is bounded (:mod:`plant.substeps`): a machine file asking for more
 is refused with the largest stiffness that fits.
@@ -215,11 +218,28 @@ def natural_frequencies(cfg: MachineConfig, table_pos: float = 0.0,
     return np.sqrt(np.clip(lam, 0.0, None))
 
 
+def mechanics_rate(cfg: MachineConfig, table_pos: float = 0.0) -> float:
+    """rad/s: the largest |s| of the linearised mechanics' state matrix [[0, I], [-M^-1 K,
+    -M^-1 C]] about ``table_pos`` (m).  Undamped, or lightly damped, it is the stiffest
+    natural frequency; a heavy damper adds its own rate c/m, which explicit Euler carries
+    only for dt c/m < 2 (a nut damping of 4e5 N*s/m on the Arrow 500 X: far beyond the
+    springs' frequencies)."""
+    M, C, K = mechanics_matrices(cfg, table_pos)
+    n = M.shape[0]
+    a = np.zeros((2 * n, 2 * n))
+    a[:n, n:] = np.eye(n)
+    a[n:, :n] = -np.linalg.solve(M, K)
+    a[n:, n:] = -np.linalg.solve(M, C)
+    return float(np.abs(np.linalg.eigvals(a)).max())
+
+
 def _omega_max(cfg: MachineConfig) -> float:
-    if cfg.mechanics.model == "screw":
-        travel = cfg.table.travel_m
-        return max(natural_frequencies(cfg, x)[-1] for x in np.linspace(0.0, travel, 5))
-    return natural_frequencies(cfg)[-1]
+    """rad/s: the rate the sub-step must carry over the travel, the stiffest undamped natural
+    frequency or :func:`mechanics_rate`, whichever is larger (non-proportional damping can
+    put the stiffest |s| a few per cent below the undamped frequency; the frequency still
+    sets the accuracy of the lightly damped modes)."""
+    places = np.linspace(0.0, cfg.table.travel_m, 5) if cfg.mechanics.model == "screw" else [0.0]
+    return max(max(natural_frequencies(cfg, x)[-1], mechanics_rate(cfg, x)) for x in places)
 
 
 def _contact_mass(cfg: MachineConfig, rot: Chain) -> float:

@@ -15,8 +15,9 @@ call that never ends in practice).  So the count is bounded twice:
   recording's.
 
 A machine file over a bound is refused before anything runs (:func:`refusal`), naming the
-stiffness keys that, lowered alone, would fit and the largest value of each that does --
-found by bisection on the same sub-step rule, so the value given is one the plant takes.
+stiffness and damping keys that, lowered alone, would fit and the largest value of each
+that does -- found by bisection on the same sub-step rule, so the value given is one the
+plant takes.
 """
 
 import math
@@ -34,11 +35,17 @@ PLANT_LIMIT = f"the plant takes at most {MAX_SUB_PER_PWM}"
 SUBSTEP_COST_S = 1e-6
 #: the share of real time the kernel may take in ``hil run``
 KERNEL_SHARE = 0.5
-#: the stiffnesses that set the mechanics' highest natural frequency: (section, key)
-STIFFNESS_KEYS = (("coupling", "stiffness_nm_per_rad"), ("screw", "nut_stiffness_n_per_m"),
-                  ("screw", "thrust_bearing_stiffness_n_per_m"),
-                  ("screw", "youngs_modulus_pa"), ("screw", "shear_modulus_pa"),
-                  ("table", "end_stop_stiffness_n_per_m"))
+#: the stiffnesses and dampers that set the mechanics' fastest rate: (section, key)
+RATE_KEYS = (("coupling", "stiffness_nm_per_rad"), ("screw", "nut_stiffness_n_per_m"),
+             ("screw", "thrust_bearing_stiffness_n_per_m"),
+             ("screw", "youngs_modulus_pa"), ("screw", "shear_modulus_pa"),
+             ("table", "end_stop_stiffness_n_per_m"),
+             # heavy dampers add their own rate c/m (plant.assemble.mechanics_rate)
+             ("coupling", "damping_nms_per_rad"), ("screw", "nut_damping_ns_per_m"),
+             ("screw", "axial_damping_ns_per_m"), ("screw", "torsional_damping_nms_per_rad"),
+             ("screw", "thrust_bearing_damping_ns_per_m"))
+#: where a key's range starts at 0, the bisection's bottom relative to its value
+_FLOOR = 1e-9
 #: the bisection stops when the bracket is this narrow (relative)
 _RELATIVE_TOLERANCE = 1e-3
 
@@ -69,9 +76,9 @@ def largest_fitting(cfg: MachineConfig, section: str, key: str, n_max: int,
                     substeps_of: Callable[[MachineConfig], int]) -> float | None:
     """The largest value of ``[section] key`` (the others as they are) for which
     ``substeps_of`` gives at most ``n_max``, to 0.1 %; None when even the bottom of the
-    key's range needs more.  ``substeps_of`` must grow with the stiffness."""
-    lo = _field(cfg, section, key).metadata["ge"]
+    key's range needs more.  ``substeps_of`` must grow with the key's value."""
     hi = getattr(getattr(cfg, section), key)
+    lo = _field(cfg, section, key).metadata["ge"] or _FLOOR * hi
     if substeps_of(_with(cfg, section, key, lo)) > n_max:
         return None
     while hi / lo > 1.0 + _RELATIVE_TOLERANCE:
@@ -83,18 +90,19 @@ def largest_fitting(cfg: MachineConfig, section: str, key: str, n_max: int,
 def refusal(cfg: MachineConfig, n: int, n_max: int, why: str, omega_max: float,
             substeps_of: Callable[[MachineConfig], int]) -> str:
     """The one-line message refusing ``cfg``, whose sub-step rule asks for ``n`` > ``n_max``
-    sub-steps per PWM period (``why``: whose bound ``n_max`` is; ``omega_max``: the highest
-    natural frequency found, rad/s; ``substeps_of``: the sub-step rule)."""
+    sub-steps per PWM period (``why``: whose bound ``n_max`` is; ``omega_max``: the fastest
+    rate found, rad/s (plant.assemble._omega_max); ``substeps_of``: the sub-step rule)."""
     sim = cfg.simulation
     head = f"{cfg.path}: {n} sub-steps per PWM period"
     if sim.substep_s > 0.0:
         least = 1.0 / (cfg.motor.pwm_frequency_hz * n_max)
         return (f"{head} at [simulation] substep_s = {sim.substep_s:g} s, and {why}: "
                 f"substep_s must be >= {least:.4g} s (or 0: automatic)")
-    head += (f": the stiffest mode of the mechanics, {omega_max / (2 * math.pi):.4g} Hz, at "
+    head += (f": the fastest rate of the mechanics (stiffest mode or heaviest damper), "
+             f"{omega_max / (2 * math.pi):.4g} Hz, at "
              f"[simulation] max_omega_dt = {sim.max_omega_dt:g}, and {why}")
     fixes = []
-    for section, key in STIFFNESS_KEYS:
+    for section, key in RATE_KEYS:
         part = getattr(cfg, section)
         if part is None or getattr(part, key) <= 0.0:  # absent, or automatic
             continue
@@ -104,6 +112,6 @@ def refusal(cfg: MachineConfig, n: int, n_max: int, why: str, omega_max: float,
             fixes.append(f"[{section}] {key} = {getattr(part, key):.4g} {unit}: at most "
                          f"{k_max:.4g} {unit} fits")
     if not fixes:
-        return (f"{head}; no stiffness lowered alone fits: the masses and inertias are too "
-                "light for these springs")
-    return f"{head}; too stiff: {'; or '.join(fixes)}"
+        return (f"{head}; no stiffness or damping lowered alone fits: the masses and inertias "
+                "are too light for these springs and dampers")
+    return f"{head}; too stiff or too heavily damped: {'; or '.join(fixes)}"

@@ -15,6 +15,7 @@ from hil.controller.blocks import PI
 from hil.validate.command import add_arguments, run_from_args
 from hil.validate.core import CONFIGS
 from hil.validate.experiments.configuration import CLAIMS, cogging_period, screw_modes
+from hil.validate.experiments.electrical import SeedOneDrive
 from hil.validate.experiments.linear_loops import closed_speed_loop
 from hil.validate.experiments.moves import IntegratorCap
 from hil.validate.experiments.seed001_envelope import OperatingPoint
@@ -112,13 +113,17 @@ def test_voltage_of_the_coil_as_a_synchronous_machine():
     commutation angle the d current's omega_e L i_d lowers it."""
     cfg = load_machine(CONFIGS / "geiss_c_axis.toml")
     mo = cfg.motor
+    drive = SeedOneDrive.from_config(cfg)
     point = OperatingPoint(45.0, 30.0, mo.torque_constant_nm_per_a)
-    applied, needed = point.voltages(cfg)
+    applied, needed = point.voltages(drive)
     assert applied == pytest.approx(mo.resistance_ohm * 30.0 + 12.0 * 45.0)
     assert needed == pytest.approx(math.hypot(applied, 22 * 45.0 * mo.inductance_d_h * 30.0))
     assert needed == pytest.approx(677.3, abs=0.1)  # the review's figure
     weakened = OperatingPoint(45.0, 30.0, 0.8 * mo.torque_constant_nm_per_a)
-    assert weakened.voltages(cfg)[1] < needed
+    assert weakened.voltages(drive)[1] < needed
+    braking = OperatingPoint(45.0, -30.0, 0.8 * mo.torque_constant_nm_per_a)
+    assert braking.voltages(drive)[1] < math.hypot(*drive.dq_voltage(45.0, 12.0, -30.0)), \
+        "i_d stays demagnetising for a braking current"
 
 
 def test_closed_speed_loop_has_unity_gain_at_low_frequency_and_refuses_filters():

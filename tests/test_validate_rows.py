@@ -24,19 +24,13 @@ KNOWN_DISAGREEMENTS = (
     "speed step 200 mm/min: time of the velocity peak",
     "speed step 500 mm/min: time of the velocity peak",
     "position step 0.5 mm: overshoot of the measured response",
-    "voltage needed at 45.0 rad/s (0.9 omega_max), max demand, FW on",
     "arrow500_x.toml: damping of the axial path mode (134 Hz)",
     "arrow500_x.toml: cogging order 6 (cycles per electrical revolution)",
 )
 
-#: the verification rows that fail today, each a bug with its fix in the row's note: the
-#: commutation model without omega_e L I, machine-file comments and a cogging order that
-#: their own values contradict
+#: the verification rows that fail today, each a bug with its fix in the row's note:
+#: machine-file comments and a cogging order that their own values contradict
 KNOWN_BUGS = {
-    "voltage needed at 45.0 rad/s (0.9 omega_max), max demand, FW on",
-    "voltage needed at 48.0 rad/s (0.96 omega_max), max demand, FW on",
-    "voltage needed at 50.0 rad/s (1 omega_max), max demand, FW on",
-    "voltage needed at 100.0 rad/s (2 omega_max), max demand, FW on",
     "arrow500_x.toml: damping of the screw torsion mode (1894 Hz)",
     "arrow500_x.toml: damping of the axial path mode (134 Hz)",
     "tlm_rig.toml: damping of the coupling mode (610 Hz)",

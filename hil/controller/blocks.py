@@ -12,7 +12,11 @@ class PI:
     """Discrete PI controller with output limit and conditional-integration anti-windup.
 
     u = kp * e + I,  I += kp * T / tn * e  (integrator updated after the output,
-    as a drive's PI does; tn = 0 makes it a P controller).
+    as a drive's PI does; tn = 0 makes it a P controller).  The integrator stops while
+    the limit binds and the error pushes further into it; the limit is tested on the
+    output alone (:meth:`step`) or on what reaches the limit downstream
+    (:meth:`step_within`: SINAMICS freezes the speed controller's I component when the
+    torque limit is reached, r1407.5 and .7).
     """
 
     def __init__(self, kp: float, tn_s: float, period_s: float, limit: float):
@@ -31,15 +35,22 @@ class PI:
 
     def step(self, err: float) -> float:
         """Output for the control error ``err``, limited to ±limit."""
+        return self.step_within(err, 0.0)
+
+    def step_within(self, err: float, outer: float) -> float:
+        """As :meth:`step`, the integrator stopped by the limit on output + ``outer`` (the
+        output's unit: what is added downstream before the limit, D part and
+        feed-forward)."""
         u = self.kp * err + self.integ
-        if u > self.limit:
+        total = u + outer
+        if total > self.limit:
             if err < 0.0:
                 self.integ += self.ki_t * err
-            return self.limit
-        if u < -self.limit:
+            return min(u, self.limit)
+        if total < -self.limit:
             if err > 0.0:
                 self.integ += self.ki_t * err
-            return -self.limit
+            return max(u, -self.limit)
         self.integ += self.ki_t * err
         return u
 

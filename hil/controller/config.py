@@ -79,6 +79,12 @@ class ControllerSection:
                                    ge=0.0, le=1e7, only="kind=linear")
     speed_tn_s: float = key("s", "Speed-controller integral time (p1462); 0: P only.", 0.0,
                             ge=0.0, le=10.0)
+    speed_integrator_stop: str = key("-", "What stops the speed integrator (conditional "
+                                     "integration): 'pi_output', the PI's own output at the "
+                                     "limit K_t I_max, or 'torque_setpoint', the whole torque "
+                                     "setpoint (PI + D + feed-forward) at it, as SINAMICS "
+                                     "freezes the I component at the torque limit (r1407.5/.7).",
+                                     "pi_output", choices=("pi_output", "torque_setpoint"))
     speed_kd_nms2_per_rad: float = key("N*m*s^2/rad", "Speed-controller D gain (seed 003 eq. "
                                        "7).", 0.0, ge=0.0, le=10.0, only="kind=screw|rotary")
     speed_kd_ns2_per_m: float = key("N*s^2/m", "Speed-controller D gain of a linear motor.",

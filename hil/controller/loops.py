@@ -48,7 +48,13 @@ class PositionLoop:
 
 class SpeedLoop:
     """Speed controller: PT2 setpoint filter, PI (+ D, seed 003 eq. 7), torque / K_t,
-    current feed-forward, PT2 and notch current-setpoint filters, current limit."""
+    current feed-forward, PT2 and notch current-setpoint filters, current limit.
+
+    The integrator's stop (``speed_integrator_stop``): 'torque_setpoint' stops it while the
+    whole torque setpoint, PI + D + current feed-forward, is at the limit K_t I_max and
+    the error pushes further (SINAMICS: I component frozen when the torque limit is
+    reached); 'pi_output' tests the PI's own output only, so D and feed-forward can hold
+    the current at its limit while the integrator keeps integrating."""
 
     def __init__(self, sec: ControllerSection, period_s: float, kind: str, kt: float,
                  i_max: float):
@@ -61,6 +67,8 @@ class SpeedLoop:
         self.notch = notch(sec.notch_hz, sec.notch_bandwidth_hz, sec.notch_depth_db, period_s)
         self.inv_kt = 1.0 / kt
         self.i_max = i_max
+        self.kt = kt
+        self.stop_on_total = sec.speed_integrator_stop == "torque_setpoint"
         self.e_prev = 0.0
 
     def reset(self) -> None:
@@ -78,7 +86,11 @@ class SpeedLoop:
     def step(self, w_set: float, w_act: float, i_ff: float) -> float:
         """q-current setpoint (A) for this speed cycle."""
         e = self.set_filter.step(w_set) - w_act
-        torque = self.pi.step(e) + self.kd_t * (e - self.e_prev)
+        d_part = self.kd_t * (e - self.e_prev)
+        if self.stop_on_total:
+            torque = self.pi.step_within(e, d_part + i_ff * self.kt) + d_part
+        else:
+            torque = self.pi.step(e) + d_part
         self.e_prev = e
         i = self.notch.step(self.cur_filter.step(torque * self.inv_kt + i_ff))
         return max(-self.i_max, min(self.i_max, i))

@@ -7,8 +7,9 @@ Every experiment compares the kernel with a reference written here from the
 - ``current_steps``: the exact discrete-time closed loop built with
   scipy.signal (ZOH R-L plant at the PWM period, discrete PI, one period of
   computation delay), on a locked rotor;
-- ``field_weakening``: the steady torque seed 001 eq. 2, 4-6 and 8-10 predict
-  with the drive's current limit I_max, at speeds held constant;
+- ``field_weakening``: the steady torque seed 001 eq. 4-6 and 8-10 predict with the
+  drive's current limit I_max and eq. 2 applied to the whole d-q voltage vector (the
+  omega_e L cross term included), at speeds held constant;
 - ``current_noise_quantization``: the exact standard deviation of a Gaussian
   rounded to the ADC grid, and sample and hold over one PWM period;
 - ``encoder_resolution``: 17 bit and 5 mm lead give 38 nm per count (seed 004 §2.1).
@@ -19,6 +20,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import scipy.optimize
 import scipy.signal
 from scipy.stats import norm
 
@@ -171,18 +173,23 @@ class SeedOneDrive:
         uz: V, intermediate (DC-link) voltage U_Z.
         i_max: A, converter current limit.
         m_max: N·m, M_max of eq. 8.
+        pole_pairs: 1, p of omega_e = p omega.
+        inductance: H, coil inductance L (L_d = L_q).
     """
     k0: float
     r: float
     uz: float
     i_max: float
     m_max: float
+    pole_pairs: float
+    inductance: float
 
     @classmethod
     def from_config(cls, cfg: MachineConfig) -> "SeedOneDrive":
         mo = cfg.motor
         return cls(mo.torque_constant_nm_per_a, mo.resistance_ohm, mo.dc_link_v,
-                   mo.current_max_a, cfg.field_weakening.max_torque_nm)
+                   mo.current_max_a, cfg.field_weakening.max_torque_nm, mo.pole_pairs,
+                   mo.inductance_d_h)
 
     @property
     def omega_max(self) -> float:
@@ -203,13 +210,52 @@ class SeedOneDrive:
         k = roots.real.max() if np.all(np.isreal(roots)) else self.uz / (2.0 * omega)
         return min(self.k0, float(k))
 
+    def dq_voltage(self, omega: float, k: float, current: float) -> tuple[float, float]:
+        """(u_d, u_q) in V of the synchronous machine the coil stands for, steady state:
+        current ``current`` (A) at gamma = arccos(K/K_0) ahead of the q axis (i_d = -|I|
+        sin gamma, i_q = I cos gamma), u_d = R i_d - omega_e L i_q, u_q = R i_q + omega_e L
+        i_d + K_0 omega."""
+        sin_g = math.sqrt(max(1.0 - (k / self.k0) ** 2, 0.0))
+        i_d, i_q = -abs(current) * sin_g, current * k / self.k0
+        we_l = self.pole_pairs * omega * self.inductance
+        return self.r * i_d - we_l * i_q, self.r * i_q + we_l * i_d + self.k0 * omega
+
+    def voltage_excess(self, omega: float, k: float, current: float) -> float:
+        """V: the d-q voltage's component along the current minus what U_Z leaves beside
+        the component across it; the converter's PI saturates where this reaches 0."""
+        u = np.array(self.dq_voltage(omega, k, current))
+        sin_g = math.sqrt(max(1.0 - (k / self.k0) ** 2, 0.0))
+        sign = 1.0 if current >= 0.0 else -1.0
+        along = np.array([-sin_g, sign * k / self.k0])
+        u_par = sign * float(u @ along)
+        u_perp = float(np.linalg.norm(u - (u @ along) * along))
+        return u_par - math.sqrt(max(self.uz ** 2 - u_perp ** 2, 0.0))
+
+    def steady_current(self, omega: float, k: float, target: float) -> float:
+        """A: where a current starting from 0 settles towards the setpoint ``target`` (> 0):
+        the setpoint if the voltage reaches it, else the first current on the way where the
+        whole d-q voltage vector is at U_Z (eq. 2 for the vector).  Where U_Z does not even
+        hold 0 A against the back-EMF and the cross term, the current falls to the first
+        such point below 0 (the torque brakes)."""
+        def excess(i: float) -> float:
+            return self.voltage_excess(omega, k, i)
+        inside = excess(0.0) <= 0.0
+        # falling, the along-component is negative, so within the limit, at the grid's end
+        end = target if inside else -k * omega / self.r - 1.0
+        grid = np.linspace(0.0, end, 2001)
+        k_cross = next((j for j, i in enumerate(grid) if (excess(i) <= 0.0) != inside), None)
+        if k_cross is None:
+            return target
+        return float(scipy.optimize.brentq(excess, grid[k_cross - 1], grid[k_cross],
+                                           xtol=1e-12))
+
     def steady_torque(self, omega: float, m_set: float, weakening: bool) -> float:
         """Steady torque (N·m) at speed ``omega`` (rad/s) for a demand ``m_set``: current
-        setpoint M/K (eq. 5) within I_max, current held down by the voltage limit (eq. 2)
-        against the back-EMF K omega (eq. 4), torque K I (eq. 1; eq. 9 where U_Z binds)."""
+        setpoint M/K (eq. 5) within I_max, current held down where the d-q voltage vector,
+        back-EMF (eq. 4) and omega_e L cross term included, reaches U_Z (eq. 2); torque
+        K I (eq. 1)."""
         k = self.commutation_k(omega, m_set) if weakening else self.k0
-        current = min(m_set / k, self.i_max, (self.uz - k * omega) / self.r)
-        return k * current
+        return k * self.steady_current(omega, k, min(m_set / k, self.i_max))
 
 
 def held_speed_run(path: Path, omega: float, iq_ref: float, weakening: bool,
@@ -245,7 +291,7 @@ FW_CASES = (
 @experiment("field_weakening", "001")
 def field_weakening(out_dir: Path | None, config: Path = GEISS) -> list[Result]:
     """Steady torque at held speeds with and without commutation-angle field weakening,
-    against seed 001 eq. 2, 4-6, 8-10 with the current limit."""
+    against seed 001 eq. 4-6, 8-10 with the current limit and eq. 2 on the d-q vector."""
     drive = SeedOneDrive.from_config(Plant.from_file(config).config)
     w_max = drive.omega_max
     tol = 1e-3 * drive.k0 * drive.i_max
@@ -263,7 +309,8 @@ def field_weakening(out_dir: Path | None, config: Path = GEISS) -> list[Result]:
             model = held_speed_torque(config, omega, frac * drive.i_max, weak)
             rows.append(Result(f"torque at {omega:.1f} rad/s ({s:g} omega_max), {label}",
                                ref, model, "N*m", within(model, ref, abs_=tol),
-                               "seed 001 eq. 2, 4-6, 8-10 + I_max (own implementation)",
+                               "seed 001 eq. 4-6, 8-10 + I_max, eq. 2 on the d-q voltage "
+                               "with omega_e L (own implementation)",
                                f"±{tol:.2g} N*m (0.1 % of K_0 I_max)", VERIFICATION))
             ax[0, 0].plot(omega, model, "o", color=lines[0].get_color())
     ax[0, 0].axvline(drive.omega_m_max, ls=":", color="k")
