@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 import tomllib
 
+from hil.validate.experiments.electrical import SeedOneDrive
 from plant import ConfigError, Plant, load_machine
 from plant import layout as L
 from plant.assemble import mechanics_matrices, natural_frequencies, transmission_ratio
@@ -255,22 +256,30 @@ def test_tlm_rig_karnopp_levels():
 
 
 def test_geiss_field_weakening_speed():
-    """geiss_c_axis at full current from rest: below omega_Mmax = U_Z/K - M_max R/K^2
-    (seed 001 eq. 8) the torque holds M_max = K_M I_max less the PI current loop's lag behind
-    the ramping back-EMF (analytic: I_err = K_M alpha T_i / K_p at the acceleration alpha),
-    within the cogging amplitude; above it the torque falls under M_max, as eq. 9 predicts."""
+    """geiss_c_axis at full current from rest: below the corner speed the torque holds
+    M_max = K_M I_max less the PI current loop's lag behind the ramping back-EMF (analytic:
+    I_err = K_M alpha T_i / K_p at the acceleration alpha), within the cogging amplitude;
+    above it the torque falls under M_max.  The corner (analytic): the speed where the
+    voltage the current needs, sqrt((K omega + R I)^2 + (p L I omega)^2) with the
+    omega_e L cross term, reaches U_Z -- below seed 001 eq. 8's omega_Mmax = U_Z/K -
+    M_max R/K^2, which leaves the cross term out."""
     plant = _config("geiss_c_axis.toml")
     mo, fw = plant.config.motor, plant.config.field_weakening
     k, m_max = mo.torque_constant_nm_per_a, fw.max_torque_nm
+    drive = SeedOneDrive.from_config(plant.config)
+    i, r, uz = mo.current_max_a, mo.resistance_ohm, mo.dc_link_v
+    x = drive.pole_pairs * drive.inductance * i
+    a, b, c = k * k + x * x, 2.0 * k * r * i, (r * i) ** 2 - uz ** 2
+    corner = (-b + math.sqrt(b * b - 4.0 * a * c)) / (2.0 * a)
     omega_mmax = mo.dc_link_v / k - m_max * mo.resistance_ohm / k ** 2
-    assert 0.0 < omega_mmax < mo.dc_link_v / k
+    assert 0.0 < corner < omega_mmax < mo.dc_link_v / k
     plant.set_input(iq_ref_a=mo.current_max_a)
     trace = plant.run(4000, plant.sub_per_pwm)
     assert np.all(trace["status"] == L.STATUS_OK)
     w, torque = trace["motor_vel"], trace["torque"]
     cog = plant.config.cogging.amplitudes_nm[0]
-    below = (trace["time_s"] > 0.02) & (w < 0.95 * omega_mmax)
-    above = w > 1.1 * omega_mmax
+    below = (trace["time_s"] > 0.02) & (w < 0.95 * corner)
+    above = w > 1.1 * corner
     assert below.sum() > 100 and above.sum() > 100
     cl = plant.config.current_loop
     alpha = np.gradient(w, trace["time_s"])

@@ -102,20 +102,6 @@ def test_field_weakening_rows_ok():
     assert_rows_ok(E.field_weakening(None))
 
 
-def test_beyond_omega_max_torque_brakes_without_field_weakening():
-    """At 1.1 omega_max (omega_max = U_Z/K_S, seed 001 eq. 6) the back-EMF exceeds U_Z:
-    without field weakening the steady torque at full demand is braking,
-    (U_Z - K_0 omega) K_0 / R < 0 (eq. 9 at K_0); with it the torque stays positive."""
-    drive = E.SeedOneDrive.from_config(Plant.from_file(E.GEISS).config)
-    omega = 1.1 * drive.omega_max
-    off = E.held_speed_torque(E.GEISS, omega, drive.i_max, weakening=False)
-    on = E.held_speed_torque(E.GEISS, omega, drive.i_max, weakening=True)
-    analytic_off = (drive.uz - drive.k0 * omega) * drive.k0 / drive.r
-    assert analytic_off < 0.0
-    assert abs(off - analytic_off) <= 1e-3 * abs(analytic_off)
-    assert on > 0.5 * drive.m_max
-
-
 # --- current measurement ---------------------------------------------------------------
 
 def test_current_noise_quantization_rows_ok():
