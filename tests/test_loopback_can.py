@@ -29,7 +29,11 @@ Why the loopback is not exact, and the tolerance:
   controller extrapolates over it.  Rows clear of every fault's effect (``settled_rows``
   with the summary's ``delay_ticks`` and ``drive_clock``: 0.5 s after a fault of more
   than two ticks, the delayed loop's slow settling) are compared; at least MIN_CLEAR of
-  the rows must be, else the run is repeated (ATTEMPTS at most).
+  the rows must be, else the run is repeated (ATTEMPTS at most).  One fault the
+  controller cannot see: a drive tick that ran on the previous setpoint because the new
+  one came a little late (its row looks clear; seen once on an idle machine, 15 µm on
+  one row).  So a run whose clear rows disagree is repeated too: a difference of the
+  physics or the link would repeat in every attempt, a timing fault does not.
 * The wire quantises the q-current setpoint to per mille of 6075h (28 mA steps of 28 A):
   0.3 µm of following error (the lock-step simulation with and without that rounding).
 * The plant's current-measurement noise differs (the emulator's plant ran idle cycles
@@ -37,7 +41,8 @@ Why the loopback is not exact, and the tolerance:
 
 Tolerance on clear rows: max |FE difference| <= 2 % of the lock-step maximum |FE| (7.3 µm
 here), as over UDP and serial; measured 0.4-1.1 µm (0.1-0.3 %): the noise and the
-current steps, nothing of the link's timing left.  Final position, asserted when the last SETTLE_ROWS rows are clear: within
+current steps, nothing of the link's timing left.  Final position, asserted when the last
+SETTLE_ROWS rows are clear: within
 FINAL_COUNTS counts of the scale (0.1 µm) of the lock-step simulation.  The axis stops in
 the stick-slip of the friction (120 N Coulomb, 160 N breakaway), in current steps of
 23.8 N on the table: the lock-step simulation itself ends between -1 and +2 counts with
@@ -235,24 +240,27 @@ def test_can_loopback_following_error_matches_lockstep(multicast_group, config, 
                                                        tmp_path):
     group, port = multicast_group
     url = f"can://udp_multicast/{group}?node={NODE}&rated_current_ma={RATED_MA}&port={port}"
+    fe_ref, final_ref = following_error_mm(lockstep)
+    allowed = TOLERANCE * np.abs(fe_ref).max()
     for attempt in range(1, ATTEMPTS + 1):
         folder = tmp_path / f"attempt{attempt}"
         folder.mkdir()
         summary, report = run_pair(url, config, folder)
         clear = clear_rows(folder, summary)
-        if clear.mean() >= MIN_CLEAR:
+        if clear.mean() < MIN_CLEAR:
+            continue
+        fe, final = following_error_mm(folder / "controller" / "trace.csv")
+        n = min(fe.size, fe_ref.size)
+        keep = clear[:n]
+        diff = np.abs(fe[:n] - fe_ref[:n])
+        worst = diff[keep].max()
+        if worst <= allowed:
             break
-    else:
+    if clear.mean() < MIN_CLEAR:
         pytest.fail(f"can: only {clear.mean():.0%} of the rows clear of timing faults in "
                     f"{ATTEMPTS} runs; controller feedback: {summary['feedback']}")
     assert summary["feedback"]["delay_ticks"] == FEEDBACK_DELAY_TICKS
     assert summary["alignment"]["by_sync"] and report["sync_lock"]["phase_us"] is not None
-    fe, final = following_error_mm(folder / "controller" / "trace.csv")
-    fe_ref, final_ref = following_error_mm(lockstep)
-    n = min(fe.size, fe_ref.size)
-    keep = clear[:n]
-    diff = np.abs(fe[:n] - fe_ref[:n])
-    worst, allowed = diff[keep].max(), TOLERANCE * np.abs(fe_ref).max()
     scale_mm = load_machine(config).sensors.scale_resolution_m * 1e3
     settled_end = bool(clear[-SETTLE_ROWS:].all())
     end = "clear" if settled_end else "not clear"
