@@ -271,14 +271,14 @@ def test_sigkill_of_the_process_group_leaves_the_recording_up_to_its_last_flush(
                                                                                 tmp_path):
     """SIGKILL of the emulator and its writer at once: the recording opens (no end
     marker) and holds the ticks up to at least the last feedback the controller received
-    minus the flush bound RING_S (both stamps of the drive's clock); the events open."""
+    minus the flush bound RING_S (both stamps of the drive's clock); the events read."""
     run, last_fb_ns = _killed_mid_run(slow_config, tmp_path, group=True)
     rec = Recording(run)
     rows = rec.read(["tick", "tick_start_ns"])
     assert not rec.closed_cleanly() and not (run / REPORT).exists()
     assert rows["tick"].tolist() == list(range(rows["tick"].size))
     assert rows["tick_start_ns"].max() >= last_fb_ns - RING_S * 1e9
-    assert rec.events()["tick"].size >= 0
+    rec.events()  # the events stream, cut anywhere, still reads (RecordingError if not)
 
 
 def test_a_ring_that_cannot_be_made_is_refused_before_ready(tmp_path, warm_cache):

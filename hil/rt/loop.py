@@ -31,7 +31,7 @@ flag, checked before every tick: it is what a signal handler should call.
 
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from typing import Literal
 
 import numpy as np
@@ -249,7 +249,5 @@ class RealTimeLoop:
         ran = lateness[done] != SKIPPED
         return LoopStats(
             period_ns=self.period_ns, lateness_ns=lateness[done], compute_ns=compute[done],
-            ticks=c.ticks, overruns=c.overruns, grace_overruns=c.grace_overruns,
-            skipped=c.skipped, stopped_by=c.stopped_by, wall_s=c.wall_s, cpu_s=c.cpu_s,
-            lateness_us=Percentiles.of_ns_in_us(lateness[done][ran]),
+            **asdict(c), lateness_us=Percentiles.of_ns_in_us(lateness[done][ran]),
             compute_us=Percentiles.of_ns_in_us(compute[done][ran]))

@@ -16,6 +16,7 @@ sink has the samples (:meth:`hil.runtime.record_writer.RecordingWriter.loop_perc
 
 import sys
 from collections.abc import Callable
+from dataclasses import asdict
 from typing import Protocol
 
 import numpy as np
@@ -71,6 +72,4 @@ class StreamingLoop:
         none = Percentiles.of_ns_in_us(np.empty(0, dtype=np.int64))
         empty = np.empty(0, dtype=np.int64)
         return LoopStats(period_ns=self.period_ns, lateness_ns=empty, compute_ns=empty,
-                         ticks=c.ticks, overruns=c.overruns, grace_overruns=c.grace_overruns,
-                         skipped=c.skipped, stopped_by=c.stopped_by, wall_s=c.wall_s,
-                         cpu_s=c.cpu_s, lateness_us=none, compute_us=none)
+                         **asdict(c), lateness_us=none, compute_us=none)
