@@ -314,17 +314,26 @@ overshoot_pct = {{ max = 5.0 }}
 
 
 def test_bench_study_reports_both_cluster_sizes():
-    """``hil bench study`` on a small load: every sample ran, on one and on two workers,
-    and its ratios are the ones its figures give (no timing is asserted)."""
+    """``hil bench study`` on a small load: every sample ran in every round, on one and on
+    two workers, and its ratios are the ones its figures give (no timing is asserted)."""
     res = subprocess.run([sys.executable, "-m", "hil.bench.study", "--samples", "4",
-                          "--seconds", "0.1", "--json"], capture_output=True, text=True,
-                         timeout=STUDY_TIMEOUT_S, cwd=ROOT, check=False)
+                          "--seconds", "0.1", "--rounds", "2", "--json"], capture_output=True,
+                         text=True, timeout=STUDY_TIMEOUT_S, cwd=ROOT, check=False)
     assert res.returncode == 0, res.stderr[-3000:]
     r = json.loads(res.stdout)
     one, two = r["one_worker"], r["two_workers"]
-    assert (one["samples"], one["failed"], one["distinct_workers"]) == (4, 0, 1)
-    assert (two["samples"], two["failed"], two["distinct_workers"]) == (4, 0, 2)
+    assert len(one["rounds"]) == len(two["rounds"]) == 2
+    assert all((x["samples"], x["failed"], x["distinct_workers"]) == (4, 0, 1)
+               for x in one["rounds"])
+    assert all((x["samples"], x["failed"], x["distinct_workers"]) == (4, 0, 2)
+               for x in two["rounds"])
+    assert one["wall_s"] == sorted(x["wall_s"] for x in one["rounds"])[1]
     assert r["scaling_ratio"] == pytest.approx(two["samples_per_s"] / (2 * one["samples_per_s"]))
-    assert r["overhead_pct"] == pytest.approx(
-        100 * (one["wall_s"] / 4 - r["bare_s_per_sample"]) / r["bare_s_per_sample"])
+    # the first bare run, then one after each round; each round against its neighbours
+    bares = [None, *one["bare_s_after_rounds"]]
+    assert len(bares) == 3 and len(r["overhead_pct_per_round"]) == 2
+    last = 0.5 * (bares[1] + bares[2])
+    assert r["overhead_pct_per_round"][1] == pytest.approx(
+        100 * (one["rounds"][1]["wall_s"] / 4 - last) / last)
+    assert r["overhead_pct"] == pytest.approx(np.median(r["overhead_pct_per_round"]))
     assert 0.0 < one["worker_compute_s"] < one["wall_s"]

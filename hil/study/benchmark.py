@@ -76,50 +76,78 @@ def bare_seconds(study: Study) -> tuple[float, float]:
     return float(wall), float(cpu)
 
 
-def pipeline(study: Study, workers: int, folder: Path, note) -> dict:
-    """The whole study on a LocalCluster of ``workers``: wall time, the samples' own time
-    on the workers, and the CPU time of every process of the pipeline (this one, with
-    the scheduler, and the workers)."""
-    store = ResultStore(folder / f"workers_{workers}", study, fresh=True)
+def pipeline_round(client, study: Study, folder: Path, label: str) -> dict:
+    """One run of the whole study on ``client``'s cluster (one sample per task, a fresh
+    store in ``folder``): wall time, the samples' own time on the workers, and the CPU
+    time of every process of the pipeline (this one, with the scheduler, and the
+    workers)."""
+    store = ResultStore(folder, study, fresh=True)
     design = study_design(study)
     progress = Progress()
-    progress.start(design.ids.size, f"{workers} worker(s)")
-    with dask_client(None, workers, note) as client:
-        warm_workers(client, study)
-        before = cpu_seconds() + sum(client.run(cpu_seconds).values())
-        batch = dispatch(client, send_job(client, job_of(study, store)), design, store, 1,
-                         progress)
-        cpu = cpu_seconds() + sum(client.run(cpu_seconds).values()) - before
+    progress.start(design.ids.size, label)
+    before = cpu_seconds() + sum(client.run(cpu_seconds).values())
+    batch = dispatch(client, send_job(client, job_of(study, store)), design, store, 1,
+                     progress)
+    cpu = cpu_seconds() + sum(client.run(cpu_seconds).values()) - before
     results = store.read()
-    compute = float(np.sum(results.table["compute_s"].to_numpy()))
-    return {"workers": workers, "samples": batch.done, "failed": batch.failed,
-            "wall_s": batch.wall_s, "samples_per_s": batch.done / batch.wall_s,
-            "worker_compute_s": compute, "cpu_s": cpu,
+    compute = results.table["compute_s"].to_numpy()
+    return {"samples": batch.done, "failed": batch.failed, "wall_s": batch.wall_s,
+            "samples_per_s": batch.done / batch.wall_s,
+            "worker_compute_s": float(np.sum(compute)),
+            "worker_compute_median_s": float(np.median(compute)), "cpu_s": cpu,
             "distinct_workers": len(set(results.table["worker"].to_pylist()))}
 
 
-def run(samples: int, seconds: float, note=lambda message: None) -> dict:
+def cluster_rounds(study: Study, workers: int, rounds: int, folder: Path, note) -> dict:
+    """``rounds`` runs of the study on one LocalCluster of ``workers``, and after each the
+    bare simulation in this process and in a worker (the cluster idle meanwhile).  The
+    round of median wall time is the figure; every round is kept."""
+    runs, bare_here, bare_worker = [], [], []
+    with dask_client(None, workers, note) as client:
+        warm_workers(client, study)
+        for r in range(rounds):
+            runs.append(pipeline_round(client, study, folder / f"workers_{workers}_{r}",
+                                       f"{workers} worker(s), round {r + 1}/{rounds}"))
+            bare_here.append(bare_seconds(study))
+            bare_worker.append(next(iter(client.run(bare_seconds, study).values())))
+    median = sorted(runs, key=lambda x: x["wall_s"])[len(runs) // 2]
+    return {"workers": workers, **median, "rounds": runs,
+            "bare_s_after_rounds": [b[0] for b in bare_here],
+            "bare_cpu_s_after_rounds": [b[1] for b in bare_here],
+            "bare_in_worker_s_after_rounds": [b[0] for b in bare_worker]}
+
+
+def run(samples: int, seconds: float, rounds: int = 3, note=lambda message: None) -> dict:
     """The benchmark (module docstring); the JSON-ready report."""
     load_before = os.getloadavg()
     with tempfile.TemporaryDirectory(prefix="hil-bench-study-") as tmp:
         folder = Path(tmp)
         study = bench_study(folder, samples, seconds)
-        before = bare_seconds(study)
-        one = pipeline(study, 1, folder, note)
-        two = pipeline(study, 2, folder, note)
-        after = bare_seconds(study)
-    bare, bare_cpu = 0.5 * (before[0] + after[0]), 0.5 * (before[1] + after[1])
-    note(f"bare: {bare * 1e3:.1f} ms per {seconds:g} s simulation (before the pipelines "
-         f"{before[0] * 1e3:.1f} ms, after {after[0] * 1e3:.1f} ms)")
-    per_sample = one["wall_s"] / one["samples"]
+        first = bare_seconds(study)
+        one = cluster_rounds(study, 1, rounds, folder, note)
+        two = cluster_rounds(study, 2, rounds, folder, note)
+    bares = [first[0], *one["bare_s_after_rounds"]]
+    bare_cpus = [first[1], *one["bare_cpu_s_after_rounds"]]
+    # each round against the bare simulation measured just before and just after it
+    around = [0.5 * (bares[i] + bares[i + 1]) for i in range(rounds)]
+    extra = [rd["wall_s"] / rd["samples"] - b for rd, b in zip(one["rounds"], around)]
+    bare, bare_cpu = float(np.median(bares)), float(np.median(bare_cpus))
+    in_worker = float(np.median(one["bare_in_worker_s_after_rounds"]))
+    note(f"bare: {bare * 1e3:.1f} ms per {seconds:g} s simulation here (each: "
+         + ", ".join(f"{b * 1e3:.1f}" for b in bares) + f" ms), {in_worker * 1e3:.1f} ms "
+         "in a worker outside any task")
     cpu_per_sample = one["cpu_s"] / one["samples"]
     report = {
-        "simulated_s": seconds, "samples": samples, "cpus": os.cpu_count(),
+        "simulated_s": seconds, "samples": samples, "rounds": rounds, "cpus": os.cpu_count(),
         "bare_s_per_sample": bare, "bare_cpu_s_per_sample": bare_cpu,
+        "bare_in_worker_s_per_sample": in_worker,
         "one_worker": one, "two_workers": two,
         "scaling_ratio": two["samples_per_s"] / (2.0 * one["samples_per_s"]),
-        "overhead_per_task_s": per_sample - bare,
-        "overhead_pct": 100.0 * (per_sample - bare) / bare,
+        "overhead_pct_per_round": [100.0 * e / b for e, b in zip(extra, around)],
+        "overhead_pct": 100.0 * float(np.median([e / b for e, b in zip(extra, around)])),
+        "overhead_per_task_s": float(np.median(extra)),
+        "task_vs_worker_bare_pct": 100.0 * (one["worker_compute_median_s"] - in_worker)
+        / in_worker,
         "cpu_overhead_pct": 100.0 * (cpu_per_sample - bare_cpu) / bare_cpu,
         "dispatch_overhead_ms": 1e3 * (one["wall_s"] - one["worker_compute_s"]) / one["samples"],
         "load_average_before": list(load_before), "load_average_after": list(os.getloadavg()),
