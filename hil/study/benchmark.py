@@ -98,23 +98,27 @@ def pipeline_round(client, study: Study, folder: Path, label: str) -> dict:
             "distinct_workers": len(set(results.table["worker"].to_pylist()))}
 
 
-def cluster_rounds(study: Study, workers: int, rounds: int, folder: Path, note) -> dict:
-    """``rounds`` runs of the study on one LocalCluster of ``workers``, and after each the
-    bare simulation in this process and in a worker (the cluster idle meanwhile).  The
-    round of median wall time is the figure; every round is kept."""
+def cluster_rounds(study: Study, workers: int, rounds: int, folder: Path, note,
+                   bare: bool = False) -> dict:
+    """``rounds`` runs of the study on one LocalCluster of ``workers``; with ``bare``,
+    after each the bare simulation in this process and in a worker (the cluster idle
+    meanwhile).  The round of median wall time is the figure; every round is kept."""
     runs, bare_here, bare_worker = [], [], []
     with dask_client(None, workers, note) as client:
         warm_workers(client, study)
         for r in range(rounds):
             runs.append(pipeline_round(client, study, folder / f"workers_{workers}_{r}",
                                        f"{workers} worker(s), round {r + 1}/{rounds}"))
-            bare_here.append(bare_seconds(study))
-            bare_worker.append(next(iter(client.run(bare_seconds, study).values())))
+            if bare:
+                bare_here.append(bare_seconds(study))
+                bare_worker.append(next(iter(client.run(bare_seconds, study).values())))
     median = sorted(runs, key=lambda x: x["wall_s"])[len(runs) // 2]
-    return {"workers": workers, **median, "rounds": runs,
-            "bare_s_after_rounds": [b[0] for b in bare_here],
-            "bare_cpu_s_after_rounds": [b[1] for b in bare_here],
-            "bare_in_worker_s_after_rounds": [b[0] for b in bare_worker]}
+    out = {"workers": workers, **median, "rounds": runs}
+    if bare:
+        out.update({"bare_s_after_rounds": [b[0] for b in bare_here],
+                    "bare_cpu_s_after_rounds": [b[1] for b in bare_here],
+                    "bare_in_worker_s_after_rounds": [b[0] for b in bare_worker]})
+    return out
 
 
 def run(samples: int, seconds: float, rounds: int = 3, note=lambda message: None) -> dict:
@@ -124,7 +128,7 @@ def run(samples: int, seconds: float, rounds: int = 3, note=lambda message: None
         folder = Path(tmp)
         study = bench_study(folder, samples, seconds)
         first = bare_seconds(study)
-        one = cluster_rounds(study, 1, rounds, folder, note)
+        one = cluster_rounds(study, 1, rounds, folder, note, bare=True)
         two = cluster_rounds(study, 2, rounds, folder, note)
     bares = [first[0], *one["bare_s_after_rounds"]]
     bare_cpus = [first[1], *one["bare_cpu_s_after_rounds"]]

@@ -34,7 +34,7 @@ from distributed import Future
 
 from hil.identify.config_out import patch_config
 from hil.study.outputs import OUTPUTS
-from hil.study.run import Design, dispatch, job_of, send_job
+from hil.study.run import Design, dispatch, job_of, send_job, task_size
 from hil.study.sampling import design, to_values
 from hil.study.spec import Study
 from hil.study.store import Results, ResultStore
@@ -191,12 +191,13 @@ def _add_told(study: Study, opt: optuna.Study, trial: Trial, dists: dict) -> Non
 class Runner:
     """What a batch of trials runs with: the client, the job sent to the workers
     (:func:`~hil.study.run.send_job`), the store, the tolerance machines (M, varied),
-    samples per task, and the progress line."""
+    the samples per task asked for (0: :func:`~hil.study.run.task_size` chooses per
+    batch), and the progress line."""
     client: object
     payload: Future
     store: ResultStore
     robust: np.ndarray
-    task_size: int
+    requested_task_size: int
     progress: Callable[[int, int], None]
 
     def run(self, study: Study, trials: list[Trial], skip: set[int], done_before: int) -> int:
@@ -205,7 +206,8 @@ class Runner:
         rows = _rows_design(study, trials, self.robust, skip)
         by_index = {t.index: t for t in trials}
         machines = self.robust.shape[0]
-        result = dispatch(self.client, self.payload, rows, self.store, self.task_size,
+        size = task_size(self.client, rows.ids.size, self.requested_task_size)
+        result = dispatch(self.client, self.payload, rows, self.store, size,
                           lambda done, failed: self.progress(done_before + done, failed))
         for table in result.tables:
             for row in table.to_pylist():
@@ -213,16 +215,17 @@ class Runner:
         return result.done
 
 
-def run_tuning(client, study: Study, store: ResultStore, task_size: int,
+def run_tuning(client, study: Study, store: ResultStore, requested_task_size: int,
                progress, note: Callable[[str], None]) -> TuningResult:
     """Run (or resume) the tuning study on ``client`` (module docstring);
-    ``task_size``: samples per task (0: one)."""
+    ``requested_task_size``: samples per task (0: chosen per batch of trials, as for the
+    other methods)."""
     optuna.logging.set_verbosity(optuna.logging.WARNING)
     settings = study.tuning.settings
     robust = robust_values(study)
     machines = robust.shape[0]
     runner = Runner(client, send_job(client, job_of(study, store)), store, robust,
-                    max(1, task_size), progress)
+                    requested_task_size, progress)
     dists = _distributions(study)
     opt = optuna.create_study(directions=[d for _, d in study.tuning.objectives],
                               sampler=_sampler(study))
