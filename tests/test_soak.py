@@ -1,6 +1,6 @@
 """``hil soak`` in CI: a short soak asserts that memory stays flat, not timing.
 
-Emulator and soak master as separate processes at 4 kHz for 75 s (``--no-rt``: the CI
+Emulator and soak master as separate processes at 4 kHz for 48 s (``--no-rt``: the CI
 machine is shared), RSS sampled every second.  The reference for "flat": the recording
 held in memory, as ``hil run`` did before, grew by one row (``row_bytes(1)``, about 300
 bytes) per tick; after the warm-up each process must grow by less than an eighth of that
@@ -17,7 +17,7 @@ from hil.runtime.soak import warmup_s
 from tests.runtime_helpers import ENV, EXIT_S, READY_S, python_module
 
 RATE_HZ = 4000
-MINUTES = 1.25
+MINUTES = 0.8
 #: the most a process may grow per tick after the warm-up, bytes
 MAX_BYTES_PER_TICK = row_bytes(1) / 8
 
@@ -41,7 +41,7 @@ def test_a_short_soak_keeps_both_processes_memory_flat(tmp_path):
         per_tick = memory["slope_mb_per_min"] * 1e6 / (60 * RATE_HZ)
         assert per_tick < MAX_BYTES_PER_TICK, (name, memory)
         minutes = [m["minute"] for m in proc["minutes"]]
-        assert minutes == list(range(len(minutes))) and len(minutes) >= 2, name
+        assert minutes == [0], name  # one row per started minute
     report = json.loads((tmp_path / "emulator" / "report.json").read_text())
     ticks = Recording(tmp_path / "emulator").read(["tick"])["tick"]
     recording = report["recording"]
