@@ -95,6 +95,16 @@ def _uniform_rod(n_seg, node_mass, link_k, link_c):
     return m, np.full(n_seg, link_k), np.full(n_seg, link_c)
 
 
+def polar_moment(d: float) -> float:
+    """m^4: polar area moment pi d^4 / 32 of a solid round shaft of diameter ``d`` (m)."""
+    return math.pi * d ** 4 / 32.0
+
+
+def area(d: float) -> float:
+    """m^2: cross-section pi d^2 / 4 of a solid round shaft of diameter ``d`` (m)."""
+    return math.pi * d ** 2 / 4.0
+
+
 def transmission_ratio(cfg: MachineConfig) -> float:
     """Table travel per unit of motor-side coordinate: lead/2pi for screws, else 1."""
     return cfg.mechanics.lead_m / (2.0 * math.pi) if cfg.machine.kind == "screw" else 1.0
@@ -120,10 +130,11 @@ def build_chains(cfg: MachineConfig) -> tuple[Chain, Chain | None]:
                      np.array([cp.backlash_rad])), None
     sc = cfg.screw
     n = sc.segments
-    jp = math.pi * sc.diameter_m ** 4 / 32.0
-    area = math.pi * sc.diameter_m ** 2 / 4.0
+    # the inertia and the stiffness each from the diameter the machine file chose for it
+    d_m, d_k = sc.diameter(sc.inertia_diameter), sc.diameter(sc.stiffness_diameter)
     seg = sc.length_m / n
-    ms, ks, cs = _uniform_rod(n, sc.density_kg_m3 * jp * seg, sc.shear_modulus_pa * jp / seg,
+    ms, ks, cs = _uniform_rod(n, sc.density_kg_m3 * polar_moment(d_m) * seg,
+                              sc.shear_modulus_pa * polar_moment(d_k) / seg,
                               sc.torsional_damping_nms_per_rad)
     m = np.concatenate([[motor_m + 0.5 * cp.inertia_kgm2], ms])
     m[1] += 0.5 * cp.inertia_kgm2 + me.load_inertia_kgm2
@@ -133,8 +144,8 @@ def build_chains(cfg: MachineConfig) -> tuple[Chain, Chain | None]:
     c_gnd[-1] += sc.bearing_viscous_nms_per_rad
     rot = Chain(m, c_gnd, np.zeros(n + 2), np.concatenate([[cp.stiffness_nm_per_rad], ks]),
                 np.concatenate([[cp.damping_nms_per_rad], cs]), np.zeros(n + 1))
-    ma, ka, ca = _uniform_rod(n, sc.density_kg_m3 * area * seg, sc.youngs_modulus_pa * area / seg,
-                              sc.axial_damping_ns_per_m)
+    ma, ka, ca = _uniform_rod(n, sc.density_kg_m3 * area(d_m) * seg,
+                              sc.youngs_modulus_pa * area(d_k) / seg, sc.axial_damping_ns_per_m)
     k_gnd = np.zeros(n + 1)
     c_gnd = np.zeros(n + 1)
     k_gnd[0] = sc.thrust_bearing_stiffness_n_per_m

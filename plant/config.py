@@ -360,6 +360,19 @@ def _check_physics(cfg: MachineConfig) -> None:
                               f"= {sc.length_m:g} m")
         if tb.mass_kg <= 0:
             raise ConfigError(f"{cfg.path}: [table] mass_kg must be > 0 kg for the screw model")
+        _check_screw_diameters(cfg)
+
+
+def _check_screw_diameters(cfg: MachineConfig) -> None:
+    sc = cfg.screw
+    d0 = sc.nominal_diameter_m
+    if d0 and d0 < sc.diameter_m:
+        raise ConfigError(f"{cfg.path}: [screw] nominal_diameter_m = {d0:g} m must be >= "
+                          f"diameter_m = {sc.diameter_m:g} m (the root diameter)")
+    for name in ("inertia_diameter", "stiffness_diameter"):
+        if getattr(sc, name) == "nominal" and not d0:
+            raise ConfigError(f"{cfg.path}: [screw] {name} = 'nominal' needs "
+                              "nominal_diameter_m (m), the screw's outer diameter")
 
 
 #: bound on the pitch error's slope |e'| (sum of 2 pi A/P, plus the linear part); real

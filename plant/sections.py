@@ -14,6 +14,9 @@ from dataclasses import dataclass
 from plant.schema import key
 
 KINDS = ("screw", "linear", "rotary")
+#: which of the screw's diameters a property is computed with ([screw] inertia_diameter,
+#: stiffness_diameter)
+DIAMETERS = ("root", "nominal")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -129,7 +132,19 @@ class CouplingSection:
 class ScrewSection:
     """Distributed ball screw (screw model)."""
     length_m: float = key("m", "Screw length between the bearings.", ge=0.01, le=20.0)
-    diameter_m: float = key("m", "Root diameter used for stiffness and inertia.", ge=1e-3, le=0.3)
+    diameter_m: float = key("m", "Root (core) diameter d_r of the thread, the screw's "
+                            "smallest cross-section.", ge=1e-3, le=0.3)
+    nominal_diameter_m: float = key("m", "Nominal (outer) diameter d_0, the catalogue's size "
+                                    "(40 mm for a 40x10 screw), >= diameter_m.", 0.0,
+                                    ge=1e-3, le=0.3, zero="not given: d_r stands for it")
+    inertia_diameter: str = key("-", "Diameter of the screw's polar inertia rho J_p l and "
+                                "axial mass rho A l: root (d_r, a solid core) or nominal (d_0, "
+                                "what screw catalogues compute the inertia with).", "root",
+                                choices=DIAMETERS)
+    stiffness_diameter: str = key("-", "Diameter of the screw's torsional G J_p / l and axial "
+                                  "E A / l stiffness: root (d_r, what screw catalogues compute "
+                                  "the stiffness with) or nominal (d_0).", "root",
+                                  choices=DIAMETERS)
     segments: int = key("1", "Number of screw segments N (N+1 nodes).", ge=1, le=64)
     density_kg_m3: float = key("kg/m^3", "Screw material density.", 7850.0, ge=1000.0, le=25000.0)
     youngs_modulus_pa: float = key("Pa", "Young's modulus E.", 2.1e11, ge=1e9, le=1e12)
@@ -153,6 +168,12 @@ class ScrewSection:
                               "position 0.", ge=0.0, le=20.0)
     backlash_m: float = key("m", "Backlash between screw and nut (total lost motion).", 0.0,
                             ge=0.0, le=1e-3)
+
+    def diameter(self, which: str) -> float:
+        """m: the root diameter for ``which`` = "root", the nominal one for "nominal" (the
+        loader refuses "nominal" without it); ``which`` is :attr:`inertia_diameter` or
+        :attr:`stiffness_diameter`."""
+        return self.nominal_diameter_m if which == "nominal" else self.diameter_m
 
 
 @dataclass(frozen=True, kw_only=True)

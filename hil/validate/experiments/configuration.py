@@ -18,6 +18,7 @@ import numpy as np
 import scipy.linalg
 
 from hil.validate.core import CONFIGS, VERIFICATION, Result, SeedRef, experiment
+from hil.validate.experiments.mechanics import screw_geometry
 from plant.assemble import build_chains, mechanics_matrices
 from plant.config import MachineConfig, load_machine
 
@@ -118,7 +119,8 @@ def claim_row(claim: DampingClaim) -> Result:
                   f"configuration: {claim.key}, whose comment claims ~{claim.percent:g} %: "
                   f'"{claim.comment}"',
                   f"±{COMMENT_PM_PCT:g} %-point ('~'); the mode: the lowest with over "
-                  f"{PART_SHARE * 100:g} % of its strain energy in the {part}", VERIFICATION,
+                  f"{PART_SHARE * 100:g} % of its strain energy in the {part}; screw "
+                  f"{screw_geometry(cfg)}", VERIFICATION,
                   note="" if agrees else
                   f"disagrees: the configured dampers give {model:.2f} % (complex eigenvalues "
                   f"of mechanics_matrices at {claim.table_pos * 1e3:.0f} mm); the comment or "
