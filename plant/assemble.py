@@ -211,6 +211,10 @@ def mechanics_matrices(cfg: MachineConfig, table_pos: float = 0.0, end_stop_k: f
     ratio = transmission_ratio(cfg)
     g[1 + j] += (1.0 - w) * ratio
     g[2 + j] += w * ratio
+    # the nut's viscous torque on the screw's rotation there (plant.effects.screw_friction)
+    turn = np.zeros(nr)
+    turn[1 + j], turn[2 + j] = 1.0 - w, w
+    C[:nr, :nr] += sc.nut_viscous_nms_per_rad * np.outer(turn, turn)
     g[nr + j] += 1.0 - w
     g[nr + j + 1] += w
     g[-1] = -1.0
@@ -380,6 +384,7 @@ def build(cfg: MachineConfig) -> Built:
         p[L.P_NUT_GAP] = sc.backlash_m
         p[L.P_NUT_S0] = sc.nut_offset_m
         p[L.P_SEG_LEN] = sc.length_m / sc.segments
+        _screw_friction(sc, p)
     if cfg.table is not None:
         p[L.P_TABLE_M] = cfg.table.mass_kg
         p[L.P_EXT_LOAD] = cfg.table.external_force_n
@@ -432,6 +437,17 @@ def _pitch_error(cfg: MachineConfig, p: np.ndarray) -> None:
         p[L.P_PITCH_AMP + k] = amp
         p[L.P_PITCH_PHASE + k] = math.radians(pe.phases_deg[k]) if pe.phases_deg else 0.0
     p[L.P_PITCH_LINEAR] = pe.linear_ppm * 1e-6
+
+
+def _screw_friction(sc, p: np.ndarray) -> None:
+    """The bearing and nut friction of [screw] (plant.effects.screw_friction)."""
+    p[L.P_BRG_COULOMB] = sc.bearing_coulomb_nm
+    p[L.P_NUT_COULOMB] = sc.nut_coulomb_nm
+    p[L.P_NUT_VISCOUS] = sc.nut_viscous_nms_per_rad
+    p[L.P_NUT_LOAD_FR] = sc.nut_load_friction
+    p[L.P_SCREW_FRICTION] = 1.0 if (sc.bearing_coulomb_nm or sc.nut_coulomb_nm
+                                    or sc.nut_viscous_nms_per_rad
+                                    or sc.nut_load_friction) else 0.0
 
 
 def _friction(cfg: MachineConfig, p: np.ndarray) -> None:

@@ -361,6 +361,23 @@ def _check_physics(cfg: MachineConfig) -> None:
         if tb.mass_kg <= 0:
             raise ConfigError(f"{cfg.path}: [table] mass_kg must be > 0 kg for the screw model")
         _check_screw_diameters(cfg)
+        _check_screw_friction(cfg)
+
+
+#: [screw] friction keys the velocity projection of plant.effects.screw_friction carries,
+#: which needs the lumped solver's forces
+SCREW_FRICTION_KEYS = ("bearing_coulomb_nm", "nut_coulomb_nm", "nut_viscous_nms_per_rad",
+                       "nut_load_friction")
+
+
+def _check_screw_friction(cfg: MachineConfig) -> None:
+    if cfg.mechanics.solver != "tlm":
+        return
+    for name in SCREW_FRICTION_KEYS:
+        if getattr(cfg.screw, name):
+            raise ConfigError(f"{cfg.path}: [screw] {name} = {getattr(cfg.screw, name):g} "
+                              "needs [mechanics] solver = 'lumped' (the TLM solver does not "
+                              "carry the screw's bearing and nut friction)")
 
 
 def _check_screw_diameters(cfg: MachineConfig) -> None:

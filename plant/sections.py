@@ -155,6 +155,19 @@ class ScrewSection:
                                         le=1e8)
     bearing_viscous_nms_per_rad: float = key("N*m*s/rad", "Rotational friction of each "
                                              "support bearing.", 0.0, ge=0.0, le=1e3)
+    bearing_coulomb_nm: float = key("N*m", "Coulomb friction torque of each support bearing "
+                                    "on the screw's rotation (stiction at the same level; "
+                                    "lumped solver only).", 0.0, ge=0.0, le=1e3)
+    nut_coulomb_nm: float = key("N*m", "Coulomb friction torque of the nut on the screw's "
+                                "rotation at no load: the catalogue's preload (dynamic) "
+                                "torque (lumped solver only).", 0.0, ge=0.0, le=1e3)
+    nut_viscous_nms_per_rad: float = key("N*m*s/rad", "Viscous friction torque of the nut on "
+                                         "the screw's rotation (lumped solver only).", 0.0,
+                                         ge=0.0, le=1e3)
+    nut_load_friction: float = key("1", "Growth of the nut's Coulomb torque with its axial "
+                                   "force F: + this times F lead/2pi (about 1/eta - 1 for a "
+                                   "screw of efficiency eta; lumped solver only).", 0.0, ge=0.0,
+                                   le=1.0)
     thrust_bearing_stiffness_n_per_m: float = key("N/m", "Axial stiffness of the fixed "
                                                   "(thrust) bearing.", ge=1e5, le=1e11)
     thrust_bearing_damping_ns_per_m: float = key("N*s/m", "Axial damping of the thrust "
