@@ -105,6 +105,19 @@ def area(d: float) -> float:
     return math.pi * d ** 2 / 4.0
 
 
+def voltage_limit(cfg: MachineConfig) -> float:
+    """V: the largest voltage the converter applies.  The d-q vector of the dq model:
+    U_dc/sqrt(3) with space-vector PWM (the line-to-line voltage reaches U_dc), U_dc/2 with
+    sine PWM ([motor] modulation); the coil voltage of the commutation model: U_dc, seed 001
+    eq. 2's U_Z; 0 for the first-order current loop, which takes no voltage."""
+    mo = cfg.motor
+    if mo.model == "commutation":
+        return mo.dc_link_v
+    if mo.model == "dq":
+        return mo.dc_link_v / math.sqrt(3.0) if mo.modulation == "svpwm" else 0.5 * mo.dc_link_v
+    return 0.0
+
+
 def transmission_ratio(cfg: MachineConfig) -> float:
     """Table travel per unit of motor-side coordinate: lead/2pi for screws, else 1."""
     return cfg.mechanics.lead_m / (2.0 * math.pi) if cfg.machine.kind == "screw" else 1.0
@@ -353,6 +366,7 @@ def build(cfg: MachineConfig) -> Built:
     p[L.P_KT] = kt
     p[L.P_PSI] = kt / (1.5 * pole)
     p[L.P_UDC] = mo.dc_link_v
+    p[L.P_U_MAX] = voltage_limit(cfg)
     p[L.P_I_MAX] = mo.current_max_a
     p[L.P_KP_I] = cl.kp_v_per_a
     p[L.P_KI_I] = cl.kp_v_per_a / cl.ti_s if cl.ti_s > 0 else 0.0

@@ -119,6 +119,7 @@ from plant.layout import (
     P_SOLVER,
     P_SUB_PER_PWM,
     P_TABLE_M,
+    P_U_MAX,
     P_UDC,
     S_FRICTION,
     S_ID,
@@ -168,8 +169,7 @@ def pwm_event(p, s, inp, omega_m):
     if model == MOTOR_FIRST_ORDER:
         return
     if inp[I_MODE] == INPUT_VOLTAGE:
-        umax = 0.5 * p[P_UDC] if model == MOTOR_DQ else p[P_UDC]
-        s[S_UD_NEXT], s[S_UQ_NEXT] = limit_voltage(inp[I_UD], inp[I_UQ], umax)
+        s[S_UD_NEXT], s[S_UQ_NEXT] = limit_voltage(inp[I_UD], inp[I_UQ], p[P_U_MAX])
     elif model == MOTOR_DQ:
         dq_current_control(p, s, inp[I_ID_REF], inp[I_IQ_REF], omega_m)
     else:

@@ -17,6 +17,8 @@ KINDS = ("screw", "linear", "rotary")
 #: which of the screw's diameters a property is computed with ([screw] inertia_diameter,
 #: stiffness_diameter)
 DIAMETERS = ("root", "nominal")
+#: [motor] modulation: space-vector or sine PWM (plant.assemble.voltage_limit)
+MODULATIONS = ("svpwm", "spwm")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -58,9 +60,13 @@ class MotorSection:
     viscous_nms_per_rad: float = key("N*m*s/rad", "Viscous friction of the motor bearings.",
                                      0.0, ge=0.0, le=1e3, only="kind=screw|rotary")
     current_max_a: float = key("A", "Current limit I_max (peak).", ge=0.01, le=5000.0)
-    dc_link_v: float = key("V", "DC-link voltage; the d-q voltage vector is limited to "
-                           "U_dc/2 (commutation model: |U| <= U_dc, seed 001 eq. 2).",
-                           0.0, ge=1.0, le=2000.0, zero="not used")
+    dc_link_v: float = key("V", "DC-link voltage; the d-q voltage vector is limited by "
+                           "[motor] modulation (commutation model: |U| <= U_dc, seed 001 "
+                           "eq. 2).", 0.0, ge=1.0, le=2000.0, zero="not used")
+    modulation: str = key("-", "The inverter's modulation, which sets the largest d-q voltage "
+                          "vector: svpwm (space-vector PWM, or sine PWM with third-harmonic "
+                          "injection, as most drives have): U_dc/sqrt(3); spwm (sine PWM): "
+                          "U_dc/2.", "svpwm", choices=MODULATIONS, only="model=dq")
     pwm_frequency_hz: float = key("Hz", "PWM and current-controller frequency; the "
                                   "inverter applies each voltage one period late.", ge=500.0,
                                   le=1e5)

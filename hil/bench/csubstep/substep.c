@@ -143,7 +143,7 @@ static void dq_current_control(const double *p, double *s, double id_ref, double
                                double omega_m) {
     double period = p[P_DT] * p[P_SUB_PER_PWM];
     double imax = p[P_I_MAX];
-    double umax = 0.5 * p[P_UDC];
+    double umax = p[P_U_MAX];
     iq_ref = clamp(iq_ref, -imax, imax);
     id_ref = clamp(id_ref, -imax, imax);
     double ff_d = 0.0, ff_q = 0.0;
@@ -203,7 +203,7 @@ static void pwm_event(const double *p, double *s, const double *inp, double omeg
         return;
     }
     if (inp[I_MODE] == INPUT_VOLTAGE) {
-        double umax = 0.5 * p[P_UDC];
+        double umax = p[P_U_MAX];
         double ud = inp[I_UD], uq = inp[I_UQ];
         double mag = sqrt(ud * ud + uq * uq);
         if (mag > umax) {
