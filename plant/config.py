@@ -17,6 +17,7 @@ from pathlib import Path
 
 import tomllib
 
+from plant.cogging_orders import slot_orders
 from plant.errors import ConfigError
 from plant.layout import N_DELAY_MAX, N_PITCH
 from plant.schema import describe, in_range, is_required, range_text
@@ -167,6 +168,7 @@ def parse_machine(raw: dict, where: str) -> MachineConfig:
     for sec in OPTIONAL_SECTIONS:
         if sections[sec] is None:
             sections[sec] = SECTIONS[sec]()
+    sections["cogging"] = slot_orders(sections["cogging"], motor, where)
     cfg = MachineConfig(path=where, foreign=foreign, **sections)
     _check_physics(cfg)
     return cfg

@@ -96,6 +96,11 @@ class FieldWeakeningSection:
 @dataclass(frozen=True, kw_only=True)
 class CoggingSection:
     """Cogging / reluctance torque as harmonics of the electrical angle."""
+    slots: int = key("1", "Stator slots of a rotary motor: the cogging's fundamental is then "
+                     "LCM(slots, 2 pole_pairs) cycles per mechanical revolution, and the "
+                     "orders (empty: the first len(amplitudes) multiples of it) must be its "
+                     "multiples.", 0, ge=3, le=1000, zero="not given",
+                     only="kind=screw|rotary")
     orders: tuple = key("1", "Harmonic orders in cycles per electrical revolution.", (), gt=0.0,
                         le=1000.0)
     amplitudes_nm: tuple = key("N*m", "Amplitudes (rotary motors).", (), ge=-1e4, le=1e4,
