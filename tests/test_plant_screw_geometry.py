@@ -116,9 +116,10 @@ def test_each_property_takes_the_diameter_chosen_for_it():
 
 
 @pytest.mark.parametrize("screw, words", [
-    ({"inertia_diameter": "nominal"}, ["[screw] inertia_diameter = 'nominal'",
-                                       "nominal_diameter_m"]),
-    ({"stiffness_diameter": "nominal"}, ["[screw] stiffness_diameter", "nominal_diameter_m"]),
+    ({"inertia_diameter": "nominal", "nominal_diameter_m": 0.0},
+     ["[screw] inertia_diameter = 'nominal'", "nominal_diameter_m"]),
+    ({"stiffness_diameter": "nominal", "nominal_diameter_m": 0.0},
+     ["[screw] stiffness_diameter", "nominal_diameter_m"]),
     ({"nominal_diameter_m": 0.030}, ["[screw] nominal_diameter_m = 0.03 m", ">= diameter_m"]),
     ({"inertia_diameter": "outer"}, ["[screw] inertia_diameter", "root, nominal"]),
 ])

@@ -4,14 +4,13 @@
  * discrete current loop, screw mechanics on the lumped (symplectic Euler) solver, Karnopp
  * friction with the Stribeck curve, the screw's bearing and nut friction, end stops,
  * cogging, pitch error, current noise and quantization, the measurement delay ring --
- * with the same equations in the same
- * floating-point order, built with -ffp-contract=off (no fused multiply-add) so that its
- * state is bit-identical to the numba kernel's.  It reads and writes the same flat arrays
- * (plant/layout.py); the indices (and STRIBECK_CUTOFF) come from layout.h, which
- * hil.bench.csubstep writes from plant.layout at build time.  Other models (first-order
- * and commutation motors, rigid and two-mass mechanics, the TLM solver, presliding
- * friction) are not ported: c_supports() says whether a params vector is one this file
- * runs.
+ * with the same equations in the same floating-point order, built with -ffp-contract=off
+ * (no fused multiply-add) so that its state is bit-identical to the numba kernel's.  It
+ * reads and writes the same flat arrays (plant/layout.py); the indices (and
+ * STRIBECK_CUTOFF) come from layout.h, which hil.bench.csubstep writes from plant.layout
+ * at build time.  Other models (first-order and commutation motors, rigid and two-mass
+ * mechanics, the TLM solver, presliding friction) are not ported: c_supports() says
+ * whether a params vector is one this file runs.
  */
 #include <math.h>
 #include <stdint.h>
