@@ -95,6 +95,29 @@ def _uniform_rod(n_seg, node_mass, link_k, link_c):
     return m, np.full(n_seg, link_k), np.full(n_seg, link_c)
 
 
+def polar_moment(d: float) -> float:
+    """m^4: polar area moment pi d^4 / 32 of a solid round shaft of diameter ``d`` (m)."""
+    return math.pi * d ** 4 / 32.0
+
+
+def area(d: float) -> float:
+    """m^2: cross-section pi d^2 / 4 of a solid round shaft of diameter ``d`` (m)."""
+    return math.pi * d ** 2 / 4.0
+
+
+def voltage_limit(cfg: MachineConfig) -> float:
+    """V: the largest voltage the converter applies.  The d-q vector of the dq model:
+    U_dc/sqrt(3) with space-vector PWM (the line-to-line voltage reaches U_dc), U_dc/2 with
+    sine PWM ([motor] modulation); the coil voltage of the commutation model: U_dc, seed 001
+    eq. 2's U_Z; 0 for the first-order current loop, which takes no voltage."""
+    mo = cfg.motor
+    if mo.model == "commutation":
+        return mo.dc_link_v
+    if mo.model == "dq":
+        return mo.dc_link_v / math.sqrt(3.0) if mo.modulation == "svpwm" else 0.5 * mo.dc_link_v
+    return 0.0
+
+
 def transmission_ratio(cfg: MachineConfig) -> float:
     """Table travel per unit of motor-side coordinate: lead/2pi for screws, else 1."""
     return cfg.mechanics.lead_m / (2.0 * math.pi) if cfg.machine.kind == "screw" else 1.0
@@ -120,10 +143,11 @@ def build_chains(cfg: MachineConfig) -> tuple[Chain, Chain | None]:
                      np.array([cp.backlash_rad])), None
     sc = cfg.screw
     n = sc.segments
-    jp = math.pi * sc.diameter_m ** 4 / 32.0
-    area = math.pi * sc.diameter_m ** 2 / 4.0
+    # the inertia and the stiffness each from the diameter the machine file chose for it
+    d_m, d_k = sc.diameter(sc.inertia_diameter), sc.diameter(sc.stiffness_diameter)
     seg = sc.length_m / n
-    ms, ks, cs = _uniform_rod(n, sc.density_kg_m3 * jp * seg, sc.shear_modulus_pa * jp / seg,
+    ms, ks, cs = _uniform_rod(n, sc.density_kg_m3 * polar_moment(d_m) * seg,
+                              sc.shear_modulus_pa * polar_moment(d_k) / seg,
                               sc.torsional_damping_nms_per_rad)
     m = np.concatenate([[motor_m + 0.5 * cp.inertia_kgm2], ms])
     m[1] += 0.5 * cp.inertia_kgm2 + me.load_inertia_kgm2
@@ -133,8 +157,8 @@ def build_chains(cfg: MachineConfig) -> tuple[Chain, Chain | None]:
     c_gnd[-1] += sc.bearing_viscous_nms_per_rad
     rot = Chain(m, c_gnd, np.zeros(n + 2), np.concatenate([[cp.stiffness_nm_per_rad], ks]),
                 np.concatenate([[cp.damping_nms_per_rad], cs]), np.zeros(n + 1))
-    ma, ka, ca = _uniform_rod(n, sc.density_kg_m3 * area * seg, sc.youngs_modulus_pa * area / seg,
-                              sc.axial_damping_ns_per_m)
+    ma, ka, ca = _uniform_rod(n, sc.density_kg_m3 * area(d_m) * seg,
+                              sc.youngs_modulus_pa * area(d_k) / seg, sc.axial_damping_ns_per_m)
     k_gnd = np.zeros(n + 1)
     c_gnd = np.zeros(n + 1)
     k_gnd[0] = sc.thrust_bearing_stiffness_n_per_m
@@ -200,6 +224,10 @@ def mechanics_matrices(cfg: MachineConfig, table_pos: float = 0.0, end_stop_k: f
     ratio = transmission_ratio(cfg)
     g[1 + j] += (1.0 - w) * ratio
     g[2 + j] += w * ratio
+    # the nut's viscous torque on the screw's rotation there (plant.effects.screw_friction)
+    turn = np.zeros(nr)
+    turn[1 + j], turn[2 + j] = 1.0 - w, w
+    C[:nr, :nr] += sc.nut_viscous_nms_per_rad * np.outer(turn, turn)
     g[nr + j] += 1.0 - w
     g[nr + j + 1] += w
     g[-1] = -1.0
@@ -338,6 +366,7 @@ def build(cfg: MachineConfig) -> Built:
     p[L.P_KT] = kt
     p[L.P_PSI] = kt / (1.5 * pole)
     p[L.P_UDC] = mo.dc_link_v
+    p[L.P_U_MAX] = voltage_limit(cfg)
     p[L.P_I_MAX] = mo.current_max_a
     p[L.P_KP_I] = cl.kp_v_per_a
     p[L.P_KI_I] = cl.kp_v_per_a / cl.ti_s if cl.ti_s > 0 else 0.0
@@ -369,6 +398,7 @@ def build(cfg: MachineConfig) -> Built:
         p[L.P_NUT_GAP] = sc.backlash_m
         p[L.P_NUT_S0] = sc.nut_offset_m
         p[L.P_SEG_LEN] = sc.length_m / sc.segments
+        _screw_friction(sc, p)
     if cfg.table is not None:
         p[L.P_TABLE_M] = cfg.table.mass_kg
         p[L.P_EXT_LOAD] = cfg.table.external_force_n
@@ -421,6 +451,17 @@ def _pitch_error(cfg: MachineConfig, p: np.ndarray) -> None:
         p[L.P_PITCH_AMP + k] = amp
         p[L.P_PITCH_PHASE + k] = math.radians(pe.phases_deg[k]) if pe.phases_deg else 0.0
     p[L.P_PITCH_LINEAR] = pe.linear_ppm * 1e-6
+
+
+def _screw_friction(sc, p: np.ndarray) -> None:
+    """The bearing and nut friction of [screw] (plant.effects.screw_friction)."""
+    p[L.P_BRG_COULOMB] = sc.bearing_coulomb_nm
+    p[L.P_NUT_COULOMB] = sc.nut_coulomb_nm
+    p[L.P_NUT_VISCOUS] = sc.nut_viscous_nms_per_rad
+    p[L.P_NUT_LOAD_FR] = sc.nut_load_friction
+    p[L.P_SCREW_FRICTION] = 1.0 if (sc.bearing_coulomb_nm or sc.nut_coulomb_nm
+                                    or sc.nut_viscous_nms_per_rad
+                                    or sc.nut_load_friction) else 0.0
 
 
 def _friction(cfg: MachineConfig, p: np.ndarray) -> None:

@@ -17,6 +17,7 @@ from pathlib import Path
 
 import tomllib
 
+from plant.cogging_orders import slot_orders
 from plant.errors import ConfigError
 from plant.layout import N_DELAY_MAX, N_PITCH
 from plant.schema import describe, in_range, is_required, range_text
@@ -167,6 +168,7 @@ def parse_machine(raw: dict, where: str) -> MachineConfig:
     for sec in OPTIONAL_SECTIONS:
         if sections[sec] is None:
             sections[sec] = SECTIONS[sec]()
+    sections["cogging"] = slot_orders(sections["cogging"], motor, where)
     cfg = MachineConfig(path=where, foreign=foreign, **sections)
     _check_physics(cfg)
     return cfg
@@ -360,6 +362,36 @@ def _check_physics(cfg: MachineConfig) -> None:
                               f"= {sc.length_m:g} m")
         if tb.mass_kg <= 0:
             raise ConfigError(f"{cfg.path}: [table] mass_kg must be > 0 kg for the screw model")
+        _check_screw_diameters(cfg)
+        _check_screw_friction(cfg)
+
+
+#: [screw] friction keys the velocity projection of plant.effects.screw_friction carries,
+#: which needs the lumped solver's forces
+SCREW_FRICTION_KEYS = ("bearing_coulomb_nm", "nut_coulomb_nm", "nut_viscous_nms_per_rad",
+                       "nut_load_friction")
+
+
+def _check_screw_friction(cfg: MachineConfig) -> None:
+    if cfg.mechanics.solver != "tlm":
+        return
+    for name in SCREW_FRICTION_KEYS:
+        if getattr(cfg.screw, name):
+            raise ConfigError(f"{cfg.path}: [screw] {name} = {getattr(cfg.screw, name):g} "
+                              "needs [mechanics] solver = 'lumped' (the TLM solver does not "
+                              "carry the screw's bearing and nut friction)")
+
+
+def _check_screw_diameters(cfg: MachineConfig) -> None:
+    sc = cfg.screw
+    d0 = sc.nominal_diameter_m
+    if d0 and d0 < sc.diameter_m:
+        raise ConfigError(f"{cfg.path}: [screw] nominal_diameter_m = {d0:g} m must be >= "
+                          f"diameter_m = {sc.diameter_m:g} m (the root diameter)")
+    for name in ("inertia_diameter", "stiffness_diameter"):
+        if getattr(sc, name) == "nominal" and not d0:
+            raise ConfigError(f"{cfg.path}: [screw] {name} = 'nominal' needs "
+                              "nominal_diameter_m (m), the screw's outer diameter")
 
 
 #: bound on the pitch error's slope |e'| (sum of 2 pi A/P, plus the linear part); real

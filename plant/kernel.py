@@ -55,6 +55,7 @@ from plant.effects.pmsm import (
     limit_voltage,
 )
 from plant.effects.reference import home_switch, index_marks
+from plant.effects.screw_friction import screw_friction
 from plant.effects.sensors import measure_current
 from plant.effects.tlm import tlm_step
 from plant.layout import (
@@ -111,12 +112,14 @@ from plant.layout import (
     P_OFF_ROT,
     P_POLE_PAIRS,
     P_PRE_ENABLED,
+    P_SCREW_FRICTION,
     P_SEG_LEN,
     P_SOFF_AX,
     P_SOFF_ROT,
     P_SOLVER,
     P_SUB_PER_PWM,
     P_TABLE_M,
+    P_U_MAX,
     P_UDC,
     S_FRICTION,
     S_ID,
@@ -166,8 +169,7 @@ def pwm_event(p, s, inp, omega_m):
     if model == MOTOR_FIRST_ORDER:
         return
     if inp[I_MODE] == INPUT_VOLTAGE:
-        umax = 0.5 * p[P_UDC] if model == MOTOR_DQ else p[P_UDC]
-        s[S_UD_NEXT], s[S_UQ_NEXT] = limit_voltage(inp[I_UD], inp[I_UQ], umax)
+        s[S_UD_NEXT], s[S_UQ_NEXT] = limit_voltage(inp[I_UD], inp[I_UQ], p[P_U_MAX])
     elif model == MOTOR_DQ:
         dq_current_control(p, s, inp[I_ID_REF], inp[I_IQ_REF], omega_m)
     else:
@@ -210,20 +212,26 @@ def motor_substep(p, s, inp, omega_m):
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def nut_coupling(p, s, ro, nr, ao, na):
-    """Nut force (N, pushing the table forward) at the nut's present place on the screw.
-
-    The nut sits between screw nodes j and j+1 with weight w; its angle and
-    axial displacement are interpolated there and its reaction is spread back
-    with the same weights, which keeps the coupling energy-consistent while
-    the place moves with the table (seed 003's moving nut).
-    """
-    ro, nr, ao, na = offset(ro), offset(nr), offset(ao), offset(na)
+def nut_place(p, s, na):
+    """(j, w): the nut sits between screw nodes j and j+1 (of ``na``) with weight w."""
     pos = (p[P_NUT_S0] + s[S_TABLE_X]) / p[P_SEG_LEN]
     j = int(pos)
     j = offset(0 if j < 0 else (na - 2 if j > na - 2 else j))
     w = pos - j
     w = 0.0 if w < 0.0 else (1.0 if w > 1.0 else w)
+    return j, w
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def nut_coupling(p, s, ro, nr, ao, na, j, w):
+    """Nut force (N, pushing the table forward) at the nut's present place on the screw.
+
+    The nut sits between screw nodes j and j+1 with weight w (:func:`nut_place`); its
+    angle and axial displacement are interpolated there and its reaction is spread back
+    with the same weights, which keeps the coupling energy-consistent while the place
+    moves with the table (seed 003's moving nut).
+    """
+    ro, nr, ao, na = offset(ro), offset(nr), offset(ao), offset(na)
     theta = (1.0 - w) * s[ro + 1 + j] + w * s[ro + 2 + j]
     omega = (1.0 - w) * s[ro + nr + 1 + j] + w * s[ro + nr + 2 + j]
     u = (1.0 - w) * s[ao + j] + w * s[ao + j + 1]
@@ -258,7 +266,8 @@ def screw_mechanics(p, s, load, dt, lumped):
     na = offset(p[P_N_AX])
     por = offset(p[P_OFF_ROT])
     poa = offset(p[P_OFF_AX])
-    f_nut = nut_coupling(p, s, ro, nr, ao, na)
+    j, w = nut_place(p, s, na)
+    f_nut = nut_coupling(p, s, ro, nr, ao, na, j, w)
     s[S_NUT_F] = f_nut
     v = s[S_TABLE_V]
     m = p[P_TABLE_M]
@@ -271,6 +280,8 @@ def screw_mechanics(p, s, load, dt, lumped):
     s[S_FRICTION] = ff
     s[S_STUCK] = 1.0 if stuck else 0.0
     if lumped:
+        if p[P_SCREW_FRICTION] > 0.0:
+            screw_friction(p, por, s, ro, nr, j, w, f_nut, dt)
         chain_step(p, por, s, ro, nr, dt, -1)
         chain_step(p, poa, s, ao, na, dt, -1)
     else:

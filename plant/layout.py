@@ -58,7 +58,7 @@ P_LQ = next(_p)  # H
 P_PSI = next(_p)  # V·s, permanent-magnet flux linkage (dq model)
 P_KT = next(_p)  # N·m/A or N/A, torque (force) constant 1.5·p·psi
 P_KE = next(_p)  # V·s/rad, back-EMF constant K_S (commutation model)
-P_UDC = next(_p)  # V, DC-link voltage; voltage vector limited to U_dc/2
+P_UDC = next(_p)  # V, DC-link voltage (the voltage vector's limit is P_U_MAX)
 P_I_MAX = next(_p)  # A, current setpoint limit
 P_KP_I = next(_p)  # V/A, current PI proportional gain
 P_KI_I = next(_p)  # V/(A·s), current PI integral gain
@@ -146,6 +146,16 @@ P_OFF_AX = next(_p)  # params offset of the axial chain block
 P_SOFF_ROT = next(_p)  # state offset of the torsional chain block
 P_SOFF_AX = next(_p)  # state offset of the axial chain block
 P_SOFF_DELAY = next(_p)  # state offset of the measurement-delay ring (plant.effects.delay)
+
+# friction on the screw's rotation (plant.effects.screw_friction; issue 14 part 4)
+P_SCREW_FRICTION = next(_p)  # 1: any of the four below is set (the kernel skips them otherwise)
+P_BRG_COULOMB = next(_p)  # N·m, Coulomb torque of each support bearing
+P_NUT_COULOMB = next(_p)  # N·m, Coulomb torque of the nut at no load (its preload torque)
+P_NUT_VISCOUS = next(_p)  # N·m·s/rad, viscous torque of the nut on the screw's rotation
+P_NUT_LOAD_FR = next(_p)  # 1, Coulomb torque per nut-force torque F lead/2pi
+
+# voltage limit of the current controller (issue 14 part 5)
+P_U_MAX = next(_p)  # V, largest d-q voltage vector: U_dc/sqrt(3) SVPWM, U_dc/2 sine PWM
 P_COUNT = next(_p)
 del _p
 

@@ -14,6 +14,11 @@ from dataclasses import dataclass
 from plant.schema import key
 
 KINDS = ("screw", "linear", "rotary")
+#: which of the screw's diameters a property is computed with ([screw] inertia_diameter,
+#: stiffness_diameter)
+DIAMETERS = ("root", "nominal")
+#: [motor] modulation: space-vector or sine PWM (plant.assemble.voltage_limit)
+MODULATIONS = ("svpwm", "spwm")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -55,9 +60,13 @@ class MotorSection:
     viscous_nms_per_rad: float = key("N*m*s/rad", "Viscous friction of the motor bearings.",
                                      0.0, ge=0.0, le=1e3, only="kind=screw|rotary")
     current_max_a: float = key("A", "Current limit I_max (peak).", ge=0.01, le=5000.0)
-    dc_link_v: float = key("V", "DC-link voltage; the d-q voltage vector is limited to "
-                           "U_dc/2 (commutation model: |U| <= U_dc, seed 001 eq. 2).",
-                           0.0, ge=1.0, le=2000.0, zero="not used")
+    dc_link_v: float = key("V", "DC-link voltage; the d-q voltage vector is limited by "
+                           "[motor] modulation (commutation model: |U| <= U_dc, seed 001 "
+                           "eq. 2).", 0.0, ge=1.0, le=2000.0, zero="not used")
+    modulation: str = key("-", "The inverter's modulation, which sets the largest d-q voltage "
+                          "vector: svpwm (space-vector PWM, or sine PWM with third-harmonic "
+                          "injection, as most drives have): U_dc/sqrt(3); spwm (sine PWM): "
+                          "U_dc/2.", "svpwm", choices=MODULATIONS, only="model=dq")
     pwm_frequency_hz: float = key("Hz", "PWM and current-controller frequency; the "
                                   "inverter applies each voltage one period late.", ge=500.0,
                                   le=1e5)
@@ -87,6 +96,11 @@ class FieldWeakeningSection:
 @dataclass(frozen=True, kw_only=True)
 class CoggingSection:
     """Cogging / reluctance torque as harmonics of the electrical angle."""
+    slots: int = key("1", "Stator slots of a rotary motor: the cogging's fundamental is then "
+                     "LCM(slots, 2 pole_pairs) cycles per mechanical revolution, and the "
+                     "orders (empty: the first len(amplitudes) multiples of it) must be its "
+                     "multiples.", 0, ge=3, le=1000, zero="not given",
+                     only="kind=screw|rotary")
     orders: tuple = key("1", "Harmonic orders in cycles per electrical revolution.", (), gt=0.0,
                         le=1000.0)
     amplitudes_nm: tuple = key("N*m", "Amplitudes (rotary motors).", (), ge=-1e4, le=1e4,
@@ -129,7 +143,19 @@ class CouplingSection:
 class ScrewSection:
     """Distributed ball screw (screw model)."""
     length_m: float = key("m", "Screw length between the bearings.", ge=0.01, le=20.0)
-    diameter_m: float = key("m", "Root diameter used for stiffness and inertia.", ge=1e-3, le=0.3)
+    diameter_m: float = key("m", "Root (core) diameter d_r of the thread, the screw's "
+                            "smallest cross-section.", ge=1e-3, le=0.3)
+    nominal_diameter_m: float = key("m", "Nominal (outer) diameter d_0, the catalogue's size "
+                                    "(40 mm for a 40x10 screw), >= diameter_m.", 0.0,
+                                    ge=1e-3, le=0.3, zero="not given: d_r stands for it")
+    inertia_diameter: str = key("-", "Diameter of the screw's polar inertia rho J_p l and "
+                                "axial mass rho A l: root (d_r, a solid core) or nominal (d_0, "
+                                "what screw catalogues compute the inertia with).", "root",
+                                choices=DIAMETERS)
+    stiffness_diameter: str = key("-", "Diameter of the screw's torsional G J_p / l and axial "
+                                  "E A / l stiffness: root (d_r, what screw catalogues compute "
+                                  "the stiffness with) or nominal (d_0).", "root",
+                                  choices=DIAMETERS)
     segments: int = key("1", "Number of screw segments N (N+1 nodes).", ge=1, le=64)
     density_kg_m3: float = key("kg/m^3", "Screw material density.", 7850.0, ge=1000.0, le=25000.0)
     youngs_modulus_pa: float = key("Pa", "Young's modulus E.", 2.1e11, ge=1e9, le=1e12)
@@ -140,6 +166,19 @@ class ScrewSection:
                                         le=1e8)
     bearing_viscous_nms_per_rad: float = key("N*m*s/rad", "Rotational friction of each "
                                              "support bearing.", 0.0, ge=0.0, le=1e3)
+    bearing_coulomb_nm: float = key("N*m", "Coulomb friction torque of each support bearing "
+                                    "on the screw's rotation (stiction at the same level; "
+                                    "lumped solver only).", 0.0, ge=0.0, le=1e3)
+    nut_coulomb_nm: float = key("N*m", "Coulomb friction torque of the nut on the screw's "
+                                "rotation at no load: the catalogue's preload (dynamic) "
+                                "torque (lumped solver only).", 0.0, ge=0.0, le=1e3)
+    nut_viscous_nms_per_rad: float = key("N*m*s/rad", "Viscous friction torque of the nut on "
+                                         "the screw's rotation (lumped solver only).", 0.0,
+                                         ge=0.0, le=1e3)
+    nut_load_friction: float = key("1", "Growth of the nut's Coulomb torque with its axial "
+                                   "force F: + this times F lead/2pi (about 1/eta - 1 for a "
+                                   "screw of efficiency eta; lumped solver only).", 0.0, ge=0.0,
+                                   le=1.0)
     thrust_bearing_stiffness_n_per_m: float = key("N/m", "Axial stiffness of the fixed "
                                                   "(thrust) bearing.", ge=1e5, le=1e11)
     thrust_bearing_damping_ns_per_m: float = key("N*s/m", "Axial damping of the thrust "
@@ -153,6 +192,12 @@ class ScrewSection:
                               "position 0.", ge=0.0, le=20.0)
     backlash_m: float = key("m", "Backlash between screw and nut (total lost motion).", 0.0,
                             ge=0.0, le=1e-3)
+
+    def diameter(self, which: str) -> float:
+        """m: the root diameter for ``which`` = "root", the nominal one for "nominal" (the
+        loader refuses "nominal" without it); ``which`` is :attr:`inertia_diameter` or
+        :attr:`stiffness_diameter`."""
+        return self.nominal_diameter_m if which == "nominal" else self.diameter_m
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -43,7 +43,7 @@ RATE_KEYS = (("coupling", "stiffness_nm_per_rad"), ("screw", "nut_stiffness_n_pe
              # heavy dampers add their own rate c/m (plant.assemble.mechanics_rate)
              ("coupling", "damping_nms_per_rad"), ("screw", "nut_damping_ns_per_m"),
              ("screw", "axial_damping_ns_per_m"), ("screw", "torsional_damping_nms_per_rad"),
-             ("screw", "thrust_bearing_damping_ns_per_m"))
+             ("screw", "thrust_bearing_damping_ns_per_m"), ("screw", "nut_viscous_nms_per_rad"))
 #: where a key's range starts at 0, the bisection's bottom relative to its value
 _FLOOR = 1e-9
 #: the bisection stops when the bracket is this narrow (relative)

@@ -14,7 +14,7 @@ voltage mode, and a long push toward the negative end of the travel from a start
 inside it (into the end stop on axes with a stroke, sliding far into the Stribeck tail).
 Beside the files as they are, the Arrow 500 X runs once more with the effects its file
 leaves off (:data:`VARIANTS`: pitch error, measurement delay, nut backlash, asymmetric
-viscous friction).
+viscous friction; the screw's bearing and nut friction).
 """
 
 import json
@@ -40,6 +40,10 @@ VARIANTS = {
         "sensors": {"delay_s": 2.0 / 8000.0},
         "screw": {"backlash_m": 2e-6},
         "friction": {"viscous_asymmetry_ns_per_m": 150.0}}),
+    # issue 14 part 4: the screw's bearing and nut friction (stiction in the push's stops)
+    "arrow500_x_screw_friction": ("arrow500_x.toml", {
+        "screw": {"bearing_coulomb_nm": 0.05, "nut_coulomb_nm": 0.15,
+                  "nut_viscous_nms_per_rad": 2e-4, "nut_load_friction": 0.05}}),
 }
 
 

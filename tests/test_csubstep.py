@@ -19,7 +19,7 @@ from tests.kernel_reference import REFERENCE, SNAPSHOT_EVERY, START_POS_M, cases
 needs_cc = pytest.mark.skipif(compiler() is None, reason="no C compiler on PATH ($CC, cc or "
                               "gcc): the C port cannot be built (apt-get install gcc)")
 #: the runs of the reference stimulus the C port covers (d-q motor, screw, lumped solver)
-C_CASES = ("arrow500_x", "arrow500_x_effects")
+C_CASES = ("arrow500_x", "arrow500_x_effects", "arrow500_x_screw_friction")
 
 
 @pytest.fixture(scope="module")

@@ -14,7 +14,7 @@ import scipy.linalg
 from hil.controller.blocks import PI
 from hil.validate.command import add_arguments, run_from_args
 from hil.validate.core import CONFIGS
-from hil.validate.experiments.configuration import CLAIMS, cogging_period, screw_modes
+from hil.validate.experiments.configuration import CLAIMS, screw_modes
 from hil.validate.experiments.electrical import SeedOneDrive
 from hil.validate.experiments.linear_loops import closed_speed_loop
 from hil.validate.experiments.moves import IntegratorCap
@@ -30,9 +30,9 @@ def validate(*argv: str) -> int:
 
 
 def test_json_rows_carry_kind_verdict_note_and_source(capsys):
-    """A disagreement (cogging order 6) is a finding: exit status 0."""
+    """A disagreement (a machine-file comment's modal damping) is a finding: exit status 0."""
     assert validate("--json", "--no-plots", "--only", "encoder_resolution",
-                    "cogging_orders") == 0
+                    "modal_damping") == 0
     out = capsys.readouterr()
     rows = json.loads(out.out)
     assert {"experiment", "paper", "model", "unit", "ok", "reference", "tolerance", "kind",
@@ -45,8 +45,9 @@ def test_json_rows_carry_kind_verdict_note_and_source(capsys):
 
 
 def test_strict_exits_1_when_a_verification_fails(capsys):
-    assert validate("--strict", "--no-plots", "--only", "cogging_orders") == 1
-    assert "[verification] arrow500_x.toml: cogging order 6" in capsys.readouterr().out
+    assert validate("--strict", "--no-plots", "--only", "modal_damping") == 1
+    assert "[verification] arrow500_x.toml: damping of the screw torsion mode" in \
+        capsys.readouterr().out
 
 
 def test_strict_exits_0_when_only_findings_disagree(capsys):
@@ -58,7 +59,7 @@ def test_strict_exits_0_when_only_findings_disagree(capsys):
 
 
 def test_table_has_kind_and_verdict_columns_and_escapes_pipes(capsys):
-    validate("--no-plots", "--only", "current_steps", "cogging_orders")
+    validate("--no-plots", "--only", "current_steps", "modal_damping")
     lines = capsys.readouterr().out.splitlines()
     header = [c.strip() for c in lines[0].strip("|").split("|")]
     assert header == ["experiment", "kind", "reference value", "model", "unit", "verdict",
@@ -89,14 +90,6 @@ def test_an_unknown_experiment_is_refused_naming_the_known_ones():
 
 
 # --- the helpers behind the new rows ------------------------------------------------------
-
-def test_cogging_period_is_lcm_of_slots_and_poles_per_pole_pair():
-    """By hand: 36 slots, 6 poles: 36 per revolution, 12 per electrical revolution; 9 slots,
-    8 poles: 72 per revolution, 18 per electrical revolution; 12 slots, 10 poles: 60, 12."""
-    assert cogging_period(36, 3.0) == 12.0
-    assert cogging_period(9, 4.0) == 18.0
-    assert cogging_period(12, 5.0) == 12.0
-
 
 def test_damping_claims_quote_their_machine_files():
     """Each checked comment stands, verbatim, on the line of its key in its file."""

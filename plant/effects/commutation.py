@@ -2,9 +2,11 @@
 
 The motor is one equivalent coil: L dI/dt = U - R I - K_S(beta) omega, torque
 M = K_M(beta) I, with K_M = K_S = K (SI units make them equal) and
-|U| <= U_Z (eq. 2).  Without field weakening K = K_0 (beta = 90 deg).  Above
-omega_Mmax = U_Z/K_0 - M_max R / K_0^2 (eq. 8) the converter lowers the
-commutation angle so that the torque asked for stays reachable; solving eq. 9,
+|U| <= U_Z (eq. 2; U_Z is the link voltage itself, P_U_MAX = [motor] dc_link_v, which
+[motor] modulation does not change: plant.assemble.voltage_limit).  Without field
+weakening K = K_0 (beta = 90 deg).  Above omega_Mmax = U_Z/K_0 - M_max R / K_0^2 (eq. 8)
+the converter lowers the commutation angle so that the torque asked for stays reachable;
+solving eq. 9,
 M = (U_Z - omega K) K / R, for K gives eq. 10:
 
     K(omega, M) = U_Z / (2 omega) + sqrt((U_Z / (2 omega))^2 - R M / omega)
@@ -35,7 +37,7 @@ from numba import njit
 
 from plant.effects.pmsm import clamp, pi_step
 from plant.layout import (P_DT, P_EXP_D, P_FW_ENABLED, P_FW_M_MAX, P_I_MAX, P_KI_I, P_KP_I,
-                          P_KT, P_LD, P_POLE_PAIRS, P_R, P_SUB_PER_PWM, P_UDC, S_INT_Q, S_IQ,
+                          P_KT, P_LD, P_POLE_PAIRS, P_R, P_SUB_PER_PWM, P_U_MAX, S_INT_Q, S_IQ,
                           S_IQ_MEAS, S_KM, S_UQ_NEXT)
 
 
@@ -77,11 +79,11 @@ def commutation_control(p, s, iq_ref, omega):
     m_set = k0 * clamp(iq_ref, -p[P_I_MAX], p[P_I_MAX])
     k = k0
     if p[P_FW_ENABLED] > 0.0:
-        k = field_weakening_k(k0, p[P_R], p[P_UDC], p[P_FW_M_MAX], omega, m_set)
+        k = field_weakening_k(k0, p[P_R], p[P_U_MAX], p[P_FW_M_MAX], omega, m_set)
     s[S_KM] = k
     i_set = clamp(m_set / k, -p[P_I_MAX], p[P_I_MAX])
     period = p[P_DT] * p[P_SUB_PER_PWM]
-    umax = coil_voltage_limit(p[P_UDC], k0, k, p[P_POLE_PAIRS], p[P_LD], omega, s[S_IQ_MEAS])
+    umax = coil_voltage_limit(p[P_U_MAX], k0, k, p[P_POLE_PAIRS], p[P_LD], omega, s[S_IQ_MEAS])
     u, s[S_INT_Q] = pi_step(i_set - s[S_IQ_MEAS], s[S_INT_Q], p[P_KP_I], p[P_KI_I], period,
                             0.0, umax)
     s[S_UQ_NEXT] = u

@@ -10,7 +10,9 @@ The currents are integrated with the exponential (exact-decay) Euler rule over
 one sub-step: exact for a locked rotor with the voltage held by the PWM, and
 stable for any sub-step.  The current controller runs once per PWM period: it
 samples the measured currents, runs two PI loops and limits the voltage
-vector to U_dc/2; the inverter applies that voltage during the *next* period
+vector to P_U_MAX (U_dc/sqrt(3) with space-vector PWM, U_dc/2 with sine PWM:
+:func:`plant.assemble.voltage_limit`); the inverter applies that voltage during the
+*next* period
 (one period of computation/PWM delay, seed 001 eq. 3).
 """
 
@@ -19,7 +21,7 @@ import math
 from numba import njit
 
 from plant.layout import (P_DECOUPLE, P_DT, P_EXP_D, P_EXP_Q, P_I_MAX, P_KI_I, P_KP_I, P_LD, P_LQ,
-                          P_POLE_PAIRS, P_PSI, P_R, P_SUB_PER_PWM, P_UDC, S_ID, S_ID_MEAS,
+                          P_POLE_PAIRS, P_PSI, P_R, P_SUB_PER_PWM, P_U_MAX, S_ID, S_ID_MEAS,
                           S_INT_D, S_INT_Q, S_IQ, S_IQ_MEAS, S_UD_NEXT, S_UQ_NEXT)
 
 
@@ -56,12 +58,12 @@ def dq_current_control(p, s, id_ref, iq_ref, omega_m):
     With P_DECOUPLE the back-EMF and the d-q cross-coupling are fed forward
     from the speed ``omega_m`` (rad/s; m/s for linear motors), so the PI only
     has to correct what the model of the motor misses.  The voltage vector is
-    limited to U_dc/2 with the d axis served first (the flux-producing current
+    limited to P_U_MAX with the d axis served first (the flux-producing current
     keeps priority, as drives do).
     """
     period = p[P_DT] * p[P_SUB_PER_PWM]
     imax = p[P_I_MAX]
-    umax = 0.5 * p[P_UDC]
+    umax = p[P_U_MAX]
     iq_ref = clamp(iq_ref, -imax, imax)
     id_ref = clamp(id_ref, -imax, imax)
     ff_d = 0.0

@@ -2,15 +2,15 @@
  *
  * A port of plant/kernel.py for the models the Arrow 500 X uses -- d-q PMSM with its
  * discrete current loop, screw mechanics on the lumped (symplectic Euler) solver, Karnopp
- * friction with the Stribeck curve, end stops, cogging, pitch error, current noise and
- * quantization, the measurement delay ring -- with the same equations in the same
- * floating-point order, built with -ffp-contract=off (no fused multiply-add) so that its
- * state is bit-identical to the numba kernel's.  It reads and writes the same flat arrays
- * (plant/layout.py); the indices (and STRIBECK_CUTOFF) come from layout.h, which
- * hil.bench.csubstep writes from plant.layout at build time.  Other models (first-order
- * and commutation motors, rigid and two-mass mechanics, the TLM solver, presliding
- * friction) are not ported: c_supports() says whether a params vector is one this file
- * runs.
+ * friction with the Stribeck curve, the screw's bearing and nut friction, end stops,
+ * cogging, pitch error, current noise and quantization, the measurement delay ring --
+ * with the same equations in the same floating-point order, built with -ffp-contract=off
+ * (no fused multiply-add) so that its state is bit-identical to the numba kernel's.  It
+ * reads and writes the same flat arrays (plant/layout.py); the indices (and
+ * STRIBECK_CUTOFF) come from layout.h, which hil.bench.csubstep writes from plant.layout
+ * at build time.  Other models (first-order and commutation motors, rigid and two-mass
+ * mechanics, the TLM solver, presliding friction) are not ported: c_supports() says
+ * whether a params vector is one this file runs.
  */
 #include <math.h>
 #include <stdint.h>
@@ -142,7 +142,7 @@ static void dq_current_control(const double *p, double *s, double id_ref, double
                                double omega_m) {
     double period = p[P_DT] * p[P_SUB_PER_PWM];
     double imax = p[P_I_MAX];
-    double umax = 0.5 * p[P_UDC];
+    double umax = p[P_U_MAX];
     iq_ref = clamp(iq_ref, -imax, imax);
     id_ref = clamp(id_ref, -imax, imax);
     double ff_d = 0.0, ff_q = 0.0;
@@ -202,7 +202,7 @@ static void pwm_event(const double *p, double *s, const double *inp, double omeg
         return;
     }
     if (inp[I_MODE] == INPUT_VOLTAGE) {
-        double umax = 0.5 * p[P_UDC];
+        double umax = p[P_U_MAX];
         double ud = inp[I_UD], uq = inp[I_UQ];
         double mag = sqrt(ud * ud + uq * uq);
         if (mag > umax) {
@@ -311,13 +311,51 @@ static double table_friction(const double *p, double v, double f_app, double mas
     return ff;
 }
 
-/* ---- plant/kernel.py: nut_coupling, screw_mechanics, substep ------------------------ */
-static double nut_coupling(const double *p, double *s, long ro, long nr, long ao, long na) {
+/* ---- plant/effects/screw_friction.py ------------------------------------------------ */
+static double coulomb_projection(const double *p, long po, double *s, long so, long n, long i,
+                                 double w, double level, double dt) {
+    long vo = so + n, fo = so + 2 * n;
+    double m0 = p[po + i], m1 = p[po + i + 1];
+    double v = (1.0 - w) * s[vo + i] + w * s[vo + i + 1];
+    double acc = (1.0 - w) * s[fo + i] / m0 + w * s[fo + i + 1] / m1;
+    double inv_mass = (1.0 - w) * (1.0 - w) / m0 + w * w / m1;
+    double t = -(v / dt + acc) / inv_mass;
+    t = t > level ? level : (t < -level ? -level : t);
+    s[fo + i] += (1.0 - w) * t;
+    s[fo + i + 1] += w * t;
+    return t;
+}
+
+static void screw_friction(const double *p, long po, double *s, long so, long n, long j,
+                           double w, double f_nut, double dt) {
+    double brg = p[P_BRG_COULOMB];
+    if (brg > 0.0) {
+        coulomb_projection(p, po, s, so, n, 1, 0.0, brg, dt);
+        coulomb_projection(p, po, s, so, n, n - 2, 1.0, brg, dt);
+    }
+    double c = p[P_NUT_VISCOUS];
+    if (c > 0.0) {
+        long vo = so + n;
+        double t = -c * ((1.0 - w) * s[vo + 1 + j] + w * s[vo + 2 + j]);
+        s[so + 2 * n + 1 + j] += (1.0 - w) * t;
+        s[so + 2 * n + 2 + j] += w * t;
+    }
+    double level = p[P_NUT_COULOMB] + p[P_NUT_LOAD_FR] * p[P_LEAD_RATIO] * fabs(f_nut);
+    if (level > 0.0) coulomb_projection(p, po, s, so, n, 1 + j, w, level, dt);
+}
+
+/* ---- plant/kernel.py: nut_place, nut_coupling, screw_mechanics, substep ------------- */
+static void nut_place(const double *p, const double *s, long na, long *j_out, double *w_out) {
     double pos = (p[P_NUT_S0] + s[S_TABLE_X]) / p[P_SEG_LEN];
     long j = (long)pos;
     j = j < 0 ? 0 : (j > na - 2 ? na - 2 : j);
     double w = pos - (double)j;
-    w = w < 0.0 ? 0.0 : (w > 1.0 ? 1.0 : w);
+    *j_out = j;
+    *w_out = w < 0.0 ? 0.0 : (w > 1.0 ? 1.0 : w);
+}
+
+static double nut_coupling(const double *p, double *s, long ro, long nr, long ao, long na,
+                           long j, double w) {
     double theta = (1.0 - w) * s[ro + 1 + j] + w * s[ro + 2 + j];
     double omega = (1.0 - w) * s[ro + nr + 1 + j] + w * s[ro + nr + 2 + j];
     double u = (1.0 - w) * s[ao + j] + w * s[ao + j + 1];
@@ -343,7 +381,10 @@ static double nut_coupling(const double *p, double *s, long ro, long nr, long ao
 static void screw_mechanics(const double *p, double *s, double load, double dt) {
     long ro = (long)p[P_SOFF_ROT], nr = (long)p[P_N_ROT];
     long ao = (long)p[P_SOFF_AX], na = (long)p[P_N_AX];
-    double f_nut = nut_coupling(p, s, ro, nr, ao, na);
+    long j;
+    double w;
+    nut_place(p, s, na, &j, &w);
+    double f_nut = nut_coupling(p, s, ro, nr, ao, na, j, w);
     s[S_NUT_F] = f_nut;
     double v = s[S_TABLE_V];
     double m = p[P_TABLE_M];
@@ -354,6 +395,8 @@ static void screw_mechanics(const double *p, double *s, double load, double dt) 
     double ff = table_friction(p, v, f_app, m, dt, &stuck);
     s[S_FRICTION] = ff;
     s[S_STUCK] = stuck ? 1.0 : 0.0;
+    if (p[P_SCREW_FRICTION] > 0.0)
+        screw_friction(p, (long)p[P_OFF_ROT], s, ro, nr, j, w, f_nut, dt);
     chain_step(p, (long)p[P_OFF_ROT], s, ro, nr, dt);
     chain_step(p, (long)p[P_OFF_AX], s, ao, na, dt);
     v = stuck ? 0.0 : v + dt * (f_app + ff) / m;

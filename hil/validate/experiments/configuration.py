@@ -5,9 +5,9 @@
   eigenvalues of the linearised mechanics (:func:`plant.assemble.mechanics_matrices`).
   "That mode" is the lowest whose strain energy lies mostly in the damper's part: the
   coupling, the screw's torsion, or the axial path (screw, thrust bearing, nut).
-- ``cogging_orders``: the Arrow's cogging orders against the slot and pole numbers its
-  comment names: cogging repeats LCM(slots, poles) times per revolution, so its orders
-  in cycles per electrical revolution are multiples of LCM(slots, poles) / pole pairs.
+- ``cogging_orders``: the Arrow's cogging orders against its [cogging] slots and its pole
+  number: cogging repeats LCM(slots, poles) times per revolution, so its orders in cycles
+  per electrical revolution are multiples of LCM(slots, poles) / pole pairs.
 """
 
 import math
@@ -18,6 +18,7 @@ import numpy as np
 import scipy.linalg
 
 from hil.validate.core import CONFIGS, VERIFICATION, Result, SeedRef, experiment
+from hil.validate.experiments.mechanics import screw_geometry
 from plant.assemble import build_chains, mechanics_matrices
 from plant.config import MachineConfig, load_machine
 
@@ -118,7 +119,8 @@ def claim_row(claim: DampingClaim) -> Result:
                   f"configuration: {claim.key}, whose comment claims ~{claim.percent:g} %: "
                   f'"{claim.comment}"',
                   f"±{COMMENT_PM_PCT:g} %-point ('~'); the mode: the lowest with over "
-                  f"{PART_SHARE * 100:g} % of its strain energy in the {part}", VERIFICATION,
+                  f"{PART_SHARE * 100:g} % of its strain energy in the {part}; screw "
+                  f"{screw_geometry(cfg)}", VERIFICATION,
                   note="" if agrees else
                   f"disagrees: the configured dampers give {model:.2f} % (complex eigenvalues "
                   f"of mechanics_matrices at {claim.table_pos * 1e3:.0f} mm); the comment or "
@@ -133,36 +135,31 @@ def modal_damping(out_dir: Path | None) -> list[Result]:
 
 
 ARROW = CONFIGS / "arrow500_x.toml"
-ARROW_SLOTS = 36  # the [cogging] comment: "slot harmonics of a 6-pole, 36-slot motor"
 POLES_SOURCE = SeedRef("000", "§3", None, "The three-phase permanent magnet synchronous AC "
                        "motors of the feed drives contain a six-pole stator")
 
 
-def cogging_period(slots: int, pole_pairs: float) -> float:
-    """Cycles per electrical revolution of the fundamental cogging harmonic:
-    LCM(slots, 2 p) per mechanical revolution, over p."""
-    pairs = round(pole_pairs)
-    return math.lcm(slots, 2 * pairs) / pairs
-
-
 @experiment("cogging_orders", "000")
 def cogging_orders(out_dir: Path | None) -> list[Result]:
-    """Each configured cogging order of the Arrow against the harmonics its 36 slots and
-    six poles allow (no plot)."""
+    """Each configured cogging order of the Arrow against the harmonics its [cogging] slots
+    and six poles allow (no plot): LCM(slots, poles) per revolution, recomputed here as the
+    smallest number of cycles that is a whole number of slot and of pole pitches."""
     cfg = load_machine(ARROW)
     pairs = round(cfg.motor.pole_pairs)
-    base = cogging_period(ARROW_SLOTS, pairs)
+    slots = cfg.cogging.slots
+    per_rev = next(n for n in range(1, slots * 2 * pairs + 1)
+                   if n % slots == 0 and n % (2 * pairs) == 0)
+    base = per_rev / pairs
     rows = []
     for order in cfg.cogging.orders:
         agrees = math.isclose(order / base, round(order / base)) and order >= base
         rows.append(Result(
             f"arrow500_x.toml: cogging order {order:g} (cycles per electrical revolution)",
             f"multiples of {base:g}", order, "1", agrees,
-            f"analytic: LCM({ARROW_SLOTS} slots, {2 * pairs} poles) / {pairs} pole pairs; "
-            "the slots from the [cogging] comment "
-            "(assumed), the poles from seed 000", "exact", VERIFICATION, POLES_SOURCE,
-            "" if agrees else
-            f"disagrees: {ARROW_SLOTS} slots and six poles cog {base:g} times per electrical "
+            f"analytic: LCM({slots} slots, {2 * pairs} poles) / {pairs} pole pairs; the slots "
+            "from [cogging] slots (assumed), the poles from seed 000", "exact", VERIFICATION,
+            POLES_SOURCE, "" if agrees else
+            f"disagrees: {slots} slots and six poles cog {base:g} times per electrical "
             f"revolution, so order {order:g} is no cogging harmonic (a 6th-order ripple of a "
             "PMSM is the back-EMF's 5th and 7th harmonics under current, not cogging)"))
     return rows

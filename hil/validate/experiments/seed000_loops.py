@@ -324,7 +324,9 @@ def _linear_rows(fr: FrequencyResponse, lin: tuple, modes_hz: np.ndarray) -> lis
                    "Hz", bw is not None and within(bw, bws[1], abs_=bw_tol), ref,
                    f"±{bw_tol:.2g} Hz (half the spread over the run + "
                    f"{SPEED_BW_REL_TOL * 100:g} %)", VERIFICATION)]
-    line = float(np.min(np.diff(fr.freq_hz)))
+    # one line of the uniform grid: its largest step, so that a peak one line off (the
+    # estimate's resolution) is not refused by the last bit of the grid's rounding
+    line = float(np.max(np.diff(fr.freq_hz)))
     found = np.array(_low_peaks(fr))
     for k, f_mid in enumerate(_low_peaks(mid)):
         spread = [min(_low_peaks(r), key=lambda f, f0=f_mid: abs(f - f0)) for r in (start, end)]

@@ -77,9 +77,10 @@ def undamped(raw: dict) -> dict:
 
 
 def screw_inertia(path: Path = ARROW) -> float:
-    """Polar mass moment of the screw of a screw machine file, rho*pi*d^4/32*L (kg·m²)."""
+    """Polar mass moment of the screw of a screw machine file, rho*pi*d^4/32*L (kg·m²), d
+    the diameter its [screw] inertia_diameter names."""
     sc = load_machine(path).screw
-    return sc.density_kg_m3 * math.pi * sc.diameter_m ** 4 / 32.0 * sc.length_m
+    return sc.density_kg_m3 * math.pi * sc.diameter(sc.inertia_diameter) ** 4 / 32.0 * sc.length_m
 
 
 def lumped_variant(raw: dict, model: str, path: Path = ARROW) -> dict:
