@@ -171,14 +171,26 @@ def check_recording(run_dir: Path) -> tuple[dict, dict]:
     state finite, every setpoint applied finite and within the power stage, the table
     inside the stroke and its end stops."""
     report, rec = read_run(run_dir)
+    from plant import Plant
+    from plant import layout as L
+    from plant.assemble import reflected_inertia
     from plant.config import load_machine
-    table = load_machine(report["machine_file"]).table
+    cfg = load_machine(report["machine_file"])
+    table = cfg.table
     for name in ("plant_table_pos", "plant_motor_vel", "plant_iq_a"):
         assert np.isfinite(rec[name]).all(), name
     for name in ("sp_iq_ref_a", "sp_uq_v", "sp_target_position_counts"):
         assert np.isfinite(rec[name]).all(), f"{name}: a refused value was applied"
     assert (np.abs(rec["sp_iq_ref_a"]) <= 28.0).all()
     x = rec["plant_table_pos"]
-    over = table.end_stop_overtravel_m
-    assert -over < x.min() and x.max() < table.travel_m + over
+    # the end stops are a stiff contact: a table may be in one by what the motor's peak
+    # force presses plus what its kinetic energy at the fastest speed recorded compresses
+    # (the whole drive train's mass behind it; micrometres on the Arrow), never further
+    plant = Plant(cfg)
+    ratio, k = plant.built.ratio, plant.params[L.P_STOP_K]
+    peak_n = cfg.motor.current_max_a * plant.params[L.P_KT] / ratio
+    mass = reflected_inertia(cfg) / ratio ** 2
+    v = float(np.abs(rec["plant_table_vel"]).max())
+    over = table.end_stop_overtravel_m + (peak_n + v * np.sqrt(k * mass)) / k
+    assert -over < x.min() and x.max() < table.travel_m + over, (x.min(), x.max(), over)
     return report, rec

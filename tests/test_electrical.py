@@ -58,13 +58,14 @@ def test_measured_equals_true_current_at_sampling_instant_without_noise():
     assert not np.array_equal(run.iq_meas[:-1], run.iq[1:])
 
 
-def test_voltage_vector_never_exceeds_half_dc_link():
-    """A saturating step (id 20 A, iq 28 A): |u_dq| <= U_dc/2 = 300 V in every PWM period
-    (seed 000: ±300 V DC link), the limit is actually reached, and after 100 ms the
-    current is at its setpoint (no integrator wind-up left)."""
+def test_voltage_vector_never_exceeds_the_svpwm_limit():
+    """A saturating step (id 20 A, iq 28 A): |u_dq| <= U_dc/sqrt(3) = 346 V (space-vector
+    PWM, the default, on seed 000's 600 V DC link) in every PWM period, the limit is
+    actually reached, and after 100 ms the current is at its setpoint (no integrator
+    wind-up left)."""
     plant = quiet_locked_arrow()
     run = E.run_current_step(plant, 28.0, 800, id_ref=20.0)
-    umax = 0.5 * plant.config.motor.dc_link_v
+    umax = plant.config.motor.dc_link_v / math.sqrt(3.0)
     assert run.u_mag.max() <= umax * (1.0 + 1e-12)
     assert run.u_mag.max() >= 0.999 * umax
     assert abs(run.iq[-1] - 28.0) < 1e-3
@@ -85,13 +86,15 @@ def test_voltage_mode_applies_voltage_one_period_later():
     assert np.max(np.abs(tr["iq_a"] - expected)) < 1e-8
 
 
-def test_voltage_mode_limits_vector_to_half_dc_link():
+def test_voltage_mode_limits_vector_to_the_svpwm_limit():
     """A voltage request of 500 V (400, 300) is scaled back onto the circle
-    |u| = U_dc/2 = 300 V with its direction kept (reference: that circle)."""
+    |u| = U_dc/sqrt(3) = 346.4 V with its direction kept (reference: that circle)."""
     plant = quiet_locked_arrow()
     plant.set_input(mode=1, ud_v=400.0, uq_v=300.0)
     tr = plant.run(2, plant.sub_per_pwm)
-    assert abs(tr["ud_v"][1] - 240.0) < 1e-9 and abs(tr["uq_v"][1] - 180.0) < 1e-9
+    scale = 600.0 / math.sqrt(3.0) / 500.0
+    assert abs(tr["ud_v"][1] - 400.0 * scale) < 1e-9
+    assert abs(tr["uq_v"][1] - 300.0 * scale) < 1e-9
 
 
 # --- field weakening -------------------------------------------------------------------

@@ -30,15 +30,16 @@ def test_controller_current_loop_tracks_a_step_through_voltage():
 
 
 def test_controller_voltage_stays_within_the_link():
-    """The d-q voltage the controller sends is limited to U_dc/2 (geometry of the vector
-    limit) while a step to I_max with a stiff gain (20 V/A: 560 V asked for) saturates it,
-    and the current still reaches the step."""
+    """The d-q voltage the controller sends is limited to the converter's U_dc/sqrt(3)
+    (space-vector PWM, the default; geometry of the vector limit) while a step to I_max
+    with a stiff gain (20 V/A: 560 V asked for) saturates it, and the current still
+    reaches the step."""
     stiff = {"controller": dict(VOLTAGE["controller"], current_kp_v_per_a=20.0)}
     cfg = load_machine(ARROW, overrides=stiff)
     ls = LockStep(cfg, 0.25)
     ls.enable()
     ls.ctrl.run_source("current", lambda t: 28.0)
-    u_max = 0.5 * cfg.motor.dc_link_v
+    u_max = cfg.motor.dc_link_v / math.sqrt(3.0)
     peak = 0.0
     for _ in range(40):
         ls.tick()

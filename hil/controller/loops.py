@@ -98,7 +98,8 @@ class SpeedLoop:
 
 class CurrentLoop:
     """d and q current PI loops with EMF and cross-coupling precontrol from the measured
-    speed (as a drive's own loop has) and the voltage vector limited to U_dc/2 (d first).
+    speed (as a drive's own loop has) and the voltage vector limited to the converter's
+    limit (U_dc/sqrt(3) or U_dc/2: plant.assemble.voltage_limit; d first).
 
     Args:
         motor: (pole pairs or pi / pole pitch, psi in V·s, L_d in H, L_q in H) of the motor.

@@ -57,7 +57,7 @@ from hil.controller.loops import CurrentLoop, PositionLoop, SpeedLoop
 from hil.controller.monitoring import AxisMonitor
 from hil.controller.stop import Braking, Phase
 from io_adapters.messages import MODE_CST, MODE_VOLTAGE, Feedback, Setpoint
-from plant.assemble import reflected_inertia, transmission_ratio
+from plant.assemble import reflected_inertia, transmission_ratio, voltage_limit
 from plant.config import MachineConfig
 
 MODES = ("position", "speed", "current")
@@ -105,7 +105,7 @@ class Controller:
             mo = cfg.motor
             poles = math.pi / mo.pole_pitch_m if kind == "linear" else mo.pole_pairs
             motor = (poles, kt / (1.5 * poles), mo.inductance_d_h, mo.inductance_q_h)
-            self.cur_loop = CurrentLoop(sec, period_s, 0.5 * mo.dc_link_v, motor)
+            self.cur_loop = CurrentLoop(sec, period_s, voltage_limit(cfg), motor)
         self.i_ff_gain = reflected_inertia(cfg) / (self.ratio * kt) if sec.torque_ff else 0.0
         if kind == "linear":
             self.rad_per_count = cfg.sensors.encoder_resolution_m

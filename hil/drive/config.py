@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 from hil.cia402 import AbortConnectionOption, FaultReactionOption, QuickStopOption
 from hil.controller.config import ControllerSection, axis_limits, kv_si, motor_constant
-from plant.assemble import reflected_inertia, transmission_ratio
+from plant.assemble import reflected_inertia, transmission_ratio, voltage_limit
 from plant.config import MachineConfig, build_section, check_applies
 from plant.errors import ConfigError
 from plant.schema import key
@@ -192,12 +192,12 @@ def _motor_acceleration(cfg: MachineConfig) -> float:
 
 
 def _no_load_speed(cfg: MachineConfig) -> float:
-    """The dq motor's speed at which the back-EMF takes the whole voltage U_dc/2, motor
-    units/s (inf for other motor models: they state no voltage limit)."""
-    mo = cfg.motor
-    if mo.model != "dq":
+    """The dq motor's speed at which the back-EMF takes the whole voltage vector
+    (U_dc/sqrt(3) with SVPWM, U_dc/2 with sine PWM: :func:`plant.assemble.voltage_limit`),
+    motor units/s (inf for other motor models: they state no voltage limit)."""
+    if cfg.motor.model != "dq":
         return math.inf
-    return 1.5 * 0.5 * mo.dc_link_v / motor_constant(cfg)  # omega = U / (p psi), K_t = 1.5 p psi
+    return 1.5 * voltage_limit(cfg) / motor_constant(cfg)  # omega = U / (p psi), K_t = 1.5 p psi
 
 
 def load_drive(cfg: MachineConfig, controller: ControllerSection | None) -> DriveParameters:
