@@ -19,6 +19,7 @@ replay_floor`), or after ``max_steps``.  A delay is looked
 for last, through the replay, because it is the expensive one and no residual shows it.
 """
 
+import dataclasses
 import math
 import time
 from dataclasses import dataclass, field
@@ -27,14 +28,17 @@ from pathlib import Path
 import numpy as np
 
 from hil.identify.effects import FORCE, LIBRARY, POSITION, REPLAY, Context, Term
+from hil.identify.candidates import Candidate, CandidatePool, Setting
 from hil.identify.effects.base import correlation
 from hil.identify.conventions import read_conventions
 from hil.identify.floor import judge, replay_floor
 from hil.identify.model import Model
 from hil.identify.motion import Drive, motion
 from hil.identify.record import Record
+from hil.identify.refine import refine
 from hil.identify.replay import ERROR_START, Replay, errors
 from hil.identify.spectrum import position_spectrum
+from hil.progress import Progress
 from plant.config import load_machine
 
 
@@ -97,12 +101,14 @@ class Identification:
     refine_nfev: int = 10
     cutoff_hz: float | None = None
     exclude: tuple = ()
+    workers: int = 1
     log: object = None
     steps: list[Step] = field(default_factory=list)
     skipped: dict = field(default_factory=dict)
     rejected: dict = field(default_factory=dict)
     proposals: list = field(default_factory=list)
     refinement: dict = field(default_factory=dict)
+    rounds: list = field(default_factory=list)
 
     def _say(self, text: str) -> None:
         if self.log is not None:
@@ -128,37 +134,19 @@ class Identification:
         self.n_eff = self.rec.n * 2.0 * self.motion.cutoff_hz * self.rec.dt
         self._say(f"error before: {_fmt(self.error_before)}; noise floor {_fmt(self.floor)}")
         err = self.error_before
-        for _ in range(self.max_steps + len(LIBRARY)):
-            if len(self.steps) >= self.max_steps:
-                break
-            if self._replay_at_floor(err):
-                self._say(f"every channel within {self.floor_factor}x its noise floor")
-                break
-            term = self._best()
-            if term is None:
-                break
-            saved = self.model.snapshot()
-            self.model.add(term)
-            if term.effect.domain != REPLAY:
-                self.model.refit(term.effect.domain)
-            new = record_errors(self.rec, self.model.replay())
-            verdict = judge(err, new, self.floor, max(1, term.effect.n_coef(term.shape)),
-                            self.n_eff)
-            self.proposals.append({"effect": term.effect.name, "params": term.params(self.ctx),
-                                   "evidence": term.evidence, "error_before": err,
-                                   "error_after": new, "accepted": verdict.keep,
-                                   "reason": verdict.reason})
-            if not verdict.keep:
-                self.model.restore(saved)
-                self.rejected[term.effect.name] = verdict.reason
-                self._say(f"rejected {term.effect.name}: {verdict.reason}")
-                continue
-            err = new
-            self.steps.append(Step(term.effect.name, term.params(self.ctx), term.evidence, err))
-            self._say(f"added {term.effect.name} ({term.evidence.get('text', '')}); "
-                      f"{verdict.reason}")
+        setting = Setting(str(self.config), self.rec, self.cutoff_hz, self.floor, self.n_eff)
+        with CandidatePool(setting, self.workers) as pool:
+            while len(self.steps) < self.max_steps:
+                if self._replay_at_floor(err):
+                    self._say(f"every channel within {self.floor_factor}x its noise floor")
+                    break
+                names = self._candidate_names()
+                if not names or not self._round(pool, names, err):
+                    break
+                err = self.steps[-1].error
         if self.refine_nfev > 0 and self.steps:
-            self._refine()
+            self.refinement = refine(self.model, self.rec, self.floor, self.n_eff,
+                                     self.refine_nfev, self._say)
         self.replay_after = self.model.replay()
         self.error_after = record_errors(self.rec, self.replay_after)
         self.residual_after = {d: self.model.residual(d) for d in self.domains()}
@@ -166,51 +154,6 @@ class Identification:
         self.unexplained = self._describe_rest()
         self._say("done")
         return self
-
-    def _refine(self) -> None:
-        """Closed-loop output error: adjust the single-coefficient force terms (mass,
-        viscous and Coulomb friction, constant force, Stribeck excess) so that the replay's
-        effort matches the record's (``scipy.optimize.least_squares``).  The inverse model
-        weighs every sample's force balance equally; the closed loop weighs them as the
-        controller does, which is the error the report measures."""
-        from scipy.optimize import least_squares
-        terms = [t for t in self.model.terms if t.effect.domain == FORCE
-                 and t.effect.n_coef(t.shape) == 1 and t.effect.name != "presliding_hysteresis"]
-        if not terms:
-            return
-        z0 = np.array([float(t.coef[0]) for t in terms])
-        lo = np.array([t.effect.bounds(t.shape)[0][0] for t in terms])
-        hi = np.array([t.effect.bounds(t.shape)[1][0] for t in terms])
-        z0 = np.clip(z0, lo + 1e-12 * np.abs(z0), hi)
-        rec = self.rec
-        count = [0]
-
-        def residual(z):
-            for t, value in zip(terms, z):
-                t.coef = np.array([value])
-            self.model.coefficients_changed()
-            rep = self.model.replay()
-            count[0] += 1
-            if rep is None or rep.status != 0:
-                return np.full(rec.n - ERROR_START, 1e6)
-            d = rec.effort[ERROR_START:] - rep.effort[ERROR_START:]
-            if count[0] % 10 == 0:
-                self._say(f"  refinement: {count[0]} replays, effort rms "
-                          f"{float(np.sqrt(np.mean(d * d))):.4g}")
-            return d
-
-        before = {t.effect.name: float(t.coef[0]) for t in terms}
-        self._say(f"refining {', '.join(before)} on the closed-loop replay")
-        r0 = residual(z0)
-        scale = np.maximum(np.abs(z0), 1e-3 * max(float(np.max(np.abs(z0))), 1e-9))
-        sol = least_squares(residual, z0, bounds=(lo, hi), x_scale=scale, diff_step=1e-3,
-                            max_nfev=self.refine_nfev)
-        # least_squares returns its best point; keep the start if even that is no better
-        residual(sol.x if sol.cost <= 0.5 * float(r0 @ r0) else z0)
-        after = {t.effect.name: float(t.coef[0]) for t in terms}
-        self.refinement = {"coefficients_before": before, "coefficients_after": after,
-                           "replays": count[0]}
-        self._say(f"refined in {count[0]} replays")
 
     def domains(self) -> list[str]:
         """The residual domains this record has: force, and position with two sensors."""
@@ -224,8 +167,11 @@ class Identification:
     def noise_floor(self, domain: str) -> float:
         return self.motion.noise_force if domain == FORCE else self.motion.noise_dx
 
-    def _candidates(self, domains) -> list[Term]:
+    def _candidate_names(self) -> list[str]:
+        """The library's effects this round may try: available in the record, not excluded,
+        not rejected before, not in the model yet (or declared and correctable)."""
         out = []
+        domains = self.domains() + [REPLAY]
         for effect in LIBRARY:
             if effect.domain not in domains:
                 continue
@@ -239,26 +185,70 @@ class Identification:
             have = self.model.term(effect.name)
             if have is not None and (have.added or not effect.correctable):
                 continue
-            residual = self.model.residual(effect.domain) if effect.domain != REPLAY else None
-            self._say(f"  trying {effect.name}")
-            term = effect.propose(self.ctx, residual, self.model)
-            if term is not None:
-                out.append(term)
+            out.append(effect.name)
         return out
 
-    def _best(self) -> Term | None:
-        cands = [t for t in self._candidates(self.domains())
-                 if t.evidence.get("explained", 0.0) >= self.min_explained]
-        if not cands:
-            # nothing in the residuals: a delay shows only in the closed loop
-            cands = [t for t in self._candidates([REPLAY])
-                     if t.evidence.get("explained", 0.0) >= self.min_explained]
-        if not cands:
-            return None
-        top = max(t.evidence["explained"] for t in cands)
-        near = [t for t in cands if t.evidence["explained"] >= 0.9 * top]
-        order = {e.name: i for i, e in enumerate(LIBRARY)}
-        return min(near, key=lambda t: (t.effect.n_params, order[t.effect.name]))
+    def _round(self, pool: CandidatePool, names: list[str], err: dict) -> bool:
+        """Rank every candidate by its held-out gain (:mod:`hil.identify.candidates`) and
+        add the best that the whole record confirms; False when none is added."""
+        n_round = len(self.rounds) + 1
+        self._say(f"round {n_round}: {len(names)} candidates ({', '.join(names)})")
+        finished = []
+
+        def done(c: Candidate) -> None:
+            finished.append(c)
+            if bar is not None:
+                bar.update(len(finished))
+
+        bar = (Progress(f"round {n_round}: candidates", total=len(names), ticking=True)
+               if self.log is not None else None)
+        try:
+            cost0, ranked = pool.rank(self.model.snapshot(), names, done)
+        finally:
+            if bar is not None:
+                bar.close()
+        best = ranked[0]
+        self._say(f"held-out J {cost0:.4g}; best {best.effect} (J {best.cost:.4g}, "
+                  f"BIC {best.delta_bic:+.1f})")
+        self.rounds.append({"heldout_cost_before": cost0, "ranking": [
+            {"effect": c.effect, "heldout_cost": c.cost, "heldout_delta_bic": c.delta_bic,
+             "explained": (c.term.evidence.get("explained") if c.term is not None else None),
+             "params": c.params, "note": c.note} for c in ranked]})
+        for c in ranked:
+            if not c.delta_bic < 0.0:
+                break
+            if c.term.evidence.get("explained", 1.0) < self.min_explained:
+                self.rejected[c.effect] = (f"explains {c.term.evidence['explained']:.3g} of "
+                                           f"its residual, under {self.min_explained:g}")
+                continue
+            if self._try(c.term, err):
+                return True
+        return False
+
+    def _try(self, term: Term, err: dict) -> bool:
+        """Add ``term`` with its domain refitted on the whole record and keep it when the
+        replay's information criterion says so (:func:`hil.identify.floor.judge`)."""
+        saved = self.model.snapshot()
+        self.model.add(dataclasses.replace(term, coef=term.coef.copy()))
+        if term.effect.domain != REPLAY:
+            self.model.refit(term.effect.domain)
+        new = record_errors(self.rec, self.model.replay())
+        verdict = judge(err, new, self.floor, max(1, term.effect.n_coef(term.shape)),
+                        self.n_eff)
+        added = self.model.term(term.effect.name)
+        self.proposals.append({"effect": term.effect.name, "params": added.params(self.ctx),
+                               "evidence": term.evidence, "error_before": err,
+                               "error_after": new, "accepted": verdict.keep,
+                               "reason": verdict.reason})
+        if not verdict.keep:
+            self.model.restore(saved)
+            self.rejected[term.effect.name] = verdict.reason
+            self._say(f"rejected {term.effect.name}: {verdict.reason}")
+            return False
+        self.steps.append(Step(term.effect.name, added.params(self.ctx), term.evidence, new))
+        self._say(f"added {term.effect.name} ({term.evidence.get('text', '')}); "
+                  f"{verdict.reason}")
+        return True
 
     def _describe_rest(self) -> dict:
         """The signature of what is left, whatever the library says about it."""

@@ -142,9 +142,10 @@ def markdown(rep: dict) -> str:
     ref = rep.get("refinement") or {}
     if ref:
         lines += ["", f"Closed-loop refinement ({ref['replays']} replays, least squares on the "
-                  "replay's effort error): " + ", ".join(
-                      f"{k} coefficient {_fmt(ref['coefficients_before'][k])} -> "
-                      f"{_fmt(v)}" for k, v in ref["coefficients_after"].items())]
+                  f"replay's errors over their floors, J {_fmt(ref['cost_before'])} -> "
+                  f"{_fmt(ref['cost_after'])}): " + ", ".join(
+                      f"{k} {_fmt(ref['before'][k])} -> {_fmt(v)} ± "
+                      f"{_fmt(ref['sigma'][k])}" for k, v in ref["after"].items())]
     lines += ["", "Noise floor of the replay channels: " + ", ".join(
         f"{k} {_fmt(v)}" for k, v in rep["replay_noise_floor"].items())
         + "; error over it before: " + ", ".join(

@@ -243,9 +243,10 @@ class Stribeck(Effect):
         return Term(self, {"vs": vs}, np.array([fs - fc]))
 
     def propose(self, ctx, residual, model):
-        # Stribeck shapes sliding friction: it needs Coulomb's level and no presliding spring
-        if (model.term("coulomb_friction") is None
-                or model.term("presliding_hysteresis") is not None):
+        # tried whatever Coulomb's residual looks like (a dip at low speed hides under a
+        # level that is right on average), but not with the presliding spring, which
+        # replaces Karnopp's stick-slip with Stribeck sliding friction in the plant
+        if model.term("presliding_hysteresis") is not None:
             return None
         vmax = float(np.max(np.abs(ctx.m.v[ctx.moving])))
         mask = ctx.moving

@@ -118,9 +118,16 @@ class Cogging(Effect):
         return {"cogging": self.params(ctx, shape, coef)}
 
 
+#: harmonics of the lead tried as pitch-error periods (lead / k), besides the spectrum's
+LEAD_HARMONICS = 4
+
+
 class PitchError(Effect):
     """Pitch (lead) error of the screw: table position minus motor position, periodic in
-    the table position."""
+    the table position -- harmonics of the lead (the screw's own run-out and thread
+    errors: periods lead / k), and the long-wave periods the residual's spectrum shows --
+    plus a cumulative lead error c x (``linear_ppm``), as the plant's
+    e(u) = sum A_k sin(2 pi u / P_k + phi_k) + c u."""
     name = "pitch_error"
     domain = POSITION
     n_params = 2
@@ -134,16 +141,20 @@ class PitchError(Effect):
 
     def declared(self, ctx):
         pe = getattr(ctx.cfg, "pitch_error", None)
-        if pe is None or not pe.periods_m:
+        if pe is None or not (pe.periods_m or pe.linear_ppm):
             return None
         phases = pe.phases_deg or (0.0,) * len(pe.periods_m)
         coef = []
         for a, ph in zip(pe.amplitudes_m, phases):
             coef += [a * math.cos(math.radians(ph)), a * math.sin(math.radians(ph))]
-        return Term(self, {"periods_m": list(pe.periods_m)}, np.array(coef))
+        return Term(self, {"periods_m": list(pe.periods_m)},
+                    np.array(coef + [pe.linear_ppm * 1e-6]))
 
     def _cols(self, ctx, periods):
-        return _sincos(2 * math.pi * ctx.m.x, [1.0 / p for p in periods])
+        """The harmonics' sine and cosine columns and the linear term's, shape (n, 2k + 1)."""
+        x = ctx.m.x
+        return np.hstack([_sincos(2 * math.pi * x, [1.0 / p for p in periods]),
+                          (x - float(np.mean(x[ctx.m.use])))[:, None]])
 
     def propose(self, ctx, residual, model):
         mask = ctx.moving
@@ -159,17 +170,21 @@ class PitchError(Effect):
         peaks = spec.peaks(2 * MAX_HARMONICS, min_cycles=1.5 / travel)
         periods = [self._refine(ctx, residual, mask, f, spec.resolution)
                    for f, _ in peaks if 1.0 / f >= p_min]
-        if not periods:
-            return None
+        lead = 2 * math.pi * ctx.drive.ratio
+        periods += [lead / k for k in range(1, LEAD_HARMONICS + 1) if lead / k >= p_min]
         chosen, coef, ex = _greedy_orders(lambda ps: self._cols(ctx, ps), periods, residual,
                                           mask, 0.01)
         if not chosen:
             return None
-        amps, _ = _amp_phase(coef, 1.0)
+        amps, _ = _amp_phase(coef[:-1], 1.0)
         ev = {"explained": ex, "periods_m": chosen, "amplitudes_m": amps,
+              "periods_per_lead": [p / lead for p in chosen],
+              "linear_ppm": float(coef[-1]) * 1e6,
               "text": "table position minus motor position is periodic in the table "
-                      "position: " + ", ".join(f"period {p * 1e3:.4g} mm, {a * 1e6:.3g} um"
-                                               for p, a in zip(chosen, amps))}
+                      "position: " + ", ".join(f"period {p * 1e3:.4g} mm ({p / lead:.3g} "
+                                               f"lead), {a * 1e6:.3g} um"
+                                               for p, a in zip(chosen, amps))
+                      + f"; cumulative lead error {coef[-1] * 1e6:.3g} um/m"}
         return Term(self, {"periods_m": chosen}, coef, True, ev)
 
     def _refine(self, ctx, residual, mask, cycles, resolution):
@@ -190,12 +205,12 @@ class PitchError(Effect):
         return self._cols(ctx, shape["periods_m"])
 
     def n_coef(self, shape):
-        return 2 * len(shape["periods_m"])
+        return 2 * len(shape["periods_m"]) + 1
 
     def params(self, ctx, shape, coef):
-        amps, phases = _amp_phase(coef, 1.0)
+        amps, phases = _amp_phase(coef[:-1], 1.0)
         return {"periods_m": list(shape["periods_m"]), "amplitudes_m": amps,
-                "phases_deg": phases}
+                "phases_deg": phases, "linear_ppm": float(coef[-1]) * 1e6}
 
     def overrides(self, ctx, shape, coef, model):
         return {"pitch_error": self.params(ctx, shape, coef)}
