@@ -97,12 +97,14 @@ class Candidate:
 @dataclass
 class Setting:
     """What a candidate's evaluation needs besides the model's terms: the record and
-    config, the inverse model's corner, the replay floor and the held-out split."""
+    config, the inverse model's corner, the replay floor, the effective number of
+    independent samples and the declared coefficients' tolerances."""
     config: str
     rec: Record
     cutoff_hz: float | None
     floor: dict
     n_eff: float
+    tolerance: dict
 
 
 class Evaluator:
@@ -117,8 +119,9 @@ class Evaluator:
         self.fit_ctx = fit_context(self.ctx, self.held_out)
         self.n_ho = max(2.0, 0.5 * s.n_eff)
 
-    def model(self, terms: list[Term], ctx: Context | None = None) -> Model:
-        model = Model(ctx or self.fit_ctx, self.setting.config)
+    def model(self, terms: list[Term]) -> Model:
+        model = Model(self.fit_ctx, self.setting.config,
+                      tolerance=self.setting.tolerance)
         model.restore([dataclasses.replace(t, coef=t.coef.copy()) for t in terms])
         return model
 

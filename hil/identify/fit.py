@@ -29,6 +29,7 @@ import numpy as np
 
 from hil.identify.effects import FORCE, LIBRARY, POSITION, REPLAY, Context, Term
 from hil.identify.candidates import Candidate, CandidatePool, Setting
+from hil.identify.changes import declared_changes
 from hil.identify.effects.base import correlation
 from hil.identify.conventions import read_conventions
 from hil.identify.floor import judge, replay_floor
@@ -82,7 +83,10 @@ class Identification:
         exclude: names of library effects not to look for (known absent, or to compare
             models: on EMPS, without ``viscous_asymmetry`` the search takes the constant
             offset of the paper's symmetric model instead).
-        log: optional callable(str) for progress lines.
+        workers: processes evaluating a round's candidates (1: this one).
+        tolerance: effect name -> relative tolerance of its declared coefficients (the
+            prior's deviation; :data:`hil.identify.model.DEFAULT_TOLERANCE` otherwise).
+        log: optional callable(str) for progress lines (and a progress bar per round).
 
     After :meth:`fit`: ``steps`` (the effects added, in order), ``rejected`` and
     ``skipped`` (effect -> why), ``proposals`` (every step tried, kept or not, with its
@@ -90,8 +94,10 @@ class Identification:
     noise floors), ``refinement``, ``error_before``/``error_after`` (replay
     errors), ``residual_before``/``residual_after`` (domain -> residual, shape (n,)),
     ``replay_before``/``replay_after``, ``friction_before``/``friction_after`` (v -> force),
-    ``unexplained`` (the signature of what is left), and ``model`` (the terms; its
-    ``overrides()`` are the fitted machine-file keys).
+    ``unexplained`` (the signature of what is left), ``rounds`` (every round's candidates
+    ranked by their held-out gain), ``declared_changes`` (:func:`hil.identify.changes.
+    declared_changes`), and ``model`` (the terms; its ``overrides()`` are the fitted
+    machine-file keys).
     """
     config: str | Path
     rec: Record
@@ -102,6 +108,7 @@ class Identification:
     cutoff_hz: float | None = None
     exclude: tuple = ()
     workers: int = 1
+    tolerance: dict = field(default_factory=dict)
     log: object = None
     steps: list[Step] = field(default_factory=list)
     skipped: dict = field(default_factory=dict)
@@ -122,7 +129,7 @@ class Identification:
         self.drive = Drive.of(cfg)
         self.motion = motion(self.rec, self.drive, self.cutoff_hz)
         self.ctx = Context.of(cfg, self.drive, self.rec, self.motion)
-        self.model = Model(self.ctx, self.config)
+        self.model = Model(self.ctx, self.config, tolerance=self.tolerance)
         self._say(f"replaying {self.rec.n} samples through {Path(self.config).name}")
         self.replay_before = self.model.replay()
         self.error_before = record_errors(self.rec, self.replay_before)
@@ -134,7 +141,8 @@ class Identification:
         self.n_eff = self.rec.n * 2.0 * self.motion.cutoff_hz * self.rec.dt
         self._say(f"error before: {_fmt(self.error_before)}; noise floor {_fmt(self.floor)}")
         err = self.error_before
-        setting = Setting(str(self.config), self.rec, self.cutoff_hz, self.floor, self.n_eff)
+        setting = Setting(str(self.config), self.rec, self.cutoff_hz, self.floor, self.n_eff,
+                          self.tolerance)
         with CandidatePool(setting, self.workers) as pool:
             while len(self.steps) < self.max_steps:
                 if self._replay_at_floor(err):
@@ -152,6 +160,11 @@ class Identification:
         self.residual_after = {d: self.model.residual(d) for d in self.domains()}
         self.friction_after = friction_curve(self.model)
         self.unexplained = self._describe_rest()
+        self.declared_changes = declared_changes(self.model)
+        for row in self.declared_changes:
+            if row["beyond_tolerance"]:
+                self._say(f"declared {row['parameter']} moved {row['change_pct']:+.1f} % "
+                          f"(± {row['sigma']:.3g}), beyond its {row['tolerance_pct']:g} %")
         self._say("done")
         return self
 

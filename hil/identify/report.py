@@ -70,7 +70,8 @@ def summary(ident: Identification, validation: dict | None, elapsed_s: float,
         "replay_noise_floor": ident.floor,
         "error_before_over_floor": over_floor(ident.error_before, ident.floor),
         "error_after_over_floor": over_floor(ident.error_after, ident.floor),
-        "proposals": ident.proposals,
+        "proposals": ident.proposals, "rounds": ident.rounds,
+        "declared_changes": ident.declared_changes,
         "refinement": ident.refinement, "rejected": ident.rejected,
         "unexplained": ident.unexplained, "not_looked_for": ident.skipped,
         "thresholds": {"min_explained": ident.min_explained,
@@ -146,11 +147,36 @@ def markdown(rep: dict) -> str:
                   f"{_fmt(ref['cost_after'])}): " + ", ".join(
                       f"{k} {_fmt(ref['before'][k])} -> {_fmt(v)} ± "
                       f"{_fmt(ref['sigma'][k])}" for k, v in ref["after"].items())]
+    changes = rep.get("declared_changes") or []
+    if changes:
+        lines += ["", "## Declared parameters (refitted with a prior at the declared value)", "",
+                  "| parameter | declared | identified | change | ± (1 sigma) | tolerance | |",
+                  "|---|---|---|---|---|---|---|"]
+        for c in changes:
+            flag = "**beyond tolerance**" if c["beyond_tolerance"] else ""
+            if c["significant"] is False:
+                flag = (flag + " " if flag else "") + "within its uncertainty"
+            lines.append(f"| {c['parameter']} | {_fmt(c['declared'])} | "
+                         f"{_fmt(c['identified'])} | {_fmt(c['change_pct'])} % | "
+                         f"{_fmt(c['sigma'])} | {c['tolerance_pct']:g} % | {flag} |")
     lines += ["", "Noise floor of the replay channels: " + ", ".join(
         f"{k} {_fmt(v)}" for k, v in rep["replay_noise_floor"].items())
         + "; error over it before: " + ", ".join(
         f"{k} {v:.3g}" for k, v in rep["error_before_over_floor"].items())
         + "; after: " + ", ".join(f"{k} {v:.3g}" for k, v in rep["error_after_over_floor"].items())]
+    for i, rnd in enumerate(rep.get("rounds") or [], 1):
+        if i == 1:
+            lines += ["", "## Every candidate of each round, ranked by its held-out gain", "",
+                      "Fitted on alternate 0.5 s blocks, scored by the replay on the others: "
+                      "J = sum of (error / floor)², BIC = n ln(J / J0) + k ln n.", ""]
+        lines += [f"Round {i} (held-out J before {_fmt(rnd['heldout_cost_before'])}):", ""]
+        for c in rnd["ranking"]:
+            params = ", ".join(f"{k} = {_fmt(v)}" for k, v in c["params"].items())
+            score = (f"J {_fmt(c['heldout_cost'])}, BIC {_fmt(c['heldout_delta_bic'])}"
+                     if c["heldout_cost"] is not None else "no score")
+            lines.append(f"- `{c['effect']}`: {score}" + (f" — {params}" if params else "")
+                         + (f" ({c['note']})" if c["note"] else ""))
+        lines.append("")
     if rep.get("proposals"):
         lines += ["", "## Every proposal, kept or not", ""]
         for i, prop in enumerate(rep["proposals"], 1):
