@@ -238,9 +238,14 @@ class Identification:
                 return True
         return False
 
-    def _try(self, term: Term, err: dict) -> bool:
-        """Add ``term`` with its domain refitted on the whole record and keep it when the
-        replay's information criterion says so (:func:`hil.identify.floor.judge`)."""
+    def _try(self, candidate: Term, err: dict) -> bool:
+        """Propose the candidate's effect again on the whole record (its shape, fitted on
+        half of it for the ranking, is sharper on all of it: a pitch period, a Stribeck
+        velocity), refit its domain, and keep it when the replay's information criterion
+        says so (:func:`hil.identify.floor.judge`)."""
+        effect = candidate.effect
+        residual = self.model.residual(effect.domain) if effect.domain != REPLAY else None
+        term = effect.propose(self.ctx, residual, self.model) or candidate
         saved = self.model.snapshot()
         self.model.add(dataclasses.replace(term, coef=term.coef.copy()))
         if term.effect.domain != REPLAY:

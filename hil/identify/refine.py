@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import least_squares
 
-from hil.identify.effects import FORCE
+from hil.identify.effects import FORCE, POSITION
 from hil.identify.model import Model, uncertainty
 from hil.identify.record import Record
 from hil.identify.replay import ERROR_START, Replay
@@ -54,7 +54,7 @@ def parameters(model: Model) -> list[Parameter]:
     """What the refinement adjusts in ``model``."""
     out = []
     for t in model.terms:
-        if (t.effect.domain != FORCE or t.effect.n_coef(t.shape) != 1
+        if (t.effect.domain not in (FORCE, POSITION) or t.effect.n_coef(t.shape) != 1
                 or t.effect.name == "presliding_hysteresis"):
             continue
         out.append(Parameter(t.effect.name, None, False))

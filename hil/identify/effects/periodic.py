@@ -126,8 +126,8 @@ class PitchError(Effect):
     """Pitch (lead) error of the screw: table position minus motor position, periodic in
     the table position -- harmonics of the lead (the screw's own run-out and thread
     errors: periods lead / k), and the long-wave periods the residual's spectrum shows --
-    plus a cumulative lead error c x (``linear_ppm``), as the plant's
-    e(u) = sum A_k sin(2 pi u / P_k + phi_k) + c u."""
+    plus a cumulative lead error c x (``linear_ppm``) where it explains as much as a
+    harmonic must, as the plant's e(u) = sum A_k sin(2 pi u / P_k + phi_k) + c u."""
     name = "pitch_error"
     domain = POSITION
     n_params = 2
@@ -147,14 +147,16 @@ class PitchError(Effect):
         coef = []
         for a, ph in zip(pe.amplitudes_m, phases):
             coef += [a * math.cos(math.radians(ph)), a * math.sin(math.radians(ph))]
-        return Term(self, {"periods_m": list(pe.periods_m)},
-                    np.array(coef + [pe.linear_ppm * 1e-6]))
+        linear = pe.linear_ppm != 0.0
+        return Term(self, {"periods_m": list(pe.periods_m), "linear": linear},
+                    np.array(coef + ([pe.linear_ppm * 1e-6] if linear else [])))
 
-    def _cols(self, ctx, periods):
-        """The harmonics' sine and cosine columns and the linear term's, shape (n, 2k + 1)."""
+    def _cols(self, ctx, periods, linear=False):
+        """The harmonics' sine and cosine columns (and the cumulative error's, c x: the
+        plant's e(u) = c u from the screw's zero), shape (n, 2k (+ 1))."""
         x = ctx.m.x
-        return np.hstack([_sincos(2 * math.pi * x, [1.0 / p for p in periods]),
-                          (x - float(np.mean(x[ctx.m.use])))[:, None]])
+        cols = _sincos(2 * math.pi * x, [1.0 / p for p in periods])
+        return np.hstack([cols, x[:, None]]) if linear else cols
 
     def propose(self, ctx, residual, model):
         mask = ctx.moving
@@ -176,16 +178,24 @@ class PitchError(Effect):
                                           mask, 0.01)
         if not chosen:
             return None
-        amps, _ = _amp_phase(coef[:-1], 1.0)
+        # the cumulative lead error, when it explains as much more as a harmonic must
+        cols = self._cols(ctx, chosen, True)
+        with_linear = lstsq(cols, residual, mask)
+        ex_linear = explained(residual, cols @ with_linear, mask)
+        linear = ex_linear - ex >= 0.01
+        if linear:
+            coef, ex = with_linear, ex_linear
+        shape = {"periods_m": chosen, "linear": linear}
+        amps, _ = _amp_phase(coef[:2 * len(chosen)], 1.0)
+        ppm = float(coef[-1]) * 1e6 if linear else 0.0
         ev = {"explained": ex, "periods_m": chosen, "amplitudes_m": amps,
-              "periods_per_lead": [p / lead for p in chosen],
-              "linear_ppm": float(coef[-1]) * 1e6,
+              "periods_per_lead": [p / lead for p in chosen], "linear_ppm": ppm,
               "text": "table position minus motor position is periodic in the table "
                       "position: " + ", ".join(f"period {p * 1e3:.4g} mm ({p / lead:.3g} "
                                                f"lead), {a * 1e6:.3g} um"
                                                for p, a in zip(chosen, amps))
-                      + f"; cumulative lead error {coef[-1] * 1e6:.3g} um/m"}
-        return Term(self, {"periods_m": chosen}, coef, True, ev)
+                      + (f"; cumulative lead error {ppm:.3g} um/m" if linear else "")}
+        return Term(self, shape, coef, True, ev)
 
     def _refine(self, ctx, residual, mask, cycles, resolution):
         """The period within one spectral line of ``cycles`` (cycles/m) that explains
@@ -202,15 +212,17 @@ class PitchError(Effect):
         return float(1.0 / sol.x)
 
     def columns(self, ctx, shape):
-        return self._cols(ctx, shape["periods_m"])
+        return self._cols(ctx, shape["periods_m"], shape.get("linear", False))
 
     def n_coef(self, shape):
-        return 2 * len(shape["periods_m"]) + 1
+        return 2 * len(shape["periods_m"]) + int(shape.get("linear", False))
 
     def params(self, ctx, shape, coef):
-        amps, phases = _amp_phase(coef[:-1], 1.0)
+        k = 2 * len(shape["periods_m"])
+        amps, phases = _amp_phase(coef[:k], 1.0)
         return {"periods_m": list(shape["periods_m"]), "amplitudes_m": amps,
-                "phases_deg": phases, "linear_ppm": float(coef[-1]) * 1e6}
+                "phases_deg": phases,
+                "linear_ppm": float(coef[k]) * 1e6 if shape.get("linear") else 0.0}
 
     def overrides(self, ctx, shape, coef, model):
         return {"pitch_error": self.params(ctx, shape, coef)}
