@@ -2,10 +2,10 @@
 closed-loop replay's gain on the rest.
 
 The record's samples are split into blocks of :data:`BLOCK_S` seconds, alternately *fit*
-and *held out*.  A candidate effect is proposed and then refitted jointly with its domain
-(:meth:`hil.identify.model.Model.refit`) on the fit blocks alone -- the inverse model's
-masks are narrowed to them -- and the machine file it makes is replayed in closed loop
-over the whole record; its score is the replay's normalised cost J = sum over channels of
+and *held out*.  A candidate effect is proposed -- fitted to its domain's residual, the
+rest of the model as it is -- on the fit blocks alone (the inverse model's masks are
+narrowed to them), and the machine file it makes is replayed in closed loop over the
+whole record; its score is the replay's normalised cost J = sum over channels of
 (rms error / noise floor)² on the held-out blocks, and its rank the information criterion
 of that gain, n ln(J1/J0) + k ln n with n the held-out blocks' independent samples (the
 same criterion :func:`hil.identify.floor.judge` applies to the whole record).  An effect
@@ -132,8 +132,8 @@ class Evaluator:
                             self.setting.floor)
 
     def evaluate(self, terms: list[Term], name: str, cost0: float) -> Candidate:
-        """Propose effect ``name`` on the fit blocks from the model of ``terms``, refit its
-        domain, replay, score on the held-out blocks."""
+        """Propose effect ``name`` on the fit blocks from the model of ``terms`` (fitted to
+        its domain's residual alone), replay, score on the held-out blocks."""
         effect = _BY_NAME[name]
         model = self.model(terms)
         residual = model.residual(effect.domain) if effect.domain != REPLAY else None
@@ -141,9 +141,9 @@ class Evaluator:
         if term is None:
             return Candidate(name, None, math.inf, math.inf, {}, "nothing to propose")
         params = term.params(self.ctx)
+        # the candidate alone, the rest as it is: a joint refit would give every candidate
+        # of a domain the same gain of its base terms' refit
         model.add(term)
-        if effect.domain != REPLAY:
-            model.refit(effect.domain)
         cost = heldout_cost(self.setting.rec, model.replay(), self.held_out,
                             self.setting.floor)
         k = max(1, effect.n_coef(term.shape))

@@ -231,8 +231,9 @@ class Identification:
             if not c.delta_bic < 0.0:
                 break
             if c.term.evidence.get("explained", 1.0) < self.min_explained:
-                self.rejected[c.effect] = (f"explains {c.term.evidence['explained']:.3g} of "
-                                           f"its residual, under {self.min_explained:g}")
+                self._say(f"  {c.effect} not tried on the whole record: explains "
+                          f"{c.term.evidence['explained']:.3g} of its residual, under "
+                          f"{self.min_explained:g}")
                 continue
             if self._try(c.term, err):
                 return True

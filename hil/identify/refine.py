@@ -2,9 +2,10 @@
 
 The inverse model weighs every sample's force balance equally; the closed loop weighs
 them as the controller does, and its error is what the report measures.  So at the end of
-the search the single-coefficient force terms (mass, viscous and Coulomb friction, the
-constant force, the Stribeck excess) and the scalar shapes that the linear fits hold
-fixed (the Stribeck velocity) are adjusted together so that the replay matches the record
+the search the single-coefficient terms (mass, viscous and Coulomb friction, the
+constant force, the Stribeck excess; backlash, compliance) and the scalar shapes that the
+linear fits hold fixed (the Stribeck velocity, the presliding spring's k1, x1 and
+exponent) are adjusted together so that the replay matches the record
 (``scipy.optimize.least_squares``), on the acceptance's measure: every replay channel's
 error over its noise floor, J = sum over channels of (rms error / floor)², with the
 record's n_eff independent samples: the residual vector is
@@ -29,7 +30,9 @@ from hil.identify.replay import ERROR_START, Replay
 
 #: scalar shape parameters the refinement frees: effect -> shape keys (fitted in log
 #: space within a factor SHAPE_RANGE of the linear fit's value)
-SHAPES = {"stribeck": ("vs",)}
+SHAPES = {"stribeck": ("vs",), "presliding_hysteresis": ("k1", "x1", "a")}
+#: terms whose one coefficient is a fixed scale of their shape (not refined)
+FIXED_SCALE = ("presliding_hysteresis",)
 SHAPE_RANGE = 3.0
 #: relative finite-difference steps of the two passes: stick-slip friction makes the
 #: replay's error rough in the friction levels at small scales, so a coarse pass first
@@ -54,10 +57,9 @@ def parameters(model: Model) -> list[Parameter]:
     """What the refinement adjusts in ``model``."""
     out = []
     for t in model.terms:
-        if (t.effect.domain not in (FORCE, POSITION) or t.effect.n_coef(t.shape) != 1
-                or t.effect.name == "presliding_hysteresis"):
-            continue
-        out.append(Parameter(t.effect.name, None, False))
+        if (t.effect.domain in (FORCE, POSITION) and t.effect.n_coef(t.shape) == 1
+                and t.effect.name not in FIXED_SCALE):
+            out.append(Parameter(t.effect.name, None, False))
         out += [Parameter(t.effect.name, k, True) for k in SHAPES.get(t.effect.name, ())]
     return out
 

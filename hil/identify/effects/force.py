@@ -251,14 +251,18 @@ class Stribeck(Effect):
         vmax = float(np.max(np.abs(ctx.m.v[ctx.moving])))
         mask = ctx.moving
         best = None
-        # a dip wider than a third of the top speed is no longer told apart from Coulomb
-        for vs in np.geomspace(vmax / 300.0, vmax / 3.0, 40):
+        # a dip wider than a third of the top speed is no longer told apart from Coulomb:
+        # one that fits best at the widest tried is no Stribeck dip
+        widths = np.geomspace(vmax / 300.0, vmax / 3.0, 40)
+        for vs in widths:
             col = self.columns(ctx, {"vs": vs})
             coef = lstsq(col, residual, mask, np.zeros(1), np.full(1, np.inf))
             ex = explained(residual, col @ coef, mask)
             if best is None or ex > best[0]:
                 best = (ex, vs, coef)
         ex, vs, coef = best
+        if vs == widths[-1]:
+            return None
         slow = mask & (np.abs(ctx.m.v) < 2 * vs)
         ev = {"explained": ex, "vs": float(vs),
               "mean_abs_residual_slow": float(np.mean(np.abs(residual[slow]))) if slow.any()

@@ -15,6 +15,8 @@ from hil.identify.effects.drivetrain import NO_SECOND_SENSOR
 from hil.identify.spectrum import position_spectrum
 
 MAX_HARMONICS = 4
+#: lines of the residual's spectrum against the motor angle offered as cogging orders
+SPECTRAL_LINES = 4
 
 
 def _sincos(phase: np.ndarray, orders) -> np.ndarray:
@@ -58,10 +60,12 @@ def _greedy_orders(cols_of, candidates, residual, mask, min_gain):
 
 
 class Cogging(Effect):
-    """Cogging: a force residual periodic in the motor's electrical angle."""
+    """Cogging: a force residual periodic in the motor's electrical angle, at the whole
+    orders 1 to MAX_ORDER per electrical revolution and at the orders of the strongest
+    lines of the residual's spectrum against the angle (any order the low-pass keeps)."""
     name = "cogging"
     n_params = 2
-    #: electrical orders looked at
+    #: whole electrical orders always looked at
     MAX_ORDER = 12
 
     def declared(self, ctx):
@@ -85,8 +89,28 @@ class Cogging(Effect):
         f = order * w_e / (2 * math.pi)
         return float(np.mean(f[ctx.moving] < 0.7 * m.cutoff_hz))
 
+    def _spectral_orders(self, ctx, residual) -> list[float]:
+        """Orders per electrical revolution of the strongest lines of the residual's
+        spectrum against the motor's electrical angle (seed 002): any order, fractional
+        ones too (a slot count that is no multiple of the pole pairs), up to the corner."""
+        mask = ctx.moving
+        cycles = ctx.m.theta_e / (2 * math.pi)
+        span = float(np.ptp(cycles[mask])) if mask.any() else 0.0
+        if span <= 2.0:
+            return []
+        # bins of 1/(16 MAX_ORDER) revolution: lines up to 4 MAX_ORDER (peaks() keeps half
+        # the bins' Nyquist frequency)
+        spec = position_spectrum(residual, cycles, mask, 1.0 / (16 * self.MAX_ORDER))
+        # at least once per mechanical revolution (per pole pair on a linear motor): a
+        # slower line is the load's, not the motor's
+        lowest = 1.0 / ctx.drive.pole_pairs if ctx.drive.kind != "linear" else 1.0
+        return [round(f, 3) for f, _ in spec.peaks(SPECTRAL_LINES, min_cycles=2.0 / span)
+                if f >= lowest * 0.99]
+
     def propose(self, ctx, residual, model):
-        orders = [k for k in range(1, self.MAX_ORDER + 1) if self._resolvable(ctx, k) > 0.5]
+        found = self._spectral_orders(ctx, residual)
+        orders = sorted({float(k) for k in range(1, self.MAX_ORDER + 1)} | set(found))
+        orders = [k for k in orders if self._resolvable(ctx, k) > 0.5]
         if not orders:
             return None
         mask = ctx.moving
@@ -95,7 +119,10 @@ class Cogging(Effect):
         if not chosen:
             return None
         amps, _ = _amp_phase(coef, 1.0)
+        per_rev = ctx.drive.pole_pairs if ctx.drive.kind != "linear" else None
         ev = {"explained": ex, "orders_per_electrical_rev": chosen, "amplitudes": amps,
+              "orders_per_mechanical_rev": [k * per_rev for k in chosen] if per_rev else None,
+              "spectral_orders": found,
               "text": "residual periodic in the motor angle: " + ", ".join(
                   f"order {k:g} per electrical revolution, {a:.3g}" for k, a in
                   zip(chosen, amps))}
