@@ -1,22 +1,25 @@
 """Greedy identification: find what the model lacks, one effect at a time.
 
-Each step computes the residuals the current model leaves (the inverse model's force
+Each round computes the residuals the current model leaves (the inverse model's force
 residual from the measured motion, and the table-minus-motor position where both
-encoders were recorded), lets every effect of the library not yet in the model fit
-itself to its residual alone, and takes the one that explains the largest share of its
-residual's energy (the simplest when several explain within 10 % of the best).  The
-effect's parameters are then fitted jointly with every term of its domain — the base
-parameters (mass, viscous friction, ...) are freed again — and the config with the
-effects added is replayed in closed loop against the record: a step is kept only when
-the replay's errors, each over its channel's measurement noise floor, gain more than
-its added parameters cost (:func:`hil.identify.floor.judge`, an information criterion);
-the inverse model can mistake one effect for another, the closed loop settles it.  At the
-end the single-coefficient force terms are refined on the replay itself.
+encoders were recorded) and lets *every* effect of the library not yet in the model --
+a delay too, which only the replay shows -- fit itself to its residual on half of the
+record; each candidate's machine file is replayed in closed loop and ranked by its gain
+on the other half (:mod:`hil.identify.candidates`, in parallel processes).  The best
+is proposed again on the whole record, its parameters fitted jointly with every term of
+its domain -- the base parameters (mass, viscous friction, ...) freed again, but held by
+a prior at their declared values -- and the replay decides: a step is kept only when the
+replay's errors, each over its channel's measurement noise floor, gain more than its
+added parameters cost (:func:`hil.identify.floor.judge`, an information criterion);
+otherwise the next of the ranking is tried.  The inverse model can mistake one effect for
+another; the closed loop settles it.  At the end the single-coefficient terms and the
+scalar shapes are refined on the replay itself (:mod:`hil.identify.refine`), and the
+declared parameters' changes are listed with their uncertainties
+(:mod:`hil.identify.changes`).
 
-It stops when no effect explains ``min_explained`` of its residual, when every replay
-channel is within ``floor_factor`` of its noise floor (:func:`hil.identify.floor.
-replay_floor`), or after ``max_steps``.  A delay is looked
-for last, through the replay, because it is the expensive one and no residual shows it.
+It stops when no candidate gains on the held-out half, when every replay channel is
+within ``floor_factor`` of its noise floor (:func:`hil.identify.floor.replay_floor`), or
+after ``max_steps``.
 """
 
 import dataclasses
@@ -32,7 +35,7 @@ from hil.identify.candidates import Candidate, CandidatePool, Setting
 from hil.identify.changes import declared_changes
 from hil.identify.effects.base import correlation
 from hil.identify.conventions import read_conventions
-from hil.identify.floor import judge, replay_floor
+from hil.identify.floor import judge, normalised_cost, replay_floor
 from hil.identify.model import Model
 from hil.identify.motion import Drive, motion
 from hil.identify.record import Record
@@ -74,7 +77,8 @@ class Identification:
     Args:
         config: the machine file to start from.
         rec: the record (see :func:`hil.identify.record.load_record`).
-        min_explained: smallest share of a residual's energy an effect must explain.
+        min_explained: smallest share of its residual's energy a ranked candidate must
+            explain to be tried on the whole record (in that round).
         floor_factor: a replay whose every channel is within this factor of its noise
             floor is done.
         max_steps: most effects added.
@@ -242,16 +246,28 @@ class Identification:
     def _try(self, candidate: Term, err: dict) -> bool:
         """Propose the candidate's effect again on the whole record (its shape, fitted on
         half of it for the ranking, is sharper on all of it: a pitch period, a Stribeck
-        velocity), refit its domain, and keep it when the replay's information criterion
-        says so (:func:`hil.identify.floor.judge`)."""
+        velocity), with its domain refitted jointly or not, whichever replays better, and
+        keep it when the replay's information criterion says so
+        (:func:`hil.identify.floor.judge`)."""
         effect = candidate.effect
         residual = self.model.residual(effect.domain) if effect.domain != REPLAY else None
         term = effect.propose(self.ctx, residual, self.model) or candidate
         saved = self.model.snapshot()
         self.model.add(dataclasses.replace(term, coef=term.coef.copy()))
-        if term.effect.domain != REPLAY:
-            self.model.refit(term.effect.domain)
         new = record_errors(self.rec, self.model.replay())
+        if term.effect.domain != REPLAY:
+            # the domain refitted jointly too; the replay keeps the better of the two, so
+            # a declared parameter moves only where the closed loop gains by it (the
+            # inverse model's joint fit can move one to absorb what its statics miss)
+            alone = self.model.snapshot()
+            self.model.refit(term.effect.domain)
+            joint = record_errors(self.rec, self.model.replay())
+            if normalised_cost(joint, self.floor) <= normalised_cost(new, self.floor):
+                new = joint
+            else:
+                self.model.restore(alone)
+                self._say(f"  {term.effect.name}: the joint refit of its domain replays "
+                          "worse; the declared terms kept")
         verdict = judge(err, new, self.floor, max(1, term.effect.n_coef(term.shape)),
                         self.n_eff)
         added = self.model.term(term.effect.name)

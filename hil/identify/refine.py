@@ -163,6 +163,11 @@ def refine(model: Model, rec: Record, floor: dict, n_eff: float, max_nfev: int,
             best = sol.x
     residual(best)
     j1 = costs[-1]
+    if j1 > j0:
+        # the passes' channel weights balance the channels; the acceptance's J decides
+        best = z0
+        residual(best)
+        j1 = costs[-1]
     # the rows are in units of each channel's deviation already (its floor, or its misfit)
     sigma = uncertainty(jac, 1.0)
     after = {p.label: (math.exp(v) if p.log else float(v)) for p, v in zip(params, best)}
