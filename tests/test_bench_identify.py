@@ -21,7 +21,14 @@ import pytest
 
 from hil.bench.identify import ratios, run, table
 from hil.bench.identify_gen.axis import Axis, axis_params, nut_travel
-from hil.bench.identify_gen.cases import CASES, CI_CASES, LINEAR, ROTARY, SCREW, TWO_MASS
+from hil.bench.identify_gen.cases import (
+    CASES,
+    CI_CASES,
+    LINEAR,
+    ROTARY,
+    SCREW,
+    TWO_MASS,
+)
 from hil.bench.identify_gen.trajectory import bench_moves, moves
 from hil.identify.floor import replay_floor
 from hil.identify.record import load_record

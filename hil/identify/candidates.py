@@ -25,7 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from hil.identify.effects import LIBRARY, REPLAY, Context, Term
-from hil.identify.floor import normalised_cost
+from hil.identify.floor import channel_residuals
 from hil.identify.model import Model
 from hil.identify.motion import Drive, motion
 from hil.identify.record import Record
@@ -40,7 +40,7 @@ _BY_NAME = {e.name: e for e in LIBRARY}
 
 def holdout_rows(rec: Record) -> np.ndarray:
     """True on the held-out samples (odd blocks of BLOCK_S), shape (n,)."""
-    block = max(1, int(round(BLOCK_S / rec.dt)))
+    block = max(1, round(BLOCK_S / rec.dt))
     return (np.arange(rec.n) // block) % 2 == 1
 
 
@@ -57,21 +57,10 @@ def heldout_cost(rec: Record, rep: Replay | None, rows: np.ndarray, floor: dict)
         return math.inf
     use = rows.copy()
     use[:ERROR_START] = False
-    pairs = {"pos": (rec.pos, rep.pos, 1e6), "effort": (rec.effort, rep.effort, 1.0),
-             "motor_pos_rms_um": (rec.motor_pos, rep.motor_pos, 1e6)}
     total = 0.0
-    for key, f in floor.items():
-        which = ("motor_pos_rms_um" if key == "motor_pos_rms_um"
-                 else "pos" if key.startswith("pos_") else "effort")
-        y, y_hat, scale = pairs[which]
-        if y is None or y_hat is None:
-            continue
-        d = (y[use] - y_hat[use]) * scale
-        rms = float(np.sqrt(np.mean(d * d)))
-        if not math.isfinite(rms):
-            return math.inf
-        total += (rms / f) ** 2
-    return total
+    for r in channel_residuals(rec, rep, floor):
+        total += float(np.mean(r[use] ** 2))
+    return total if math.isfinite(total) else math.inf
 
 
 @dataclass

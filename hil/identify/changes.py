@@ -40,5 +40,5 @@ def declared_changes(model: Model) -> list[dict]:
                 "change_pct": 100.0 * change / abs(before) if before else math.inf,
                 "tolerance_pct": 100.0 * tol,
                 "beyond_tolerance": abs(change) > tol * abs(before),
-                "significant": bool(abs(change) > 2.0 * sigma) if sigma == sigma else None})
+                "significant": None if math.isnan(sigma) else bool(abs(change) > 2.0 * sigma)})
     return rows

@@ -30,11 +30,11 @@ from pathlib import Path
 
 import numpy as np
 
-from hil.identify.effects import FORCE, LIBRARY, POSITION, REPLAY, Context, Term
 from hil.identify.candidates import Candidate, CandidatePool, Setting
 from hil.identify.changes import declared_changes
-from hil.identify.effects.base import correlation
 from hil.identify.conventions import read_conventions
+from hil.identify.effects import FORCE, LIBRARY, POSITION, REPLAY, Context, Term
+from hil.identify.effects.base import correlation
 from hil.identify.floor import judge, normalised_cost, replay_floor
 from hil.identify.model import Model
 from hil.identify.motion import Drive, motion

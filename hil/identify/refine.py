@@ -24,9 +24,10 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from hil.identify.effects import FORCE, POSITION
+from hil.identify.floor import channel_residuals
 from hil.identify.model import Model, uncertainty
 from hil.identify.record import Record
-from hil.identify.replay import ERROR_START, Replay
+from hil.identify.replay import ERROR_START
 
 #: scalar shape parameters the refinement frees: effect -> shape keys (fitted in log
 #: space within a factor SHAPE_RANGE of the linear fit's value)
@@ -61,20 +62,6 @@ def parameters(model: Model) -> list[Parameter]:
                 and t.effect.name not in FIXED_SCALE):
             out.append(Parameter(t.effect.name, None, False))
         out += [Parameter(t.effect.name, k, True) for k in SHAPES.get(t.effect.name, ())]
-    return out
-
-
-def _channels(rec: Record, rep: Replay, floor: dict) -> list[np.ndarray]:
-    """(y - y_hat) / floor per channel of ``floor`` from ERROR_START (unit: the floor's)."""
-    out = []
-    for key, f in floor.items():
-        if key == "motor_pos_rms_um":
-            y, y_hat, scale = rec.motor_pos, rep.motor_pos, 1e6
-        elif key.startswith("pos_"):
-            y, y_hat, scale = rec.pos, rep.pos, 1e6
-        else:
-            y, y_hat, scale = rec.effort, rep.effort, 1.0
-        out.append((y[ERROR_START:] - y_hat[ERROR_START:]) * scale / f)
     return out
 
 
@@ -133,7 +120,8 @@ def refine(model: Model, rec: Record, floor: dict, n_eff: float, max_nfev: int,
         if rep is None or rep.status != 0:
             chans = [np.full(n, FAILED)] * len(floor)
         else:
-            chans = [np.where(np.isfinite(c), c, FAILED) for c in _channels(rec, rep, floor)]
+            chans = [np.where(np.isfinite(c), c, FAILED)
+                     for c in (r[ERROR_START:] for r in channel_residuals(rec, rep, floor))]
         ratios = np.array([math.sqrt(float(np.mean(c * c))) for c in chans])
         costs.append(float(np.sum(ratios ** 2)))
         last[:] = ratios

@@ -46,8 +46,8 @@ from hil.controller.interpolator import ProfileSamples
 from hil.controller.loops import PositionLoop
 from hil.drive import EmulatedDrive
 from hil.identify.conventions import (
-    Conventions,
     ConventionError,
+    Conventions,
     apply_conventions,
     read_conventions,
 )
