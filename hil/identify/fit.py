@@ -78,7 +78,8 @@ class Identification:
         config: the machine file to start from.
         rec: the record (see :func:`hil.identify.record.load_record`).
         min_explained: smallest share of its residual's energy a ranked candidate must
-            explain to be tried on the whole record (in that round).
+            explain to be tried on the whole record (in that round; a delay, which has no
+            residual, is judged by the replay alone).
         floor_factor: a replay whose every channel is within this factor of its noise
             floor is done.
         max_steps: most effects added.
@@ -234,7 +235,10 @@ class Identification:
         for c in ranked:
             if not c.delta_bic < 0.0:
                 break
-            if c.term.evidence.get("explained", 1.0) < self.min_explained:
+            # a delay's "explained" is the effort error's share alone: the ranking's
+            # replay over every channel is its measure
+            if (c.term.effect.domain != REPLAY
+                    and c.term.evidence.get("explained", 1.0) < self.min_explained):
                 self._say(f"  {c.effect} not tried on the whole record: explains "
                           f"{c.term.evidence['explained']:.3g} of its residual, under "
                           f"{self.min_explained:g}")
