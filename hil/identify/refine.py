@@ -1,4 +1,4 @@
-"""The closed-loop refinement: the force terms' scalar parameters fitted on the replay.
+"""The closed-loop refinement: scalar parameters fitted on the replay itself.
 
 The inverse model weighs every sample's force balance equally; the closed loop weighs
 them as the controller does, and its error is what the report measures.  So at the end of
@@ -7,14 +7,18 @@ constant force, the Stribeck excess; backlash, compliance) and the scalar shapes
 linear fits hold fixed (the Stribeck velocity, the presliding spring's k1, x1 and
 exponent) are adjusted together so that the replay matches the record
 (``scipy.optimize.least_squares``), on the acceptance's measure: every replay channel's
-error over its noise floor, J = sum over channels of (rms error / floor)², with the
-record's n_eff independent samples: the residual vector is
-sqrt(n_eff / n) (y - y_hat) / floor per channel and sample, so that its squared norm is
-n_eff J.  The declared coefficients keep their prior (:class:`hil.identify.model.Model`):
-one more residual (c - c_declared) / (tolerance |c_declared|) each.
+error over its noise floor, with the record's n_eff independent samples -- the residual
+vector is sqrt(n_eff / n) (y - y_hat) / (floor s_k) per channel and sample.  A channel
+that stays far above its floor would outweigh the others, so each pass (a coarse and a
+fine finite-difference step) first sets s_k = max(1, its rms error / floor): the
+likelihood with each channel's deviation its floor or its misfit, whichever is larger.
+The result is kept only where J = sum over channels of (rms error / floor)², the
+acceptance's measure, falls.  The declared coefficients keep their prior
+(:class:`hil.identify.model.Model`): one more residual (c - c_declared) / (tolerance
+|c_declared|) each.
 
-The Jacobian at the solution gives each parameter's standard uncertainty, sqrt of the
-diagonal of (JᵀJ)⁻¹, inflated by sqrt(J / channels) where the replay stays above its floor.
+The Jacobian at the solution, its rows in those deviations, gives each parameter's
+standard uncertainty: sqrt of the diagonal of (JᵀJ)⁻¹.
 """
 
 import math
@@ -107,8 +111,7 @@ def refine(model: Model, rec: Record, floor: dict, n_eff: float, max_nfev: int,
     weight = math.sqrt(max(n_eff, 1.0) / n)
     count = [0]
     costs = []
-    last = np.ones(len(floor))
-
+    last = np.ones(len(floor))  # the last replay's rms error / floor per channel
     scale_k = np.ones(len(floor))  # each channel's deviation over its floor (>= 1)
 
     def residual(z):
