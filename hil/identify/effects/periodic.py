@@ -17,6 +17,8 @@ from hil.identify.spectrum import position_spectrum
 MAX_HARMONICS = 4
 #: lines of the residual's spectrum against the motor angle offered as cogging orders
 SPECTRAL_LINES = 4
+#: distance (orders per electrical revolution) within which a spectral line is a whole order
+WHOLE_ORDER = 0.02
 
 
 def _sincos(phase: np.ndarray, orders) -> np.ndarray:
@@ -104,7 +106,9 @@ class Cogging(Effect):
         # at least once per mechanical revolution (per pole pair on a linear motor): a
         # slower line is the load's, not the motor's
         lowest = 1.0 / ctx.drive.pole_pairs if ctx.drive.kind != "linear" else 1.0
-        return [round(f, 3) for f, _ in spec.peaks(SPECTRAL_LINES, min_cycles=2.0 / span)
+        # a line within the bins' reach of a whole order is that order
+        return [float(round(f)) if abs(f - round(f)) < WHOLE_ORDER else round(f, 3)
+                for f, _ in spec.peaks(SPECTRAL_LINES, min_cycles=2.0 / span)
                 if f >= lowest * 0.99]
 
     def propose(self, ctx, residual, model):
