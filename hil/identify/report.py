@@ -198,8 +198,8 @@ def markdown(rep: dict) -> str:
     if rep["not_looked_for"]:
         lines += ["", "Not looked for: " + "; ".join(f"`{k}`: {v}" for k, v in
                                                     rep["not_looked_for"].items())]
-    lines += ["", "Plots: `residual_time.png`, `spectrum.png`, `friction_map.png`, "
-              "`reversals.png`; fitted "
+    lines += ["", "Plots: `residual_time.png`, `residual_position.png`, `spectrum.png`, "
+              "`friction_map.png`, `reversals.png`; fitted "
               "machine file: `config.toml`.", ""]
     return "\n".join(lines)
 
@@ -213,7 +213,8 @@ def _fmt(v) -> str:
 
 
 def plots(ident: Identification, out: Path) -> None:
-    """residual_time.png, spectrum.png, friction_map.png and reversals.png."""
+    """residual_time.png, residual_position.png, spectrum.png, friction_map.png and
+    reversals.png."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -240,6 +241,23 @@ def plots(ident: Identification, out: Path) -> None:
     fig.suptitle("Residuals: inverse model (top), closed-loop replay (bottom)")
     fig.tight_layout()
     fig.savefig(out / "residual_time.png", dpi=110)
+    plt.close(fig)
+
+    # the same residuals over the table position: what repeats with position lines up
+    fig, axes = plt.subplots(len(domains), 1, figsize=(10, 3 * len(domains)), squeeze=False)
+    unit_x = (1.0, "rad") if ident.drive.kind == "rotary" else (1e3, "mm")
+    for ax, d in zip(axes[:, 0], domains):
+        scale, unit = (1.0, "N") if d == FORCE else (1e6, "um")
+        for name in ("before", "after"):
+            r = getattr(ident, f"residual_{name}")[d]
+            ax.plot(m.x[ctx.moving] * unit_x[0], r[ctx.moving] * scale, ".", ms=1,
+                    alpha=0.5, label=name)
+        ax.set_ylabel(f"{'force' if d == FORCE else 'table - motor'} residual ({unit})")
+        ax.set_xlabel(f"table position ({unit_x[1]})")
+        ax.legend(loc="upper right", markerscale=8)
+    fig.suptitle("Residuals over the table position (moving samples)")
+    fig.tight_layout()
+    fig.savefig(out / "residual_position.png", dpi=110)
     plt.close(fig)
 
     fig, axes = plt.subplots(len(domains), 1, figsize=(10, 3.5 * len(domains)), squeeze=False)
