@@ -21,8 +21,15 @@ import pytest
 
 from hil.bench.identify import ratios, run, table
 from hil.bench.identify_gen.axis import Axis, axis_params, nut_travel
-from hil.bench.identify_gen.cases import CI_CASES, LINEAR, ROTARY, SCREW, TWO_MASS
-from hil.bench.identify_gen.trajectory import moves
+from hil.bench.identify_gen.cases import (
+    CASES,
+    CI_CASES,
+    LINEAR,
+    ROTARY,
+    SCREW,
+    TWO_MASS,
+)
+from hil.bench.identify_gen.trajectory import bench_moves, moves
 from hil.identify.floor import replay_floor
 from hil.identify.record import load_record
 from plant.assemble import reflected_inertia, transmission_ratio
@@ -66,6 +73,23 @@ def test_minimum_jerk_moves():
     np.testing.assert_allclose(np.gradient(x, t), v, atol=2e-4)
     assert v.max() == pytest.approx(0.2, rel=1e-6) and v.min() == pytest.approx(-0.1, rel=1e-6)
     assert x[-1] == pytest.approx(0.05)
+
+
+@pytest.mark.parametrize("path", [SCREW, LINEAR, ROTARY])
+def test_bench_program_repeated_to_a_duration(path):
+    """--duration: the program repeated, back at its start after each pass, until at least
+    the duration and by less than its longest move beyond it; every pass stays within the
+    single pass's range of the travel and the top speed is the case's."""
+    c = next(c for c in CASES if c.axis == path)
+    one = bench_moves(c.travel, c.speed, 0.3 * c.travel)
+    long = bench_moves(c.travel, c.speed, 0.3 * c.travel, 60.0)
+    assert 60.0 <= long.duration_s < 60.0 + float(np.max(long.dur))
+    t = np.linspace(0.0, long.duration_s, 200001)
+    x, v = long.at(t)
+    x1, _ = one.at(np.linspace(0.0, one.duration_s, 50001))
+    assert x.min() >= x1.min() - 1e-12 and x.max() <= x1.max() + 1e-12
+    assert np.abs(v).max() <= c.speed * (1 + 1e-9)  # a move's peak speed: 1.875 d / T
+    assert one.duration_s < 35.0
 
 
 @pytest.fixture(scope="module")

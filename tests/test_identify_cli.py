@@ -32,14 +32,20 @@ def test_emps_with_the_symmetric_models_terms_finds_coulomb_and_the_offset(tmp_p
     """Janot, Gautier, Brunot (2019): IDIM-LS of the symmetric model on DATA_EMPS gives
     Fc = 20.3935 N and an offset of -3.1648 N (SOURCE.md); their closed-loop force errors
     are 5.848 % on DATA_EMPS and 8.9409 % on DATA_EMPS_PULSES, the record we validate on
-    without fitting anything to it."""
+    without fitting anything to it.  The inverse model's fit (the steps' parameters) is
+    IDIM-LS; the closed-loop refinement then fits the replay's force and position (an
+    output-error estimate, which the paper does not publish) and moves Coulomb's level by
+    a few per cent."""
     rep = identify(EMPS_DIR / "DATA_EMPS.mat", ROOT / "configs" / "emps.toml", tmp_path,
                    EMPS_DIR / "DATA_EMPS_PULSES.mat", exclude=("viscous_asymmetry",))
     added = rep["effects_added"]
     assert added[:2] == ["coulomb_friction", "gravity_offset"], added
-    fitted = load_machine(tmp_path / "config.toml")
-    assert fitted.friction.coulomb_n == pytest.approx(20.39, rel=0.02)
+    idim = {k: v for s in rep["steps"][:2] for k, v in s["params"].items()}
+    assert rep["refinement"]["before"]["coulomb_friction"] == pytest.approx(20.39, rel=0.02)
     # the model's offset -3.16 N is a constant force of +3.16 N on the table
+    assert idim["external_force_n"] == pytest.approx(3.16, rel=0.05)
+    fitted = load_machine(tmp_path / "config.toml")
+    assert fitted.friction.coulomb_n == pytest.approx(20.39, rel=0.06)
     assert fitted.table.external_force_n == pytest.approx(3.16, rel=0.05)
     beats_the_published_reference(rep)
     md = (tmp_path / "report.md").read_text()
@@ -55,10 +61,17 @@ def test_emps_with_the_whole_library_finds_the_papers_asymmetric_friction(tmp_pa
                    EMPS_DIR / "DATA_EMPS_PULSES.mat")
     added = rep["effects_added"]
     assert added[:2] == ["coulomb_friction", "viscous_asymmetry"], added
+    # the inverse model's joint fit (IDIM-LS), which the closed-loop refinement starts from
+    idim = rep["refinement"]["before"]
+    fv, dfv = idim["viscous_friction"], idim["viscous_asymmetry"]
+    assert fv + dfv == pytest.approx(166.7, rel=0.05)
+    assert fv - dfv == pytest.approx(240.4, rel=0.05)
+    assert idim["coulomb_friction"] == pytest.approx(0.5 * (20.14 + 20.63), rel=0.02)
+    # the refinement's output-error fit of force and position moves them a little
     fr = load_machine(tmp_path / "config.toml").friction
-    assert fr.viscous_ns_per_m + fr.viscous_asymmetry_ns_per_m == pytest.approx(166.7, rel=0.05)
-    assert fr.viscous_ns_per_m - fr.viscous_asymmetry_ns_per_m == pytest.approx(240.4, rel=0.05)
-    assert fr.coulomb_n == pytest.approx(0.5 * (20.14 + 20.63), rel=0.02)
+    assert fr.viscous_ns_per_m + fr.viscous_asymmetry_ns_per_m == pytest.approx(166.7, rel=0.1)
+    assert fr.viscous_ns_per_m - fr.viscous_asymmetry_ns_per_m == pytest.approx(240.4, rel=0.1)
+    assert fr.coulomb_n == pytest.approx(0.5 * (20.14 + 20.63), rel=0.06)
     beats_the_published_reference(rep)
     # the README's figure (issue 13: at or below 8.45 % on the validation record)
     assert rep["validation"]["error_after"]["force_relerr_pct"] < 8.455

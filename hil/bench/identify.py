@@ -61,9 +61,11 @@ def ratios(err: dict, floor: dict) -> dict:
             if k in floor and floor[k] > 0 and isinstance(err.get(k), float)}
 
 
-def prepare(c: Case, folder: Path, log=None) -> dict:
+def prepare(c: Case, folder: Path, log=None, duration_s: float | None = None) -> dict:
     """Write the case's truth and start machine files and its trace into ``folder`` (the
-    trace only when absent or of another generator version); returns the floor and paths."""
+    trace only when absent or of another generator version or duration); returns the floor
+    and paths.  ``duration_s``: the program repeated to at least this long (None: one pass,
+    13-32 s)."""
     folder.mkdir(parents=True, exist_ok=True)
     text = c.axis.read_text()
     truth = folder / "truth.toml"
@@ -75,13 +77,13 @@ def prepare(c: Case, folder: Path, log=None) -> dict:
     start.write_text(patch_config(text, c.start, "bench start") if c.start else text)
     trace, info = folder / "trace.csv", folder / "floor.json"
     cached = json.loads(info.read_text()) if info.is_file() and trace.is_file() else {}
-    if cached.get("version") != GENERATOR_VERSION:
+    if cached.get("version") != GENERATOR_VERSION or cached.get("duration_s") != duration_s:
         t0 = time.monotonic()
-        traj = bench_moves(c.travel, c.speed, 0.3 * c.travel)
+        traj = bench_moves(c.travel, c.speed, 0.3 * c.travel, duration_s)
         rec = simulate(truth, traj, record_every=RECORD_EVERY, preroll_s=PREROLL_S,
                        adc_bits=ADC_BITS, seed=c.seed)
         write(rec, trace, f"hil bench identify ({c.name})")
-        cached = {"version": GENERATOR_VERSION, "floor": rec.floor,
+        cached = {"version": GENERATOR_VERSION, "duration_s": duration_s, "floor": rec.floor,
                   "generated_s": time.monotonic() - t0}
         info.write_text(json.dumps(cached, indent=1))
         if log:
@@ -89,10 +91,16 @@ def prepare(c: Case, folder: Path, log=None) -> dict:
     return {"floor": cached["floor"], "trace": trace, "start": start, "truth": truth_plain}
 
 
-def run_case(name: str, out: Path, refine_nfev: int = 10, log=None) -> dict:
+def traces_folder(out: Path, duration_s: float | None) -> Path:
+    """Where the traces of one duration are cached under ``out``."""
+    return out / ("traces" if duration_s is None else f"traces_{duration_s:g}s")
+
+
+def run_case(name: str, out: Path, refine_nfev: int = 10, log=None,
+             duration_s: float | None = None) -> dict:
     """Generate (or reuse) the case's trace, identify it, score it."""
     c = case(name)
-    files = prepare(c, out / "traces" / c.name, log)
+    files = prepare(c, traces_folder(out, duration_s) / c.name, log, duration_s)
     rec = load_record(files["trace"])
     floor = files["floor"]
     truth_err = record_errors(rec, replay(load_machine(files["truth"]), rec))
@@ -110,7 +118,7 @@ def run_case(name: str, out: Path, refine_nfev: int = 10, log=None) -> dict:
         "before_over_floor": ratios(ident.error_before, floor), "after_over_floor": after,
         "truth_over_floor": ratios(truth_err, floor),
         "at_floor": bool(after) and max(after.values()) <= FLOOR_GOAL,
-        "identify_s": elapsed, "samples": rec.n,
+        "identify_s": elapsed, "samples": rec.n, "duration_s": rec.n * rec.dt,
     }
     if log:
         log(f"{c.name}: added {', '.join(added) or 'nothing'}; after/floor "
@@ -119,28 +127,31 @@ def run_case(name: str, out: Path, refine_nfev: int = 10, log=None) -> dict:
 
 
 def run(names: list[str], out: Path, workers: int = 2, refine_nfev: int = 10,
-        log=None) -> dict:
-    """Every named case, ``workers`` processes at a time; the bench's JSON."""
+        log=None, duration_s: float | None = None) -> dict:
+    """Every named case, ``workers`` processes at a time; the bench's JSON
+    (``bench_identify.json``, or ``bench_identify_60s.json`` for 60 s traces)."""
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.monotonic()
     if workers > 1:
         with ProcessPoolExecutor(workers) as pool:
-            futures = [pool.submit(run_case, n, out, refine_nfev) for n in names]
+            futures = [pool.submit(run_case, n, out, refine_nfev, None, duration_s)
+                       for n in names]
             rows = []
             for f in futures:
                 rows.append(f.result())
                 if log:
                     log(_line(rows[-1]))
     else:
-        rows = [run_case(n, out, refine_nfev, log) for n in names]
+        rows = [run_case(n, out, refine_nfev, log, duration_s) for n in names]
     summary = {
         "cases": len(rows), "named_first": sum(r["named_first"] for r in rows),
         "at_floor": sum(r["at_floor"] for r in rows),
         "max_identify_s": max(r["identify_s"] for r in rows), "floor_goal": FLOOR_GOAL,
-        "elapsed_s": time.monotonic() - t0,
+        "elapsed_s": time.monotonic() - t0, "duration_s": duration_s,
     }
     result = {"summary": summary, "rows": rows}
-    (out / "bench_identify.json").write_text(json.dumps(result, indent=1))
+    suffix = "" if duration_s is None else f"_{duration_s:g}s"
+    (out / f"bench_identify{suffix}.json").write_text(json.dumps(result, indent=1))
     return result
 
 
@@ -156,13 +167,13 @@ def _line(r: dict) -> str:
 def table(result: dict) -> str:
     """The bench as a Markdown table (ratios: current / position / motor encoder)."""
     lines = ["| trace | axis | undeclared | added (in order) | named first | before / floor "
-             "| after / floor | truth / floor | identify, s |", "|---" * 9 + "|"]
+             "| after / floor | truth / floor | trace, s | identify, s |", "|---" * 10 + "|"]
     for r in result["rows"]:
         lines.append(
             f"| {r['case']} | {r['axis']} | {', '.join(r['undeclared'])} | "
             f"{', '.join(r['added']) or '-'} | {'yes' if r['named_first'] else 'no'} | "
             f"{_fmt(r['before_over_floor'])} | {_fmt(r['after_over_floor'])} | "
-            f"{_fmt(r['truth_over_floor'])} | {r['identify_s']:.0f} |")
+            f"{_fmt(r['truth_over_floor'])} | {r['duration_s']:.0f} | {r['identify_s']:.0f} |")
     s = result["summary"]
     lines.append(f"\nnamed first {s['named_first']}/{s['cases']}, after within "
                  f"{s['floor_goal']}x the floor on every main channel {s['at_floor']}/"
@@ -180,6 +191,9 @@ def add_arguments(p) -> None:
     p.add_argument("--workers", type=int, default=2, help="processes (2)")
     p.add_argument("--refine-nfev", type=int, default=10,
                    help="closed-loop refinement iterations of hil identify (10)")
+    p.add_argument("--duration", type=float, default=None, metavar="S",
+                   help="traces at least this long, s (the program repeated at other "
+                        "speeds; default: one pass, 13-32 s)")
     p.add_argument("--json", action="store_true", help="print the JSON instead of the table")
 
 
@@ -195,7 +209,11 @@ def run_from_args(args) -> int:
     def log(text):
         print(text, file=sys.stderr, flush=True)
 
-    result = run(names, args.out, args.workers, args.refine_nfev, log)
+    if args.duration is not None and not args.duration > 0.0:
+        print(f"hil bench identify: --duration {args.duration:g} s must be > 0",
+              file=sys.stderr)
+        return 2
+    result = run(names, args.out, args.workers, args.refine_nfev, log, args.duration)
     print(json.dumps(result, indent=1) if args.json else table(result))
     return 0
 

@@ -1,12 +1,14 @@
 """``hil identify TRACE --config CONFIG --out DIR [--validate TRACE2]``."""
 
+import math
 import sys
 import time
 from pathlib import Path
 
+from hil.identify.candidates import default_workers
 from hil.identify.effects import NAMES
 from hil.identify.fit import Identification, record_errors
-from hil.identify.model import Model
+from hil.identify.model import DEFAULT_TOLERANCE, Model
 from hil.identify.record import load_record
 from hil.identify.report import EMPS_PUBLISHED, EMPS_REFERENCE_KEYS, write
 from hil.trace_file import TraceFormatError
@@ -31,6 +33,13 @@ def add_arguments(p) -> None:
                    help="inverse model's low-pass corner (default: a tenth of the sample rate)")
     p.add_argument("--exclude", nargs="+", default=(), choices=NAMES, metavar="EFFECT",
                    help="library effects not to look for: " + ", ".join(NAMES))
+    p.add_argument("--workers", type=int, default=None,
+                   help="processes evaluating a round's candidates (default: the CPUs "
+                        "available, at most 2; 1: none)")
+    p.add_argument("--tolerance", nargs="+", default=(), metavar="EFFECT=FRACTION",
+                   help="relative tolerance of a declared effect's coefficients: the prior's "
+                        "deviation in the refits and the change the report flags (default "
+                        f"{DEFAULT_TOLERANCE:g} for every effect), e.g. inertia=0.05")
     p.add_argument("--quiet", action="store_true", help="no progress lines")
     p.add_argument("--json", action="store_true", help="print report.json to stdout")
 
@@ -70,13 +79,37 @@ def emps_reference(ident: Identification, rec) -> dict:
     return record_errors(rec, model.replay(extra=EMPS_REFERENCE_KEYS, rec=rec))
 
 
+def tolerances(items) -> dict:
+    """``EFFECT=FRACTION`` items as {effect: fraction}; ValueError naming a bad one."""
+    out = {}
+    for item in items:
+        name, _, value = item.partition("=")
+        try:
+            frac = float(value)
+        except ValueError:
+            frac = math.nan
+        if name not in NAMES or not 0.0 < frac < math.inf:
+            raise ValueError(f"--tolerance {item!r}: want EFFECT=FRACTION with EFFECT one of "
+                             f"{', '.join(NAMES)} and FRACTION > 0")
+        out[name] = frac
+    return out
+
+
 def run_from_args(args) -> int:
     log = None if args.quiet else (lambda text: print(text, file=sys.stderr, flush=True))
+    try:
+        tolerance = tolerances(args.tolerance)
+        if args.workers is not None and args.workers < 1:
+            raise ValueError(f"--workers {args.workers}: want 1 or more")
+    except ValueError as exc:
+        print(f"hil identify: {exc}", file=sys.stderr)
+        return 2
     try:
         rep = identify(args.trace, args.config, args.out, args.validate, log=log,
                        min_explained=args.min_explained, floor_factor=args.floor_factor,
                        max_steps=args.max_steps, refine_nfev=args.refine_nfev,
-                       cutoff_hz=args.cutoff_hz, exclude=tuple(args.exclude))
+                       cutoff_hz=args.cutoff_hz, exclude=tuple(args.exclude),
+                       workers=args.workers or default_workers(), tolerance=tolerance)
     except (TraceFormatError, FileNotFoundError) as exc:
         print(f"hil identify: {exc}", file=sys.stderr)
         return 2

@@ -1,24 +1,28 @@
 """Greedy identification: find what the model lacks, one effect at a time.
 
-Each step computes the residuals the current model leaves (the inverse model's force
+Each round computes the residuals the current model leaves (the inverse model's force
 residual from the measured motion, and the table-minus-motor position where both
-encoders were recorded), lets every effect of the library not yet in the model fit
-itself to its residual alone, and takes the one that explains the largest share of its
-residual's energy (the simplest when several explain within 10 % of the best).  The
-effect's parameters are then fitted jointly with every term of its domain — the base
-parameters (mass, viscous friction, ...) are freed again — and the config with the
-effects added is replayed in closed loop against the record: a step is kept only when
-the replay's errors, each over its channel's measurement noise floor, gain more than
-its added parameters cost (:func:`hil.identify.floor.judge`, an information criterion);
-the inverse model can mistake one effect for another, the closed loop settles it.  At the
-end the single-coefficient force terms are refined on the replay itself.
+encoders were recorded) and lets *every* effect of the library not yet in the model --
+a delay too, which only the replay shows -- fit itself to its residual on half of the
+record; each candidate's machine file is replayed in closed loop and ranked by its gain
+on the other half (:mod:`hil.identify.candidates`, in parallel processes).  The best
+is proposed again on the whole record, its parameters fitted jointly with every term of
+its domain -- the base parameters (mass, viscous friction, ...) freed again, but held by
+a prior at their declared values -- and the replay decides: a step is kept only when the
+replay's errors, each over its channel's measurement noise floor, gain more than its
+added parameters cost (:func:`hil.identify.floor.judge`, an information criterion);
+otherwise the next of the ranking is tried.  The inverse model can mistake one effect for
+another; the closed loop settles it.  At the end the single-coefficient terms and the
+scalar shapes are refined on the replay itself (:mod:`hil.identify.refine`), and the
+declared parameters' changes are listed with their uncertainties
+(:mod:`hil.identify.changes`).
 
-It stops when no effect explains ``min_explained`` of its residual, when every replay
-channel is within ``floor_factor`` of its noise floor (:func:`hil.identify.floor.
-replay_floor`), or after ``max_steps``.  A delay is looked
-for last, through the replay, because it is the expensive one and no residual shows it.
+It stops when no candidate gains on the held-out half, when every replay channel is
+within ``floor_factor`` of its noise floor (:func:`hil.identify.floor.replay_floor`), or
+after ``max_steps``.
 """
 
+import dataclasses
 import math
 import time
 from dataclasses import dataclass, field
@@ -26,15 +30,19 @@ from pathlib import Path
 
 import numpy as np
 
+from hil.identify.candidates import Candidate, CandidatePool, Setting
+from hil.identify.changes import declared_changes
+from hil.identify.conventions import read_conventions
 from hil.identify.effects import FORCE, LIBRARY, POSITION, REPLAY, Context, Term
 from hil.identify.effects.base import correlation
-from hil.identify.conventions import read_conventions
-from hil.identify.floor import judge, replay_floor
+from hil.identify.floor import judge, normalised_cost, replay_floor
 from hil.identify.model import Model
 from hil.identify.motion import Drive, motion
 from hil.identify.record import Record
+from hil.identify.refine import refine
 from hil.identify.replay import ERROR_START, Replay, errors
 from hil.identify.spectrum import position_spectrum
+from hil.progress import Progress
 from plant.config import load_machine
 
 
@@ -69,7 +77,9 @@ class Identification:
     Args:
         config: the machine file to start from.
         rec: the record (see :func:`hil.identify.record.load_record`).
-        min_explained: smallest share of a residual's energy an effect must explain.
+        min_explained: smallest share of its residual's energy a ranked candidate must
+            explain to be tried on the whole record (in that round; a delay, which has no
+            residual, is judged by the replay alone).
         floor_factor: a replay whose every channel is within this factor of its noise
             floor is done.
         max_steps: most effects added.
@@ -78,7 +88,10 @@ class Identification:
         exclude: names of library effects not to look for (known absent, or to compare
             models: on EMPS, without ``viscous_asymmetry`` the search takes the constant
             offset of the paper's symmetric model instead).
-        log: optional callable(str) for progress lines.
+        workers: processes evaluating a round's candidates (1: this one).
+        tolerance: effect name -> relative tolerance of its declared coefficients (the
+            prior's deviation; :data:`hil.identify.model.DEFAULT_TOLERANCE` otherwise).
+        log: optional callable(str) for progress lines (and a progress bar per round).
 
     After :meth:`fit`: ``steps`` (the effects added, in order), ``rejected`` and
     ``skipped`` (effect -> why), ``proposals`` (every step tried, kept or not, with its
@@ -86,8 +99,10 @@ class Identification:
     noise floors), ``refinement``, ``error_before``/``error_after`` (replay
     errors), ``residual_before``/``residual_after`` (domain -> residual, shape (n,)),
     ``replay_before``/``replay_after``, ``friction_before``/``friction_after`` (v -> force),
-    ``unexplained`` (the signature of what is left), and ``model`` (the terms; its
-    ``overrides()`` are the fitted machine-file keys).
+    ``unexplained`` (the signature of what is left), ``rounds`` (every round's candidates
+    ranked by their held-out gain), ``declared_changes`` (:func:`hil.identify.changes.
+    declared_changes`), and ``model`` (the terms; its ``overrides()`` are the fitted
+    machine-file keys).
     """
     config: str | Path
     rec: Record
@@ -97,12 +112,15 @@ class Identification:
     refine_nfev: int = 10
     cutoff_hz: float | None = None
     exclude: tuple = ()
+    workers: int = 1
+    tolerance: dict = field(default_factory=dict)
     log: object = None
     steps: list[Step] = field(default_factory=list)
     skipped: dict = field(default_factory=dict)
     rejected: dict = field(default_factory=dict)
     proposals: list = field(default_factory=list)
     refinement: dict = field(default_factory=dict)
+    rounds: list = field(default_factory=list)
 
     def _say(self, text: str) -> None:
         if self.log is not None:
@@ -116,7 +134,7 @@ class Identification:
         self.drive = Drive.of(cfg)
         self.motion = motion(self.rec, self.drive, self.cutoff_hz)
         self.ctx = Context.of(cfg, self.drive, self.rec, self.motion)
-        self.model = Model(self.ctx, self.config)
+        self.model = Model(self.ctx, self.config, tolerance=self.tolerance)
         self._say(f"replaying {self.rec.n} samples through {Path(self.config).name}")
         self.replay_before = self.model.replay()
         self.error_before = record_errors(self.rec, self.replay_before)
@@ -128,89 +146,32 @@ class Identification:
         self.n_eff = self.rec.n * 2.0 * self.motion.cutoff_hz * self.rec.dt
         self._say(f"error before: {_fmt(self.error_before)}; noise floor {_fmt(self.floor)}")
         err = self.error_before
-        for _ in range(self.max_steps + len(LIBRARY)):
-            if len(self.steps) >= self.max_steps:
-                break
-            if self._replay_at_floor(err):
-                self._say(f"every channel within {self.floor_factor}x its noise floor")
-                break
-            term = self._best()
-            if term is None:
-                break
-            saved = self.model.snapshot()
-            self.model.add(term)
-            if term.effect.domain != REPLAY:
-                self.model.refit(term.effect.domain)
-            new = record_errors(self.rec, self.model.replay())
-            verdict = judge(err, new, self.floor, max(1, term.effect.n_coef(term.shape)),
-                            self.n_eff)
-            self.proposals.append({"effect": term.effect.name, "params": term.params(self.ctx),
-                                   "evidence": term.evidence, "error_before": err,
-                                   "error_after": new, "accepted": verdict.keep,
-                                   "reason": verdict.reason})
-            if not verdict.keep:
-                self.model.restore(saved)
-                self.rejected[term.effect.name] = verdict.reason
-                self._say(f"rejected {term.effect.name}: {verdict.reason}")
-                continue
-            err = new
-            self.steps.append(Step(term.effect.name, term.params(self.ctx), term.evidence, err))
-            self._say(f"added {term.effect.name} ({term.evidence.get('text', '')}); "
-                      f"{verdict.reason}")
+        setting = Setting(str(self.config), self.rec, self.cutoff_hz, self.floor, self.n_eff,
+                          self.tolerance)
+        with CandidatePool(setting, self.workers) as pool:
+            while len(self.steps) < self.max_steps:
+                if self._replay_at_floor(err):
+                    self._say(f"every channel within {self.floor_factor}x its noise floor")
+                    break
+                names = self._candidate_names()
+                if not names or not self._round(pool, names, err):
+                    break
+                err = self.steps[-1].error
         if self.refine_nfev > 0 and self.steps:
-            self._refine()
+            self.refinement = refine(self.model, self.rec, self.floor, self.n_eff,
+                                     self.refine_nfev, self._say)
         self.replay_after = self.model.replay()
         self.error_after = record_errors(self.rec, self.replay_after)
         self.residual_after = {d: self.model.residual(d) for d in self.domains()}
         self.friction_after = friction_curve(self.model)
         self.unexplained = self._describe_rest()
+        self.declared_changes = declared_changes(self.model)
+        for row in self.declared_changes:
+            if row["beyond_tolerance"]:
+                self._say(f"declared {row['parameter']} moved {row['change_pct']:+.1f} % "
+                          f"(± {row['sigma']:.3g}), beyond its {row['tolerance_pct']:g} %")
         self._say("done")
         return self
-
-    def _refine(self) -> None:
-        """Closed-loop output error: adjust the single-coefficient force terms (mass,
-        viscous and Coulomb friction, constant force, Stribeck excess) so that the replay's
-        effort matches the record's (``scipy.optimize.least_squares``).  The inverse model
-        weighs every sample's force balance equally; the closed loop weighs them as the
-        controller does, which is the error the report measures."""
-        from scipy.optimize import least_squares
-        terms = [t for t in self.model.terms if t.effect.domain == FORCE
-                 and t.effect.n_coef(t.shape) == 1 and t.effect.name != "presliding_hysteresis"]
-        if not terms:
-            return
-        z0 = np.array([float(t.coef[0]) for t in terms])
-        lo = np.array([t.effect.bounds(t.shape)[0][0] for t in terms])
-        hi = np.array([t.effect.bounds(t.shape)[1][0] for t in terms])
-        z0 = np.clip(z0, lo + 1e-12 * np.abs(z0), hi)
-        rec = self.rec
-        count = [0]
-
-        def residual(z):
-            for t, value in zip(terms, z):
-                t.coef = np.array([value])
-            self.model.coefficients_changed()
-            rep = self.model.replay()
-            count[0] += 1
-            if rep is None or rep.status != 0:
-                return np.full(rec.n - ERROR_START, 1e6)
-            d = rec.effort[ERROR_START:] - rep.effort[ERROR_START:]
-            if count[0] % 10 == 0:
-                self._say(f"  refinement: {count[0]} replays, effort rms "
-                          f"{float(np.sqrt(np.mean(d * d))):.4g}")
-            return d
-
-        before = {t.effect.name: float(t.coef[0]) for t in terms}
-        self._say(f"refining {', '.join(before)} on the closed-loop replay")
-        r0 = residual(z0)
-        scale = np.maximum(np.abs(z0), 1e-3 * max(float(np.max(np.abs(z0))), 1e-9))
-        sol = least_squares(residual, z0, bounds=(lo, hi), x_scale=scale, diff_step=1e-3,
-                            max_nfev=self.refine_nfev)
-        # least_squares returns its best point; keep the start if even that is no better
-        residual(sol.x if sol.cost <= 0.5 * float(r0 @ r0) else z0)
-        after = {t.effect.name: float(t.coef[0]) for t in terms}
-        self.refinement = {"coefficients_before": before, "coefficients_after": after,
-                           "replays": count[0]}
-        self._say(f"refined in {count[0]} replays")
 
     def domains(self) -> list[str]:
         """The residual domains this record has: force, and position with two sensors."""
@@ -224,8 +185,11 @@ class Identification:
     def noise_floor(self, domain: str) -> float:
         return self.motion.noise_force if domain == FORCE else self.motion.noise_dx
 
-    def _candidates(self, domains) -> list[Term]:
+    def _candidate_names(self) -> list[str]:
+        """The library's effects this round may try: available in the record, not excluded,
+        not rejected before, not in the model yet (or declared and correctable)."""
         out = []
+        domains = self.domains() + [REPLAY]
         for effect in LIBRARY:
             if effect.domain not in domains:
                 continue
@@ -239,26 +203,91 @@ class Identification:
             have = self.model.term(effect.name)
             if have is not None and (have.added or not effect.correctable):
                 continue
-            residual = self.model.residual(effect.domain) if effect.domain != REPLAY else None
-            self._say(f"  trying {effect.name}")
-            term = effect.propose(self.ctx, residual, self.model)
-            if term is not None:
-                out.append(term)
+            out.append(effect.name)
         return out
 
-    def _best(self) -> Term | None:
-        cands = [t for t in self._candidates(self.domains())
-                 if t.evidence.get("explained", 0.0) >= self.min_explained]
-        if not cands:
-            # nothing in the residuals: a delay shows only in the closed loop
-            cands = [t for t in self._candidates([REPLAY])
-                     if t.evidence.get("explained", 0.0) >= self.min_explained]
-        if not cands:
-            return None
-        top = max(t.evidence["explained"] for t in cands)
-        near = [t for t in cands if t.evidence["explained"] >= 0.9 * top]
-        order = {e.name: i for i, e in enumerate(LIBRARY)}
-        return min(near, key=lambda t: (t.effect.n_params, order[t.effect.name]))
+    def _round(self, pool: CandidatePool, names: list[str], err: dict) -> bool:
+        """Rank every candidate by its held-out gain (:mod:`hil.identify.candidates`) and
+        add the best that the whole record confirms; False when none is added."""
+        n_round = len(self.rounds) + 1
+        self._say(f"round {n_round}: {len(names)} candidates ({', '.join(names)})")
+        finished = []
+
+        def done(c: Candidate) -> None:
+            finished.append(c)
+            if bar is not None:
+                bar.update(len(finished))
+
+        bar = (Progress(f"round {n_round}: candidates", total=len(names), ticking=True)
+               if self.log is not None else None)
+        try:
+            cost0, ranked = pool.rank(self.model.snapshot(), names, done)
+        finally:
+            if bar is not None:
+                bar.close()
+        best = ranked[0]
+        self._say(f"held-out J {cost0:.4g}; best {best.effect} (J {best.cost:.4g}, "
+                  f"BIC {best.delta_bic:+.1f})")
+        self.rounds.append({"heldout_cost_before": cost0, "ranking": [
+            {"effect": c.effect, "heldout_cost": c.cost, "heldout_delta_bic": c.delta_bic,
+             "explained": (c.term.evidence.get("explained") if c.term is not None else None),
+             "params": c.params, "note": c.note} for c in ranked]})
+        for c in ranked:
+            if not c.delta_bic < 0.0:
+                break
+            # a delay's "explained" is the effort error's share alone: the ranking's
+            # replay over every channel is its measure
+            if (c.term.effect.domain != REPLAY
+                    and c.term.evidence.get("explained", 1.0) < self.min_explained):
+                self._say(f"  {c.effect} not tried on the whole record: explains "
+                          f"{c.term.evidence['explained']:.3g} of its residual, under "
+                          f"{self.min_explained:g}")
+                continue
+            if self._try(c.term, err):
+                return True
+        return False
+
+    def _try(self, candidate: Term, err: dict) -> bool:
+        """Propose the candidate's effect again on the whole record (its shape, fitted on
+        half of it for the ranking, is sharper on all of it: a pitch period, a Stribeck
+        velocity), with its domain refitted jointly or not, whichever replays better, and
+        keep it when the replay's information criterion says so
+        (:func:`hil.identify.floor.judge`)."""
+        effect = candidate.effect
+        residual = self.model.residual(effect.domain) if effect.domain != REPLAY else None
+        term = effect.propose(self.ctx, residual, self.model) or candidate
+        saved = self.model.snapshot()
+        self.model.add(dataclasses.replace(term, coef=term.coef.copy()))
+        new = record_errors(self.rec, self.model.replay())
+        if term.effect.domain != REPLAY:
+            # the domain refitted jointly too; the replay keeps the better of the two, so
+            # a declared parameter moves only where the closed loop gains by it (the
+            # inverse model's joint fit can move one to absorb what its statics miss)
+            alone = self.model.snapshot()
+            self.model.refit(term.effect.domain)
+            joint = record_errors(self.rec, self.model.replay())
+            if normalised_cost(joint, self.floor) <= normalised_cost(new, self.floor):
+                new = joint
+            else:
+                self.model.restore(alone)
+                self._say(f"  {term.effect.name}: the joint refit of its domain replays "
+                          "worse; the declared terms kept")
+        verdict = judge(err, new, self.floor, max(1, term.effect.n_coef(term.shape)),
+                        self.n_eff)
+        added = self.model.term(term.effect.name)
+        self.proposals.append({"effect": term.effect.name, "params": added.params(self.ctx),
+                               "evidence": term.evidence, "error_before": err,
+                               "error_after": new, "accepted": verdict.keep,
+                               "reason": verdict.reason})
+        if not verdict.keep:
+            self.model.restore(saved)
+            self.rejected[term.effect.name] = verdict.reason
+            self._say(f"rejected {term.effect.name}: {verdict.reason}")
+            return False
+        self.steps.append(Step(term.effect.name, added.params(self.ctx), term.evidence, new))
+        self._say(f"added {term.effect.name} ({term.evidence.get('text', '')}); "
+                  f"{verdict.reason}")
+        return True
 
     def _describe_rest(self) -> dict:
         """The signature of what is left, whatever the library says about it."""

@@ -26,6 +26,7 @@ import numpy as np
 
 from hil.identify.effects.base import quantum
 from hil.identify.record import Record
+from hil.identify.replay import Replay
 
 #: 1.4826 MAD is the standard deviation of Gaussian data
 MAD_TO_SIGMA = 1.4826
@@ -100,3 +101,18 @@ def judge(before: dict, after: dict, floor: dict, added_params: int, n_eff: floa
     return Judgement(False, j0, j1, delta, f"the replay did not gain enough for "
                                            f"{added_params} parameter(s): BIC {delta:+.1f} "
                                            f"(J {j0:.4g} -> {j1:.4g}; error/floor {ratio})")
+
+
+def channel_residuals(rec: Record, rep: Replay, floor: dict) -> list[np.ndarray]:
+    """(record - replay) / floor for each channel of ``floor``, in its order (the unit of
+    :func:`replay_floor`: µm, µrad, A, N), each shape (n,)."""
+    out = []
+    for key, f in floor.items():
+        if key == "motor_pos_rms_um":
+            y, y_hat, scale = rec.motor_pos, rep.motor_pos, 1e6
+        elif key.startswith("pos_"):
+            y, y_hat, scale = rec.pos, rep.pos, 1e6
+        else:
+            y, y_hat, scale = rec.effort, rep.effort, 1.0
+        out.append((y - y_hat) * scale / f)
+    return out

@@ -3,6 +3,7 @@ and the closed-loop replay of the config they make.
 """
 
 import dataclasses
+import math
 from pathlib import Path
 
 import numpy as np
@@ -21,22 +22,40 @@ def merge(into: dict, more: dict) -> dict:
     return into
 
 
+#: a declared parameter's default tolerance, relative: the prior's deviation, and the
+#: change beyond which the report flags it (``hil identify --tolerance EFFECT=FRACTION``)
+DEFAULT_TOLERANCE = 0.1
+
+
 class Model:
     """Terms of the inverse model by domain, and the machine file they amount to.
+
+    The terms the machine file declares keep their declared coefficients as a prior: a
+    joint refit (:meth:`refit`) moves them only as far as the data outweigh a Gaussian
+    prior of deviation ``tolerance`` x |declared value| (:data:`DEFAULT_TOLERANCE`), and
+    each refit leaves every coefficient's standard uncertainty in ``Term.sigma``.
 
     Args:
         ctx: the record, its motion and the config as read.
         path: the machine file (the overrides are applied on top of it).
         progress: optional callable(fraction) for the replays.
+        tolerance: effect name -> relative tolerance of its declared coefficients.
     """
 
-    def __init__(self, ctx: Context, path: str | Path, progress=None):
+    def __init__(self, ctx: Context, path: str | Path, progress=None,
+                 tolerance: dict | None = None):
         self.ctx = ctx
         self.path = Path(path)
         self.progress = progress
         self.terms: list[Term] = [t for t in (e.declared(ctx) for e in LIBRARY) if t is not None]
+        self.declared = {t.effect.name: t.coef.copy() for t in self.terms}
+        self.tolerance = dict(tolerance or {})
         self._replay: Replay | None = None
         self.pwm_period = 1.0 / ctx.cfg.motor.pwm_frequency_hz
+
+    def tolerance_of(self, name: str) -> float:
+        """Relative tolerance of effect ``name``'s declared coefficients."""
+        return self.tolerance.get(name, DEFAULT_TOLERANCE)
 
     def term(self, name: str) -> Term | None:
         return next((t for t in self.terms if t.effect.name == name), None)
@@ -90,7 +109,11 @@ class Model:
         return float(np.sqrt(np.mean(r * r))) if r.size else 0.0
 
     def refit(self, domain: str) -> None:
-        """Fit every term of the domain jointly (base parameters freed), shapes fixed."""
+        """Fit every term of the domain jointly, shapes fixed: the samples in noise units
+        (each over the domain's noise floor, weighted by the share of independent samples,
+        2 f_c dt, of the low-passed signals), the declared coefficients with their priors;
+        sets each term's ``coef`` and ``sigma`` (standard uncertainty from the weighted
+        Jacobian, inflated by the residual's ratio to the floor where it exceeds 1)."""
         terms = [t for t in self._domain(domain) if t.effect.n_coef(t.shape) > 0]
         if not terms:
             return
@@ -103,14 +126,45 @@ class Model:
             cols.append(np.ones((self.ctx.rec.n, 1)))
             lo.append(np.full(1, -np.inf))
             hi.append(np.full(1, np.inf))
-        coef = lstsq(np.hstack(cols), y, self._mask(domain), np.concatenate(lo),
+        mask = self._mask(domain)
+        a, b = np.hstack(cols)[mask], y[mask]
+        noise = self.ctx.m.noise_force if domain == FORCE else self.ctx.m.noise_dx
+        w = math.sqrt(min(1.0, 2.0 * self.ctx.m.cutoff_hz * self.ctx.rec.dt)) / noise \
+            if noise > 0.0 else 1.0
+        prior_a, prior_b = self._priors(terms, a.shape[1]) if noise > 0.0 else ([], [])
+        a_w = np.vstack([w * a] + prior_a)
+        b_w = np.concatenate([w * b] + prior_b)
+        coef = lstsq(a_w, b_w, np.ones(b_w.size, dtype=bool), np.concatenate(lo),
                      np.concatenate(hi))
+        r = b - a @ coef
+        misfit = float(np.sqrt(np.mean(r * r))) / noise if noise > 0.0 and r.size else 1.0
+        sigma = uncertainty(a_w, misfit)
         i = 0
         for t in terms:
             k = t.effect.n_coef(t.shape)
             t.coef = coef[i:i + k]
+            t.sigma = sigma[i:i + k]
             i += k
         self._replay = None
+
+    def _priors(self, terms: list[Term], width: int) -> tuple[list, list]:
+        """Rows (c - c_declared) / (tolerance |c_declared|) for the declared coefficients
+        of ``terms`` (in the order of the joint fit's columns, ``width`` of them)."""
+        rows, rhs = [], []
+        i = 0
+        for t in terms:
+            k = t.effect.n_coef(t.shape)
+            c0 = self.declared.get(t.effect.name)
+            if c0 is not None and c0.size == k:
+                for j in range(k):
+                    if c0[j] != 0.0:
+                        s = self.tolerance_of(t.effect.name) * abs(float(c0[j]))
+                        row = np.zeros((1, width))
+                        row[0, i + j] = 1.0 / s
+                        rows.append(row)
+                        rhs.append(np.array([float(c0[j]) / s]))
+            i += k
+        return rows, rhs
 
     def overrides(self, extra: dict | None = None) -> dict:
         """The machine-file changes the terms amount to: ``{"section": {"key": value}}``."""
@@ -142,3 +196,15 @@ class Model:
         """rms of the effort's replay error from sample ``start`` on."""
         d = self.ctx.rec.effort[start:] - rep.effort[start:]
         return float(np.sqrt(np.mean(d * d)))
+
+
+def uncertainty(a_w: np.ndarray, misfit: float) -> np.ndarray:
+    """Standard uncertainties of a fit's parameters from its Jacobian (or a linear fit's
+    weighted columns) ``a_w``, rows in noise units: sqrt of the diagonal of (AᵀA)⁻¹, times the data's rms residual over the
+    noise floor (``misfit``) where it exceeds 1: a model that does not reach the floor
+    knows its parameters less well.  NaN where the columns are degenerate."""
+    try:
+        cov = np.linalg.inv(a_w.T @ a_w)
+    except np.linalg.LinAlgError:
+        return np.full(a_w.shape[1], math.nan)
+    return np.sqrt(np.clip(np.diag(cov), 0.0, None)) * max(1.0, misfit)

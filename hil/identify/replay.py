@@ -46,12 +46,13 @@ from hil.controller.interpolator import ProfileSamples
 from hil.controller.loops import PositionLoop
 from hil.drive import EmulatedDrive
 from hil.identify.conventions import (
-    Conventions,
     ConventionError,
+    Conventions,
     apply_conventions,
     read_conventions,
 )
 from hil.identify.record import Record
+from hil.identify.replay_kernel import CompiledLoop
 from hil.identify.trace_controller import TraceController
 from io_adapters.messages import Feedback, Setpoint
 from plant import Plant
@@ -86,13 +87,16 @@ class Replay:
     status: int
 
 
-def replay(cfg: MachineConfig, rec: Record, progress=None) -> Replay:
+def replay(cfg: MachineConfig, rec: Record, progress=None, compiled: bool = True) -> Replay:
     """Run ``rec``'s setpoints through ``cfg``'s closed loop (see the module docstring).
 
     Args:
         cfg: the machine file (an EMPS record needs no ``[controller]``, an NC record does).
         rec: the measured record.
         progress: optional callable(fraction done), called about 20 times.
+        compiled: run an NC record's loop in :func:`hil.identify.replay_kernel.nc_loop`
+            once the drive is enabled (False: the Python controller and drive throughout,
+            the reference the compiled loop is tested against).
     Raises:
         ConventionError: the record's sample time is no whole number of PWM periods, a
             convention of the record's header the replay cannot honour
@@ -104,7 +108,7 @@ def replay(cfg: MachineConfig, rec: Record, progress=None) -> Replay:
                                                                  current_noise_a=0.0))
     if rec.emps is not None:
         return _replay_emps(quiet, rec, progress)
-    return _replay_nc(quiet, rec, progress)
+    return _replay_nc(quiet, rec, progress, compiled)
 
 
 def errors(rec: Record, rep: Replay, start: int = ERROR_START) -> dict[str, float]:
@@ -245,29 +249,25 @@ def _feed_forward(rec: Record, conv: Conventions, loop: PositionLoop, step: int)
     return v_ff
 
 
-def _start(ctrl: TraceController, drive: EmulatedDrive, x0: float, preroll_s: float,
-           path) -> tuple[Setpoint, Feedback]:
-    """Enable the drive, then hold ``x0`` for the record's pre-roll at rest."""
+def _enable(ctrl: TraceController, drive: EmulatedDrive, path) -> tuple[Setpoint, Feedback]:
+    """Run the CiA 402 enable sequence until the drive is in OPERATION ENABLED."""
     sp, fb = Setpoint(), Feedback()
     for _ in range(ctrl.enable_timeout_ticks * 2):
         if ctrl.enabled:
-            break
+            return sp, fb
         ctrl.tick(fb, sp)
         drive.cycle(sp, fb)
-    else:
-        raise RuntimeError(f"{path}: drive not enabled: {ctrl.enable.reason}")
-    ticks = round(preroll_s / ctrl.period)
-    if ticks > 0:
-        n_ipo = ticks // ctrl.sec.ipo_cycle_ratio + 2
-        zero = np.zeros(n_ipo)
-        ctrl.run_points(ProfileSamples(zero, np.full(n_ipo, x0), zero, zero))
-        for _ in range(ticks):
-            ctrl.tick(fb, sp)
-            drive.cycle(sp, fb)
-    return sp, fb
+    raise RuntimeError(f"{path}: drive not enabled: {ctrl.enable.reason}")
 
 
-def _replay_nc(cfg: MachineConfig, rec: Record, progress) -> Replay:
+def _preroll_points(ctrl: TraceController, x0: float, ticks: int) -> ProfileSamples:
+    """IPO points holding ``x0`` at rest for ``ticks`` PWM periods (and a little more)."""
+    n_ipo = ticks // ctrl.sec.ipo_cycle_ratio + 2
+    zero = np.zeros(n_ipo)
+    return ProfileSamples(zero, np.full(n_ipo, x0), zero, zero)
+
+
+def _replay_nc(cfg: MachineConfig, rec: Record, progress, compiled: bool = True) -> Replay:
     """The machine file's NC (with the record's conventions) and drive in lock step, the
     record's setpoints fed once per position cycle or once per sample, whichever is the
     longer."""
@@ -287,20 +287,40 @@ def _replay_nc(cfg: MachineConfig, rec: Record, progress) -> Replay:
     section = dataclasses.replace(sec, ipo_cycle_ratio=grid.ipo)
     ctrl = TraceController(cfg, plant.pwm_period, x0, section)
     drive = EmulatedDrive(plant)
-    sp, fb = _start(ctrl, drive, x0, conv.preroll_s, cfg.path)
+    sp, fb = _enable(ctrl, drive, cfg.path)
+    preroll_ticks = round(conv.preroll_s / ctrl.period)
+    preroll = _preroll_points(ctrl, x0, preroll_ticks)
     v_lim = axis_limits(cfg, sec).velocity
     v_set = _feed_forward(rec, conv, PositionLoop(sec, period_pos, v_lim), grid.step)
     fed = slice(0, rec.n, grid.step)
     v_fed = v_set[fed]
-    ctrl.run_points(ProfileSamples(rec.t[fed], rec.pos_set[fed], v_fed,
-                                   np.gradient(v_fed, rec.dt * grid.step)))
+    points = ProfileSamples(rec.t[fed], rec.pos_set[fed], v_fed,
+                            np.gradient(v_fed, rec.dt * grid.step))
     # the feed-forward of the next position cycle, for a linear fine interpolation
     v_pos = np.interp(np.arange(rec.n * grid.every // sec.position_cycle_ratio + 2)
                       * period_pos, rec.t[fed], v_fed)
     n = rec.n
+    per_amp = _force_per_amp(cfg, ctrl.ratio) if rec.effort_kind == "force" else 1.0
+    if compiled and ctrl.cur_loop is None:
+        loop = CompiledLoop(ctrl, plant, drive.params.max_current_a, grid.every, per_amp)
+        fine = (preroll.pos, preroll.vel, preroll.acc)
+        _, status = loop.run(fine, np.zeros(preroll_ticks // sec.position_cycle_ratio + 2),
+                             0, preroll_ticks)
+        if status == L.STATUS_OK:
+            out, status = loop.run((points.pos, points.vel, points.acc), v_pos, n)
+        else:
+            out = np.full((4, n), math.nan)
+        if progress is not None:
+            progress(1.0)
+        return Replay(out[0], out[1], out[2], out[3], status)
+    if preroll_ticks > 0:
+        ctrl.run_points(preroll)
+        for _ in range(preroll_ticks):
+            ctrl.tick(fb, sp)
+            drive.cycle(sp, fb)
+    ctrl.run_points(points)
     pos, vel, effort = np.full(n, math.nan), np.full(n, math.nan), np.full(n, math.nan)
     motor_pos = np.full(n, math.nan)
-    per_amp = _force_per_amp(cfg, ctrl.ratio) if rec.effort_kind == "force" else 1.0
     out = plant.out
     every_report = max(1, n // 20)
     row = 0

@@ -70,7 +70,8 @@ def summary(ident: Identification, validation: dict | None, elapsed_s: float,
         "replay_noise_floor": ident.floor,
         "error_before_over_floor": over_floor(ident.error_before, ident.floor),
         "error_after_over_floor": over_floor(ident.error_after, ident.floor),
-        "proposals": ident.proposals,
+        "proposals": ident.proposals, "rounds": ident.rounds,
+        "declared_changes": ident.declared_changes,
         "refinement": ident.refinement, "rejected": ident.rejected,
         "unexplained": ident.unexplained, "not_looked_for": ident.skipped,
         "thresholds": {"min_explained": ident.min_explained,
@@ -142,14 +143,40 @@ def markdown(rep: dict) -> str:
     ref = rep.get("refinement") or {}
     if ref:
         lines += ["", f"Closed-loop refinement ({ref['replays']} replays, least squares on the "
-                  "replay's effort error): " + ", ".join(
-                      f"{k} coefficient {_fmt(ref['coefficients_before'][k])} -> "
-                      f"{_fmt(v)}" for k, v in ref["coefficients_after"].items())]
+                  f"replay's errors over their floors, J {_fmt(ref['cost_before'])} -> "
+                  f"{_fmt(ref['cost_after'])}): " + ", ".join(
+                      f"{k} {_fmt(ref['before'][k])} -> {_fmt(v)} ± "
+                      f"{_fmt(ref['sigma'][k])}" for k, v in ref["after"].items())]
+    changes = rep.get("declared_changes") or []
+    if changes:
+        lines += ["", "## Declared parameters (refitted with a prior at the declared value)", "",
+                  "| parameter | declared | identified | change | ± (1 sigma) | tolerance | |",
+                  "|---|---|---|---|---|---|---|"]
+        for c in changes:
+            flag = "**beyond tolerance**" if c["beyond_tolerance"] else ""
+            if c["significant"] is False:
+                flag = (flag + " " if flag else "") + "within its uncertainty"
+            lines.append(f"| {c['parameter']} | {_fmt(c['declared'])} | "
+                         f"{_fmt(c['identified'])} | {_fmt(c['change_pct'])} % | "
+                         f"{_fmt(c['sigma'])} | {c['tolerance_pct']:g} % | {flag} |")
     lines += ["", "Noise floor of the replay channels: " + ", ".join(
         f"{k} {_fmt(v)}" for k, v in rep["replay_noise_floor"].items())
         + "; error over it before: " + ", ".join(
         f"{k} {v:.3g}" for k, v in rep["error_before_over_floor"].items())
         + "; after: " + ", ".join(f"{k} {v:.3g}" for k, v in rep["error_after_over_floor"].items())]
+    for i, rnd in enumerate(rep.get("rounds") or [], 1):
+        if i == 1:
+            lines += ["", "## Every candidate of each round, ranked by its held-out gain", "",
+                      "Fitted on alternate 0.5 s blocks, scored by the replay on the others: "
+                      "J = sum of (error / floor)², BIC = n ln(J / J0) + k ln n.", ""]
+        lines += [f"Round {i} (held-out J before {_fmt(rnd['heldout_cost_before'])}):", ""]
+        for c in rnd["ranking"]:
+            params = ", ".join(f"{k} = {_fmt(v)}" for k, v in c["params"].items())
+            score = (f"J {_fmt(c['heldout_cost'])}, BIC {_fmt(c['heldout_delta_bic'])}"
+                     if c["heldout_cost"] is not None else "no score")
+            lines.append(f"- `{c['effect']}`: {score}" + (f" — {params}" if params else "")
+                         + (f" ({c['note']})" if c["note"] else ""))
+        lines.append("")
     if rep.get("proposals"):
         lines += ["", "## Every proposal, kept or not", ""]
         for i, prop in enumerate(rep["proposals"], 1):
@@ -171,8 +198,8 @@ def markdown(rep: dict) -> str:
     if rep["not_looked_for"]:
         lines += ["", "Not looked for: " + "; ".join(f"`{k}`: {v}" for k, v in
                                                     rep["not_looked_for"].items())]
-    lines += ["", "Plots: `residual_time.png`, `spectrum.png`, `friction_map.png`, "
-              "`reversals.png`; fitted "
+    lines += ["", "Plots: `residual_time.png`, `residual_position.png`, `spectrum.png`, "
+              "`friction_map.png`, `reversals.png`; fitted "
               "machine file: `config.toml`.", ""]
     return "\n".join(lines)
 
@@ -186,7 +213,8 @@ def _fmt(v) -> str:
 
 
 def plots(ident: Identification, out: Path) -> None:
-    """residual_time.png, spectrum.png, friction_map.png and reversals.png."""
+    """residual_time.png, residual_position.png, spectrum.png, friction_map.png and
+    reversals.png."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -213,6 +241,23 @@ def plots(ident: Identification, out: Path) -> None:
     fig.suptitle("Residuals: inverse model (top), closed-loop replay (bottom)")
     fig.tight_layout()
     fig.savefig(out / "residual_time.png", dpi=110)
+    plt.close(fig)
+
+    # the same residuals over the table position: what repeats with position lines up
+    fig, axes = plt.subplots(len(domains), 1, figsize=(10, 3 * len(domains)), squeeze=False)
+    unit_x = (1.0, "rad") if ident.drive.kind == "rotary" else (1e3, "mm")
+    for ax, d in zip(axes[:, 0], domains):
+        scale, unit = (1.0, "N") if d == FORCE else (1e6, "um")
+        for name in ("before", "after"):
+            r = getattr(ident, f"residual_{name}")[d]
+            ax.plot(m.x[ctx.moving] * unit_x[0], r[ctx.moving] * scale, ".", ms=1,
+                    alpha=0.5, label=name)
+        ax.set_ylabel(f"{'force' if d == FORCE else 'table - motor'} residual ({unit})")
+        ax.set_xlabel(f"table position ({unit_x[1]})")
+        ax.legend(loc="upper right", markerscale=8)
+    fig.suptitle("Residuals over the table position (moving samples)")
+    fig.tight_layout()
+    fig.savefig(out / "residual_position.png", dpi=110)
     plt.close(fig)
 
     fig, axes = plt.subplots(len(domains), 1, figsize=(10, 3.5 * len(domains)), squeeze=False)

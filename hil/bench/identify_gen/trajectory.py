@@ -54,15 +54,42 @@ def moves(start: float, steps: list[tuple[float, float]]) -> Trajectory:
     return Trajectory(np.array(t0), np.array(x0), np.array(dx), np.array(dur))
 
 
-def bench_moves(travel: float, speed: float, start: float) -> Trajectory:
+#: speed factors of the program's repetitions when a longer trace is asked for: the
+#: friction map at more speeds
+REPEAT_SPEEDS = (1.0, 0.6, 0.8, 0.4)
+
+
+def bench_moves(travel: float, speed: float, start: float,
+                duration_s: float | None = None) -> Trajectory:
     """The bench's program on an axis of usable ``travel`` and top ``speed`` (table units):
     moves in both directions at several speeds (the friction map), a slow move (periodic
     effects below the filter corner), reversals of 2e-4 of the travel (presliding,
-    backlash), dwells between."""
+    backlash), dwells between.  With ``duration_s`` the program is repeated, back at its
+    start after each pass and at the speeds scaled by :data:`REPEAT_SPEEDS` in turn, move
+    by move until it lasts at least that long."""
     L, V = travel, speed
     small = 2e-4 * L
-    return moves(start, [
-        (0.0, 0.2), (0.5 * L, V), (0.0, 0.1), (-0.5 * L, V), (0.0, 0.1),
-        (0.4 * L, 0.5 * V), (0.0, 0.1), (-0.2 * L, 0.25 * V), (0.0, 0.1),
-        (small, 0.002 * V), (-small, 0.002 * V), (small, 0.002 * V), (-small, 0.002 * V),
-        (0.05 * L, 0.1 * V), (0.0, 0.1), (-0.35 * L, 0.8 * V), (0.0, 0.2)])
+
+    def program(f: float) -> list[tuple[float, float]]:
+        v = f * V
+        return [(0.0, 0.2), (0.5 * L, v), (0.0, 0.1), (-0.5 * L, v), (0.0, 0.1),
+                (0.4 * L, 0.5 * v), (0.0, 0.1), (-0.2 * L, 0.25 * v), (0.0, 0.1),
+                (small, 0.002 * v), (-small, 0.002 * v), (small, 0.002 * v),
+                (-small, 0.002 * v), (0.05 * L, 0.1 * v), (0.0, 0.1), (-0.35 * L, 0.8 * v),
+                (0.0, 0.2)]
+
+    steps = program(1.0)
+    if duration_s is None:
+        return moves(start, steps)
+    k, total = 0, moves(start, steps).duration_s
+    while total < duration_s:
+        k += 1
+        f = REPEAT_SPEEDS[k % len(REPEAT_SPEEDS)]
+        # back to the start (the pass ends 0.1 L short of it), then the pass again, move by
+        # move until long enough
+        for step in [(0.1 * L, 0.5 * f * V)] + program(f):
+            steps.append(step)
+            total = moves(start, steps).duration_s
+            if total >= duration_s:
+                break
+    return moves(start, steps)

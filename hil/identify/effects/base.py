@@ -79,12 +79,15 @@ class Term:
         coef: coefficients of ``effect.columns``, shape (k,).
         added: True when identification added it, False when the config declared it.
         evidence: what pointed to it (numbers and a sentence), for the report.
+        sigma: standard uncertainty of each coefficient from the last fit, shape (k,), or
+            None before one.
     """
     effect: "Effect"
     shape: dict
     coef: np.ndarray
     added: bool = False
     evidence: dict = field(default_factory=dict)
+    sigma: np.ndarray | None = None
 
     def contribution(self, ctx: Context) -> np.ndarray:
         """The term's part of its domain's prediction, shape (n,)."""

@@ -223,6 +223,12 @@ def _presliding_force(x, k1, x1, a, fc):
 
 #: longest presliding displacement scale looked for (m): presliding is a micrometre effect
 X1_MAX = 1e-4
+#: bounds of the presliding fit's (ln k1, ln x1, exponent), and those tried when a
+#: solution ends on one (x1 from 0.1 nm to 1 mm, the exponent from 0.1 to 6)
+PRESLIDING_LO = (-np.inf, math.log(1e-9), 0.3)
+PRESLIDING_HI = (np.inf, math.log(X1_MAX), 3.0)
+PRESLIDING_LO_WIDE = (-np.inf, math.log(1e-10), 0.1)
+PRESLIDING_HI_WIDE = (np.inf, math.log(1e-3), 6.0)
 
 
 class Presliding(Effect):
@@ -269,13 +275,21 @@ class Presliding(Effect):
             return self._column(ctx, shape)[mask] - r
 
         best = None
+        lo, hi = np.array(PRESLIDING_LO), np.array(PRESLIDING_HI)
         for x1 in (1e-7, 1e-6, 1e-5):
             z0 = [math.log(10 * fc / x1), math.log(x1), 1.0]
-            sol = least_squares(cost, z0, bounds=([-np.inf, math.log(1e-9), 0.3],
-                                                  [np.inf, math.log(X1_MAX), 3.0]),
-                                x_scale=[1.0, 1.0, 0.5], max_nfev=60)
+            sol = least_squares(cost, z0, bounds=(lo, hi), x_scale=[1.0, 1.0, 0.5],
+                                max_nfev=60)
             if best is None or sol.cost < best.cost:
                 best = sol
+        if np.any(best.active_mask != 0):
+            # a parameter on its bound: the bound, not the data, chose it; once more with
+            # the bounds that bind widened
+            lo = np.where(best.active_mask < 0, np.array(PRESLIDING_LO_WIDE), lo)
+            hi = np.where(best.active_mask > 0, np.array(PRESLIDING_HI_WIDE), hi)
+            wide = least_squares(cost, best.x, bounds=(lo, hi), x_scale=[1.0, 1.0, 0.5],
+                                 max_nfev=60)
+            best = wide if wide.cost < best.cost else best
         shape = {"k1": math.exp(best.x[0]), "x1": math.exp(best.x[1]), "a": float(best.x[2]),
                  "fc": fc}
         # a spring shorter than two counts of the position sensor is a Coulomb step as far
@@ -286,6 +300,7 @@ class Presliding(Effect):
         ex = explained(residual, col, mask)
         rev = np.flatnonzero(np.diff(ctx.direction) != 0) + 1
         ev = {"explained": ex, "reversals": int(rev.size),
+              "on_a_bound": bool(np.any(best.active_mask != 0)),
               "text": f"the force residual swings at the {rev.size} reversals of motion and "
                       f"follows a presliding spring of initial stiffness {shape['k1']:.3g} "
                       f"N/m over x1 = {shape['x1'] * 1e6:.3g} um"}

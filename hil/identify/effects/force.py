@@ -243,21 +243,26 @@ class Stribeck(Effect):
         return Term(self, {"vs": vs}, np.array([fs - fc]))
 
     def propose(self, ctx, residual, model):
-        # Stribeck shapes sliding friction: it needs Coulomb's level and no presliding spring
-        if (model.term("coulomb_friction") is None
-                or model.term("presliding_hysteresis") is not None):
+        # tried whatever Coulomb's residual looks like (a dip at low speed hides under a
+        # level that is right on average), but not with the presliding spring, which
+        # replaces Karnopp's stick-slip with Stribeck sliding friction in the plant
+        if model.term("presliding_hysteresis") is not None:
             return None
         vmax = float(np.max(np.abs(ctx.m.v[ctx.moving])))
         mask = ctx.moving
         best = None
-        # a dip wider than a third of the top speed is no longer told apart from Coulomb
-        for vs in np.geomspace(vmax / 300.0, vmax / 3.0, 40):
+        # a dip wider than a third of the top speed is no longer told apart from Coulomb:
+        # one that fits best at the widest tried is no Stribeck dip
+        widths = np.geomspace(vmax / 300.0, vmax / 3.0, 40)
+        for vs in widths:
             col = self.columns(ctx, {"vs": vs})
             coef = lstsq(col, residual, mask, np.zeros(1), np.full(1, np.inf))
             ex = explained(residual, col @ coef, mask)
             if best is None or ex > best[0]:
                 best = (ex, vs, coef)
         ex, vs, coef = best
+        if vs == widths[-1]:
+            return None
         slow = mask & (np.abs(ctx.m.v) < 2 * vs)
         ev = {"explained": ex, "vs": float(vs),
               "mean_abs_residual_slow": float(np.mean(np.abs(residual[slow]))) if slow.any()

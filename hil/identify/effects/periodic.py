@@ -15,6 +15,10 @@ from hil.identify.effects.drivetrain import NO_SECOND_SENSOR
 from hil.identify.spectrum import position_spectrum
 
 MAX_HARMONICS = 4
+#: lines of the residual's spectrum against the motor angle offered as cogging orders
+SPECTRAL_LINES = 4
+#: distance (orders per electrical revolution) within which a spectral line is a whole order
+WHOLE_ORDER = 0.02
 
 
 def _sincos(phase: np.ndarray, orders) -> np.ndarray:
@@ -58,10 +62,12 @@ def _greedy_orders(cols_of, candidates, residual, mask, min_gain):
 
 
 class Cogging(Effect):
-    """Cogging: a force residual periodic in the motor's electrical angle."""
+    """Cogging: a force residual periodic in the motor's electrical angle, at the whole
+    orders 1 to MAX_ORDER per electrical revolution and at the orders of the strongest
+    lines of the residual's spectrum against the angle (any order the low-pass keeps)."""
     name = "cogging"
     n_params = 2
-    #: electrical orders looked at
+    #: whole electrical orders always looked at
     MAX_ORDER = 12
 
     def declared(self, ctx):
@@ -85,8 +91,30 @@ class Cogging(Effect):
         f = order * w_e / (2 * math.pi)
         return float(np.mean(f[ctx.moving] < 0.7 * m.cutoff_hz))
 
+    def _spectral_orders(self, ctx, residual) -> list[float]:
+        """Orders per electrical revolution of the strongest lines of the residual's
+        spectrum against the motor's electrical angle (seed 002): any order, fractional
+        ones too (a slot count that is no multiple of the pole pairs), up to the corner."""
+        mask = ctx.moving
+        cycles = ctx.m.theta_e / (2 * math.pi)
+        span = float(np.ptp(cycles[mask])) if mask.any() else 0.0
+        if span <= 2.0:
+            return []
+        # bins of 1/(16 MAX_ORDER) revolution: lines up to 4 MAX_ORDER (peaks() keeps half
+        # the bins' Nyquist frequency)
+        spec = position_spectrum(residual, cycles, mask, 1.0 / (16 * self.MAX_ORDER))
+        # at least once per mechanical revolution (per pole pair on a linear motor): a
+        # slower line is the load's, not the motor's
+        lowest = 1.0 / ctx.drive.pole_pairs if ctx.drive.kind != "linear" else 1.0
+        # a line within the bins' reach of a whole order is that order
+        return [float(round(f)) if abs(f - round(f)) < WHOLE_ORDER else round(f, 3)
+                for f, _ in spec.peaks(SPECTRAL_LINES, min_cycles=2.0 / span)
+                if f >= lowest * 0.99]
+
     def propose(self, ctx, residual, model):
-        orders = [k for k in range(1, self.MAX_ORDER + 1) if self._resolvable(ctx, k) > 0.5]
+        found = self._spectral_orders(ctx, residual)
+        orders = sorted({float(k) for k in range(1, self.MAX_ORDER + 1)} | set(found))
+        orders = [k for k in orders if self._resolvable(ctx, k) > 0.5]
         if not orders:
             return None
         mask = ctx.moving
@@ -95,7 +123,10 @@ class Cogging(Effect):
         if not chosen:
             return None
         amps, _ = _amp_phase(coef, 1.0)
+        per_rev = ctx.drive.pole_pairs if ctx.drive.kind != "linear" else None
         ev = {"explained": ex, "orders_per_electrical_rev": chosen, "amplitudes": amps,
+              "orders_per_mechanical_rev": [k * per_rev for k in chosen] if per_rev else None,
+              "spectral_orders": found,
               "text": "residual periodic in the motor angle: " + ", ".join(
                   f"order {k:g} per electrical revolution, {a:.3g}" for k, a in
                   zip(chosen, amps))}
@@ -118,9 +149,16 @@ class Cogging(Effect):
         return {"cogging": self.params(ctx, shape, coef)}
 
 
+#: harmonics of the lead tried as pitch-error periods (lead / k), besides the spectrum's
+LEAD_HARMONICS = 4
+
+
 class PitchError(Effect):
     """Pitch (lead) error of the screw: table position minus motor position, periodic in
-    the table position."""
+    the table position -- harmonics of the lead (the screw's own run-out and thread
+    errors: periods lead / k), and the long-wave periods the residual's spectrum shows --
+    plus a cumulative lead error c x (``linear_ppm``) where it explains as much as a
+    harmonic must, as the plant's e(u) = sum A_k sin(2 pi u / P_k + phi_k) + c u."""
     name = "pitch_error"
     domain = POSITION
     n_params = 2
@@ -134,16 +172,22 @@ class PitchError(Effect):
 
     def declared(self, ctx):
         pe = getattr(ctx.cfg, "pitch_error", None)
-        if pe is None or not pe.periods_m:
+        if pe is None or not (pe.periods_m or pe.linear_ppm):
             return None
         phases = pe.phases_deg or (0.0,) * len(pe.periods_m)
         coef = []
         for a, ph in zip(pe.amplitudes_m, phases):
             coef += [a * math.cos(math.radians(ph)), a * math.sin(math.radians(ph))]
-        return Term(self, {"periods_m": list(pe.periods_m)}, np.array(coef))
+        linear = pe.linear_ppm != 0.0
+        return Term(self, {"periods_m": list(pe.periods_m), "linear": linear},
+                    np.array(coef + ([pe.linear_ppm * 1e-6] if linear else [])))
 
-    def _cols(self, ctx, periods):
-        return _sincos(2 * math.pi * ctx.m.x, [1.0 / p for p in periods])
+    def _cols(self, ctx, periods, linear=False):
+        """The harmonics' sine and cosine columns (and the cumulative error's, c x: the
+        plant's e(u) = c u from the screw's zero), shape (n, 2k (+ 1))."""
+        x = ctx.m.x
+        cols = _sincos(2 * math.pi * x, [1.0 / p for p in periods])
+        return np.hstack([cols, x[:, None]]) if linear else cols
 
     def propose(self, ctx, residual, model):
         mask = ctx.moving
@@ -159,18 +203,30 @@ class PitchError(Effect):
         peaks = spec.peaks(2 * MAX_HARMONICS, min_cycles=1.5 / travel)
         periods = [self._refine(ctx, residual, mask, f, spec.resolution)
                    for f, _ in peaks if 1.0 / f >= p_min]
-        if not periods:
-            return None
+        lead = 2 * math.pi * ctx.drive.ratio
+        periods += [lead / k for k in range(1, LEAD_HARMONICS + 1) if lead / k >= p_min]
         chosen, coef, ex = _greedy_orders(lambda ps: self._cols(ctx, ps), periods, residual,
                                           mask, 0.01)
         if not chosen:
             return None
-        amps, _ = _amp_phase(coef, 1.0)
+        # the cumulative lead error, when it explains as much more as a harmonic must
+        cols = self._cols(ctx, chosen, True)
+        with_linear = lstsq(cols, residual, mask)
+        ex_linear = explained(residual, cols @ with_linear, mask)
+        linear = ex_linear - ex >= 0.01
+        if linear:
+            coef, ex = with_linear, ex_linear
+        shape = {"periods_m": chosen, "linear": linear}
+        amps, _ = _amp_phase(coef[:2 * len(chosen)], 1.0)
+        ppm = float(coef[-1]) * 1e6 if linear else 0.0
         ev = {"explained": ex, "periods_m": chosen, "amplitudes_m": amps,
+              "periods_per_lead": [p / lead for p in chosen], "linear_ppm": ppm,
               "text": "table position minus motor position is periodic in the table "
-                      "position: " + ", ".join(f"period {p * 1e3:.4g} mm, {a * 1e6:.3g} um"
-                                               for p, a in zip(chosen, amps))}
-        return Term(self, {"periods_m": chosen}, coef, True, ev)
+                      "position: " + ", ".join(f"period {p * 1e3:.4g} mm ({p / lead:.3g} "
+                                               f"lead), {a * 1e6:.3g} um"
+                                               for p, a in zip(chosen, amps))
+                      + (f"; cumulative lead error {ppm:.3g} um/m" if linear else "")}
+        return Term(self, shape, coef, True, ev)
 
     def _refine(self, ctx, residual, mask, cycles, resolution):
         """The period within one spectral line of ``cycles`` (cycles/m) that explains
@@ -187,15 +243,17 @@ class PitchError(Effect):
         return float(1.0 / sol.x)
 
     def columns(self, ctx, shape):
-        return self._cols(ctx, shape["periods_m"])
+        return self._cols(ctx, shape["periods_m"], shape.get("linear", False))
 
     def n_coef(self, shape):
-        return 2 * len(shape["periods_m"])
+        return 2 * len(shape["periods_m"]) + int(shape.get("linear", False))
 
     def params(self, ctx, shape, coef):
-        amps, phases = _amp_phase(coef, 1.0)
+        k = 2 * len(shape["periods_m"])
+        amps, phases = _amp_phase(coef[:k], 1.0)
         return {"periods_m": list(shape["periods_m"]), "amplitudes_m": amps,
-                "phases_deg": phases}
+                "phases_deg": phases,
+                "linear_ppm": float(coef[k]) * 1e6 if shape.get("linear") else 0.0}
 
     def overrides(self, ctx, shape, coef, model):
         return {"pitch_error": self.params(ctx, shape, coef)}

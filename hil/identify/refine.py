@@ -1,0 +1,174 @@
+"""The closed-loop refinement: scalar parameters fitted on the replay itself.
+
+The inverse model weighs every sample's force balance equally; the closed loop weighs
+them as the controller does, and its error is what the report measures.  So at the end of
+the search the single-coefficient terms (mass, viscous and Coulomb friction, the
+constant force, the Stribeck excess; backlash, compliance) and the scalar shapes that the
+linear fits hold fixed (the Stribeck velocity, the presliding spring's k1, x1 and
+exponent) are adjusted together so that the replay matches the record
+(``scipy.optimize.least_squares``), on the acceptance's measure: every replay channel's
+error over its noise floor, with the record's n_eff independent samples -- the residual
+vector is sqrt(n_eff / n) (y - y_hat) / (floor s_k) per channel and sample.  A channel
+that stays far above its floor would outweigh the others, so each pass (a coarse and a
+fine finite-difference step) first sets s_k = max(1, its rms error / floor): the
+likelihood with each channel's deviation its floor or its misfit, whichever is larger.
+The result is kept only where J = sum over channels of (rms error / floor)², the
+acceptance's measure, falls.  The declared coefficients keep their prior
+(:class:`hil.identify.model.Model`): one more residual (c - c_declared) / (tolerance
+|c_declared|) each.
+
+The Jacobian at the solution, its rows in those deviations, gives each parameter's
+standard uncertainty: sqrt of the diagonal of (JᵀJ)⁻¹.
+"""
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.optimize import least_squares
+
+from hil.identify.effects import FORCE, POSITION
+from hil.identify.floor import channel_residuals
+from hil.identify.model import Model, uncertainty
+from hil.identify.record import Record
+from hil.identify.replay import ERROR_START
+
+#: scalar shape parameters the refinement frees: effect -> shape keys (fitted in log
+#: space within a factor SHAPE_RANGE of the linear fit's value)
+SHAPES = {"stribeck": ("vs",), "presliding_hysteresis": ("k1", "x1", "a")}
+#: terms whose one coefficient is a fixed scale of their shape (not refined)
+FIXED_SCALE = ("presliding_hysteresis",)
+SHAPE_RANGE = 3.0
+#: relative finite-difference steps of the two passes: stick-slip friction makes the
+#: replay's error rough in the friction levels at small scales, so a coarse pass first
+DIFF_STEPS = (3e-2, 3e-3)
+#: penalty residual of a replay that failed, per sample and channel
+FAILED = 1e3
+
+
+@dataclass(frozen=True)
+class Parameter:
+    """One refined parameter: a term's coefficient (``key`` None) or shape entry."""
+    effect: str
+    key: str | None
+    log: bool
+
+    @property
+    def label(self) -> str:
+        return self.effect if self.key is None else f"{self.effect}.{self.key}"
+
+
+def parameters(model: Model) -> list[Parameter]:
+    """What the refinement adjusts in ``model``."""
+    out = []
+    for t in model.terms:
+        if (t.effect.domain in (FORCE, POSITION) and t.effect.n_coef(t.shape) == 1
+                and t.effect.name not in FIXED_SCALE):
+            out.append(Parameter(t.effect.name, None, False))
+        out += [Parameter(t.effect.name, k, True) for k in SHAPES.get(t.effect.name, ())]
+    return out
+
+
+def refine(model: Model, rec: Record, floor: dict, n_eff: float, max_nfev: int,
+           say=None) -> dict:
+    """Adjust :func:`parameters` on the closed-loop replay (module docstring); the model's
+    terms are left at the best point found (or as they were when nothing is better).
+
+    Returns the report's ``refinement``: ``before``/``after`` (label -> value),
+    ``sigma`` (label -> standard uncertainty), ``cost_before``/``cost_after`` (J) and
+    ``replays``."""
+    params = parameters(model)
+    if not params:
+        return {}
+    terms = {t.effect.name: t for t in model.terms}
+
+    def get(p: Parameter) -> float:
+        t = terms[p.effect]
+        return math.log(t.shape[p.key]) if p.log else float(t.coef[0])
+
+    def put(p: Parameter, z: float) -> None:
+        t = terms[p.effect]
+        if p.log:
+            t.shape = {**t.shape, p.key: math.exp(z)}
+        else:
+            t.coef = np.array([z])
+
+    z0 = np.array([get(p) for p in params])
+    lo, hi = np.empty(z0.size), np.empty(z0.size)
+    for i, p in enumerate(params):
+        t = terms[p.effect]
+        if p.log:
+            lo[i], hi[i] = z0[i] - math.log(SHAPE_RANGE), z0[i] + math.log(SHAPE_RANGE)
+        else:
+            lo[i], hi[i] = t.effect.bounds(t.shape)[0][0], t.effect.bounds(t.shape)[1][0]
+    z0 = np.clip(z0, lo + 1e-12 * np.abs(z0), hi)
+    prior = []  # (index, declared value, deviation)
+    for i, p in enumerate(params):
+        c0 = model.declared.get(p.effect)
+        if not p.log and c0 is not None and c0.size == 1 and c0[0] != 0.0:
+            prior.append((i, float(c0[0]), model.tolerance_of(p.effect) * abs(float(c0[0]))))
+    n = rec.n - ERROR_START
+    weight = math.sqrt(max(n_eff, 1.0) / n)
+    count = [0]
+    costs = []
+    last = np.ones(len(floor))  # the last replay's rms error / floor per channel
+    scale_k = np.ones(len(floor))  # each channel's deviation over its floor (>= 1)
+
+    def residual(z):
+        for p, value in zip(params, z):
+            put(p, float(value))
+        model.coefficients_changed()
+        rep = model.replay()
+        count[0] += 1
+        if rep is None or rep.status != 0:
+            chans = [np.full(n, FAILED)] * len(floor)
+        else:
+            chans = [np.where(np.isfinite(c), c, FAILED)
+                     for c in (r[ERROR_START:] for r in channel_residuals(rec, rep, floor))]
+        ratios = np.array([math.sqrt(float(np.mean(c * c))) for c in chans])
+        costs.append(float(np.sum(ratios ** 2)))
+        last[:] = ratios
+        if say is not None and count[0] % 10 == 0:
+            say(f"  refinement: {count[0]} replays, J {costs[-1]:.4g}")
+        pri = [(z[i] - c0) / s for i, c0, s in prior]
+        data = np.concatenate([c / s for c, s in zip(chans, scale_k)])
+        return np.concatenate([weight * data, np.array(pri)])
+
+    before = {p.label: (math.exp(v) if p.log else float(v)) for p, v in zip(params, z0)}
+    if say is not None:
+        say(f"refining {', '.join(before)} on the closed-loop replay")
+    residual(z0)
+    j0 = costs[-1]
+    scale = np.where([p.log for p in params], 0.1,
+                     np.maximum(np.abs(z0), 1e-3 * max(float(np.max(np.abs(z0))), 1e-9)))
+    best, jac = z0, None
+    for step in DIFF_STEPS:
+        residual(best)
+        scale_k[:] = np.maximum(last, 1.0)
+        start = residual(best)
+        best_cost = 0.5 * float(start @ start)
+        sol = least_squares(residual, best, bounds=(lo, hi), x_scale=scale, diff_step=step,
+                            max_nfev=max_nfev)
+        jac = sol.jac
+        if sol.cost < best_cost:
+            best = sol.x
+    residual(best)
+    j1 = costs[-1]
+    if j1 > j0:
+        # the passes' channel weights balance the channels; the acceptance's J decides
+        best = z0
+        residual(best)
+        j1 = costs[-1]
+    # the rows are in units of each channel's deviation already (its floor, or its misfit)
+    sigma = uncertainty(jac, 1.0)
+    after = {p.label: (math.exp(v) if p.log else float(v)) for p, v in zip(params, best)}
+    sig = {p.label: (after[p.label] * s if p.log else s) for p, s in zip(params, sigma)}
+    for p, s in zip(params, sigma):
+        t = terms[p.effect]
+        if p.key is None:
+            t.sigma = np.array([s])
+    if say is not None:
+        say(f"refined in {count[0]} replays: J {j0:.4g} -> {j1:.4g}")
+    return {"before": before, "after": after, "sigma": sig, "cost_before": j0,
+            "cost_after": j1, "replays": count[0]}
+
