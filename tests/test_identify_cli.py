@@ -4,7 +4,6 @@ model, and the command's outputs and refusals on a generated trace."""
 import json
 import subprocess
 import sys
-from pathlib import Path
 
 import pytest
 

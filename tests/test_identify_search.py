@@ -95,8 +95,9 @@ def test_holdout_blocks_alternate_every_block_s(coulomb_trace):
 def test_every_candidate_is_ranked_and_a_wrong_mass_is_flagged(coulomb_trace):
     """Start without Coulomb friction and with the table mass declared 50 % high (18 % of
     the reflected mass with the rotor): round 1 ranks every available effect, Coulomb's
-    first; the mass, whose data outweigh its prior, comes out near the truth and is flagged beyond its 10 % tolerance, not with a tolerance of
-    50 %.  Two worker processes rank exactly as the calling process does."""
+    first; the mass, whose data outweigh its prior, comes out near the truth and is
+    flagged beyond its 10 % tolerance, not with a tolerance of 50 %.  Two worker
+    processes rank exactly as the calling process does."""
     d, trace = coulomb_trace
     start = write_config(d / "start.toml", {"friction": {"coulomb_n": 0.0},
                                             "table": {"mass_kg": 1.5 * 60.0}})

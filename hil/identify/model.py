@@ -200,9 +200,10 @@ class Model:
 
 def uncertainty(a_w: np.ndarray, misfit: float) -> np.ndarray:
     """Standard uncertainties of a fit's parameters from its Jacobian (or a linear fit's
-    weighted columns) ``a_w``, rows in noise units: sqrt of the diagonal of (AᵀA)⁻¹, times the data's rms residual over the
-    noise floor (``misfit``) where it exceeds 1: a model that does not reach the floor
-    knows its parameters less well.  NaN where the columns are degenerate."""
+    weighted columns) ``a_w``, rows in noise units: sqrt of the diagonal of (AᵀA)⁻¹,
+    times the data's rms residual over the noise floor (``misfit``) where it exceeds 1:
+    a model that does not reach the floor knows its parameters less well.  NaN where the
+    columns are degenerate."""
     try:
         cov = np.linalg.inv(a_w.T @ a_w)
     except np.linalg.LinAlgError:

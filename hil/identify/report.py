@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 
 from hil.identify.config_out import write_config
-from hil.identify.effects import FORCE, POSITION
+from hil.identify.effects import FORCE
 from hil.identify.fit import Identification
 from hil.identify.spectrum import position_spectrum
 
@@ -138,7 +138,7 @@ def markdown(rep: dict) -> str:
         lines += [f"{i}. **{s['effect']}** — {params}",
                   f"   - evidence: {s['evidence'].get('text', '')} (explains "
                   f"{100 * s['evidence'].get('explained', 0):.1f} % of its residual)",
-                  f"   - error after this step: " + ", ".join(
+                  "   - error after this step: " + ", ".join(
                       f"{k} {_fmt(v)}" for k, v in s["error"].items())]
     ref = rep.get("refinement") or {}
     if ref:

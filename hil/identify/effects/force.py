@@ -11,7 +11,7 @@ external force pushing toward +x (``[table] external_force_n``).
 
 import numpy as np
 
-from hil.identify.effects.base import FORCE, Context, Effect, Term, correlation, explained, lstsq
+from hil.identify.effects.base import Context, Effect, Term, correlation, explained, lstsq
 
 
 def _linear_term(effect: Effect, ctx: Context, residual: np.ndarray,
