@@ -23,15 +23,15 @@ from scipy.signal import lfilter
 from hil.controller.blocks import PI
 from hil.controller.config import axis_limits, load_controller
 from hil.controller.interpolator import ProfileSamples, plan
-from hil.controller.program import parse_program
 from hil.controller.nc import Controller
+from hil.controller.program import parse_program
+from hil.drive import EmulatedDrive
 from hil.identify.conventions import ConventionError, read_conventions
 from hil.identify.record import Record, load_record
 from hil.identify.replay import replay
 from hil.identify.trace_controller import ClampPI, TraceController, WindupPI
 from hil.sim import LockStep
 from hil.trace_file import write_trace
-from hil.drive import EmulatedDrive
 from io_adapters.messages import Feedback, Setpoint
 from plant import Plant
 from plant.config import load_machine

@@ -1,10 +1,10 @@
 """The identification's building blocks, each against an analytic answer."""
 
 import math
-import tomllib
 
 import numpy as np
 import pytest
+import tomllib
 
 from hil.identify.config_out import patch_config, toml_value
 from hil.identify.effects.base import quantum

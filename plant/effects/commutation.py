@@ -36,9 +36,26 @@ import math
 from numba import njit
 
 from plant.effects.pmsm import clamp, pi_step
-from plant.layout import (P_DT, P_EXP_D, P_FW_ENABLED, P_FW_M_MAX, P_I_MAX, P_KI_I, P_KP_I,
-                          P_KT, P_LD, P_POLE_PAIRS, P_R, P_SUB_PER_PWM, P_U_MAX, S_INT_Q, S_IQ,
-                          S_IQ_MEAS, S_KM, S_UQ_NEXT)
+from plant.layout import (
+    P_DT,
+    P_EXP_D,
+    P_FW_ENABLED,
+    P_FW_M_MAX,
+    P_I_MAX,
+    P_KI_I,
+    P_KP_I,
+    P_KT,
+    P_LD,
+    P_POLE_PAIRS,
+    P_R,
+    P_SUB_PER_PWM,
+    P_U_MAX,
+    S_INT_Q,
+    S_IQ,
+    S_IQ_MEAS,
+    S_KM,
+    S_UQ_NEXT,
+)
 
 
 @njit(cache=True, error_model="numpy")

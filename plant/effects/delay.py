@@ -17,8 +17,17 @@ N periods).
 from numba import njit
 
 from plant.effects.sensors import counts
-from plant.layout import (P_DELAY_N, P_ENC_COUNTS_PER_RAD, P_SCALE_RES, P_SOFF_DELAY, P_SOFF_ROT,
-                          S_DELAY_HEAD, S_ID_MEAS, S_IQ_MEAS, S_TABLE_X)
+from plant.layout import (
+    P_DELAY_N,
+    P_ENC_COUNTS_PER_RAD,
+    P_SCALE_RES,
+    P_SOFF_DELAY,
+    P_SOFF_ROT,
+    S_DELAY_HEAD,
+    S_ID_MEAS,
+    S_IQ_MEAS,
+    S_TABLE_X,
+)
 
 N_DELAYED = 4  # signals in the ring
 

@@ -9,10 +9,21 @@ import math
 
 from numba import njit
 
-from plant.layout import (P_FR_COULOMB, P_FR_DV, P_FR_STATIC, P_FR_STRIBECK_V, P_FR_VISC_ASYM,
-                          P_FR_VISCOUS,
-                          P_PRE_A, P_PRE_ENABLED, P_PRE_K1, P_PRE_X1, S_PRE_DIR, S_PRE_F,
-                          S_PRE_XREV)
+from plant.layout import (
+    P_FR_COULOMB,
+    P_FR_DV,
+    P_FR_STATIC,
+    P_FR_STRIBECK_V,
+    P_FR_VISC_ASYM,
+    P_FR_VISCOUS,
+    P_PRE_A,
+    P_PRE_ENABLED,
+    P_PRE_K1,
+    P_PRE_X1,
+    S_PRE_DIR,
+    S_PRE_F,
+    S_PRE_XREV,
+)
 
 #: (v/v_s)^2 at and above which the Stribeck term is skipped: exp(-x) underflows to exactly
 #: 0.0 in double precision beyond x = 745.13, so skipping it changes no bit, and it spares

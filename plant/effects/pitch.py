@@ -16,8 +16,7 @@ import math
 
 from numba import njit
 
-from plant.layout import (P_PITCH_AMP, P_PITCH_LINEAR, P_PITCH_N, P_PITCH_PHASE,
-                          P_PITCH_WAVENUMBER)
+from plant.layout import P_PITCH_AMP, P_PITCH_LINEAR, P_PITCH_N, P_PITCH_PHASE, P_PITCH_WAVENUMBER
 
 
 @njit(cache=True, error_model="numpy", inline="always")

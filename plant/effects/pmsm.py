@@ -20,9 +20,30 @@ import math
 
 from numba import njit
 
-from plant.layout import (P_DECOUPLE, P_DT, P_EXP_D, P_EXP_Q, P_I_MAX, P_KI_I, P_KP_I, P_LD, P_LQ,
-                          P_POLE_PAIRS, P_PSI, P_R, P_SUB_PER_PWM, P_U_MAX, S_ID, S_ID_MEAS,
-                          S_INT_D, S_INT_Q, S_IQ, S_IQ_MEAS, S_UD_NEXT, S_UQ_NEXT)
+from plant.layout import (
+    P_DECOUPLE,
+    P_DT,
+    P_EXP_D,
+    P_EXP_Q,
+    P_I_MAX,
+    P_KI_I,
+    P_KP_I,
+    P_LD,
+    P_LQ,
+    P_POLE_PAIRS,
+    P_PSI,
+    P_R,
+    P_SUB_PER_PWM,
+    P_U_MAX,
+    S_ID,
+    S_ID_MEAS,
+    S_INT_D,
+    S_INT_Q,
+    S_IQ,
+    S_IQ_MEAS,
+    S_UD_NEXT,
+    S_UQ_NEXT,
+)
 
 
 @njit(cache=True, error_model="numpy", inline="always")

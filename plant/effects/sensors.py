@@ -6,7 +6,7 @@ import numpy as np
 from numba import njit
 
 from plant.effects.rng import gaussian
-from plant.layout import (P_I_LSB, P_I_NOISE, P_SEED, S_RNG_COUNTER)
+from plant.layout import P_I_LSB, P_I_NOISE, P_SEED, S_RNG_COUNTER
 
 
 @njit(cache=True, error_model="numpy")

@@ -4,8 +4,14 @@ it, its regressors and how it is written into a machine file (see ``base.Effect`
 from hil.identify.effects.base import FORCE, POSITION, REPLAY, Context, Effect, Term
 from hil.identify.effects.delay import TimeDelay
 from hil.identify.effects.drivetrain import Backlash, Compliance, Presliding
-from hil.identify.effects.force import (CoulombFriction, GravityOffset, Inertia, Stribeck,
-                                        ViscousAsymmetry, ViscousFriction)
+from hil.identify.effects.force import (
+                                        CoulombFriction,
+                                        GravityOffset,
+                                        Inertia,
+                                        Stribeck,
+                                        ViscousAsymmetry,
+                                        ViscousFriction,
+)
 from hil.identify.effects.periodic import Cogging, PitchError
 
 #: every effect, simplest first: among effects that explain about as much, the earlier wins

@@ -18,7 +18,6 @@ from hil.identify.effects.base import FORCE, POSITION, Effect, Term, correlation
 from plant import layout as L
 from plant.effects.friction import presliding_update
 
-
 NO_SECOND_SENSOR = "the record has no motor encoder column (motor_pos_mm) beside pos_mm"
 #: time either side of a flank change that a backlash fit leaves out (s)
 SETTLE_S = 0.03
