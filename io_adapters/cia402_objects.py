@@ -62,9 +62,10 @@ class ObjectAccessError(Exception):
 
 class ObjectAccess(Protocol):
     """The drive's side of its objects (:data:`~io_adapters.can_catalog.PARAMETERS`),
-    given to the device endpoint by the drive's owner.  Called from the bus's receive thread: each call reads or sets
-    the drive's values at once, which the drive uses from its next cycle.  Values are in
-    the drive's wire units before the factor group's scaling (increments ...)."""
+    given to the device endpoint by the drive's owner.  Called from the bus's receive
+    thread: each call reads or sets the drive's values at once, which the drive uses from
+    its next cycle.  Values are in the drive's wire units before the factor group's
+    scaling (increments ...)."""
 
     def read(self, axis: int, index: int, subindex: int) -> int:
         """The object's value for ``axis`` (0-based)."""

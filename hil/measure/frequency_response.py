@@ -7,7 +7,8 @@ are averaged over the segments.  Then
     H(f) = S_uy / S_uu,        coherence γ²(f) = |S_uy|² / (S_uu · S_yy).
 
 H1 is unbiased by noise on y; γ² is 1 for a noise-free linear system and falls where
-noise or nonlinearity dominates (with a single segment it is 1 by construction).  Two ways to cut the segments:
+noise or nonlinearity dominates (with a single segment it is 1 by construction).  Two
+ways to cut the segments:
 
 * ``period=`` — periodic excitation (a PRBS repeated several times): whole periods with a
   rectangular window, the first ``discard_periods`` dropped as transient.  The excitation

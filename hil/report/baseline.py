@@ -11,8 +11,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from hil.rt.cyclictest import (DEFAULT_HISTOGRAM_US, cyclictest_histogram,
-                               parse_histogram)
+from hil.rt.cyclictest import (
+    DEFAULT_HISTOGRAM_US,
+    cyclictest_histogram,
+    parse_histogram,
+)
 from hil.rt.loop import Percentiles
 
 
