@@ -28,7 +28,11 @@ Array layouts (module constants, compile-time indices):
 * ``spf`` float64[:data:`N_SPF`]: the setpoint's floats in :data:`SP_FLOATS` order;
   ``spi`` int64[3]: seq, controlword, mode;
 * ``fbf`` float64[:data:`N_FBF`]: the feedback's floats (``B_*``); the statusword is
-  ``ist[J_STATUSWORD]``.
+  ``ist[J_STATUSWORD]``;
+* ``ring_f`` float64[n_floats, slots], ``ring_i`` int64[n_ints, slots]: this axis's
+  planes of the recording's ring (:mod:`hil.runtime.recording`); a cycle that ran writes
+  its row into column ``ist[J_ROW]`` (-1: none): the setpoint's floats, the plant's
+  outputs, and the words in :data:`RING_INTS` order.
 """
 
 import math
@@ -70,7 +74,10 @@ EXIT_LOOP = 4
 #: the plant's status is not OK (the step was undone)
 EXIT_PLANT = 5
 
-#: the setpoint's float fields, in ``spf`` order
+#: the recording's integer row of an axis (hil.runtime.recording.AXIS_INTS)
+RING_INTS = ("sp_controlword", "sp_mode", "fb_statusword", "fb_fault", "drive_state",
+             "drive_enable")
+#: the setpoint's float fields, in ``spf`` order (and the recording's)
 SP_FLOATS = ("iq_ref_a", "id_ref_a", "ud_v", "uq_v", "target_position_counts",
              "target_velocity_counts_s", "velocity_offset_counts_s")
 S_IQ, S_ID, S_UD, S_UQ, S_POS, S_VEL, S_VOFF = range(7)
@@ -91,7 +98,7 @@ I_SEQ, I_CW, I_MODE = range(3)
  F_SYM_Y, F_POS_ERROR, F_INTEG, F_SET_Z1, F_SET_Z2, F_CUR_Z1, F_CUR_Z2, F_NOTCH_Z1,
  F_NOTCH_Z2, F_E_PREV, F_W_CMD, F_IQ, F_LAST_GOOD_X, N_FST) = range(28)
 (J_TICK, J_LIMITED, J_HOT, J_MONITOR_FLAGS, J_STATUSWORD, J_INTERP_SEQ, J_CYCLES, J_LENGTH,
- J_SPEED_RATIO, J_POSITION_RATIO, J_N_SUB, J_MODE, J_CONTROLWORD, N_IST) = range(14)
+ J_SPEED_RATIO, J_POSITION_RATIO, J_N_SUB, J_MODE, J_CONTROLWORD, J_ROW, N_IST) = range(15)
 B_TIME, B_ENCODER, B_SCALE, B_VELOCITY, B_IQ, B_ID = range(6)
 N_FBF = 6
 
@@ -135,9 +142,9 @@ def _refused(prm, spf, mode):
 
 
 @njit(cache=True, error_model="numpy", _nrt=False)
-def steady_cycle(prm, fst, ist, spf, spi, p, s, inp, out, saved, fbf):
+def steady_cycle(prm, fst, ist, spf, spi, p, s, inp, out, saved, fbf, ring_f, ring_i):
     """One drive cycle in steady state (see the module docstring); returns :data:`DONE` or
-    an ``EXIT_*`` code with nothing changed.  ``p``, ``s``, ``inp``, ``out``: the plant's
+    an ``EXIT_*`` code with nothing changed (the ring's row included).  ``p``, ``s``, ``inp``, ``out``: the plant's
     arrays (:mod:`plant.layout`); ``saved``: float64 scratch of at least
     ``len(s) + len(inp) + len(out)``, for undoing a failed plant step."""
     mode, cw = spi[I_MODE], spi[I_CW]
@@ -352,4 +359,16 @@ def steady_cycle(prm, fst, ist, spf, spi, p, s, inp, out, saved, fbf):
     fbf[B_VELOCITY] = velocity
     fbf[B_IQ] = out[L.O_IQ_MEAS]
     fbf[B_ID] = out[L.O_ID_MEAS]
+    j = ist[J_ROW]
+    if j >= 0:
+        for k in range(N_SPF):
+            ring_f[k, j] = spf[k]
+        for k in range(out.size):
+            ring_f[N_SPF + k, j] = out[k]
+        ring_i[0, j] = cw
+        ring_i[1, j] = mode
+        ring_i[2, j] = statusword
+        ring_i[3, j] = 0  # 603Fh: no fault is latched in steady state
+        ring_i[4, j] = State.OPERATION_ENABLED
+        ring_i[5, j] = 1  # the power stage on
     return DONE

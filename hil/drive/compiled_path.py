@@ -50,11 +50,27 @@ class CompiledPath:
         self.spf = np.zeros(C.N_SPF)
         self.spi = np.zeros(3, dtype=np.int64)
         self.fbf = np.zeros(C.N_FBF)
+        self.ring_f = np.zeros((1, 1))
+        self.ring_i = np.zeros((1, 1), dtype=np.int64)
+        self.ist[C.J_ROW] = -1
+        self.row_written = False
         self.saved = np.zeros(plant.state.size + plant.inp.size + plant.out.size)
         self.active = False
         self.cycles = 0
         self.exits = [0] * (C.EXIT_PLANT + 1)
         self._generation = -1
+
+    def bind_ring(self, ring_f: np.ndarray, ring_i: np.ndarray) -> None:
+        """Write each compiled cycle's recording row into these planes of the ring (this
+        axis's ``floats`` and ``ints``, :class:`~hil.runtime.recording.Recorder`), at the
+        column :meth:`set_row` gives."""
+        self.ring_f, self.ring_i = ring_f, ring_i
+
+    def set_row(self, j: int) -> None:
+        """This tick's row is column ``j`` of the ring (-1: not recorded);
+        :attr:`row_written` says, after the tick, whether the last cycle wrote it."""
+        self.ist[C.J_ROW] = j
+        self.row_written = False
 
     def run(self, sp, fb) -> bool:
         """Run this cycle compiled if the drive is in its steady state; False: the Python
@@ -62,9 +78,11 @@ class CompiledPath:
         d = self.drive
         if self.active:
             if d.link_causes or d.faults.latched or d.params.generation != self._generation:
+                self.row_written = False
                 self.leave()
                 return False
         elif not self._enter(sp):
+            self.row_written = False
             return False
         spi = self.spi
         spi[C.I_SEQ] = sp.seq
@@ -80,11 +98,14 @@ class CompiledPath:
         spf[C.S_VOFF] = sp.velocity_offset_counts_s
         plant = d.plant
         status = C.steady_cycle(self.prm, self.fst, self.ist, spf, spi, plant.params,
-                                plant.state, plant.inp, plant.out, self.saved, self.fbf)
+                                plant.state, plant.inp, plant.out, self.saved, self.fbf,
+                                self.ring_f, self.ring_i)
         if status:
             self.exits[status] += 1
+            self.row_written = False
             self.leave()
             return False
+        self.row_written = True
         self.cycles += 1
         d.tick += 1
         fb.seq = sp.seq

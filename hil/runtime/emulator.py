@@ -86,7 +86,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
 
-from hil.cia402 import DISABLE_VOLTAGE
+from hil.cia402 import DISABLE_VOLTAGE, EnableSequencer
 from hil.drive import DriveSet, EmulatedDrive
 from hil.drive.objects import DriveObjects
 from hil.rt.loop import OverrunPolicy
@@ -120,7 +120,7 @@ from hil.runtime.sync import ShiftableClock, SyncLock
 from hil.runtime.watchdog import Watchdog
 from io_adapters import AdapterError, Endpoint, open_endpoint
 from io_adapters.can_url import IN_PROCESS_ONLY, in_process_only
-from io_adapters.messages import axis_records, message_pair
+from io_adapters.messages import MODE_CSP, MODE_CST, axis_records, message_pair
 from plant import Plant
 from plant import layout as L
 from plant.assemble import check_substep_count
@@ -178,6 +178,7 @@ class Emulator:
         self.recorder = Recorder(max(2, math.ceil(RING_S * t.rate_hz)),
                                  tuple(c.machine.kind for c in m.configs),
                                  m.names if m.multi_axis else None)
+        self.recorder.attach(self.drives)
         self.loop = StreamingLoop(t.period_ns, self.step, self.recorder, n_ticks=t.n_ticks,
                                   policy=OverrunPolicy(rc.overrun, rc.stop_after,
                                                        t.grace_ticks))
@@ -197,20 +198,28 @@ class Emulator:
         self.log(f"hil run: {message}")
 
     def _warm_up(self) -> None:
-        """Warm the drives' path on the real arrays (the kernel is compiled by the
-        plant's first call), then start afresh; a stop request ends it at the next
-        cycle (``warmup_cycles``: how many ran).  ``drives`` cycles every axis
-        (:class:`DriveSet`); ``drive`` is axis 0's."""
+        """Warm the drives' paths on the real arrays (the kernels are compiled, or loaded
+        from numba's cache, by their first call): enabled as a controller enables them,
+        then holding their position in CSP (the compiled steady-state path,
+        :mod:`hil.drive.compiled_path`; CST on a drive without loops); then start
+        afresh.  A stop request ends it at the next cycle (``warmup_cycles``: how many
+        ran).  ``drives`` cycles every axis (:class:`DriveSet`); ``drive`` is axis 0's."""
         # the drives check [controller] for the CSP/CSV loops
-        self.drives = DriveSet([EmulatedDrive(p) for p in self.plants])
+        self.drives = DriveSet([EmulatedDrive(p, compiled=True) for p in self.plants])
         sp, fb = message_pair(len(self.plants))
+        enable = EnableSequencer(timeout_cycles=WARMUP_CYCLES)
+        enable.enable()
         self.warmup_cycles = 0
         while self.warmup_cycles < WARMUP_CYCLES and not self.stop.requested:
+            sp.controlword = enable.next_controlword(axis_records(fb)[0].statusword)
+            for s, f, d in zip(axis_records(sp), axis_records(fb), self.drives.drives):
+                s.mode = MODE_CSP if d.loops is not None else MODE_CST
+                s.target_position_counts = f.encoder_counts
             self.drives.cycle(sp, fb)
             self.warmup_cycles += 1
         for p, x in zip(self.plants, self.x0):
             p.reset(x)
-        self.drives = DriveSet([EmulatedDrive(p) for p in self.plants])
+        self.drives = DriveSet([EmulatedDrive(p, compiled=True) for p in self.plants])
         self.drive = self.drives[0]
 
     def open_folder(self) -> RunFolder:
@@ -291,6 +300,7 @@ class Emulator:
         if self.sync_lock is not None:
             self.sync_lock.update(self.endpoint.last_sync_ns)
         self.watchdog.update(heard, k, sp.seq, drives, self.endpoint)
+        self.recorder.begin_tick()
         for _ in range(self.timing.cycles_per_tick):
             drives.cycle(sp, fb)
         fb.tick_ns = t_ns
