@@ -113,7 +113,9 @@ class Script:
     kinds: "csp" (ramp, value in increments per tick), "jump" (one CSP step of value
     increments, then hold), "csv" (increments/s), "cst" (A), "nan" (CSP with a NaN
     current feed-forward: refused), "cw" (this controlword, CSP hold), "limit" (607Dh max
-    at the position plus ``value`` increments), "fe_window" (6065h to value rad).
+    at the position plus ``value`` increments), "fe_window" (6065h to value rad),
+    "settle" (the compiled drive's state handed back to its objects, as an SDO read does,
+    and compared with the Python drive's).
     """
 
     def __init__(self, segments, n_axes: int):
@@ -126,6 +128,10 @@ class Script:
         sp, _ = message_pair(self.n_axes)
         k = 0
         for kind, ticks, value in self.segments:
+            if kind == "settle":  # as an SDO read does: the state back in the objects
+                for da, db in zip(a.drives.drives, b.drives.drives):
+                    assert_same_state(da, db)
+                continue
             if kind in ("limit", "fe_window"):
                 for d in (*a.drives.drives, *b.drives.drives):
                     if kind == "limit":
@@ -167,7 +173,7 @@ class Script:
 
 
 def _compare(segments, n_axes: int = 1) -> Twin:
-    ticks = sum(t for kind, t, _ in segments if kind not in ("limit", "fe_window"))
+    ticks = sum(t for _, t, _ in segments)
     a, b = Twin(False, n_axes, ticks), Twin(True, n_axes, ticks)
     Script(segments, n_axes).run(a, b)
     assert_same_rows(a, b)
@@ -185,7 +191,9 @@ def test_enable_motion_fault_reset_modes_limits_refusal_quick_stop():
     segments = [
         ("csp", 400, 0.0),          # enable, hold
         ("csp", 1500, 40.0),        # CSP ramp
-        ("jump", 300, 3.0e7),       # a step far beyond 6065h: following-error fault
+        ("jump", 40, 3.0e7),        # a step far beyond 6065h, at the current limit
+        ("settle", 0, 0.0),         # I²t heating, compared
+        ("jump", 260, 0.0),         # then the following-error fault
         ("cw", 5, 0x0000),          # ...
         ("cw", 5, 0x0080),          # fault reset (rising edge of bit 7)
         ("csp", 600, 0.0),          # re-enable, hold
@@ -232,6 +240,7 @@ _SEGMENT = st.one_of(
               st.sampled_from([0x00, 0x06, 0x07, 0x0F, 0x80, 0x02, 0x1F, 0x8F])),
     st.tuples(st.just("limit"), st.just(0), st.floats(-1e5, 1e5)),
     st.tuples(st.just("fe_window"), st.just(0), st.floats(1e-3, 2.0)),
+    st.tuples(st.just("settle"), st.just(0), st.just(0.0)),
 )
 
 

@@ -16,11 +16,15 @@ twin plant of axis 0 fed the tick's plant inputs) is timed, so both figures shar
 machine's state.  JSON, per machine file::
 
     {"config", "axes", "rate_hz", "seconds", "ticks",
-     "tick_compute_us": {"p50", "p99", "p999", "max"}, "plant_step_us": {...},
+     "tick_compute_us": {"p50", "p99", "p999", "max"}, "tick_cpu_us": {...},
+     "plant_step_us": {"p50", "p999"},
      "ratio_p50", "compiled_share", "enabled_ticks", "compiled_share_enabled",
      "exits", "overruns", "setpoints_heard", "load_avg_1min"}
 
-``tick_compute_us`` is from the start of the step to the end of ``end_tick``;
+``tick_compute_us`` is from the start of the step to the end of ``end_tick`` (wall
+time), ``tick_cpu_us`` the loop thread's CPU time in it (what the tick costs whatever
+else the machine runs: on a loaded machine the wall time includes the other processes'
+turns);
 ``ratio_p50`` the tick's p50 over the plant step's; ``compiled_share`` the share of ticks
 whose every drive cycle took the compiled path (:mod:`hil.drive.compiled_path`),
 ``compiled_share_enabled`` that share among the ticks that started with every drive in
@@ -37,6 +41,7 @@ import multiprocessing
 import os
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -134,31 +139,53 @@ def bench(config: Path, seconds: float) -> dict:
             child.kill()
             child.join()
         emulator.endpoint.close()
-    compute, plant_ns, compiled, enabled, overruns = stats
-    tick_p = Percentiles.of_ns_in_us(compute)
-    plant_p = Percentiles.of_ns_in_us(plant_ns)
+    tick_p = Percentiles.of_ns_in_us(stats.compute_ns)
+    cpu_p = Percentiles.of_ns_in_us(stats.cpu_ns)
+    plant_p = Percentiles.of_ns_in_us(stats.plant_ns)
+    compiled, enabled = stats.compiled, stats.enabled
     exits = {name: sum(d.compiled.exits[code] for d in drives)
              for code, name in _EXIT_NAMES.items()}
     return {"config": str(config), "axes": len(drives), "rate_hz": emulator.timing.rate_hz,
             "seconds": n_ticks * period_ns * 1e-9, "ticks": n_ticks,
-            "tick_compute_us": tick_p.as_dict(),
+            "tick_compute_us": tick_p.as_dict(), "tick_cpu_us": cpu_p.as_dict(),
             "plant_step_us": {"p50": plant_p.p50, "p999": plant_p.p999},
             "ratio_p50": tick_p.p50 / plant_p.p50,
             "compiled_share": float(compiled.mean()),
             "enabled_ticks": int(enabled.sum()),
             "compiled_share_enabled": (float(compiled[enabled].mean()) if enabled.any()
                                        else None),
-            "exits": exits, "overruns": overruns,
+            "exits": exits, "overruns": stats.overruns,
             "setpoints_heard": emulator.setpoints_heard, "load_avg_1min": os.getloadavg()[0]}
 
 
-def _ticks(emulator: Emulator, twin: Plant, n_ticks: int, period_ns: int):
-    """The paced loop: (compute ns, plant-step ns, compiled, enabled at the start (bool
-    arrays per tick), overruns)."""
+@dataclass(frozen=True)
+class TickSamples:
+    """What the paced loop measured, one element per tick.
+
+    Attributes:
+        compute_ns: wall time of the step and ``end_tick``, ns.
+        cpu_ns: the loop thread's CPU time in them, ns (without the time other processes
+            took the CPU: a loaded machine inflates ``compute_ns`` only).
+        plant_ns: wall time of the twin plant's step alone, ns.
+        compiled: every drive cycle of the tick took the compiled path.
+        enabled: every drive was in OPERATION ENABLED at the start of the tick.
+        overruns: ticks that ended after the next deadline.
+    """
+    compute_ns: np.ndarray
+    cpu_ns: np.ndarray
+    plant_ns: np.ndarray
+    compiled: np.ndarray
+    enabled: np.ndarray
+    overruns: int
+
+
+def _ticks(emulator: Emulator, twin: Plant, n_ticks: int, period_ns: int) -> TickSamples:
+    """The paced loop (see the module docstring)."""
     drives = emulator.drives.drives
     recorder, plant = emulator.recorder, emulator.plant
     per_tick = emulator.timing.cycles_per_tick
     compute = np.zeros(n_ticks, dtype=np.int64)
+    cpu = np.zeros(n_ticks, dtype=np.int64)
     plant_ns = np.zeros(n_ticks, dtype=np.int64)
     compiled = np.zeros(n_ticks, dtype=bool)
     enabled = np.zeros(n_ticks, dtype=bool)
@@ -168,9 +195,11 @@ def _ticks(emulator: Emulator, twin: Plant, n_ticks: int, period_ns: int):
         enabled[k] = all(d.sm.state == State.OPERATION_ENABLED for d in drives)
         before = [d.compiled.cycles for d in drives]
         woke = _wait_until(deadline)
+        cpu_start = time.thread_time_ns()
         emulator.step(k)
         recorder.end_tick(k, woke - deadline, time.monotonic_ns() - woke)
         done = time.monotonic_ns()
+        cpu[k] = time.thread_time_ns() - cpu_start
         compute[k] = done - woke
         overruns += done > deadline + period_ns
         compiled[k] = all(d.compiled.cycles - b == per_tick for d, b in zip(drives, before))
@@ -180,7 +209,7 @@ def _ticks(emulator: Emulator, twin: Plant, n_ticks: int, period_ns: int):
         plant_ns[k] = time.monotonic_ns() - t0
         recorder.release(recorder.committed)  # the writer's part, untimed
         deadline += period_ns
-    return compute, plant_ns, compiled, enabled, overruns
+    return TickSamples(compute, cpu, plant_ns, compiled, enabled, overruns)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

@@ -23,8 +23,10 @@ drive's state into these arrays and back.
 Array layouts (module constants, compile-time indices):
 
 * ``prm`` float64[:data:`N_PRM`]: parameters and loop coefficients (``R_*``), SI units;
-* ``fst`` float64[:data:`N_FST`]: the float state (``F_*``);
-* ``ist`` int64[:data:`N_IST`]: the integer state and cycle ratios (``J_*``);
+* ``fst`` float64[2 * :data:`N_FST`]: the float state (``F_*``), then the cycle's working
+  copy of it;
+* ``ist`` int64[2 * :data:`N_IST`]: the integer state and cycle ratios (``J_*``), then
+  its working copy;
 * ``spf`` float64[:data:`N_SPF`]: the setpoint's floats in :data:`SP_FLOATS` order;
   ``spi`` int64[3]: seq, controlword, mode;
 * ``fbf`` float64[:data:`N_FBF`]: the feedback's floats (``B_*``); the statusword is
@@ -118,13 +120,20 @@ def _py_min(a, b):
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def _biquad(prm, base, fst, z, x):
+def _copy(src, dst, n):
+    """``dst[:n] = src[:n]`` (a slice assignment would allocate a temporary)."""
+    for k in range(n):
+        dst[k] = src[k]
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _biquad(prm, base, w, z, x):
     """:meth:`hil.controller.blocks.Biquad.step` on coefficients ``prm[base:base + 5]``
-    and the delay line ``fst[z:z + 2]``; returns (y, z1, z2) without storing them."""
-    y = prm[base] * x + fst[z]
-    z1 = prm[base + 1] * x - prm[base + 3] * y + fst[z + 1]
-    z2 = prm[base + 2] * x - prm[base + 4] * y
-    return y, z1, z2
+    and the delay line ``w[z:z + 2]``."""
+    y = prm[base] * x + w[z]
+    w[z] = prm[base + 1] * x - prm[base + 3] * y + w[z + 1]
+    w[z + 1] = prm[base + 2] * x - prm[base + 4] * y
+    return y
 
 
 @njit(cache=True, error_model="numpy", inline="always")
@@ -141,181 +150,169 @@ def _refused(prm, spf, mode):
             or abs(spf[S_UQ]) > prm[R_B_VOLTAGE])
 
 
-@njit(cache=True, error_model="numpy", _nrt=False)
-def steady_cycle(prm, fst, ist, spf, spi, p, s, inp, out, saved, fbf, ring_f, ring_i):
-    """One drive cycle in steady state (see the module docstring); returns :data:`DONE` or
-    an ``EXIT_*`` code with nothing changed (the ring's row included).  ``p``, ``s``, ``inp``, ``out``: the plant's
-    arrays (:mod:`plant.layout`); ``saved``: float64 scratch of at least
-    ``len(s) + len(inp) + len(out)``, for undoing a failed plant step."""
-    mode, cw = spi[I_MODE], spi[I_CW]
-    if mode != ist[J_MODE] or cw != ist[J_CONTROLWORD]:
-        return EXIT_COMMAND
-    if _refused(prm, spf, mode):
-        return EXIT_REFUSED
-    tick = ist[J_TICK]
-    rpc = prm[R_RPC]
-    # the speed actual value (EmulatedDrive._speed_actual)
-    counts = out[L.O_ENCODER]
-    counts_prev, velocity = fst[F_COUNTS_PREV], fst[F_VELOCITY]
-    if tick % ist[J_SPEED_RATIO] == 0:
-        if counts_prev == counts_prev:
-            velocity = (counts - counts_prev) / prm[R_SPEED_PERIOD]
-        counts_prev = counts
-    theta = counts * rpc
-    w_act = velocity * rpc
-    # the mode's command (ModeControl.command, Interpolator.step)
-    interp_seq, cycles, length = ist[J_INTERP_SEQ], ist[J_CYCLES], ist[J_LENGTH]
-    a0, b0, a1, b1 = fst[F_START_A], fst[F_START_B], fst[F_END_A], fst[F_END_B]
-    target, w_cmd = math.nan, 0.0
+@njit(cache=True, error_model="numpy", inline="always")
+def _speed_actual(prm, w, wi, counts):
+    """EmulatedDrive._speed_actual: the encoder difference over the speed cycle."""
+    if wi[J_TICK] % wi[J_SPEED_RATIO] == 0:
+        previous = w[F_COUNTS_PREV]
+        if previous == previous:  # not NaN: a previous sample exists
+            w[F_VELOCITY] = (counts - previous) / prm[R_SPEED_PERIOD]
+        w[F_COUNTS_PREV] = counts
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _interpolated(prm, w, wi, seq, a, b):
+    """Interpolator.step: this cycle's (a, b) for the newest setpoint ``seq``."""
+    period = prm[R_INTERP_PERIOD]
+    if period < prm[R_CYCLE]:
+        wi[J_INTERP_SEQ], wi[J_CYCLES], wi[J_LENGTH] = -1, 1, 1
+        w[F_START_A], w[F_START_B], w[F_END_A], w[F_END_B] = a, b, a, b
+        return a, b
+    if seq != wi[J_INTERP_SEQ]:
+        wi[J_INTERP_SEQ] = seq
+        w[F_START_A], w[F_START_B] = w[F_END_A], w[F_END_B]
+        w[F_END_A], w[F_END_B] = a, b
+        wi[J_CYCLES] = 0
+        wi[J_LENGTH] = max(1, round(period / prm[R_CYCLE]))
+    wi[J_CYCLES] += 1
+    f = _py_min(wi[J_CYCLES] / wi[J_LENGTH], EXTRAPOLATE)
+    a0, b0 = w[F_START_A], w[F_START_B]
+    return a0 + (w[F_END_A] - a0) * f, b0 + (w[F_END_B] - b0) * f
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _command(prm, w, wi, spf, spi, theta):
+    """ModeControl.command and the CSP target held inside 607Dh: (position target or
+    NaN, speed command or feed-forward)."""
+    mode, rpc = spi[I_MODE], prm[R_RPC]
     if mode == MODE_CST:
-        demand, speed = theta, 0.0
-    else:
-        if mode == MODE_CSP:
-            a = (spf[S_POS] - prm[R_SHIFT]) * rpc
-            b = spf[S_VOFF] * rpc
-        else:
-            a = spf[S_VEL] * rpc
-            b = 0.0
-        period = prm[R_INTERP_PERIOD]
-        if period < prm[R_CYCLE]:
-            interp_seq, a0, b0, a1, b1, cycles, length = -1, a, b, a, b, 1, 1
-            x, ff = a, b
-        else:
-            if spi[I_SEQ] != interp_seq:
-                interp_seq = spi[I_SEQ]
-                a0, b0, a1, b1 = a1, b1, a, b
-                cycles = 0
-                length = max(1, round(period / prm[R_CYCLE]))
-            cycles += 1
-            f = _py_min(cycles / length, EXTRAPOLATE)
-            x, ff = a0 + (a1 - a0) * f, b0 + (b1 - b0) * f
-        if mode == MODE_CSP:
-            target, w_cmd = x, ff
-            demand = x if x == x else math.nan
-            speed = ff
-            target = _py_min(_py_max(target, prm[R_LIMIT_MIN]), prm[R_LIMIT_MAX])
-        else:
-            w_cmd = x
-            demand, speed = theta, x
-    # the monitor (Monitor.check, operating)
-    two = prm[R_TWO]
-    currents_a2 = math.pow(out[L.O_IQ_MEAS], two) + math.pow(out[L.O_ID_MEAS], two)
-    heat = fst[F_I2T] + (currents_a2 - prm[R_CONTINUOUS2]) * prm[R_CYCLE]
-    i2t = heat if heat > 0.0 else 0.0
-    hot = ist[J_HOT]
-    if i2t >= prm[R_I2T_TRIP]:
-        hot = 1
-    elif i2t <= prm[R_I2T_COOLED]:
-        hot = 0
-    if hot:
-        return EXIT_CAUSE
-    flags = SW_WARNING if i2t >= prm[R_I2T_WARNING] else 0
-    if abs(w_act) > prm[R_OVERSPEED]:
-        return EXIT_CAUSE
-    sw_neg, sw_pos = out[L.O_LIMIT_NEG], out[L.O_LIMIT_POS]
-    reached_neg = sw_neg > 0.0 and fst[F_SWITCH_NEG] <= 0.0
-    reached_pos = sw_pos > 0.0 and fst[F_SWITCH_POS] <= 0.0
-    if sw_neg > 0.0 or sw_pos > 0.0:
+        w[F_DEMAND], w[F_SPEED] = theta, 0.0
+        return math.nan, 0.0
+    if mode == MODE_CSV:
+        v, _ = _interpolated(prm, w, wi, spi[I_SEQ], spf[S_VEL] * rpc, 0.0)
+        w[F_DEMAND], w[F_SPEED] = theta, v
+        return math.nan, v
+    x, ff = _interpolated(prm, w, wi, spi[I_SEQ], (spf[S_POS] - prm[R_SHIFT]) * rpc,
+                          spf[S_VOFF] * rpc)
+    w[F_DEMAND] = x if x == x else math.nan
+    w[F_SPEED] = ff
+    return _py_min(_py_max(x, prm[R_LIMIT_MIN]), prm[R_LIMIT_MAX]), ff
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _monitor(prm, w, wi, out, target, theta, w_act):
+    """Monitor.check in OPERATION ENABLED: its statusword flags, or -1 when a fault cause
+    is present (then the cycle is the Python path's)."""
+    currents_a2 = math.pow(out[L.O_IQ_MEAS], prm[R_TWO]) + math.pow(out[L.O_ID_MEAS],
+                                                                     prm[R_TWO])
+    heat = w[F_I2T] + (currents_a2 - prm[R_CONTINUOUS2]) * prm[R_CYCLE]
+    w[F_I2T] = heat if heat > 0.0 else 0.0
+    if w[F_I2T] >= prm[R_I2T_TRIP]:
+        wi[J_HOT] = 1
+    elif w[F_I2T] <= prm[R_I2T_COOLED]:
+        wi[J_HOT] = 0
+    if wi[J_HOT] or abs(w_act) > prm[R_OVERSPEED]:
+        return -1
+    flags = SW_WARNING if w[F_I2T] >= prm[R_I2T_WARNING] else 0
+    neg, pos = out[L.O_LIMIT_NEG], out[L.O_LIMIT_POS]
+    reached_neg = neg > 0.0 and w[F_SWITCH_NEG] <= 0.0
+    reached_pos = pos > 0.0 and w[F_SWITCH_POS] <= 0.0
+    w[F_SWITCH_NEG], w[F_SWITCH_POS] = neg, pos
+    if neg > 0.0 or pos > 0.0:
         flags |= SW_INTERNAL_LIMIT_ACTIVE
-    standstill = prm[R_STANDSTILL]
-    if (sw_neg > 0.0 and (reached_neg or w_act < -standstill)) or (
-            sw_pos > 0.0 and (reached_pos or w_act > standstill)):
-        return EXIT_CAUSE
-    csp = target == target
-    if not csp and ((theta < prm[R_LIMIT_MIN] and w_act < -standstill)
-                    or (theta > prm[R_LIMIT_MAX] and w_act > standstill)):
-        return EXIT_CAUSE
-    following_error, fe_time, in_window = (fst[F_FOLLOWING_ERROR], fst[F_FE_TIME],
-                                           fst[F_IN_WINDOW])
-    if csp:
-        following_error = target - theta
-        if abs(following_error) > prm[R_FE_WINDOW]:
-            fe_time += prm[R_CYCLE]
-            if fe_time > prm[R_FE_TIME]:
-                return EXIT_CAUSE
-        else:
-            fe_time = 0.0
-        if abs(following_error) <= prm[R_POS_WINDOW]:
-            in_window += prm[R_CYCLE]
-        else:
-            in_window = 0.0
-        if in_window >= prm[R_POS_WINDOW_TIME]:
-            flags |= SW_TARGET_REACHED
-    monitor_flags = flags | (SW_FOLLOWING_ERROR if abs(following_error) > prm[R_FE_WINDOW]
-                             else 0)
-    # the statusword (EmulatedDrive._flags, DriveStateMachine.update without a transition:
-    # the controlword is enable operation and no fault is latched)
-    word_flags = (monitor_flags & ~_MODE_BITS | monitor_flags | SW_FOLLOWS_COMMAND
-                  | ist[J_LIMITED])
-    statusword = SW_OPERATION_ENABLED_BASE | (word_flags & SW_CALLER_BITS)
-    # the loops and limits (EmulatedDrive._current)
-    limited = 0
-    sym_y, pos_error, w_loop = fst[F_SYM_Y], fst[F_POS_ERROR], fst[F_W_CMD]
-    integ, e_prev, iq_loop = fst[F_INTEG], fst[F_E_PREV], fst[F_IQ]
-    set_z1, set_z2 = fst[F_SET_Z1], fst[F_SET_Z2]
-    cur_z1, cur_z2 = fst[F_CUR_Z1], fst[F_CUR_Z2]
-    notch_z1, notch_z2 = fst[F_NOTCH_Z1], fst[F_NOTCH_Z2]
-    max_speed = prm[R_MAX_SPEED]
-    if mode == MODE_CST:
-        iq = spf[S_IQ]
+    still = prm[R_STANDSTILL]
+    if (neg > 0.0 and (reached_neg or w_act < -still)) or (
+            pos > 0.0 and (reached_pos or w_act > still)):
+        return -1
+    if target != target:
+        if (theta < prm[R_LIMIT_MIN] and w_act < -still) or (
+                theta > prm[R_LIMIT_MAX] and w_act > still):
+            return -1
     else:
-        if csp:
-            held = target != demand
-            if held:
-                limited = SW_INTERNAL_LIMIT_ACTIVE
-            if tick % ist[J_POSITION_RATIO] == 0:
-                sym_y = target + (sym_y - target) * prm[R_SYM_A]
-                pos_error = sym_y - theta
-                v = prm[R_KV] * pos_error + prm[R_FF] * (0.0 if held else w_cmd)
-                w_loop = _py_max(-prm[R_V_LIM], _py_min(prm[R_V_LIM], v))
-            w = w_loop
-            if abs(w) > max_speed:
-                limited = SW_INTERNAL_LIMIT_ACTIVE
-                w = math.copysign(max_speed, w)
+        error = target - theta
+        w[F_FOLLOWING_ERROR] = error
+        if abs(error) > prm[R_FE_WINDOW]:
+            w[F_FE_TIME] += prm[R_CYCLE]
+            if w[F_FE_TIME] > prm[R_FE_TIME]:
+                return -1
         else:
-            w = w_cmd
-            if abs(w) > max_speed:
-                limited = SW_INTERNAL_LIMIT_ACTIVE
-                w = math.copysign(max_speed, w)
-            if (w > 0.0 and theta >= prm[R_LIMIT_MAX]) or (
-                    w < 0.0 and theta <= prm[R_LIMIT_MIN]):
-                w = 0.0
-                limited = SW_INTERNAL_LIMIT_ACTIVE
-        if tick % ist[J_SPEED_RATIO] == 0:
-            # SpeedLoop.step
-            e, set_z1, set_z2 = _biquad(prm, R_SET_B0, fst, F_SET_Z1, w)
-            e = e - w_act
-            d_part = prm[R_KD_T] * (e - e_prev)
-            i_ff = spf[S_IQ]
-            outer = d_part + i_ff * prm[R_KT] if prm[R_STOP_ON_TOTAL] != 0.0 else 0.0
-            # PI.step_within
-            u = prm[R_KP] * e + integ
-            total = u + outer
-            pi_limit = prm[R_PI_LIMIT]
-            if total > pi_limit:
-                if e < 0.0:
-                    integ += prm[R_KI_T] * e
-                u = _py_min(u, pi_limit)
-            elif total < -pi_limit:
-                if e > 0.0:
-                    integ += prm[R_KI_T] * e
-                u = _py_max(u, -pi_limit)
-            else:
-                integ += prm[R_KI_T] * e
-            torque = u + d_part
-            e_prev = e
-            c, cur_z1, cur_z2 = _biquad(prm, R_CUR_B0, fst, F_CUR_Z1,
-                                        torque * prm[R_INV_KT] + i_ff)
-            i, notch_z1, notch_z2 = _biquad(prm, R_NOTCH_B0, fst, F_NOTCH_Z1, c)
-            iq_loop = _py_max(-prm[R_I_MAX], _py_min(prm[R_I_MAX], i))
-        iq = iq_loop
-    if iq != iq or abs(iq) == math.inf:
-        return EXIT_LOOP
-    limit = prm[R_MAX_CURRENT]
-    if abs(iq) > limit:
-        limited = SW_INTERNAL_LIMIT_ACTIVE
-        iq = math.copysign(limit, iq)
-    # the plant, undone if its status is not OK
+            w[F_FE_TIME] = 0.0
+        if abs(error) <= prm[R_POS_WINDOW]:
+            w[F_IN_WINDOW] += prm[R_CYCLE]
+        else:
+            w[F_IN_WINDOW] = 0.0
+        if w[F_IN_WINDOW] >= prm[R_POS_WINDOW_TIME]:
+            flags |= SW_TARGET_REACHED
+    if abs(w[F_FOLLOWING_ERROR]) > prm[R_FE_WINDOW]:
+        flags |= SW_FOLLOWING_ERROR
+    return flags
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _speed_limited(prm, wi, v):
+    """EmulatedDrive._speed_limited: ``v`` inside 6080h (bit 11 when it was not)."""
+    limit = prm[R_MAX_SPEED]
+    if abs(v) > limit:
+        wi[J_LIMITED] = SW_INTERNAL_LIMIT_ACTIVE
+        return math.copysign(limit, v)
+    return v
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _speed_loop(prm, w, wi, w_set, w_act, i_ff):
+    """DriveLoops.current: SpeedLoop.step on speed cycles, held in between; A."""
+    if wi[J_TICK] % wi[J_SPEED_RATIO] != 0:
+        return w[F_IQ]
+    e = _biquad(prm, R_SET_B0, w, F_SET_Z1, w_set) - w_act
+    d_part = prm[R_KD_T] * (e - w[F_E_PREV])
+    outer = d_part + i_ff * prm[R_KT] if prm[R_STOP_ON_TOTAL] != 0.0 else 0.0
+    u = prm[R_KP] * e + w[F_INTEG]  # PI.step_within
+    total = u + outer
+    limit = prm[R_PI_LIMIT]
+    if total > limit:
+        if e < 0.0:
+            w[F_INTEG] += prm[R_KI_T] * e
+        u = _py_min(u, limit)
+    elif total < -limit:
+        if e > 0.0:
+            w[F_INTEG] += prm[R_KI_T] * e
+        u = _py_max(u, -limit)
+    else:
+        w[F_INTEG] += prm[R_KI_T] * e
+    w[F_E_PREV] = e
+    c = _biquad(prm, R_CUR_B0, w, F_CUR_Z1, (u + d_part) * prm[R_INV_KT] + i_ff)
+    i = _biquad(prm, R_NOTCH_B0, w, F_NOTCH_Z1, c)
+    w[F_IQ] = _py_max(-prm[R_I_MAX], _py_min(prm[R_I_MAX], i))
+    return w[F_IQ]
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _current(prm, w, wi, spf, mode, target, w_cmd, theta, w_act):
+    """EmulatedDrive._current in OPERATION ENABLED, before the current limit: the
+    q-current setpoint, A."""
+    if mode == MODE_CST:
+        return spf[S_IQ]
+    if target == target:
+        held = target != w[F_DEMAND]  # at a software limit: no speed feed-forward
+        if held:
+            wi[J_LIMITED] = SW_INTERNAL_LIMIT_ACTIVE
+        if wi[J_TICK] % wi[J_POSITION_RATIO] == 0:  # PositionLoop.step
+            w[F_SYM_Y] = target + (w[F_SYM_Y] - target) * prm[R_SYM_A]
+            w[F_POS_ERROR] = w[F_SYM_Y] - theta
+            v = prm[R_KV] * w[F_POS_ERROR] + prm[R_FF] * (0.0 if held else w_cmd)
+            w[F_W_CMD] = _py_max(-prm[R_V_LIM], _py_min(prm[R_V_LIM], v))
+        return _speed_loop(prm, w, wi, _speed_limited(prm, wi, w[F_W_CMD]), w_act, spf[S_IQ])
+    v = _speed_limited(prm, wi, w_cmd)
+    if (v > 0.0 and theta >= prm[R_LIMIT_MAX]) or (v < 0.0 and theta <= prm[R_LIMIT_MIN]):
+        v = 0.0  # at a software limit: no further out
+        wi[J_LIMITED] = SW_INTERNAL_LIMIT_ACTIVE
+    return _speed_loop(prm, w, wi, v, w_act, spf[S_IQ])
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _step_plant(p, s, inp, out, saved, n_sub, iq, i_d):
+    """The plant's PWM period on the q- and d-current setpoints ``iq``, ``i_d`` (A); a
+    status not OK is undone from ``saved`` (the arrays as they were), and returned."""
     n_s, n_i = s.size, inp.size
     for k in range(n_s):
         saved[k] = s[k]
@@ -326,10 +323,10 @@ def steady_cycle(prm, fst, ist, spf, spi, p, s, inp, out, saved, fbf, ring_f, ri
     inp[L.I_ENABLE] = 1.0
     inp[L.I_MODE] = L.INPUT_CURRENT
     inp[L.I_IQ_REF] = iq
-    inp[L.I_ID_REF] = _py_min(_py_max(spf[S_ID], -limit), limit)
+    inp[L.I_ID_REF] = i_d
     inp[L.I_UD] = 0.0
     inp[L.I_UQ] = 0.0
-    status = axis_step_nb(p, s, inp, out, ist[J_N_SUB])
+    status = axis_step_nb(p, s, inp, out, n_sub)
     if status != L.STATUS_OK:
         for k in range(n_s):
             s[k] = saved[k]
@@ -337,38 +334,74 @@ def steady_cycle(prm, fst, ist, spf, spi, p, s, inp, out, saved, fbf, ring_f, ri
             inp[k] = saved[n_s + k]
         for k in range(out.size):
             out[k] = saved[n_s + n_i + k]
+    return status
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _write_row(ring_f, ring_i, j, spf, out, spi, statusword):
+    """The axis's recording row in column ``j`` of its ring planes."""
+    for k in range(N_SPF):
+        ring_f[k, j] = spf[k]
+    for k in range(out.size):
+        ring_f[N_SPF + k, j] = out[k]
+    ring_i[0, j] = spi[I_CW]
+    ring_i[1, j] = spi[I_MODE]
+    ring_i[2, j] = statusword
+    ring_i[3, j] = 0  # 603Fh: no fault is latched in steady state
+    ring_i[4, j] = State.OPERATION_ENABLED
+    ring_i[5, j] = 1  # the power stage on
+
+
+@njit(cache=True, error_model="numpy", _nrt=False)
+def steady_cycle(prm, fst, ist, spf, spi, p, s, inp, out, saved, fbf, ring_f, ring_i):
+    """One drive cycle in steady state (see the module docstring); returns :data:`DONE` or
+    an ``EXIT_*`` code with nothing changed (the ring's row included).  ``p``, ``s``,
+    ``inp``, ``out``: the plant's arrays (:mod:`plant.layout`); ``saved``: float64 scratch
+    of at least ``len(s) + len(inp) + len(out)``, for undoing a failed plant step.  The
+    cycle works on the second halves of ``fst`` and ``ist`` (a copy of the first) and
+    copies them back once it is done."""
+    mode = spi[I_MODE]
+    if mode != ist[J_MODE] or spi[I_CW] != ist[J_CONTROLWORD]:
+        return EXIT_COMMAND
+    if _refused(prm, spf, mode):
+        return EXIT_REFUSED
+    w, wi = fst[N_FST:], ist[N_IST:]
+    _copy(fst, w, N_FST)
+    _copy(ist, wi, N_IST)
+    counts = out[L.O_ENCODER]
+    _speed_actual(prm, w, wi, counts)
+    theta = counts * prm[R_RPC]
+    w_act = w[F_VELOCITY] * prm[R_RPC]
+    target, w_cmd = _command(prm, w, wi, spf, spi, theta)
+    flags = _monitor(prm, w, wi, out, target, theta, w_act)
+    if flags < 0:
+        return EXIT_CAUSE
+    # EmulatedDrive._flags and DriveStateMachine.update without a transition (the
+    # controlword is enable operation, no fault is latched); bit 11 of the last cycle
+    word = (flags & ~_MODE_BITS | flags | SW_FOLLOWS_COMMAND | wi[J_LIMITED])
+    wi[J_MONITOR_FLAGS] = flags
+    wi[J_STATUSWORD] = SW_OPERATION_ENABLED_BASE | (word & SW_CALLER_BITS)
+    wi[J_LIMITED] = 0
+    iq = _current(prm, w, wi, spf, mode, target, w_cmd, theta, w_act)
+    if iq != iq or abs(iq) == math.inf:
+        return EXIT_LOOP
+    limit = prm[R_MAX_CURRENT]
+    if abs(iq) > limit:
+        wi[J_LIMITED] = SW_INTERNAL_LIMIT_ACTIVE
+        iq = math.copysign(limit, iq)
+    i_d = _py_min(_py_max(spf[S_ID], -limit), limit)
+    if _step_plant(p, s, inp, out, saved, wi[J_N_SUB], iq, i_d) != L.STATUS_OK:
         return EXIT_PLANT
-    # commit
-    fst[F_COUNTS_PREV], fst[F_VELOCITY] = counts_prev, velocity
-    fst[F_I2T], fst[F_FE_TIME], fst[F_IN_WINDOW] = i2t, fe_time, in_window
-    fst[F_SWITCH_NEG], fst[F_SWITCH_POS] = sw_neg, sw_pos
-    fst[F_FOLLOWING_ERROR], fst[F_DEMAND], fst[F_SPEED] = following_error, demand, speed
-    fst[F_START_A], fst[F_START_B], fst[F_END_A], fst[F_END_B] = a0, b0, a1, b1
-    fst[F_SYM_Y], fst[F_POS_ERROR], fst[F_W_CMD] = sym_y, pos_error, w_loop
-    fst[F_INTEG], fst[F_E_PREV], fst[F_IQ] = integ, e_prev, iq_loop
-    fst[F_SET_Z1], fst[F_SET_Z2], fst[F_CUR_Z1], fst[F_CUR_Z2] = set_z1, set_z2, cur_z1, cur_z2
-    fst[F_NOTCH_Z1], fst[F_NOTCH_Z2] = notch_z1, notch_z2
-    fst[F_LAST_GOOD_X] = out[L.O_TABLE_POS]
-    ist[J_TICK] = tick + 1
-    ist[J_LIMITED], ist[J_HOT], ist[J_MONITOR_FLAGS] = limited, hot, monitor_flags
-    ist[J_STATUSWORD] = statusword
-    ist[J_INTERP_SEQ], ist[J_CYCLES], ist[J_LENGTH] = interp_seq, cycles, length
+    w[F_LAST_GOOD_X] = out[L.O_TABLE_POS]
+    wi[J_TICK] += 1
+    _copy(w, fst, N_FST)
+    _copy(wi, ist, N_IST)
     fbf[B_TIME] = out[L.O_TIME]
     fbf[B_ENCODER] = out[L.O_ENCODER] + prm[R_SHIFT]
     fbf[B_SCALE] = out[L.O_SCALE]
-    fbf[B_VELOCITY] = velocity
+    fbf[B_VELOCITY] = w[F_VELOCITY]
     fbf[B_IQ] = out[L.O_IQ_MEAS]
     fbf[B_ID] = out[L.O_ID_MEAS]
-    j = ist[J_ROW]
-    if j >= 0:
-        for k in range(N_SPF):
-            ring_f[k, j] = spf[k]
-        for k in range(out.size):
-            ring_f[N_SPF + k, j] = out[k]
-        ring_i[0, j] = cw
-        ring_i[1, j] = mode
-        ring_i[2, j] = statusword
-        ring_i[3, j] = 0  # 603Fh: no fault is latched in steady state
-        ring_i[4, j] = State.OPERATION_ENABLED
-        ring_i[5, j] = 1  # the power stage on
+    if ist[J_ROW] >= 0:
+        _write_row(ring_f, ring_i, ist[J_ROW], spf, out, spi, ist[J_STATUSWORD])
     return DONE

@@ -45,8 +45,8 @@ class CompiledPath:
         self.drive = drive
         plant = drive.plant
         self.prm = np.zeros(C.N_PRM)
-        self.fst = np.zeros(C.N_FST)
-        self.ist = np.zeros(C.N_IST, dtype=np.int64)
+        self.fst = np.zeros(2 * C.N_FST)  # the state, then the cycle's working copy
+        self.ist = np.zeros(2 * C.N_IST, dtype=np.int64)
         self.spf = np.zeros(C.N_SPF)
         self.spi = np.zeros(3, dtype=np.int64)
         self.fbf = np.zeros(C.N_FBF)

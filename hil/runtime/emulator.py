@@ -17,9 +17,10 @@ signal handlers that only set a flag, a fixed shutdown order):
 2. **Build**: the plant's kernels compiled (or loaded from numba's cache) with SIGTERM and
    SIGINT left to end the process at once (a cold compile takes seconds inside numba,
    where a Python handler would not run); then the plant and the CiA 402 drive
-   (:class:`hil.drive.EmulatedDrive`), the kernel warmed by :data:`WARMUP_CYCLES` cycles on
-   the same arrays (then reset; a signal ends the warm-up at the next cycle and the
-   daemon exits before opening anything), the recording's ring
+   (:class:`hil.drive.EmulatedDrive`, its steady state compiled), the kernels warmed by
+   :data:`WARMUP_CYCLES` cycles on the same arrays, enabled and holding in CSP (then reset;
+   a signal ends the warm-up at the next cycle and the daemon exits before opening
+   anything), the recording's ring
    (:class:`~hil.runtime.recording.Recorder`) and the
    :class:`~hil.runtime.streaming_loop.StreamingLoop` allocated and touched.
 3. **Open** the run folder (:class:`~hil.runtime.run_folder.RunFolder`: made if missing,
@@ -52,6 +53,18 @@ signal handlers that only set a flag, a fixed shutdown order):
    recording's last rows and events (the safe state with its drive cycle, why the run
    stopped) written and the streams closed, ``report.json`` written last (its presence
    means the run folder is complete).
+
+**The compiled tick**: in a steady state (every drive in OPERATION ENABLED in CSP, CSV or
+CST, the same controlword and mode as the cycle before, no fault cause, no link cause) a
+drive cycle is one numba call (:mod:`hil.drive.compiled`): the speed actual value, the
+mode's command and its interpolation, the software limits, the monitor's checks and the
+statusword, the position and speed loops, the current limit, the plant's sub-steps, the
+feedback's values and the axis's row of the recording's ring.  Anything else -- a fault
+cause, a changed controlword or mode, a refused setpoint, a plant status not OK -- hands
+that cycle to the Python drive, before anything changed, which stays the one owner of the
+state machine, the faults and their reactions (:mod:`hil.drive.compiled_path`; both give
+the same bits, ``tests/test_tick_equivalence.py``).  Python still decodes the setpoint,
+runs the watchdog, encodes and sends the feedback and writes the row's common columns.
 
 The recording streams to disk while the loop runs (:mod:`hil.runtime.record_writer`: a
 separate process reads the ring in shared memory, about a second of it, whatever the
