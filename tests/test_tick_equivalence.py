@@ -156,9 +156,7 @@ class Script:
                                 f.statusword) != State.OPERATION_ENABLED:
                             s.target_position_counts = f.encoder_counts  # hold where it is
                         s.mode = MODE_CSP
-                        if kind == "csp":
-                            s.target_position_counts += value
-                        elif kind == "jump" and t == 0:
+                        if kind == "csp" or kind == "jump" and t == 0:
                             s.target_position_counts += value
                         elif kind == "nan" and t == 0:
                             s.iq_ref_a = math.nan

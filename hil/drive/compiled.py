@@ -12,13 +12,13 @@ multiply-add; ``x ** 2`` through libm's ``pow`` as numpy does it, the exponent a
 value so that LLVM does not turn it into ``x * x``, which differs in the last bit for some
 ``x``), so both give the same bits.
 
-It computes the whole cycle into local variables first.  The moment anything falls
-outside the steady state -- a fault cause present, a changed controlword or mode, a
-refused setpoint, a non-finite loop output, a plant status not OK -- it returns a
-non-zero ``EXIT_*`` code *before* it has changed any state (a plant step that failed is
-undone from a copy), and the Python path runs that cycle: it stays the one owner of the
-state machine, the faults and their reactions.  :mod:`hil.drive.compiled_path` packs the
-drive's state into these arrays and back.
+It computes the cycle on a working copy of its state and copies it back at the end.  The
+moment anything falls outside the steady state -- a fault cause present, a changed
+controlword or mode, a refused setpoint, a non-finite loop output, a plant status not OK
+-- it returns a non-zero ``EXIT_*`` code *before* it has changed any state (a plant step
+that failed is undone from a copy), and the Python path runs that cycle: it stays the one
+owner of the state machine, the faults and their reactions.
+:mod:`hil.drive.compiled_path` packs the drive's state into these arrays and back.
 
 Array layouts (module constants, compile-time indices):
 
@@ -61,7 +61,6 @@ from plant.kernel import axis_step_nb
 #: the statusword of OPERATION ENABLED without the cycle's flags (hil.cia402's table)
 SW_OPERATION_ENABLED_BASE = (STATUS_PATTERNS[State.OPERATION_ENABLED].value | SW_REMOTE
                              | SW_VOLTAGE_ENABLED)
-_MODE_BITS = SW_TARGET_REACHED | SW_FOLLOWS_COMMAND | SW_FOLLOWING_ERROR
 
 #: the cycle ran compiled
 DONE = 0
@@ -86,6 +85,12 @@ S_IQ, S_ID, S_UD, S_UQ, S_POS, S_VEL, S_VOFF = range(7)
 N_SPF = 7
 I_SEQ, I_CW, I_MODE = range(3)
 
+#: ``prm``: motor units per increment; the speed cycle, the drive cycle (s); 607Dh, 6080h,
+#: 6072h, 6065h-6068h, the I²t levels, the overspeed and standstill speeds, 60C2h (s), the
+#: home shift (increments), 2.0 (``pow``'s exponent); the adapter's bounds (wire units);
+#: the position loop (K_v 1/s, feed-forward weight, symmetrising PT1 factor, speed limit),
+#: the speed loop (K_d/T, K_p, K_i T, the PI's limit, 1/K_t, I_max, K_t, stop on the total
+#: torque 1/0) and its three biquads (b0, b1, b2, a1, a2 each): motor units, s, A
 (R_RPC, R_SPEED_PERIOD, R_CYCLE, R_LIMIT_MIN, R_LIMIT_MAX, R_MAX_SPEED, R_MAX_CURRENT,
  R_FE_WINDOW, R_FE_TIME, R_POS_WINDOW, R_POS_WINDOW_TIME, R_I2T_TRIP, R_I2T_COOLED,
  R_I2T_WARNING, R_CONTINUOUS2, R_OVERSPEED, R_STANDSTILL, R_INTERP_PERIOD, R_SHIFT, R_TWO,
@@ -95,28 +100,30 @@ I_SEQ, I_CW, I_MODE = range(3)
  R_SET_B0, R_SET_B1, R_SET_B2, R_SET_A1, R_SET_A2,
  R_CUR_B0, R_CUR_B1, R_CUR_B2, R_CUR_A1, R_CUR_A2,
  R_NOTCH_B0, R_NOTCH_B1, R_NOTCH_B2, R_NOTCH_A1, R_NOTCH_A2, N_PRM) = range(52)
+#: ``fst``: the drive's, the monitor's, the modes' and interpolator's and the loops' floats
 (F_COUNTS_PREV, F_VELOCITY, F_I2T, F_FE_TIME, F_IN_WINDOW, F_SWITCH_NEG, F_SWITCH_POS,
  F_FOLLOWING_ERROR, F_DEMAND, F_SPEED, F_START_A, F_START_B, F_END_A, F_END_B,
  F_SYM_Y, F_POS_ERROR, F_INTEG, F_SET_Z1, F_SET_Z2, F_CUR_Z1, F_CUR_Z2, F_NOTCH_Z1,
  F_NOTCH_Z2, F_E_PREV, F_W_CMD, F_IQ, F_LAST_GOOD_X, N_FST) = range(28)
+#: ``ist``: the drive cycle, statusword bits, the interpolator's segment, the cycle ratios,
+#: sub-steps per cycle, the steady state's mode and controlword, the ring's column
 (J_TICK, J_LIMITED, J_HOT, J_MONITOR_FLAGS, J_STATUSWORD, J_INTERP_SEQ, J_CYCLES, J_LENGTH,
  J_SPEED_RATIO, J_POSITION_RATIO, J_N_SUB, J_MODE, J_CONTROLWORD, J_ROW, N_IST) = range(15)
 B_TIME, B_ENCODER, B_SCALE, B_VELOCITY, B_IQ, B_ID = range(6)
 N_FBF = 6
 
 
-
 @njit(cache=True, error_model="numpy", inline="always")
 def _py_max(a, b):
     """Python's ``max(a, b)``: ``a`` unless ``b`` is strictly greater (signed zeros and
     NaN as Python has them)."""
-    return b if b > a else a
+    return b if b > a else a  # noqa: FURB136 (numba's max orders NaN and -0.0 otherwise)
 
 
 @njit(cache=True, error_model="numpy", inline="always")
 def _py_min(a, b):
     """Python's ``min(a, b)``: ``a`` unless ``b`` is strictly smaller."""
-    return b if b < a else a
+    return b if b < a else a  # noqa: FURB136 (as _py_max)
 
 
 @njit(cache=True, error_model="numpy", inline="always")
@@ -206,7 +213,7 @@ def _monitor(prm, w, wi, out, target, theta, w_act):
     currents_a2 = math.pow(out[L.O_IQ_MEAS], prm[R_TWO]) + math.pow(out[L.O_ID_MEAS],
                                                                      prm[R_TWO])
     heat = w[F_I2T] + (currents_a2 - prm[R_CONTINUOUS2]) * prm[R_CYCLE]
-    w[F_I2T] = heat if heat > 0.0 else 0.0
+    w[F_I2T] = heat if heat > 0.0 else 0.0  # noqa: FURB136 (a NaN current counts as cold)
     if w[F_I2T] >= prm[R_I2T_TRIP]:
         wi[J_HOT] = 1
     elif w[F_I2T] <= prm[R_I2T_COOLED]:
@@ -376,9 +383,11 @@ def steady_cycle(prm, fst, ist, spf, spi, p, s, inp, out, saved, fbf, ring_f, ri
     flags = _monitor(prm, w, wi, out, target, theta, w_act)
     if flags < 0:
         return EXIT_CAUSE
-    # EmulatedDrive._flags and DriveStateMachine.update without a transition (the
-    # controlword is enable operation, no fault is latched); bit 11 of the last cycle
-    word = (flags & ~_MODE_BITS | flags | SW_FOLLOWS_COMMAND | wi[J_LIMITED])
+    # EmulatedDrive._flags (in CSP, CSV and CST the mode's bits 10 and 13 are the
+    # monitor's, bit 12 is set; bit 11 of the last cycle's limits) and
+    # DriveStateMachine.update without a transition (the controlword is enable
+    # operation, no fault is latched)
+    word = flags | SW_FOLLOWS_COMMAND | wi[J_LIMITED]
     wi[J_MONITOR_FLAGS] = flags
     wi[J_STATUSWORD] = SW_OPERATION_ENABLED_BASE | (word & SW_CALLER_BITS)
     wi[J_LIMITED] = 0

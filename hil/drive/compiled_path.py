@@ -39,6 +39,7 @@ class CompiledPath:
         cycles: cycles run compiled since the drive was built.
         exits: how often each ``EXIT_*`` code of :mod:`hil.drive.compiled` handed a cycle
             back to Python (index: the code).
+        row_written: the last cycle wrote the tick's recording row (:meth:`set_row`).
     """
 
     def __init__(self, drive):
