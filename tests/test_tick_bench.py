@@ -18,7 +18,7 @@ PERCENTILES = {"p50", "p99", "p999", "max"}
 
 
 def _check(row: dict, axes: int) -> None:
-    assert row["axes"] == axes and row["rate_hz"] == 8000.0
+    assert row["axes"] == axes and row["rate_hz"] == 8000.0 and row["drive"] == "compiled"
     assert row["ticks"] == round(row["seconds"] * row["rate_hz"])
     assert set(row["tick_compute_us"]) == set(row["tick_cpu_us"]) == PERCENTILES
     assert set(row["plant_step_us"]) == {"p50", "p999"}

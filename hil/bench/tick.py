@@ -15,7 +15,7 @@ After each tick, in its slack, one plant step alone (``Plant.step(sub_per_pwm)``
 twin plant of axis 0 fed the tick's plant inputs) is timed, so both figures share the
 machine's state.  JSON, per machine file::
 
-    {"config", "axes", "rate_hz", "seconds", "ticks",
+    {"config", "axes", "rate_hz", "drive", "seconds", "ticks",
      "tick_compute_us": {"p50", "p99", "p999", "max"}, "tick_cpu_us": {...},
      "plant_step_us": {"p50", "p999"},
      "ratio_p50", "compiled_share", "enabled_ticks", "compiled_share_enabled",
@@ -29,7 +29,8 @@ turns);
 whose every drive cycle took the compiled path (:mod:`hil.drive.compiled_path`),
 ``compiled_share_enabled`` that share among the ticks that started with every drive in
 OPERATION ENABLED; ``exits`` how often a drive handed a cycle back to Python, by reason;
-an overrun is a tick that ended after the next deadline.  The goal on the Arrow 500 X at
+an overrun is a tick that ended after the next deadline.  ``--python-drive`` times the
+same tick with every drive cycle in Python (``"drive": "python"``), the reference.  The goal on the Arrow 500 X at
 8 kHz: p50 <= 15 µs, p99.9 <= 40 µs, ``ratio_p50`` <= 1.5, and two axes without overruns
 on a quiet machine.
 """
@@ -112,11 +113,15 @@ def _wait_until(deadline_ns: int) -> int:
     return now
 
 
-def bench(config: Path, seconds: float) -> dict:
-    """Time ``seconds`` of ticks of ``config`` (see the module docstring)."""
+def bench(config: Path, seconds: float, compiled: bool = True) -> dict:
+    """Time ``seconds`` of ticks of ``config`` (see the module docstring); ``compiled``
+    False: every drive cycle in Python (the reference: the tick before part 6)."""
     machine = load_machine_set(config)
     rc = RuntimeConfig(config, "udp://127.0.0.1:0", realtime=False)
     emulator = Emulator(rc, machine, log=lambda message: None)
+    if not compiled:
+        for d in emulator.drives.drives:
+            d.compiled = None
     period_ns = emulator.timing.period_ns
     n_ticks = max(1, round(seconds * 1e9 / period_ns))
     twin = Plant(machine.configs[0], table_pos=emulator.x0[0])
@@ -142,17 +147,18 @@ def bench(config: Path, seconds: float) -> dict:
     tick_p = Percentiles.of_ns_in_us(stats.compute_ns)
     cpu_p = Percentiles.of_ns_in_us(stats.cpu_ns)
     plant_p = Percentiles.of_ns_in_us(stats.plant_ns)
-    compiled, enabled = stats.compiled, stats.enabled
-    exits = {name: sum(d.compiled.exits[code] for d in drives)
+    taken, enabled = stats.compiled, stats.enabled
+    exits = {name: sum(d.compiled.exits[code] for d in drives if d.compiled is not None)
              for code, name in _EXIT_NAMES.items()}
     return {"config": str(config), "axes": len(drives), "rate_hz": emulator.timing.rate_hz,
+            "drive": "compiled" if compiled else "python",
             "seconds": n_ticks * period_ns * 1e-9, "ticks": n_ticks,
             "tick_compute_us": tick_p.as_dict(), "tick_cpu_us": cpu_p.as_dict(),
             "plant_step_us": {"p50": plant_p.p50, "p999": plant_p.p999},
             "ratio_p50": tick_p.p50 / plant_p.p50,
-            "compiled_share": float(compiled.mean()),
+            "compiled_share": float(taken.mean()),
             "enabled_ticks": int(enabled.sum()),
-            "compiled_share_enabled": (float(compiled[enabled].mean()) if enabled.any()
+            "compiled_share_enabled": (float(taken[enabled].mean()) if enabled.any()
                                        else None),
             "exits": exits, "overruns": stats.overruns,
             "setpoints_heard": emulator.setpoints_heard, "load_avg_1min": os.getloadavg()[0]}
@@ -193,7 +199,7 @@ def _ticks(emulator: Emulator, twin: Plant, n_ticks: int, period_ns: int) -> Tic
     deadline = time.monotonic_ns() + period_ns
     for k in range(n_ticks):
         enabled[k] = all(d.sm.state == State.OPERATION_ENABLED for d in drives)
-        before = [d.compiled.cycles for d in drives]
+        before = [_cycles(d) for d in drives]
         woke = _wait_until(deadline)
         cpu_start = time.thread_time_ns()
         emulator.step(k)
@@ -202,7 +208,7 @@ def _ticks(emulator: Emulator, twin: Plant, n_ticks: int, period_ns: int) -> Tic
         cpu[k] = time.thread_time_ns() - cpu_start
         compute[k] = done - woke
         overruns += done > deadline + period_ns
-        compiled[k] = all(d.compiled.cycles - b == per_tick for d, b in zip(drives, before))
+        compiled[k] = all(_cycles(d) - b == per_tick for d, b in zip(drives, before))
         twin.inp[:] = plant.inp
         t0 = time.monotonic_ns()
         twin.step(twin.sub_per_pwm)
@@ -212,16 +218,23 @@ def _ticks(emulator: Emulator, twin: Plant, n_ticks: int, period_ns: int) -> Tic
     return TickSamples(compute, cpu, plant_ns, compiled, enabled, overruns)
 
 
+def _cycles(drive) -> int:
+    return drive.compiled.cycles if drive.compiled is not None else 0
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--config", action="append", type=Path,
                         help="machine file or manifest (repeatable; default: the Arrow 500 X "
                         "and the two-axis Arrow 500 XY)")
     parser.add_argument("--seconds", type=float, default=5.0, help="run per config, s")
+    parser.add_argument("--python-drive", action="store_true",
+                        help="every drive cycle in Python (the reference)")
     parser.add_argument("--json", action="store_true")
 
 
 def run_from_args(args: argparse.Namespace) -> int:
-    rows = [bench(c, args.seconds) for c in (args.config or DEFAULT_CONFIGS)]
+    rows = [bench(c, args.seconds, not args.python_drive)
+            for c in (args.config or DEFAULT_CONFIGS)]
     if args.json:
         print(json.dumps(rows, indent=2))
         return 0
