@@ -8,6 +8,7 @@
     hil bench loop [--rate 1000,4000,8000] [--seconds S] [--with-plant [--adapter udp]] [--json]
     hil bench adapters [--n N] [--adapter udp|serial] [--json]
     hil bench fuzz [--frames N] [--seed N] [--json]
+    hil bench tick [--config FILE ...] [--seconds S] [--json]
     hil bench can [--config FILE] [--program FILE] [--sync-hz HZ] [--group G] [--json]
     hil bench study [--samples N] [--seconds S] [--json]
     hil bench identify [--ci] [--cases NAME ...] [--out DIR] [--workers N] [--json]
@@ -241,6 +242,10 @@ def build_parser() -> argparse.ArgumentParser:
     from hil.bench import fuzz
     fuzz.add_arguments(bf)
     bf.set_defaults(func=fuzz.run_from_args)
+    from hil.bench import tick as bench_tick
+    bt = bsub.add_parser("tick", help="the emulator's whole tick vs the plant step alone")
+    bench_tick.add_arguments(bt)
+    bt.set_defaults(func=bench_tick.run_from_args)
     from hil.bench import can as bench_can
     bc = bsub.add_parser("can", help="CSP over CAN at a 1 kHz SYNC against UDP and the "
                          "lock-step simulation: following error, overruns, bus load")

@@ -158,13 +158,34 @@ FEEDBACK_FIELDS = (
     _int("t_ns", 0, T_NS_MAX), _int("tick_ns", 0, T_NS_MAX))
 
 
+def _items(indices: list[int]) -> Callable[[tuple], tuple]:
+    """A function returning the elements at ``indices`` as a tuple (``itemgetter`` of one
+    index returns the element itself)."""
+    if len(indices) > 1:
+        return operator.itemgetter(*indices)
+    return lambda values: tuple(values[i] for i in indices)
+
+
 def _float_getter(fields: tuple[Field, ...]) -> Callable[[tuple], tuple]:
-    """A function returning the float elements of an array laid out as ``fields``, as a
-    tuple (``itemgetter`` of one index returns the element itself)."""
-    floats = [i for i, f in enumerate(fields) if f.type is float]
-    if len(floats) > 1:
-        return operator.itemgetter(*floats)
-    return lambda values: tuple(values[i] for i in floats)
+    """A function returning the float elements of an array laid out as ``fields``."""
+    return _items([i for i, f in enumerate(fields) if f.type is float])
+
+
+class _Check:
+    """:func:`_valid` for one layout with its parts precomputed: a handful of C-level
+    calls, where the per-element loop costs a microsecond per array."""
+
+    def __init__(self, fields: tuple[Field, ...]):
+        self.types = tuple(f.type for f in fields)
+        ints = [i for i, f in enumerate(fields) if f.type is int]
+        self.get_ints = _items(ints)
+        self.ranges = tuple(range(fields[i].lo, fields[i].hi + 1) for i in ints)
+
+    def __call__(self, values: tuple) -> bool:
+        """Every element of ``values`` (as long as the layout) of its type exactly, every
+        integer in its range."""
+        return tuple(map(type, values)) == self.types and all(
+            map(operator.contains, self.ranges, self.get_ints(values)))
 
 
 class Schema:
@@ -253,12 +274,20 @@ class GroupSchema:
         self.length = HEADER_LEN + len(common) + 1
         self.get_common_floats = _float_getter(self.header + common)
         self.get_axis_floats = _float_getter(axis)
+        self.valid_head = _Check(self.header + common)
+        self.valid_common = _Check(common)
+        self.valid_axis = _Check(axis)
 
     def encode(self, group, session: int, frame: int) -> bytes:
         name = self.group_type.__name__
-        common = _converted(self.common, self.get_common(group), name)
-        axes = tuple(_converted(self.axis, self.get_axis(rec), f"{name}.axes[{i}]")
-                     for i, rec in enumerate(group.axes))
+        common = self.get_common(group)
+        axes = tuple(map(self.get_axis, group.axes))
+        # values of the exact types and in range are what _converted would return
+        if not self.valid_common(common):
+            common = _converted(self.common, common, name)
+        if not all(map(self.valid_axis, axes)):
+            axes = tuple(_converted(self.axis, a, f"{name}.axes[{i}]")
+                         for i, a in enumerate(axes))
         return msgpack.packb((VERSION_GROUP, self.kind, session, frame) + common + (axes,))
 
     def check(self, values: tuple, n_axes: int) -> None:
@@ -269,7 +298,7 @@ class GroupSchema:
             raise FrameError(f"{len(values)} elements, expected {self.length} for {name}")
         head = HEADER_LEN + len(self.common)
         fields = self.header + self.common
-        if not _valid(fields, values[:head]):
+        if not self.valid_head(values[:head]):
             raise FrameError(f"{name} {_explain(fields, values[:head])}")
         axes = values[head]
         if type(axes) is not tuple:
@@ -280,7 +309,7 @@ class GroupSchema:
             if type(a) is not tuple or len(a) != len(self.axis):
                 raise FrameError(f"{name} axes[{i}]={a!r:.60}: expected an array of "
                                  f"{len(self.axis)}")
-            if not _valid(self.axis, a):
+            if not self.valid_axis(a):
                 raise FrameError(f"{name} axes[{i}] {_explain(self.axis, a)}")
 
     def finite(self, values: tuple) -> bool:

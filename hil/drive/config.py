@@ -108,7 +108,8 @@ class DriveParameters:
     """What the drive runs on, in the motor coordinate (rad; m on linear motors).
 
     Mutable: a master writes these objects by SDO while the drive runs (each write is one
-    attribute; the loop reads them every cycle).  ``inf`` bounds mean "off".
+    attribute; the loop reads them every cycle).  ``inf`` bounds mean "off".  Every write
+    raises ``generation`` (an int, not a field).
 
     Attributes:
         fe_window: 6065h, inf: off.
@@ -163,6 +164,11 @@ class DriveParameters:
     homing_speed_zero: float
     homing_acceleration: float
     home_offset: float
+
+    def __setattr__(self, name: str, value) -> None:
+        # every write counts, so a copy of these values (the compiled path's) knows it is old
+        object.__setattr__(self, name, value)
+        object.__setattr__(self, "generation", self.__dict__.get("generation", 0) + 1)
 
     @property
     def interpolation_period_s(self) -> float:

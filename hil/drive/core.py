@@ -61,6 +61,7 @@ from hil.cia402 import (
     State,
 )
 from hil.controller.config import ControllerSection, load_controller
+from hil.drive.compiled_path import CompiledPath
 from hil.drive.config import DriveParameters, load_drive
 from hil.drive.faults import TORQUE_OFF, Cause, FaultLog
 from hil.drive.loops import DriveLoops
@@ -90,6 +91,8 @@ class EmulatedDrive:
         section: the ``[controller]`` machine data for the drive's loops (default: the
             machine file's, when it has one).
         params: the drive's parameters (default: the machine file's ``[drive]`` section).
+        compiled: run the cycles of a steady state compiled
+            (:mod:`hil.drive.compiled_path`; the same results, bit for bit).
 
     Attributes:
         params: the monitoring and reaction objects in force (writable while running).
@@ -98,11 +101,13 @@ class EmulatedDrive:
             runtime before each cycle.
         fault: 603Fh of the last cycle (0: no fault latched).
         lock: held by every cycle; hold it to change :attr:`params` from another thread
-            (an SDO write: :class:`hil.drive.objects.DriveObjects`).
+            (an SDO write: :class:`hil.drive.objects.DriveObjects`), and to read the
+            monitor's, modes' or loops' state after :meth:`settle`.
+        compiled: the compiled path (None: every cycle in Python).
     """
 
     def __init__(self, plant: Plant, section: ControllerSection | None = None,
-                 params: DriveParameters | None = None):
+                 params: DriveParameters | None = None, compiled: bool = False):
         self.plant = plant
         cfg = plant.config
         if section is None and cfg.section("controller"):
@@ -134,6 +139,7 @@ class EmulatedDrive:
         self._previous_cw = 0
         self._limited = 0           # statusword bit 11 when a command met a limit
         self._last_good_x = float(plant.out[L.O_TABLE_POS])
+        self.compiled = CompiledPath(self) if compiled else None
 
     def setpoint_bounds(self) -> SetpointBounds:
         """What this drive takes at all (an adapter refuses anything else): finite values,
@@ -166,7 +172,16 @@ class EmulatedDrive:
         with self.lock:
             self._cycle(sp, fb)
 
+    def settle(self) -> None:
+        """Bring the state the compiled path holds back into the drive's objects (its
+        monitor, modes, loops, state machine), for a reader outside the cycle; hold
+        :attr:`lock`."""
+        if self.compiled is not None:
+            self.compiled.leave()
+
     def _cycle(self, sp: Setpoint, fb: Feedback) -> None:
+        if self.compiled is not None and self.compiled.run(sp, fb):
+            return
         plant, out, p, rpc = self.plant, self.plant.out, self.params, self.rad_per_count
         counts = out[L.O_ENCODER]
         self._speed_actual(counts)

@@ -113,6 +113,7 @@ class DriveObjects:
     def read(self, axis: int, index: int, subindex: int) -> int:
         d = self.drives[axis]
         with d.lock:
+            d.settle()
             return self._read(d, index, subindex)
 
     def _read(self, d: EmulatedDrive, index: int, subindex: int) -> int:
@@ -161,6 +162,7 @@ class DriveObjects:
     def write(self, axis: int, index: int, subindex: int, value: float) -> None:
         d = self.drives[axis]
         with d.lock:
+            d.settle()
             self._write(d, index, subindex, value)
 
     def _write(self, d: EmulatedDrive, index: int, subindex: int, value: float) -> None:
@@ -228,6 +230,7 @@ class DriveObjects:
     def reset_application(self, axis: int) -> None:
         d, initial = self.drives[axis], self._initial[axis]
         with d.lock:
+            d.settle()
             for f in fields(initial):
                 setattr(d.params, f.name, getattr(initial, f.name))
             d.set_quick_stop_option(initial.quick_stop_option)

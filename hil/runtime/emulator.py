@@ -17,9 +17,10 @@ signal handlers that only set a flag, a fixed shutdown order):
 2. **Build**: the plant's kernels compiled (or loaded from numba's cache) with SIGTERM and
    SIGINT left to end the process at once (a cold compile takes seconds inside numba,
    where a Python handler would not run); then the plant and the CiA 402 drive
-   (:class:`hil.drive.EmulatedDrive`), the kernel warmed by :data:`WARMUP_CYCLES` cycles on
-   the same arrays (then reset; a signal ends the warm-up at the next cycle and the
-   daemon exits before opening anything), the recording's ring
+   (:class:`hil.drive.EmulatedDrive`, its steady state compiled), the kernels warmed by
+   :data:`WARMUP_CYCLES` cycles on the same arrays, enabled and holding in CSP (then reset;
+   a signal ends the warm-up at the next cycle and the daemon exits before opening
+   anything), the recording's ring
    (:class:`~hil.runtime.recording.Recorder`) and the
    :class:`~hil.runtime.streaming_loop.StreamingLoop` allocated and touched.
 3. **Open** the run folder (:class:`~hil.runtime.run_folder.RunFolder`: made if missing,
@@ -52,6 +53,18 @@ signal handlers that only set a flag, a fixed shutdown order):
    recording's last rows and events (the safe state with its drive cycle, why the run
    stopped) written and the streams closed, ``report.json`` written last (its presence
    means the run folder is complete).
+
+**The compiled tick**: in a steady state (every drive in OPERATION ENABLED in CSP, CSV or
+CST, the same controlword and mode as the cycle before, no fault cause, no link cause) a
+drive cycle is one numba call (:mod:`hil.drive.compiled`): the speed actual value, the
+mode's command and its interpolation, the software limits, the monitor's checks and the
+statusword, the position and speed loops, the current limit, the plant's sub-steps, the
+feedback's values and the axis's row of the recording's ring.  Anything else -- a fault
+cause, a changed controlword or mode, a refused setpoint, a plant status not OK -- hands
+that cycle to the Python drive, before anything changed, which stays the one owner of the
+state machine, the faults and their reactions (:mod:`hil.drive.compiled_path`; both give
+the same bits, ``tests/test_tick_equivalence.py``).  Python still decodes the setpoint,
+runs the watchdog, encodes and sends the feedback and writes the row's common columns.
 
 The recording streams to disk while the loop runs (:mod:`hil.runtime.record_writer`: a
 separate process reads the ring in shared memory, about a second of it, whatever the
@@ -86,7 +99,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
 
-from hil.cia402 import DISABLE_VOLTAGE
+from hil.cia402 import DISABLE_VOLTAGE, EnableSequencer
 from hil.drive import DriveSet, EmulatedDrive
 from hil.drive.objects import DriveObjects
 from hil.rt.loop import OverrunPolicy
@@ -120,7 +133,7 @@ from hil.runtime.sync import ShiftableClock, SyncLock
 from hil.runtime.watchdog import Watchdog
 from io_adapters import AdapterError, Endpoint, open_endpoint
 from io_adapters.can_url import IN_PROCESS_ONLY, in_process_only
-from io_adapters.messages import axis_records, message_pair
+from io_adapters.messages import MODE_CSP, MODE_CST, axis_records, message_pair
 from plant import Plant
 from plant import layout as L
 from plant.assemble import check_substep_count
@@ -178,6 +191,7 @@ class Emulator:
         self.recorder = Recorder(max(2, math.ceil(RING_S * t.rate_hz)),
                                  tuple(c.machine.kind for c in m.configs),
                                  m.names if m.multi_axis else None)
+        self.recorder.attach(self.drives)
         self.loop = StreamingLoop(t.period_ns, self.step, self.recorder, n_ticks=t.n_ticks,
                                   policy=OverrunPolicy(rc.overrun, rc.stop_after,
                                                        t.grace_ticks))
@@ -197,20 +211,28 @@ class Emulator:
         self.log(f"hil run: {message}")
 
     def _warm_up(self) -> None:
-        """Warm the drives' path on the real arrays (the kernel is compiled by the
-        plant's first call), then start afresh; a stop request ends it at the next
-        cycle (``warmup_cycles``: how many ran).  ``drives`` cycles every axis
-        (:class:`DriveSet`); ``drive`` is axis 0's."""
+        """Warm the drives' paths on the real arrays (the kernels are compiled, or loaded
+        from numba's cache, by their first call): enabled as a controller enables them,
+        then holding their position in CSP (the compiled steady-state path,
+        :mod:`hil.drive.compiled_path`; CST on a drive without loops); then start
+        afresh.  A stop request ends it at the next cycle (``warmup_cycles``: how many
+        ran).  ``drives`` cycles every axis (:class:`DriveSet`); ``drive`` is axis 0's."""
         # the drives check [controller] for the CSP/CSV loops
-        self.drives = DriveSet([EmulatedDrive(p) for p in self.plants])
+        self.drives = DriveSet([EmulatedDrive(p, compiled=True) for p in self.plants])
         sp, fb = message_pair(len(self.plants))
+        enable = EnableSequencer(timeout_cycles=WARMUP_CYCLES)
+        enable.enable()
         self.warmup_cycles = 0
         while self.warmup_cycles < WARMUP_CYCLES and not self.stop.requested:
+            sp.controlword = enable.next_controlword(axis_records(fb)[0].statusword)
+            for s, f, d in zip(axis_records(sp), axis_records(fb), self.drives.drives):
+                s.mode = MODE_CSP if d.loops is not None else MODE_CST
+                s.target_position_counts = f.encoder_counts
             self.drives.cycle(sp, fb)
             self.warmup_cycles += 1
         for p, x in zip(self.plants, self.x0):
             p.reset(x)
-        self.drives = DriveSet([EmulatedDrive(p) for p in self.plants])
+        self.drives = DriveSet([EmulatedDrive(p, compiled=True) for p in self.plants])
         self.drive = self.drives[0]
 
     def open_folder(self) -> RunFolder:
@@ -291,6 +313,7 @@ class Emulator:
         if self.sync_lock is not None:
             self.sync_lock.update(self.endpoint.last_sync_ns)
         self.watchdog.update(heard, k, sp.seq, drives, self.endpoint)
+        self.recorder.begin_tick()
         for _ in range(self.timing.cycles_per_tick):
             drives.cycle(sp, fb)
         fb.tick_ns = t_ns

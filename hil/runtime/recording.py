@@ -49,7 +49,7 @@ from operator import attrgetter
 
 import numpy as np
 
-from hil.drive import DriveSet, EmulatedDrive
+from hil.drive import DriveSet, EmulatedDrive, compiled
 from hil.runtime.ring import RingLayout, SharedRing
 from io_adapters.messages import axis_records
 from plant import OUTPUTS
@@ -73,14 +73,13 @@ class ColumnSpec:
     doc: str
 
 
-SP_FLOATS = ("iq_ref_a", "id_ref_a", "ud_v", "uq_v", "target_position_counts",
-             "target_velocity_counts_s", "velocity_offset_counts_s")
+#: the setpoint's float columns, in the ring's order (the compiled drive cycle writes them)
+SP_FLOATS = compiled.SP_FLOATS
 #: the loop's columns, written by :meth:`Recorder.end_tick`
 LOOP = ("tick", "lateness_ns", "compute_ns")
 STAMPS = ("tick_start_ns", "sp_t_ns", "sp_rx_ns", "fb_t_ns")
 #: per-axis integer columns
-AXIS_INTS = ("sp_controlword", "sp_mode", "fb_statusword", "fb_fault", "drive_state",
-             "drive_enable")
+AXIS_INTS = compiled.RING_INTS
 #: a plant output's unit by the axis's kind (:data:`plant.sections.KINDS` order: screw,
 #: linear, rotary), or one unit for all, and its meaning
 _PLANT = {"status": ("1", "kernel status of the last call (plant.layout STATUS_*)"),
@@ -214,6 +213,8 @@ class Recorder:
         self._skip = False
         self._sp_floats = attrgetter(*SP_FLOATS)
         self._n_sp = len(SP_FLOATS)
+        self._compiled = ()
+        self._row = -1
 
     @property
     def committed(self) -> int:
@@ -230,6 +231,26 @@ class Recorder:
     @property
     def last_lost_tick(self) -> int:
         return self.ring.last_lost_tick
+
+    def attach(self, drives: EmulatedDrive | DriveSet) -> None:
+        """Let the drives' compiled paths write their axis's row themselves (in the same
+        compiled call as the cycle, :mod:`hil.drive.compiled`); :meth:`begin_tick` then
+        tells them where."""
+        each = drives.drives if isinstance(drives, DriveSet) else (drives,)
+        self._compiled = tuple(d.compiled for d in each)
+        for i, path in enumerate(self._compiled):
+            if path is not None:
+                path.bind_ring(self.floats[i], self.ints[i])
+
+    def begin_tick(self) -> None:
+        """Before the drive cycles of a tick: the row the attached compiled paths write
+        (none when the ring is full)."""
+        counters = self._counters
+        committed = counters[0]
+        self._row = -1 if committed - counters[1] >= self.slots else committed % self.slots
+        for path in self._compiled:
+            if path is not None:
+                path.set_row(self._row)
 
     def record(self, k: int, heard: bool, tick_start_ns: int, sp, fb,
                drives: EmulatedDrive | DriveSet, refused: int = 0) -> None:
@@ -251,6 +272,12 @@ class Recorder:
         j, n_sp = committed % self.slots, self._n_sp
         floats, ints = self.floats, self.ints
         for i, (s, f, drive) in enumerate(zip(axis_records(sp), axis_records(fb), each)):
+            path = drive.compiled
+            if path is not None:
+                written = path.row_written and j == self._row
+                path.set_row(-1)  # a cycle outside the tick (the safe state) writes none
+                if written:
+                    continue  # the compiled cycle wrote this axis's row
             floats[i, :n_sp, j] = self._sp_floats(s)
             floats[i, n_sp:, j] = drive.plant.out
             ints[i, :, j] = (s.controlword, s.mode, f.statusword, f.fault, drive.sm.state,
