@@ -30,9 +30,9 @@ whose every drive cycle took the compiled path (:mod:`hil.drive.compiled_path`),
 ``compiled_share_enabled`` that share among the ticks that started with every drive in
 OPERATION ENABLED; ``exits`` how often a drive handed a cycle back to Python, by reason;
 an overrun is a tick that ended after the next deadline.  ``--python-drive`` times the
-same tick with every drive cycle in Python (``"drive": "python"``), the reference.  The goal on the Arrow 500 X at
-8 kHz: p50 <= 15 µs, p99.9 <= 40 µs, ``ratio_p50`` <= 1.5, and two axes without overruns
-on a quiet machine.
+same tick with every drive cycle in Python (``"drive": "python"``), the reference.  The
+goal on the Arrow 500 X at 8 kHz: p50 <= 15 µs, p99.9 <= 40 µs, ``ratio_p50`` <= 1.5,
+and two axes without overruns on a quiet machine.
 """
 
 import argparse
