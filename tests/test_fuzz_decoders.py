@@ -261,8 +261,9 @@ def serial_chunks(draw, sender: Sender) -> tuple[bytes, bytes | None]:
         i = draw(st.integers(2, len(framed) - 1))
         return framed[:i] + bytes([framed[i] ^ 1 << draw(st.integers(0, 7))]) + framed[i + 1:], \
             None
-    if kind == "length":
-        return framed[:2] + bytes([draw(st.integers(0, 255))]) + framed[3:], None
+    if kind == "length":  # another length than the frame's (the same one is the frame)
+        return framed[:2] + bytes([draw(st.integers(0, 255).filter(
+            lambda n: n != framed[2]))]) + framed[3:], None
     if kind == "cut":
         return framed[:draw(st.integers(1, len(framed) - 1))], None
     if kind == "raw":

@@ -9,8 +9,9 @@ current limit for long stretches, silence, and fault resets.
 Properties, tick by tick:
 
 * the plant state stays finite;
-* the table stays within the stops plus the static penetration of the stall force,
-  [-overtravel - F/k, travel + overtravel + F/k] (stops and stiffness k from the built
+* the table stays within the stops plus the penetration of the stall force and of an
+  arrival at ten times the standstill speed, [-overtravel - d, travel + overtravel + d],
+  d = (F + v sqrt(k m)) / k (stops and stiffness k from the built
   plant, F = K_t I_max / ratio): over UDP a master cannot switch the drive's protection
   off, so the axis must be stopped before it hits a stop at speed;
 * every refused setpoint, and every runaway (the true motor speed above 1.2 times 6080h,
@@ -43,6 +44,7 @@ from hil.runtime.emulator import Emulator, RuntimeConfig
 from io_adapters.messages import MODE_CSP, MODE_CST, MODE_CSV, Feedback, Setpoint
 from io_adapters.udp import UdpEndpoint
 from plant import layout as L
+from plant.assemble import reflected_inertia
 from plant.config import load_machine
 from tests.conftest import CONFIGS
 from tests.test_adapters import assert_counts_add_up
@@ -104,11 +106,16 @@ class Rig:
         cfg = plant.config
         stops = plant.built.end_stops
         stall_n = cfg.motor.torque_constant_nm_per_a * cfg.motor.current_max_a / plant.built.ratio
-        penetration = stall_n / stops.stiffness
-        self.x_range = (stops.stop_neg - penetration, stops.stop_pos + penetration)
         p = drive.params
         self.runaway_speed = RUNAWAY_SPEED_FACTOR * p.max_speed
         self.moving_out = RUNAWAY_STANDSTILL_FACTOR * drive.monitor.standstill()
+        # into an end stop by what the stall force presses plus what the whole drive train
+        # compresses arriving no faster than a table may move out beyond a limit switch (an
+        # undamped contact: v sqrt(m / k)); an axis braked at the stop touches it so
+        mass = reflected_inertia(cfg) / plant.built.ratio ** 2
+        v = self.moving_out * plant.built.ratio
+        penetration = (stall_n + v * math.sqrt(stops.stiffness * mass)) / stops.stiffness
+        self.x_range = (stops.stop_neg - penetration, stops.stop_pos + penetration)
         brake_s = TIMEOUT_FACTOR * OVERSPEED_FACTOR * p.max_speed / min(
             p.quick_stop_decel, p.profile_decel) + TIMEOUT_EXTRA_S
         self.react_ticks = math.ceil(brake_s / plant.pwm_period) + WATCHDOG_TICKS
