@@ -18,7 +18,7 @@ from hil.measure.frequency_response import bandwidth_hz, bode_plot, peaks, write
 from hil.measure.runs import bode, current_step, position_step, speed_step, write_step_csv
 from hil.measure.trace import TraceConfigError, TraceRecorder, Trigger
 from hil.progress import Progress
-from hil.sim import LockStep, servo_trace_columns
+from hil.sim import TRACE_METADATA, LockStep, servo_trace_columns
 from hil.trace_file import write_trace
 from plant.assemble import transmission_ratio
 from plant.config import MachineConfig, load_machine
@@ -99,7 +99,7 @@ def run_sim(config: Path, program: Path, out: Path, start: float, axis: str | No
         res = ls.run(profile.duration_s + SETTLE_S, _progress(p))
     out.mkdir(parents=True, exist_ok=True)
     meta = {"machine": str(config), "program": str(program), "axis": prog.axis,
-            "source": "hil sim (lock-step)"}
+            "source": "hil sim (lock-step)", **TRACE_METADATA}
     every = every or ls.ctrl.sec.position_cycle_ratio
     columns = servo_trace_columns(res, every)
     write_trace(out / "trace.csv", columns, meta)

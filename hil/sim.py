@@ -216,10 +216,12 @@ class MachineLockStep(_Stepper):
 
 #: servo-trace column (trace-format.md, linear-axis names) -> SimResult signal
 TRACE_COLUMNS = {
-    "pos_set_mm": "x_set", "pos_mm": "x_act", "vel_set_mm_min": "v_cmd",
+    "pos_set_mm": "x_set", "pos_mm": "x_act", "vel_set_mm_min": "v_set",
     "vel_mm_min": "v_act", "iq_set_a": "iq_set", "iq_a": "iq_meas",
     "motor_pos_mm": "motor_pos_meas",
 }
+#: what this module's servo traces carry in their header besides the caller's keys
+TRACE_METADATA = {"vel_set_column": "feedforward"}
 #: the same columns on a rotary table
 ROTARY_NAMES = {"pos_set_mm": "pos_set_deg", "pos_mm": "pos_deg", "vel_set_mm_min":
                 "vel_set_deg_min", "vel_mm_min": "vel_deg_min", "motor_pos_mm": "motor_pos_deg"}
@@ -230,8 +232,10 @@ def servo_trace_columns(res: SimResult, every: int) -> dict[str, np.ndarray]:
     rotary tables), on the ticks that are multiples of ``every`` (the position-control
     cycle: there setpoint and actual position are taken at the same instant, as the
     NC's servo trace does), time starting at 0.  The velocity setpoint is the speed
-    command sent to the speed loop (feed-forward included); the motor position is
-    converted to table travel through the lead."""
+    feed-forward, the interpolator's velocity (trace-format.md; the speed command is the
+    position controller's output plus the feed-forward factor times it): the header's
+    ``vel_set_column`` (:data:`TRACE_METADATA`) says so; the motor position is converted
+    to table travel through the lead."""
     rows = np.flatnonzero(res["tick"] % every == 0)
     cols = {"t_s": res["t_s"][rows] - res["t_s"][rows[0]]}
     for name, sig in TRACE_COLUMNS.items():

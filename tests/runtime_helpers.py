@@ -113,7 +113,7 @@ def machine_lockstep_traces(config: Path, program: Path, settle_s: float, folder
     """Each axis's trace.csv (in ``folder``) of the machine's lock-step simulation of
     ``program``, run ``settle_s`` past its end: what a loopback run is compared with."""
     from hil.controller.path import read_path_program
-    from hil.sim import MachineLockStep, servo_trace_columns
+    from hil.sim import TRACE_METADATA, MachineLockStep, servo_trace_columns
     from hil.trace_file import write_trace
     from plant.machines import load_machine_set
     m = load_machine_set(config)
@@ -123,7 +123,7 @@ def machine_lockstep_traces(config: Path, program: Path, settle_s: float, folder
     ls.ctrl.run_profiles(profiles)
     res = ls.run(profiles[0].duration_s + settle_s)
     return {name: write_trace(folder / f"trace_{name}.csv", servo_trace_columns(
-        res[name], ctrl.sec.position_cycle_ratio), {})
+        res[name], ctrl.sec.position_cycle_ratio), TRACE_METADATA)
         for name, ctrl in zip(m.names, ls.ctrl.ctrls)}
 
 

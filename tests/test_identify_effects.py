@@ -28,7 +28,7 @@ from hil.controller.program import read_program
 from hil.identify.fit import Identification, record_errors
 from hil.identify.record import load_record
 from hil.identify.replay import replay
-from hil.sim import LockStep, servo_trace_columns
+from hil.sim import TRACE_METADATA, LockStep, servo_trace_columns
 from hil.trace_file import write_trace
 from plant.config import load_machine
 
@@ -65,7 +65,7 @@ def make_trace(truth: Path, out: Path) -> Path:
     ls.ctrl.run_profile(profile)
     res = ls.run(profile.duration_s + 0.1)
     write_trace(out, servo_trace_columns(res, ls.ctrl.sec.position_cycle_ratio),
-                {"machine": str(truth), "source": "tests (lock-step)"})
+                {"machine": str(truth), "source": "tests (lock-step)", **TRACE_METADATA})
     return out
 
 

@@ -141,14 +141,15 @@ DWELL_FIRST = "G90 G71\nG4 F0.01\nG1 X20 F6000\nG4 F0.05\nG0 X0\nM30\n"
 
 
 def trace_columns(res, every: int, vel_set: str = "feedforward", cycle: int = 1) -> dict:
-    """``hil.sim``'s servo-trace columns with ``vel_set_mm_min`` as trace-format.md defines it
-    (the interpolator's velocity, the speed feed-forward), or as the whole speed command;
-    the first sample on a tick that is a multiple of ``cycle`` (the position cycle, where
-    the replay takes a trace's t = 0)."""
+    """``hil.sim``'s servo-trace columns, ``vel_set_mm_min`` as trace-format.md defines it
+    (the interpolator's velocity, the speed feed-forward, as hil.sim writes it), or the
+    whole speed command (as hil.sim wrote it before); from the first sample on a tick that
+    is a multiple of ``cycle`` (the position cycle, where the replay takes a trace's
+    t = 0)."""
     cols = servo_trace_columns(res, every)
     rows = np.flatnonzero(res["tick"] % every == 0)
-    if vel_set == "feedforward":
-        cols["vel_set_mm_min"] = res["v_set"][rows] * 60e3
+    if vel_set == "speed_command":
+        cols["vel_set_mm_min"] = res["v_cmd"][rows] * 60e3
     skip = int(np.argmax(res["tick"][rows] % cycle == 0))
     return {k: (v[skip:] - v[skip]) if k == "t_s" else v[skip:] for k, v in cols.items()}
 

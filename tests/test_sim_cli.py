@@ -58,6 +58,14 @@ def test_sim_trace_is_an_identification_trace(sim_out):
     assert trace.column("pos_mm")[-1] == pytest.approx(end_mm, abs=EXACT_STOP_FINE_MM)
     assert trace.column("pos_set_mm")[-1] == pytest.approx(end_mm, abs=1e-9)
     assert trace.metadata["program"] == str(PROGRAM)
+    # vel_set_mm_min is the speed feed-forward (trace-format.md), and the header says so:
+    # the setpoint's own rate, within its central difference's error at the 2 ms samples
+    # (6.4 mm/min here); the whole speed command adds K_v times the following error to it
+    # (up to 107 mm/min on this program)
+    assert trace.metadata["vel_set_column"] == "feedforward"
+    t, x, v = trace.column("t_s"), trace.column("pos_set_mm"), trace.column("vel_set_mm_min")
+    rate = np.gradient(x, t) * 60.0
+    assert np.abs(v - rate)[1:-1].max() < 20.0
 
 
 def test_sim_trace_round_trips(sim_out, tmp_path):

@@ -43,8 +43,9 @@ CYCLE_TOLERANCE = 1e-3
 #: the feed-forward column's meanings: trace-format.md's, and the whole speed command that
 #: this project's own trace writers put there before they followed it
 VEL_SET_MEANINGS = ("feedforward", "speed_command")
-#: sources whose ``vel_set_mm_min`` is the whole speed command unless the header says
-#: otherwise (hil.sim.servo_trace_columns writes the controller's v_cmd there)
+#: sources whose ``vel_set_mm_min`` is the whole speed command when the header has no
+#: ``vel_set_column``: the traces hil.sim.servo_trace_columns wrote before it followed
+#: trace-format.md (it now writes the feed-forward and says so in the header)
 SPEED_COMMAND_SOURCES = ("hil sim", "hil controller", "tests (lock-step)")
 
 

@@ -21,7 +21,7 @@ from hil.report.host import host_fingerprint
 from hil.rt.loop import Percentiles
 from hil.runtime.common import EXIT_FAILED, EXIT_OK, scheduling_dict, write_json
 from hil.runtime.sync import Alignment, in_step
-from hil.sim import SimResult, servo_trace_columns
+from hil.sim import TRACE_METADATA, SimResult, servo_trace_columns
 from hil.trace_file import write_trace
 
 #: float columns of controller.npz: the controller's signals (hil.sim.SIGNALS names), then
@@ -67,7 +67,8 @@ def _trace(proc, a: int, cols: dict, name: str):
                     ctrl.ratio, proc.period_s)
     return write_trace(rc.out_dir / name, servo_trace_columns(res, every), {
         "machine": str(rc.machine_file), "program": str(rc.program_file),
-        "axis": proc.machine.names[a], "source": f"hil controller over {rc.adapter_url}"})
+        "axis": proc.machine.names[a], "source": f"hil controller over {rc.adapter_url}",
+        **TRACE_METADATA})
 
 
 def write_outputs(proc, stats, granted, alignment: Alignment) -> dict:
