@@ -26,7 +26,8 @@ the median over the rounds of (wall(1) / samples - bare) / bare, the per-task ov
 against a bare simulation of the same length (goal <= 5 % of a 1 s simulation);
 ``task_vs_worker_bare_pct``: a sample's median time inside a task against the bare
 simulation in the same worker process (what the task machinery costs the simulation
-itself); ``dispatch_overhead_ms`` = (wall(1) -
+itself; the task's time includes building the sample's machine from the file's text,
+about 0.8 ms, which the bare time leaves out); ``dispatch_overhead_ms`` = (wall(1) -
 the samples' own compute time on the worker) / samples, the same overhead without the
 simulation's own variation; ``cpu_overhead_pct``: the CPU time of every process of the
 1-worker pipeline (this one with the scheduler, and the worker) per sample against the
