@@ -166,6 +166,20 @@ def until_state(ep, sp, fb, state: State, limit: int = 4000) -> None:
     raise AssertionError(f"drive not in {state.name}: 0x{fb.statusword:04X}")
 
 
+def end_stop_reach(drive, arrival_speed: float) -> float:
+    """How far (m) the table of ``drive``'s plant may be inside an end stop, a stiff
+    contact: what the motor's peak force presses, plus what the whole drive train
+    compresses arriving at ``arrival_speed`` (motor units/s; an undamped contact,
+    v sqrt(m / k)).  An axis braked at the stop arrives at about its standstill speed;
+    arriving at speed is a failure of the drive's protection."""
+    from plant.assemble import reflected_inertia
+    plant = drive.plant
+    cfg, ratio, k = plant.config, plant.built.ratio, plant.built.end_stops.stiffness
+    peak_n = cfg.motor.torque_constant_nm_per_a * cfg.motor.current_max_a / ratio
+    mass = reflected_inertia(cfg) / ratio ** 2
+    return (peak_n + arrival_speed * ratio * np.sqrt(k * mass)) / k
+
+
 def check_recording(run_dir: Path) -> tuple[dict, dict]:
     """The run's report and recording, with what must hold whatever happened: the plant
     state finite, every setpoint applied finite and within the power stage, the table
@@ -173,8 +187,6 @@ def check_recording(run_dir: Path) -> tuple[dict, dict]:
     report, rec = read_run(run_dir)
     from hil.drive.core import EmulatedDrive
     from plant import Plant
-    from plant import layout as L
-    from plant.assemble import reflected_inertia
     from plant.config import load_machine
     cfg = load_machine(report["machine_file"])
     table = cfg.table
@@ -184,15 +196,7 @@ def check_recording(run_dir: Path) -> tuple[dict, dict]:
         assert np.isfinite(rec[name]).all(), f"{name}: a refused value was applied"
     assert (np.abs(rec["sp_iq_ref_a"]) <= 28.0).all()
     x = rec["plant_table_pos"]
-    # the end stops are a stiff contact: a table may be in one by what the motor's peak
-    # force presses plus what the drive train compresses arriving at ten times the drive's
-    # standstill speed (a braked axis touching the stop; a few micrometres on the
-    # Arrow), never further: arriving at speed is a failure of the drive's protection
-    plant = Plant(cfg)
-    ratio, k = plant.built.ratio, plant.params[L.P_STOP_K]
-    peak_n = cfg.motor.current_max_a * plant.params[L.P_KT] / ratio
-    mass = reflected_inertia(cfg) / ratio ** 2
-    v = 10.0 * EmulatedDrive(plant).monitor.standstill() * ratio
-    over = table.end_stop_overtravel_m + (peak_n + v * np.sqrt(k * mass)) / k
+    drive = EmulatedDrive(Plant(cfg))
+    over = table.end_stop_overtravel_m + end_stop_reach(drive, 10.0 * drive.monitor.standstill())
     assert -over < x.min() and x.max() < table.travel_m + over, (x.min(), x.max(), over)
     return report, rec

@@ -44,9 +44,9 @@ from hil.runtime.emulator import Emulator, RuntimeConfig
 from io_adapters.messages import MODE_CSP, MODE_CST, MODE_CSV, Feedback, Setpoint
 from io_adapters.udp import UdpEndpoint
 from plant import layout as L
-from plant.assemble import reflected_inertia
 from plant.config import load_machine
 from tests.conftest import CONFIGS
+from tests.runtime_helpers import end_stop_reach
 from tests.test_adapters import assert_counts_add_up
 
 ARROW = CONFIGS / "arrow500_x.toml"
@@ -103,18 +103,12 @@ class Rig:
 
     def __post_init__(self):
         plant, drive = self.emu.plant, self.emu.drive
-        cfg = plant.config
         stops = plant.built.end_stops
-        stall_n = cfg.motor.torque_constant_nm_per_a * cfg.motor.current_max_a / plant.built.ratio
         p = drive.params
         self.runaway_speed = RUNAWAY_SPEED_FACTOR * p.max_speed
         self.moving_out = RUNAWAY_STANDSTILL_FACTOR * drive.monitor.standstill()
-        # into an end stop by what the stall force presses plus what the whole drive train
-        # compresses arriving no faster than a table may move out beyond a limit switch (an
-        # undamped contact: v sqrt(m / k)); an axis braked at the stop touches it so
-        mass = reflected_inertia(cfg) / plant.built.ratio ** 2
-        v = self.moving_out * plant.built.ratio
-        penetration = (stall_n + v * math.sqrt(stops.stiffness * mass)) / stops.stiffness
+        # arriving no faster than a table may move out beyond a limit switch
+        penetration = end_stop_reach(drive, self.moving_out)
         self.x_range = (stops.stop_neg - penetration, stops.stop_pos + penetration)
         brake_s = TIMEOUT_FACTOR * OVERSPEED_FACTOR * p.max_speed / min(
             p.quick_stop_decel, p.profile_decel) + TIMEOUT_EXTRA_S
