@@ -10,15 +10,19 @@ effects a machine file asked for.
 One sub-step, in order:
 
 1. once per PWM period: the inverter takes the voltage computed last period,
-   the drive samples the currents and runs its current controller (or takes
-   the voltage setpoint in voltage mode);
+   the drive samples the currents (with the current sensors' faults) and runs its
+   current controller (or takes the voltage setpoint in voltage mode);
 2. the motor's currents advance with the applied voltage; torque = motor
-   torque + cogging;
+   torque (times the fault's ripple) + cogging;
 3. mechanics: chain forces (springs, dampers, bearings), the nut coupling the
    torsional and axial screw chains to the table at the nut's present
    location, the end stops' contact on the table, table friction with stiction,
    then a symplectic Euler (or TLM) update;
-4. at the end of a PWM period: the measured signals enter the delay ring (if any).
+4. at the end of a PWM period: the encoder's fault terms are drawn (if any) and the
+   measured signals enter the delay ring (if any).
+
+The fault terms (:mod:`plant.effects.faults`) cost one test of ``P_FAULTS`` per sub-step
+while it is 0, and change no bit then.
 
 The outputs give the true states (positions, velocities, currents, forces) as they are
 and the measured ones (encoder and scale counts, measured currents) through the delay.
@@ -43,6 +47,14 @@ from plant.effects.cogging import cogging_torque
 from plant.effects.commutation import commutation_control, commutation_substep
 from plant.effects.delay import delay_push, measured_delayed
 from plant.effects.end_stop import end_stop_force, limit_switches
+from plant.effects.faults import (
+    electrical_angle,
+    encoder_mark,
+    encoder_sample,
+    first_order_target,
+    ripple_factor,
+    sensed_current,
+)
 from plant.effects.friction import presliding_update, table_friction
 from plant.effects.index import offset
 from plant.effects.pitch import pitch_error
@@ -97,6 +109,7 @@ from plant.layout import (
     P_DIVERGE_LIMIT,
     P_DT,
     P_EXT_LOAD,
+    P_FAULTS,
     P_LD,
     P_LEAD_RATIO,
     P_LQ,
@@ -154,9 +167,14 @@ def pwm_event(p, s, inp, omega_m):
     model = int(p[P_MOTOR_MODEL])
     s[S_UD_APPLIED] = s[S_UD_NEXT]
     s[S_UQ_APPLIED] = s[S_UQ_NEXT]
+    i_d = s[S_ID]
+    i_q = s[S_IQ]
+    if p[P_FAULTS] > 0.0:
+        encoder_mark(p, s)
+        i_d, i_q = sensed_current(p, s)
     if model == MOTOR_DQ:
-        s[S_ID_MEAS] = measure_current(p, s, s[S_ID])
-    s[S_IQ_MEAS] = measure_current(p, s, s[S_IQ])
+        s[S_ID_MEAS] = measure_current(p, s, i_d)
+    s[S_IQ_MEAS] = measure_current(p, s, i_q)
     if inp[I_ENABLE] <= 0.0:
         # pulses blocked: no voltage now or next period, controller reset
         s[S_UD_APPLIED] = 0.0
@@ -209,6 +227,21 @@ def motor_substep(p, s, inp, omega_m):
     torque = dq_torque(p, 0.0, s[S_IQ])
     first_order_substep(p, s, iq_ref)
     return torque
+
+
+@njit(cache=True, error_model="numpy")
+def faulty_motor_substep(p, s, inp, omega_m):
+    """:func:`motor_substep` with the fault terms (:mod:`plant.effects.faults`): the torque
+    ripple on the motor's torque and, for the first-order model, the lag's target moved to
+    the true current whose measurement equals the reference (the lag stands for a closed
+    current loop, which regulates its measurement)."""
+    theta_e = electrical_angle(p, s)
+    if int(p[P_MOTOR_MODEL]) == MOTOR_FIRST_ORDER and inp[I_ENABLE] > 0.0:
+        torque = dq_torque(p, 0.0, s[S_IQ])
+        first_order_substep(p, s, first_order_target(p, inp[I_IQ_REF], theta_e))
+    else:
+        torque = motor_substep(p, s, inp, omega_m)
+    return torque * ripple_factor(p, theta_e)
 
 
 @njit(cache=True, error_model="numpy", inline="always")
@@ -348,7 +381,11 @@ def substep(p, s, inp):
     s[S_SUB_COUNT] += 1.0
     if s[S_SUB_COUNT] >= p[P_SUB_PER_PWM]:
         s[S_SUB_COUNT] = 0.0
-    torque = motor_substep(p, s, inp, omega_m) + cogging_torque(p, p[P_POLE_PAIRS] * s[ro])
+    if p[P_FAULTS] > 0.0:
+        torque = faulty_motor_substep(p, s, inp, omega_m)
+    else:
+        torque = motor_substep(p, s, inp, omega_m)
+    torque += cogging_torque(p, p[P_POLE_PAIRS] * s[ro])
     s[S_TORQUE] = torque
     lumped = p[P_SOLVER] == SOLVER_LUMPED
     screw = p[P_MECH_MODEL] == MECH_SCREW
@@ -367,9 +404,13 @@ def substep(p, s, inp):
     else:
         lumped_mechanics(p, s, load, dt)
     s[S_TIME] += dt
-    if s[S_SUB_COUNT] == 0.0 and p[P_DELAY_N] > 0.0:
-        # this sub-step closed a PWM period: the measured signals enter the delay ring
-        delay_push(p, s)
+    if s[S_SUB_COUNT] == 0.0:
+        # this sub-step closed a PWM period: the encoder is sampled (its fault terms drawn)
+        # and the measured signals enter the delay ring
+        if p[P_FAULTS] > 0.0:
+            encoder_sample(p, s)
+        if p[P_DELAY_N] > 0.0:
+            delay_push(p, s)
 
 
 @njit(cache=True, error_model="numpy")

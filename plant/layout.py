@@ -156,6 +156,17 @@ P_NUT_LOAD_FR = next(_p)  # 1, Coulomb torque per nut-force torque F lead/2pi
 
 # voltage limit of the current controller (issue 14 part 5)
 P_U_MAX = next(_p)  # V, largest d-q voltage vector: U_dc/sqrt(3) SVPWM, U_dc/2 sine PWM
+
+# fault terms (issue 14 part 6, plant.effects.faults): 0 after assembly; the run-time
+# injector writes them between drive cycles
+P_FAULTS = next(_p)  # 1: a term below acts (plant.effects.faults.faults_active); 0: skipped
+P_ENC_NOISE = next(_p)  # counts (rms), Gaussian noise on each motor-encoder sample
+P_ENC_LOST = next(_p)  # 1, probability that one encoder count is missed, per count travelled
+P_I_OFFSET = next(_p)  # A, offset of the phase-a current sensor
+P_I_GAIN_ERR = next(_p)  # 1, relative gain error of the phase-a current sensor (0.02: 2 % high)
+P_RIPPLE_AMP = next(_p)  # 1, torque ripple as a fraction of the electromagnetic torque
+P_RIPPLE_ORDER = next(_p)  # ripple cycles per electrical revolution (may be fractional)
+P_RIPPLE_PHASE = next(_p)  # rad, phase of the torque ripple
 P_COUNT = next(_p)
 del _p
 
@@ -192,6 +203,9 @@ S_PRE_XREV = next(_s)  # m, position at the last reversal
 S_PRE_DIR = next(_s)  # +1 / -1, present direction of motion
 S_STOP_F = next(_s)  # N, end-stop force on the table of the last sub-step, + toward +x
 S_DELAY_HEAD = next(_s)  # ring slot of the newest delayed sample
+S_ENC_LOST = next(_s)  # counts, signed: motor-encoder counts lost so far (P_ENC_LOST)
+S_ENC_PREV = next(_s)  # counts, true motor-encoder count at the last PWM event (P_ENC_LOST)
+S_ENC_NOISE = next(_s)  # counts, encoder noise of the last sample, held until the next
 S_COUNT = next(_s)
 del _s
 

@@ -16,10 +16,12 @@ N periods).
 
 from numba import njit
 
+from plant.effects.faults import encoder_reading
 from plant.effects.sensors import counts
 from plant.layout import (
     P_DELAY_N,
     P_ENC_COUNTS_PER_RAD,
+    P_FAULTS,
     P_SCALE_RES,
     P_SOFF_DELAY,
     P_SOFF_ROT,
@@ -40,7 +42,10 @@ def ring_size(n_periods: int) -> int:
 @njit(cache=True, error_model="numpy")
 def measured_now(p, s):
     """The undelayed measured signals: (encoder counts, scale counts, i_d, i_q in A)."""
-    enc = counts(s[int(p[P_SOFF_ROT])], p[P_ENC_COUNTS_PER_RAD])
+    if p[P_FAULTS] > 0.0:
+        enc = encoder_reading(p, s, s[int(p[P_SOFF_ROT])])
+    else:
+        enc = counts(s[int(p[P_SOFF_ROT])], p[P_ENC_COUNTS_PER_RAD])
     res = p[P_SCALE_RES]
     scale = counts(s[S_TABLE_X], 1.0 / res) if res > 0.0 else 0.0
     return enc, scale, s[S_ID_MEAS], s[S_IQ_MEAS]
