@@ -36,6 +36,7 @@ import sys
 from pathlib import Path
 
 from hil.controller.program import ProgramError
+from hil.inject import INJECT_HELP
 from hil.report.latency import ReportError
 from plant.errors import ConfigError
 
@@ -120,12 +121,13 @@ def cmd_bench_adapters(args) -> int:
 def cmd_config_keys(args) -> int:
     from hil.controller.config import ControllerSection
     from hil.drive.config import DriveSection
+    from hil.inject.catalog import FAULTS
     from plant.config import schema_rows
     from plant.schema import describe
 
-    rows = schema_rows() + [{"section": name, **row}
-                            for name, cls in (("controller", ControllerSection),
-                                              ("drive", DriveSection))
+    hil_sections = [("controller", ControllerSection), ("drive", DriveSection)] + [
+        (f"inject.{name}", f.section) for name, f in FAULTS.items()]
+    rows = schema_rows() + [{"section": name, **row} for name, cls in hil_sections
                             for row in describe(cls)]
     if args.markdown:
         print("| section | key | unit | range | default | applies to | meaning |")
@@ -143,7 +145,8 @@ def cmd_sim(args) -> int:
     from hil.commands import print_summary, run_sim
 
     summary = run_sim(Path(args.config), Path(args.program), Path(args.out), args.start,
-                      args.axis, args.every, args.trigger, args.depth, args.pre_trigger)
+                      args.axis, args.every, args.trigger, args.depth, args.pre_trigger,
+                      tuple(args.inject or ()))
     print_summary(summary, args.json)
     for alarm in summary["alarms"]:
         _eprint(f"hil sim: {alarm['message']}")
@@ -203,6 +206,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--depth", type=int, default=1000, help="triggered trace: rows in all")
     s.add_argument("--pre-trigger", type=int, default=100,
                    help="triggered trace: rows kept before the trigger")
+    s.add_argument("--inject", action="append", metavar="FAULT:KEY=VALUE,...",
+                   help=INJECT_HELP)
     s.add_argument("--json", action="store_true")
     s.set_defaults(func=cmd_sim)
 

@@ -79,12 +79,14 @@ def triggered_trace(columns: dict, trigger: Trigger, depth: int, pre: int):
 
 def run_sim(config: Path, program: Path, out: Path, start: float, axis: str | None,
             every: int | None, trigger: str | None = None, depth: int = 1000,
-            pre: int = 100) -> dict:
+            pre: int = 100, inject: tuple[str, ...] = ()) -> dict:
     """Simulate ``program`` on ``config`` from table position ``start`` (mm or deg);
     write trace.csv (one row per ``every`` ticks, default the position-control cycle) and
     sim.png into ``out``, and with a ``trigger`` (see :func:`parse_trigger`) triggered.csv:
     ``depth`` rows of which ``pre`` before the trigger; return a summary (CNC units) with
-    the NC's alarms (``alarms``, empty when none was raised)."""
+    the NC's alarms (``alarms``, empty when none was raised).  ``inject``: ``--inject``
+    flags (:mod:`hil.inject`); every injection is named in the traces' headers
+    (``injected_N``) and its events in the summary."""
     trig = parse_trigger(trigger) if trigger else None
     cfg = load_machine(config)
     k, unit = cnc_unit(cfg)
@@ -92,14 +94,16 @@ def run_sim(config: Path, program: Path, out: Path, start: float, axis: str | No
     sec = load_controller(cfg)
     prog = read_program(program, axis=_axis_letter(cfg, axis), start=x0, clamp=clamp_codes(sec))
     profile = plan(prog, axis_limits(cfg, sec))
-    ls = LockStep(cfg, x0, axis=prog.axis)
+    ls = LockStep(cfg, x0, axis=prog.axis, inject=inject)
     ls.enable()
     ls.ctrl.run_profile(profile)
     with Progress("simulating", total=_PARTS) as p:
         res = ls.run(profile.duration_s + SETTLE_S, _progress(p))
     out.mkdir(parents=True, exist_ok=True)
     meta = {"machine": str(config), "program": str(program), "axis": prog.axis,
-            "source": "hil sim (lock-step)", **TRACE_METADATA}
+            "source": "hil sim (lock-step)", **TRACE_METADATA,
+            **{f"injected_{i + 1}": inj.describe()
+               for i, inj in enumerate(ls.injectors[0].injections)}}
     every = every or ls.ctrl.sec.position_cycle_ratio
     columns = servo_trace_columns(res, every)
     write_trace(out / "trace.csv", columns, meta)
@@ -120,6 +124,8 @@ def run_sim(config: Path, program: Path, out: Path, start: float, axis: str | No
             f"contour_deviation_max_{unit}": float(abs(res["contour_deviation"]).max() * k),
             f"final_position_{unit}": float(res["x_act"][-1] * k),
             "alarms": ls.ctrl.alarms.as_dicts(),
+            "injections": [f"{e.t_s:.4f} s {e.kind}: {e.reason}"
+                           for e in ls.injectors[0].events],
             "trace": str(out / "trace.csv"), "plot": str(out / "sim.png")}
 
 

@@ -25,10 +25,12 @@ from hil.controller.alarms import Alarm
 from hil.controller.machine import MachineController
 from hil.controller.nc import Controller
 from hil.drive import DriveSet, EmulatedDrive
+from hil.inject.schedule import injectors_for
 from hil.trace_file import si_factor
 from io_adapters.messages import Feedback, Setpoint, axis_records, message_pair
 from plant import Plant
 from plant.config import MachineConfig
+from plant.layout import S_TIME
 from plant.machines import MachineSet
 
 #: recorded signals: name -> unit (SI, table units; w_* are motor-side)
@@ -88,10 +90,19 @@ class _Stepper(ABC):
             self.tick()
         raise RuntimeError(f"not enabled after {max_ticks} ticks: {self._enable_reason()}")
 
+    def _inject(self, plants, configs, names, flags) -> None:
+        """The fault injectors of the plants (their machine files' ``[inject]`` tables and
+        the ``--inject`` flags, :mod:`hil.inject`); ConfigError before anything runs."""
+        self.injectors = injectors_for(plants, configs, names, flags)
+        self._injected = tuple(zip(self.injectors, (p.state for p in plants)))
+
     def tick(self) -> None:
         """One controller cycle and one PWM period of the plant(s)."""
         fb = self._line[self._slot]
         self.ctrl.tick(fb, self.sp)
+        for inj, state in self._injected:
+            if inj.busy:
+                inj.update(state[S_TIME])
         self._cycle(self.sp, fb)
         self.fb = fb
         self._slot = (self._slot + 1) % len(self._line)
@@ -111,13 +122,16 @@ class LockStep(_Stepper):
         feedback_delay_ticks: extra ticks the feedback takes to reach the controller
             (see the module docstring); ``fb`` is always the drive's newest feedback.
         axis: the axis name in the NC's alarms (default X, or C on a rotary table).
+        inject: ``--inject`` flags (:mod:`hil.inject`), besides the machine file's
+            ``[inject]`` tables.
     """
 
     def __init__(self, cfg: MachineConfig, x0: float = 0.0, feedback_delay_ticks: int = 0,
-                 axis: str | None = None):
+                 axis: str | None = None, inject: Sequence[str] = ()):
         _check_delay(feedback_delay_ticks)
         self.cfg = cfg
         self.plant = Plant(cfg, table_pos=x0)
+        self._inject((self.plant,), (cfg,), ("",), inject)
         self.drive = EmulatedDrive(self.plant)
         self._cycle = self.drive.cycle
         self.ctrl = Controller(cfg, self.plant.pwm_period, x0, axis=axis)
@@ -184,14 +198,16 @@ class MachineLockStep(_Stepper):
         machine: the machine.
         x0: each axis's table position at start (SI; default all 0).
         feedback_delay_ticks: as for :class:`LockStep`.
+        inject: as for :class:`LockStep` (``AXIS/FAULT:...`` on several axes).
     """
 
     def __init__(self, machine: MachineSet, x0: Sequence[float] | None = None,
-                 feedback_delay_ticks: int = 0):
+                 feedback_delay_ticks: int = 0, inject: Sequence[str] = ()):
         _check_delay(feedback_delay_ticks)
         self.machine = machine
         x0 = tuple(x0) if x0 is not None else (0.0,) * len(machine.axes)
         self.plants = tuple(Plant(a.config, table_pos=x) for a, x in zip(machine.axes, x0))
+        self._inject(self.plants, machine.configs, machine.names, inject)
         self.drives = DriveSet([EmulatedDrive(p) for p in self.plants])
         self.period = self.plants[0].pwm_period
         self.ctrl = MachineController(machine, self.period, x0)

@@ -39,6 +39,7 @@ from io_adapters.messages import (
     REFUSED_NONFINITE,
     REFUSED_RANGE,
     Feedback,
+    InjectRequest,
     Setpoint,
     SetpointBounds,
 )
@@ -89,6 +90,7 @@ class AdapterStats:
 
         frames == received + malformed + refused_nonfinite + refused_mode + refused_range
                   + duplicates + out_of_order + foreign + stale_session + handshakes
+                  + injections
 
     every frame counted in exactly one of them (a refused message in its reason's counter
     only, a drained record in ``received`` too).
@@ -119,6 +121,8 @@ class AdapterStats:
             another session than the one the device is pinned to (not a handshake).
         handshakes: handshake messages taken: a HELLO the device accepted, a WELCOME the
             controller received.
+        injections: fault-injection requests the device took (well-formed, from its peer;
+            :attr:`Endpoint.injections`).
         send_dropped: messages not sent because the transport had no room (a full socket
             buffer, a serial peer that does not read): the loop never waits for a peer.
         bytes_sent, bytes_received: encoded message bytes, transport framing excluded.
@@ -140,6 +144,7 @@ class AdapterStats:
     foreign: int = 0
     stale_session: int = 0
     handshakes: int = 0
+    injections: int = 0
     send_dropped: int = 0
     bytes_sent: int = 0
     bytes_received: int = 0
@@ -159,6 +164,9 @@ class Endpoint(ABC):
         refused_axes: device side, a bit mask: bit ``a`` set when a setpoint (or axis
             ``a``'s record of a group message) was refused during the last
             :meth:`recv_setpoint` call (cleared at the start of each call).
+        injections: device side, the fault-injection requests received
+            (:class:`~io_adapters.messages.InjectRequest`), in order; the caller takes
+            them and clears the list.
     """
 
     def __init__(self, role: Role | str, *, drain: bool = False):
@@ -166,6 +174,7 @@ class Endpoint(ABC):
         self.drain = drain
         self.stats = AdapterStats()
         self.refused_axes = 0
+        self.injections: list[InjectRequest] = []
         self._setpoint_bounds = (SetpointBounds(),)
         self._closed = False
         self._sp_t_ns = 0   # device side: t_ns and arrival time of the latest setpoint
@@ -228,6 +237,19 @@ class Endpoint(ABC):
         write it into ``into``; False if none came.  ``into.rx_ns`` is stamped."""
         self._check(Role.CONTROLLER, "recv_feedback")
         return self._receive(into, timeout_s)
+
+    def send_injection(self, request: InjectRequest) -> bool:
+        """Ask the emulated drive to inject a fault; True when sent.  Raises
+        :class:`AdapterConfigError` on a transport that carries no such message (CAN:
+        write object 2F00h by SDO instead), :class:`FrameError` for a request that does
+        not encode."""
+        self._check(Role.CONTROLLER, "send_injection")
+        try:
+            return self._write_injection(request)
+        except AdapterError:
+            raise
+        except OSError as e:
+            raise AdapterError(f"{self!r}: send failed: {e}") from e
 
     def link_conditions(self, axis: int) -> int:
         """Conditions of the link itself that the drive reacts to, a bit mask of
@@ -321,6 +343,9 @@ class Endpoint(ABC):
     @abstractmethod
     def _close(self) -> None:
         """Release the transport (called once)."""
+
+    def _write_injection(self, request: InjectRequest) -> bool:
+        raise AdapterConfigError(f"{type(self).__name__} carries no injection requests")
 
     def _fileno(self) -> int:
         raise io.UnsupportedOperation(f"{type(self).__name__} has no file descriptor")

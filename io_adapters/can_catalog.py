@@ -211,6 +211,18 @@ COMPOUNDS = {
 }
 
 
+#: fault injection, a manufacturer-specific object of the test bench (no real drive has it):
+#: sub-indices 1 to :data:`N_INJECTABLE` hold the level of each fault the emulator offers
+#: (``hil.inject``'s order, each in its own integer unit), :data:`INJECT_RAMP_SUB` the ramp
+#: time in ms that the next level writes take
+FAULT_INJECTION = 0x2F00
+N_INJECTABLE = 9
+INJECT_RAMP_SUB = N_INJECTABLE + 1
+COMPOUNDS[FAULT_INJECTION] = Compound("Fault injection", True, {
+    **{k: _rw(f"Fault {k} level", I32) for k in range(1, N_INJECTABLE + 1)},
+    INJECT_RAMP_SUB: _rw("Fault injection ramp time", U32)})
+
+
 def spec(index: int, subindex: int) -> Spec | None:
     """The :class:`Spec` of an object or sub-index (sub-index 0 of a compound included),
     None when the dictionary has none."""
@@ -245,7 +257,8 @@ PARAMETERS = ((0x1006, 0), (0x6007, 0), (0x605A, 0), (0x605E, 0), (0x6062, 0), (
               (0x6066, 0), (0x6067, 0), (0x6068, 0), (0x6072, 0), (0x607C, 0), (0x607D, 1),
               (0x607D, 2), (0x6080, 0), (0x6081, 0), (0x6083, 0), (0x6084, 0), (0x6085, 0),
               (0x608F, 1), (0x608F, 2), (0x6098, 0), (0x6099, 1), (0x6099, 2), (0x609A, 0),
-              (0x60C2, 1), (0x60C2, 2), (0x60F4, 0), (0x60FD, 0))
+              (0x60C2, 1), (0x60C2, 2), (0x60F4, 0), (0x60FD, 0)) + tuple(
+    (FAULT_INJECTION, k) for k in range(1, INJECT_RAMP_SUB + 1))
 HEARTBEAT_CONSUMER = (0x1016, 1)
 PRODUCER_HEARTBEAT = (0x1017, 0)
 #: the values that mean "off" and are never scaled

@@ -73,6 +73,20 @@ axis data)::
 A handshake message carries its sender's frame counter without advancing it and is no
 part of the sequence check: the frame after it has the same number.
 
+Fault injection (kind 5, version 1 on every link; controller -> device, a test bench's
+message that no real drive has)::
+
+    INJECT:  the header, then
+        4  axis      int  0-255, the axis (0-based, the machine's order)
+        5  fault     str  the fault's name, 1-40 characters
+        6  settings  map  1-8 entries: key (str, 1-40 characters) -> number (int or
+                          float), as in the machine file's [inject.FAULT] table
+
+Like a handshake it carries the frame counter without advancing it; the device takes it
+only from its pinned peer and session (else ``foreign`` / ``stale_session``), counts it in
+``injections`` and hands it on as an :class:`~io_adapters.messages.InjectRequest`; a NaN
+or infinite number is ``refused_nonfinite``.
+
 Who may talk to a device (:mod:`io_adapters.msgpack_endpoint`): the device pins the first
 peer that sends it a well-formed setpoint or HELLO, its session and (UDP) its address,
 and drops everything else: frames from another address (``foreign``), frames of another
@@ -108,6 +122,7 @@ from io_adapters.base import FrameError
 from io_adapters.messages import (
     Feedback,
     FeedbackGroup,
+    InjectRequest,
     Setpoint,
     SetpointGroup,
 )
@@ -119,6 +134,10 @@ KIND_SETPOINT = 1
 KIND_FEEDBACK = 2
 KIND_HELLO = 3
 KIND_WELCOME = 4
+KIND_INJECT = 5
+#: an INJECT's longest names and most settings
+INJECT_NAME_MAX = 40
+INJECT_SETTINGS_MAX = 8
 HEADER_LEN = 4
 U32 = 0xFFFFFFFF
 #: a controller not yet welcomed repeats its HELLO at most this often, ns
@@ -425,6 +444,46 @@ def _unpack(data: bytes | memoryview) -> tuple:
     return values
 
 
+def encode_inject(session: int, frame: int, request: InjectRequest) -> bytes:
+    """An INJECT (controller -> device); :class:`FrameError` if ``request`` does not fit
+    the layout (see the module docstring)."""
+    values = (HANDSHAKE_VERSION, KIND_INJECT, session, frame, request.axis, request.fault,
+              dict(request.settings))
+    _check_inject(values)
+    return msgpack.packb(values)
+
+
+def _name_ok(name) -> bool:
+    return type(name) is str and 0 < len(name) <= INJECT_NAME_MAX
+
+
+def _check_inject(values: tuple) -> tuple:
+    """``values`` if it is a well-formed INJECT, else :class:`FrameError` saying why."""
+    if len(values) != 7:
+        raise FrameError(f"{len(values)} elements, expected 7 for INJECT")
+    head = HANDSHAKE_FIELDS[KIND_HELLO][:1] + (_int("kind", KIND_INJECT, KIND_INJECT),) \
+        + HANDSHAKE_FIELDS[KIND_HELLO][2:] + (_int("axis", 0, 255),)
+    if not _valid(head, values[:5]):
+        raise FrameError(f"INJECT {_explain(head, values[:5])}")
+    fault, settings = values[5], values[6]
+    if not _name_ok(fault):
+        raise FrameError(f"INJECT fault={fault!r:.60}: expected a name of 1-"
+                         f"{INJECT_NAME_MAX} characters")
+    if type(settings) is not dict or not 0 < len(settings) <= INJECT_SETTINGS_MAX:
+        raise FrameError(f"INJECT settings={settings!r:.60}: expected a map of 1-"
+                         f"{INJECT_SETTINGS_MAX} entries")
+    for k, v in settings.items():
+        if not _name_ok(k) or type(v) not in (int, float):
+            raise FrameError(f"INJECT settings {k!r:.60}: {v!r:.40}: expected a name and a "
+                             f"number")
+    return values
+
+
+def inject_request(values: tuple) -> InjectRequest:
+    """The request of a checked INJECT array (settings as floats)."""
+    return InjectRequest(values[4], values[5], {k: float(v) for k, v in values[6].items()})
+
+
 def _check_handshake(values: tuple, kind: int) -> tuple:
     fields = HANDSHAKE_FIELDS[kind]
     name = "HELLO" if kind == KIND_HELLO else "WELCOME"
@@ -444,12 +503,16 @@ def decode(data: bytes | memoryview, record_type: type, n_axes: int = 1) -> tupl
     """The checked array of one message for ``record_type`` (header first; a group of
     ``n_axes`` axes for the group types), or of the handshake message its receiver takes
     (``values[1]`` says which: a HELLO where setpoints are read, a WELCOME where feedback
-    is); raises :class:`FrameError` saying what is wrong.  Nothing is written anywhere."""
+    is), or an INJECT where setpoints are read; raises :class:`FrameError` saying what is
+    wrong.  Nothing is written anywhere."""
     values = _unpack(data)
     group = GROUP_SCHEMAS.get(record_type)
-    handshake = HANDSHAKE_TAKEN[(group or SCHEMAS[record_type]).kind]
+    kind = (group or SCHEMAS[record_type]).kind
+    handshake = HANDSHAKE_TAKEN[kind]
     if values[1] == handshake:
         return _check_handshake(values, handshake)
+    if values[1] == KIND_INJECT and kind == KIND_SETPOINT:
+        return _check_inject(values)
     version = VERSION if group is None else VERSION_GROUP
     if values[0] != version:
         raise FrameError(f"version {values[0]!r}, expected {version}")

@@ -18,6 +18,7 @@ are stamped by the receiving adapter and never sent.
 
 import math
 from dataclasses import dataclass
+from typing import NamedTuple
 
 #: CiA 402 modes of operation used on the wire (6060h values)
 MODE_CSP = 8  # cyclic synchronous position: the drive closes position and speed loops
@@ -216,6 +217,22 @@ class FeedbackGroup:
     def round_trip_ns(self) -> int:
         """As :meth:`Feedback.round_trip_ns`."""
         return (self.rx_ns - self.sp_t_ns) - (self.t_ns - self.sp_rx_ns)
+
+
+class InjectRequest(NamedTuple):
+    """A controller's request to inject a fault into the emulated axis (a test bench's
+    message, no drive's: UDP and serial carry it, :mod:`io_adapters.codec`; on CAN it is a
+    write of object 2F00h).  The adapter checks only its form; what the fault and its
+    keys mean, and whether they are valid, is the emulator's business (``hil.inject``).
+
+    Attributes:
+        axis: the axis, 0-based in the machine's order.
+        fault: the fault's name, as in the machine file's ``[inject.NAME]``.
+        settings: its keys and values (numbers), as in that table.
+    """
+    axis: int
+    fault: str
+    settings: dict
 
 
 def message_pair(n_axes: int) -> tuple[Setpoint | SetpointGroup, Feedback | FeedbackGroup]:

@@ -12,7 +12,9 @@ in exactly one of the counters below, checked in this order:
    handshake rules).
 2. ``malformed``: it does not decode as a record or a handshake message of this side.
 3. ``handshakes``: a HELLO the device accepted, a WELCOME on the controller; a HELLO the
-   device refused is ``foreign``.
+   device refused is ``foreign``.  ``injections``: an INJECT of the pinned peer's session
+   (device), appended to :attr:`~io_adapters.base.Endpoint.injections`; of another session
+   it is ``stale_session``, with a NaN or infinite number ``refused_nonfinite``.
 4. ``stale_session`` (device): another session than the pinned one.  A controller takes a
    new session of its device as the device reopened (``peer_restarts``).
 5. ``duplicates``, ``out_of_order``: the frame number repeats or goes back.
@@ -30,6 +32,7 @@ of that peer that passes 5 (taken or refused) or an accepted HELLO counts as hea
 it, for ``takeover_ms``.
 """
 
+import math
 import secrets
 import time
 from abc import abstractmethod
@@ -41,6 +44,7 @@ from io_adapters.codec import (
     GROUP_SCHEMAS,
     HELLO_INTERVAL_NS,
     KIND_HELLO,
+    KIND_INJECT,
     KIND_WELCOME,
     SCHEMAS,
     SETPOINT_REFUSAL_ARGS,
@@ -49,12 +53,15 @@ from io_adapters.codec import (
     decode_hello,
     encode,
     encode_hello,
+    encode_inject,
     encode_welcome,
     fill,
+    inject_request,
 )
 from io_adapters.messages import (
     REFUSED_NONFINITE,
     Feedback,
+    InjectRequest,
     Setpoint,
     SetpointGroup,
     axis_records,
@@ -169,6 +176,9 @@ class MsgpackEndpoint(Endpoint):
         except FrameError:
             stats.malformed += 1
             return False
+        if values[1] == KIND_INJECT:  # decode lets it through on the device only
+            self._injection(values)
+            return False
         if values[1] >= KIND_HELLO:  # a handshake message (decode let only ours through)
             self._handshake(values, origin)
             return False
@@ -196,6 +206,25 @@ class MsgpackEndpoint(Endpoint):
                 self._hello(values, origin)
                 return
         self.stats.foreign += 1
+
+    def _injection(self, values: tuple) -> None:
+        """Device: an INJECT from the pinned peer's address (checked by the caller), or
+        from anyone admissible while no peer is pinned (then it is foreign)."""
+        if self._peer_session is None:
+            self.stats.foreign += 1
+            return
+        if values[2] != self._peer_session:
+            self.stats.stale_session += 1
+            return
+        request = inject_request(values)
+        if not all(map(math.isfinite, request.settings.values())):
+            self._refuse(0, REFUSED_NONFINITE)
+            return
+        self.stats.injections += 1
+        self.injections.append(request)
+
+    def _write_injection(self, request: InjectRequest) -> bool:
+        return self._send_message(encode_inject(self.session, self._frame, request), None)
 
     def _handshake(self, values: tuple, origin) -> None:
         if values[1] == KIND_WELCOME:

@@ -323,9 +323,9 @@ SECTIONS = {
     "table": TableSection, "pitch_error": PitchErrorSection, "friction": FrictionSection,
     "presliding": PreslidingSection, "sensors": SensorsSection, "simulation": SimulationSection,
 }
-# sections read by other packages (hil's controller and drive): the plant keeps them as raw
-# tables
-FOREIGN_SECTIONS = ("controller", "drive")
+# sections read by other packages (hil's controller, drive and fault injection): the plant
+# keeps them as raw tables
+FOREIGN_SECTIONS = ("controller", "drive", "inject")
 # sections that may be absent: they then take every default
 OPTIONAL_SECTIONS = {"field_weakening", "cogging", "friction", "presliding", "sensors",
                      "simulation", "current_loop", "pitch_error"}

@@ -48,7 +48,8 @@ from io_adapters.udp import UdpEndpoint
 WAIT_S = 5.0
 #: the counters of AdapterStats' identity (msgpack transports)
 COUNTED = ("received", "malformed", "refused_nonfinite", "refused_mode", "refused_range",
-           "duplicates", "out_of_order", "foreign", "stale_session", "handshakes")
+           "duplicates", "out_of_order", "foreign", "stale_session", "handshakes",
+           "injections")
 CAN_COUNTERS = ("received", "timeouts", "malformed", "refused_mode", "refused_range", "lost")
 NODE = 1
 SDO_REFUSED = (0x06090030, 0x06090031, 0x06090032)

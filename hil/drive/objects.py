@@ -44,7 +44,19 @@ object   meaning                      unit here                       refused (a
 60FDh    digital inputs               bit 0 negative, bit 1 positive
                                       limit switch, bit 2 home switch
                                       (read only)
+2F00h    fault injection (the test    :01-:09 each fault's level in   a fault this machine
+         bench's object,              its integer unit              cannot have, a level
+         :mod:`hil.inject`)           (:data:`~hil.inject.catalog.    out of range
+                                      FAULTS` order and               (0609 0030)
+                                      ``wire_per_unit``); :0A ramp
+                                      time of the next writes, ms
 =======  ===========================  ==============================  ======================
+
+A write of 2F00h:01-09 is checked at once (an abort refuses it) and acts from the next
+tick, ramped over 2F00h:0A; the torque ripple takes its order and phase from the machine
+file's ``[inject.torque_ripple]`` table where there is one.  Reading gives the present
+level.  An NMT reset node does not heal the axis: a fault is the machine's, not a
+setting.
 
 Positions (6062h, 607Dh) are those of the position actual value: shifted by the home
 offset once a homing has ended.  Reads and writes hold the drive's lock, so a write lands
@@ -58,10 +70,14 @@ from dataclasses import fields, replace
 from hil.cia402 import AbortConnectionOption, FaultReactionOption, QuickStopOption
 from hil.drive.core import EmulatedDrive
 from hil.drive.homing import METHODS
+from hil.inject.catalog import FAULTS
+from hil.inject.schedule import Injector, check
 from io_adapters.can_catalog import (
     DI_HOME_SWITCH,
     DI_NEGATIVE_LIMIT,
     DI_POSITIVE_LIMIT,
+    FAULT_INJECTION,
+    INJECT_RAMP_SUB,
     SDO_ABORT_MAX_BELOW_MIN,
     SDO_ABORT_NO_OBJECT,
     SDO_ABORT_VALUE_HIGH,
@@ -70,6 +86,7 @@ from io_adapters.can_catalog import (
 )
 from io_adapters.cia402_objects import ObjectAccessError
 from plant import layout as L
+from plant.errors import ConfigError
 
 U32_OFF = 0xFFFFFFFF
 I32_MIN, I32_MAX = -2**31, 2**31 - 1
@@ -100,17 +117,23 @@ class DriveObjects:
     Args:
         drives: the drives in axis order.
         rated_current_a: 6075h, the reference of 6072h's per mille, A.
+        injectors: every axis's fault injector (2F00h); none: 2F00h does not exist.
     """
 
-    def __init__(self, drives: list[EmulatedDrive], rated_current_a: float):
+    def __init__(self, drives: list[EmulatedDrive], rated_current_a: float,
+                 injectors: tuple[Injector, ...] = ()):
         self.drives = drives
         self.rated_current_a = rated_current_a
+        self.injectors = injectors
+        self._ramp_ms = [0] * len(drives)
         self._initial = [replace(d.params) for d in drives]
 
     def cycle_s(self, axis: int) -> float:
         return self.drives[axis].plant.pwm_period
 
     def read(self, axis: int, index: int, subindex: int) -> int:
+        if index == FAULT_INJECTION:
+            return self._injection_read(axis, subindex)
         d = self.drives[axis]
         with d.lock:
             d.settle()
@@ -160,6 +183,9 @@ class DriveObjects:
         raise ObjectAccessError(SDO_ABORT_NO_OBJECT, f"{index:04X}h is not a drive parameter")
 
     def write(self, axis: int, index: int, subindex: int, value: float) -> None:
+        if index == FAULT_INJECTION:
+            self._inject(axis, subindex, value)
+            return
         d = self.drives[axis]
         with d.lock:
             d.settle()
@@ -207,6 +233,38 @@ class DriveObjects:
                 raise ObjectAccessError(SDO_ABORT_VALUE_RANGE, f"6098h = {value}: homing "
                                         f"methods offered: {sorted(METHODS)}")
             p.homing_method = int(value)
+
+    def _injector(self, axis: int) -> Injector:
+        if not self.injectors:
+            raise ObjectAccessError(SDO_ABORT_NO_OBJECT, "2F00h: no fault injection here")
+        return self.injectors[axis]
+
+    def _injection_read(self, axis: int, subindex: int) -> int:
+        if not self.injectors:  # a drive nobody injects into is healthy
+            return 0
+        inj = self.injectors[axis]
+        if subindex == INJECT_RAMP_SUB:
+            return self._ramp_ms[axis]
+        fault = list(FAULTS.values())[subindex - 1]
+        return round(inj.levels[fault.name] * fault.wire_per_unit)
+
+    def _inject(self, axis: int, subindex: int, value: float) -> None:
+        """Check a 2F00h write as the machine file's table would be, then hand it to the
+        axis's injector (it acts at the next tick)."""
+        inj = self._injector(axis)
+        if subindex == INJECT_RAMP_SUB:
+            self._ramp_ms[axis] = int(value)
+            return
+        fault = list(FAULTS.values())[subindex - 1]
+        table = {**inj.cfg.section("inject").get(fault.name, {}),
+                 fault.level_key: value / fault.wire_per_unit,
+                 "ramp_s": self._ramp_ms[axis] * 1e-3}
+        table.pop("at_s", None)
+        try:
+            check(fault.name, table, inj.cfg, f"2F00h:{subindex:02X}", "SDO 2F00h")
+        except ConfigError as e:
+            raise ObjectAccessError(SDO_ABORT_VALUE_RANGE, str(e)) from None
+        inj.request(fault.name, table, "SDO 2F00h")
 
     def _max_current(self, p, value: float) -> None:
         _positive(0x6072, value)

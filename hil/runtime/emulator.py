@@ -102,6 +102,7 @@ from dataclasses import dataclass, field, replace
 from hil.cia402 import DISABLE_VOLTAGE, EnableSequencer
 from hil.drive import DriveSet, EmulatedDrive
 from hil.drive.objects import DriveObjects
+from hil.inject.schedule import InjectEvent, injectors_for
 from hil.rt.loop import OverrunPolicy
 from hil.rt.scheduling import helper_threads_realtime, last_cpu
 from hil.runtime.common import (
@@ -186,6 +187,8 @@ class Emulator:
         self.plants = tuple(Plant(c, table_pos=x) for c, x in zip(m.configs, self.x0))
         self.plant = self.plants[0]
         self._warm_up()
+        self.injectors = injectors_for(self.plants, m.configs, m.names, rc.inject)
+        self.period_s = t.period_ns * 1e-9
         self.sp, self.fb = message_pair(len(m.axes))
         self.watchdog = Watchdog(t.watchdog_cycles, t.period_ns * 1e-9, self._log)
         self.recorder = Recorder(max(2, math.ceil(RING_S * t.rate_hz)),
@@ -196,7 +199,8 @@ class Emulator:
                                   policy=OverrunPolicy(rc.overrun, rc.stop_after,
                                                        t.grace_ticks))
         self.stop.attach(self.loop)
-        self.events = EventCollector(m.names, self.drives, self.watchdog, self.recorder)
+        self.events = EventCollector(m.names, self.drives, self.watchdog, self.recorder,
+                                     self.injectors)
         self.endpoint: Endpoint | None = None
         self.sync_lock: SyncLock | None = None
         self.helper_threads: dict[str, str] = {}
@@ -284,7 +288,7 @@ class Emulator:
         self.endpoint.setpoint_bounds = tuple(d.setpoint_bounds() for d in self.drives.drives)
         if hasattr(self.endpoint, "objects"):  # a CANopen node: its parameter objects
             self.endpoint.objects = DriveObjects(self.drives.drives,
-                                                 self.endpoint.rated_current_a)
+                                                 self.endpoint.rated_current_a, self.injectors)
         if getattr(self.endpoint, "exposed", False):
             self._log(f"WARNING: {url} is reachable from the network; this bench tool has no "
                       "authentication (README: who may talk to the drive)")
@@ -313,6 +317,12 @@ class Emulator:
         if self.sync_lock is not None:
             self.sync_lock.update(self.endpoint.last_sync_ns)
         self.watchdog.update(heard, k, sp.seq, drives, self.endpoint)
+        requests = self.endpoint.injections
+        if requests:
+            self._injections(requests)
+        for inj in self.injectors:
+            if inj.busy:
+                inj.update(k * self.period_s)
         self.recorder.begin_tick()
         for _ in range(self.timing.cycles_per_tick):
             drives.cycle(sp, fb)
@@ -324,6 +334,19 @@ class Emulator:
                 self._adapter_error("send", e)
         self.setpoints_heard += heard
         self.recorder.record(k, heard, t_ns, sp, fb, drives, refused)
+
+    def _injections(self, requests: list) -> None:
+        """Hand the adapter's injection requests (:class:`~io_adapters.messages.
+        InjectRequest`) to their axes' injectors; one naming no axis of this machine is
+        refused there and then."""
+        for r in requests:
+            if 0 <= r.axis < len(self.injectors):
+                self.injectors[r.axis].request(r.fault, r.settings, "adapter")
+            else:
+                self.injectors[0].events.append(InjectEvent(
+                    -1.0, "refused", f"adapter: axis {r.axis} of an injection request: this "
+                    f"machine has {len(self.injectors)} axis(es)"))
+        requests.clear()
 
     def _adapter_error(self, kind: str, err: AdapterError) -> None:
         count = getattr(self.errors, kind) + 1

@@ -9,6 +9,7 @@ import math
 from dataclasses import dataclass
 from pathlib import Path
 
+from hil.inject import INJECT_HELP
 from hil.rt.loop import OverrunPolicy
 from hil.runtime.common import RuntimeInputError, check_cpu, period_ns_of, start_arg
 from plant.config import MachineConfig
@@ -40,6 +41,7 @@ class RuntimeConfig:
         priority: SCHED_FIFO priority, 1-99.
         start_cnc: the table's position at start in the CNC's unit (mm; deg on rotary
             tables), for every axis, or per axis letter (:func:`~hil.runtime.common.start_arg`).
+        inject: ``--inject`` flags, ``[AXIS/]FAULT:KEY=VALUE,...`` (:mod:`hil.inject`).
     """
     machine_file: Path
     adapter_url: str
@@ -54,6 +56,7 @@ class RuntimeConfig:
     cpu: int | None = None
     priority: int = 80
     start_cnc: float | dict = 0.0
+    inject: tuple[str, ...] = ()
 
     def __post_init__(self):
         positive = {"--duration (s)": self.duration_s, "--rate (Hz)": self.rate_hz}
@@ -79,7 +82,8 @@ class RuntimeConfig:
                    force=args.force, rate_hz=args.rate,
                    watchdog_cycles=args.watchdog_cycles, overrun=args.overrun,
                    stop_after=args.stop_after, realtime=not args.no_rt, cpu=args.cpu,
-                   priority=args.priority, start_cnc=args.start)
+                   priority=args.priority, start_cnc=args.start,
+                   inject=tuple(args.inject or ()))
 
 
 @dataclass(frozen=True)
@@ -139,3 +143,5 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--start", type=start_arg, default=0.0,
                    help="table position at start, mm (deg on rotary tables), or per axis: "
                         "X=10,Y=-5")
+    p.add_argument("--inject", action="append", metavar="[AXIS/]FAULT:KEY=VALUE,...",
+                   help=INJECT_HELP)

@@ -26,14 +26,17 @@ def metadata(emu) -> dict:
     """The recording's metadata (JSON-ready): the machine file(s) with their text (the
     manifest first), the runtime settings and timing, the adapter URL, and per axis what
     an export needs: ``table_per_count`` (table units, m or rad, per motor-encoder count:
-    a CSP target's unit), ``scale_resolution_m`` and the axis's column prefix."""
+    a CSP target's unit), ``scale_resolution_m`` and the axis's column prefix; and the
+    fault injections known at the start (machine file, ``--inject``; those arriving over
+    the adapter are events of the recording and listed in ``report.json``)."""
     m, t = emu.machine, emu.timing
     files = ([Path(m.path)] if m.manifest else []) + [Path(c.path) for c in m.configs]
     axes = [{"name": a.name, "machine_file": a.config.path, "kind": a.config.machine.kind,
              "table_per_count": p.built.ratio / p.params[L.P_ENC_COUNTS_PER_RAD],
              "scale_resolution_m": a.config.sensors.scale_resolution_m,
-             "prefix": f"{a.name}_" if m.multi_axis else ""}
-            for a, p in zip(m.axes, emu.plants)]
+             "prefix": f"{a.name}_" if m.multi_axis else "",
+             "injections": [i.as_dict() for i in inj.injections]}
+            for a, p, inj in zip(m.axes, emu.plants, emu.injectors)]
     return {"command": "hil run", "machine": m.name, "machine_file": str(emu.rc.machine_file),
             "machine_files": {str(f): f.read_text() for f in dict.fromkeys(files)},
             "axes": axes, "runtime": runtime_dict(emu), "period_ns": t.period_ns,
@@ -89,6 +92,9 @@ def run_report(emu, stats: LoopStats, granted, safe: dict, status: int) -> dict:
                       "last_seq": int(emu.sp.seq)},
         "watchdog": emu.watchdog.as_dict(), "safe_state": safe,
         "faults": {name: d.faults.as_dict() for name, d in zip(m.names, emu.drives.drives)},
+        "injections": {name: {"taken": [i.as_dict() for i in inj.injections],
+                              "levels_at_end": inj.state()}
+                       for name, inj in zip(m.names, emu.injectors)},
         "recording": {**emu.writer.as_dict(), "columns": {c.name: c.unit
                                                           for c in emu.recorder.specs}},
         "host": host_fingerprint(),

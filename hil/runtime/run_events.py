@@ -35,7 +35,7 @@ EVENT_COLUMNS = {
     "tick": ("int64", "1", "deadline index of the tick (-1: outside the loop)"),
     "t_s": ("float64", "s", "tick * period (NaN outside the loop)"),
     "axis": ("string", "-", "axis letter (empty: every axis)"),
-    "source": ("string", "-", "drive, watchdog, link, loop, recording or emulator"),
+    "source": ("string", "-", "drive, watchdog, link, loop, recording, inject or emulator"),
     "kind": ("string", "-", "what happened"),
     "code": ("int32", "603Fh", "the drive's error code where there is one, else 0"),
     "cycle": ("int64", "1", "drive cycle (PWM periods since the drive was built; -1: none)"),
@@ -121,12 +121,16 @@ class EventCollector:
         drives: every axis's drive.
         watchdog: the emulator's watchdog.
         recorder: the ring (fault marks, ticks not recorded).
+        injectors: every axis's fault injector (:class:`~hil.inject.Injector`): what it
+            injected, reached or refused.
     """
 
     def __init__(self, names: tuple[str, ...], drives: "DriveSet", watchdog: "Watchdog",
-                 recorder: "Recorder"):
+                 recorder: "Recorder", injectors: tuple = ()):
         self.names, self.drives = names, drives
         self.watchdog, self.recorder = watchdog, recorder
+        self.injectors = injectors
+        self._injected_done = [0] * len(injectors)
         self._faults_done = [0] * len(names)
         self._watchdog_done = 0
         self._lost_done = 0
@@ -147,7 +151,18 @@ class EventCollector:
                                 "link" if link else "watchdog", e.kind,
                                 e.message(self.watchdog.period_s)))
         self._lost(out)
+        self._injected(out)
         return out
+
+    def _injected(self, out: list[RunEvent]) -> None:
+        period_s = self.watchdog.period_s
+        for axis, inj in enumerate(self.injectors):
+            events = inj.events
+            while self._injected_done[axis] < len(events):
+                e = events[self._injected_done[axis]]
+                self._injected_done[axis] += 1
+                tick = round(e.t_s / period_s) if e.t_s >= 0.0 else -1
+                out.append(RunEvent(tick, self.names[axis], "inject", e.kind, e.reason))
 
     def finish(self) -> list[RunEvent]:
         """What remains once the loop has stopped: ticks not recorded, faults logged in

@@ -1,0 +1,118 @@
+"""Fault injection at run time over the adapter, with ``hil run`` in its own process
+(issue 14 part 6): an INJECT message on UDP and a write of object 2F00h by canopen's SDO
+client on CAN reach the plant, and every injection -- flag, message, SDO, a refused one --
+is in the recording's metadata or events and in report.json."""
+
+import time
+
+import numpy as np
+import pytest
+
+from hil.runtime.record_reader import Recording
+from io_adapters import Feedback, Setpoint, open_endpoint
+from io_adapters.messages import InjectRequest
+from tests.runtime_helpers import (
+    SLOW_2KHZ,
+    Children,
+    enable,
+    exchange,
+    machine_variant,
+    read_run,
+    terminate,
+)
+
+
+@pytest.fixture(scope="module")
+def config(tmp_path_factory):
+    return machine_variant(tmp_path_factory.mktemp("cfg") / "arrow_2khz.toml", SLOW_2KHZ)
+
+
+def _events(run) -> list[dict]:
+    ev = Recording(run).events()
+    return [{k: v[i] for k, v in ev.items()} for i in range(ev["tick"].size)]
+
+
+def test_an_inject_message_on_udp_changes_the_plant_and_is_recorded(config, tmp_path):
+    """hil run with a flag (encoder noise from 0.2 s); the test is the controller: it
+    enables the drive holding the current at 0, sends INJECT current_offset 0.5 A and one
+    naming a fault the machine does not know.  The measured q current, which the current
+    loop holds at its setpoint, shows the offset's ripple in the true current instead; the
+    recording's metadata names the flag's injection, its events all three (the refused
+    one with its reason), report.json the levels at the end."""
+    run = tmp_path / "run"
+    with Children(tmp_path) as children:
+        proc, url = children.emulator(config, "udp://127.0.0.1:0", run, "--no-rt",
+                                      "--start", 250, "--inject",
+                                      "encoder_noise:noise_counts=1.5,at_s=0.2")
+        ep = open_endpoint(url, "controller")
+        try:
+            sp, fb = Setpoint(), Feedback()
+            ep.send_setpoint(sp)
+            enable(ep, sp, fb)
+            exchange(ep, sp, fb, 200)
+            ep.send_injection(InjectRequest(0, "current_offset", {"offset_a": 0.5}))
+            ep.send_injection(InjectRequest(0, "bearing_seizure", {"level": 1.0}))
+            exchange(ep, sp, fb, 400)
+        finally:
+            ep.close()
+        assert terminate(proc) == 0, children.log("emulator")
+    report, rec = read_run(run)
+    meta = Recording(run).meta
+    assert meta["axes"][0]["injections"][0]["fault"] == "encoder_noise"
+    events = [e for e in _events(run) if e["source"] == "inject"]
+    kinds = [(e["kind"], e["reason"].split()[0]) for e in events]
+    assert ("injected", "encoder_noise") in kinds and ("injected", "current_offset") in kinds
+    refused = [e for e in events if e["kind"] == "refused"]
+    assert len(refused) == 1 and "unknown fault [inject.bearing_seizure]" in refused[0]["reason"]
+    offset_tick = next(e["tick"] for e in events if "current_offset" in e["reason"])
+    assert report["injections"]["X"]["levels_at_end"] == {"encoder_noise": 1.5,
+                                                          "current_offset": 0.5}
+    assert report["adapter"]["stats"]["injections"] == 2
+    # the loop regulates the measured current to 0: the true one carries the offset's
+    # opposite, a ripple at the electrical frequency (here the axis stands still, so a
+    # constant of up to 2/sqrt(3) * 0.5 A in size)
+    tick = rec["tick"]
+    after = tick > offset_tick + 50
+    before = (tick > 100) & (tick < offset_tick)
+    true_iq = rec["plant_iq_a"]
+    assert np.abs(true_iq[before]).max() < 0.05
+    assert 0.05 < np.abs(true_iq[after]).mean() < 2 / np.sqrt(3) * 0.5 + 0.05
+
+
+def test_an_sdo_write_of_2f00h_injects_and_reads_back(config, tmp_path, multicast_group):
+    """hil run as a CANopen node; canopen's SDO client writes the ramp time 2F00h:0A =
+    200 ms, then friction growth 2F00h:01 = 5000 (50.00 %): it reads back growing to 5000
+    within the ramp.  A level beyond the fault's range is refused with abort 0609 0030 and
+    leaves the level as it was; the events hold both."""
+    import canopen
+
+    from tests.test_can_cia402 import master_network, master_node
+    group, port = multicast_group
+    url = f"can://udp_multicast/{group}?node=5&rated_current_ma=28000&port={port}"
+    run = tmp_path / "run"
+    with Children(tmp_path) as children:
+        proc, _ = children.emulator(config, url, run, "--rate", 500, "--start", 250)
+        network = master_network()
+        try:
+            network.connect(interface="udp_multicast", channel=group, port=port)
+            node = master_node(network)
+            network.sync.start(0.002)
+            node.sdo[0x2F00][10].raw = 200
+            node.sdo[0x2F00][1].raw = 5000
+            levels = []
+            end = time.monotonic() + 5.0
+            while time.monotonic() < end and (not levels or levels[-1] < 5000):
+                levels.append(node.sdo[0x2F00][1].raw)
+            assert levels[-1] == 5000 and min(levels) < 5000, levels
+            with pytest.raises(canopen.SdoAbortedError) as err:
+                node.sdo[0x2F00][1].raw = 2_000_000
+            assert err.value.code == 0x06090030
+            assert node.sdo[0x2F00][1].raw == 5000
+        finally:
+            network.sync.stop()
+            network.disconnect()
+        assert terminate(proc) == 0, children.log("emulator")
+    events = [e for e in _events(run) if e["source"] == "inject"]
+    assert [e["kind"] for e in events] == ["injected", "reached"]
+    assert "friction_growth growth_pct=50 on arrival, ramp 0.2 s (SDO 2F00h)" in \
+        events[0]["reason"]
