@@ -223,3 +223,19 @@ def test_an_inject_that_does_not_fit_the_layout_is_not_sent(request_, message):
     with pytest.raises(FrameError, match=message):
         encode_inject(1, 0, request_)
     assert KIND_INJECT == 5
+
+
+def test_hil_controller_checks_its_injections_before_start_and_sends_them_in_time():
+    """The controller's --inject: a bad level is refused before anything runs; good ones
+    come out in program-time order, each once, without their at_s."""
+    from hil.inject.sender import InjectionSender
+    from plant.machines import load_machine_set
+    machine = load_machine_set(ARROW)
+    with pytest.raises(ConfigError, match="growth_pct = 5000"):
+        InjectionSender(("friction_growth:growth_pct=5000",), machine)
+    sender = InjectionSender(("current_offset:offset_a=0.1,at_s=2",
+                              "X/encoder_noise:noise_counts=1,at_s=1"), machine)
+    assert sender.due(0.5) == []
+    assert sender.due(1.0) == [InjectRequest(0, "encoder_noise", {"noise_counts": 1.0})]
+    assert sender.due(5.0) == [InjectRequest(0, "current_offset", {"offset_a": 0.1})]
+    assert sender.due(6.0) == [] and len(sender.sent) == 2

@@ -117,6 +117,8 @@ def write_outputs(proc, stats, granted, alignment: Alignment) -> dict:
         "loop": stats.as_dict(), "scheduling": scheduling_dict(granted),
         "adapter": {"name": rc.adapter_url, "stats": asdict(proc.ep.stats),
                     "errors": proc.adapter_errors},
+        "injections_sent": [{"at_s": p.at_s, **p.request._asdict()}
+                            for p in proc.injections.sent],
         "trace": first["trace"], "host": host_fingerprint(),
     }
     if multi:

@@ -71,6 +71,8 @@ from hil.controller.machine import MachineController
 from hil.controller.path import read_path_program
 from hil.controller.program import ProgramError, read_program
 from hil.drive.faults import ERROR_CODE, TEXT
+from hil.inject import INJECT_HELP
+from hil.inject.sender import InjectionSender
 from hil.rt.clock import MonotonicClock
 from hil.rt.loop import OverrunPolicy, RealTimeLoop
 from hil.runtime.common import (
@@ -137,6 +139,7 @@ class ControllerRunConfig:
     overrun: str = "count"
     connect_timeout_s: float = 10.0
     feedback_timeout_cycles: int | None = None
+    inject: tuple[str, ...] = ()
 
     def __post_init__(self):
         if not self.connect_timeout_s > 0.0:
@@ -185,6 +188,7 @@ class ControllerProcess:
             self.profiles = (plan(self.program, self.mctrl.limits[0]),)
             self.program_end = (self.program.end,)
         self.profile = self.profiles[0]
+        self.injections = InjectionSender(rc.inject, m)
         #: linear-scale counts per motor-encoder count per axis, to extrapolate the scale too
         self.scale_per_count = tuple(c.rad_per_count * c.ratio / c.scale_res
                                      if c.scale_res else 0.0 for c in self.mctrl.ctrls)
@@ -206,6 +210,7 @@ class ControllerProcess:
         self.ep: Endpoint | None = None
         self.rows = 0
         self.running = False
+        self.profile_start_s = 0.0
         self.silent = 0
         self.adapter_errors = 0
         self.result = "completed"
@@ -237,6 +242,8 @@ class ControllerProcess:
             return
         if self.running:
             self._record(k, new)
+            if self.injections.planned:
+                self._inject()
         elif not mctrl.alarmed:
             self._start(k)
         if mctrl.alarmed:
@@ -259,6 +266,14 @@ class ControllerProcess:
         self.rows = i + 1
         if self.rows == self.n_run:
             self.loop.request_stop()
+
+    def _inject(self) -> None:
+        """Send the ``--inject`` requests due at this program time."""
+        for request in self.injections.due(self.ctrl.t - self.profile_start_s):
+            try:
+                self.ep.send_injection(request)
+            except AdapterError:
+                self.adapter_errors += 1
 
     def _extrapolate(self, ticks: int) -> None:
         """The feedback moved on by ``ticks`` periods at each drive's speed actual value."""
@@ -285,6 +300,7 @@ class ControllerProcess:
                                f"starts at {x0 * k_cnc:.4f} {unit} (--start)")
                     return
             mctrl.run_profiles(self.profiles)
+            self.profile_start_s = self.ctrl.t
             self.running = True
 
     def drive_faults(self) -> list[str]:
@@ -367,6 +383,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="SCHED_FIFO priority (default 70, below the emulator's 80)")
     p.add_argument("--overrun", choices=("count", "skip"), default="count",
                    help="what a late tick does (default %(default)s)")
+    p.add_argument("--inject", action="append", metavar="[AXIS/]FAULT:KEY=VALUE,...",
+                   help=INJECT_HELP.replace("inject a fault", "send the drive a fault", 1)
+                   + "; at_s is the time into the program to send it at (the INJECT message)")
     p.add_argument("--connect-timeout", type=float, default=10.0, metavar="S",
                    help="how long to wait for the drive's first answers (default 10 s)")
     p.add_argument("--feedback-timeout", type=int, metavar="N",
@@ -383,7 +402,7 @@ def run_from_args(args: argparse.Namespace) -> int:
                 program_file=Path(args.program), out_dir=Path(args.out), start_cnc=args.start,
                 axis=args.axis, realtime=not args.no_rt, cpu=args.cpu, priority=args.priority,
                 overrun=args.overrun, connect_timeout_s=args.connect_timeout,
-                feedback_timeout_cycles=args.feedback_timeout)
+                feedback_timeout_cycles=args.feedback_timeout, inject=tuple(args.inject or ()))
             proc = ControllerProcess(rc, stop)
         except (ConfigError, ProgramError, RuntimeInputError, ValueError, OSError) as e:
             eprint(f"hil controller: {e}")
