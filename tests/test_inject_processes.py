@@ -68,6 +68,13 @@ def test_an_inject_message_on_udp_changes_the_plant_and_is_recorded(config, tmp_
     assert report["injections"]["X"]["levels_at_end"] == {"encoder_noise": 1.5,
                                                           "current_offset": 0.5}
     assert report["adapter"]["stats"]["injections"] == 2
+    from hil.runtime.export import export_csv
+    from hil.runtime.record_trace import axis_trace
+    from hil.trace_file import read_trace
+    header = read_trace(export_csv(Recording(run), tmp_path / "trace.csv",
+                                   axis_trace(Recording(run)))).metadata
+    assert header["injected_1"].endswith("s: current_offset offset_a=0.5 on arrival (adapter)")
+    assert header["injected_2"] == "0.2 s: encoder_noise noise_counts=1.5 at 0.2 s (--inject)"
     # the loop regulates the measured current to 0: the true one carries the offset's
     # opposite, a ripple at the electrical frequency (here the axis stands still, so a
     # constant of up to 2/sqrt(3) * 0.5 A in size)

@@ -36,7 +36,7 @@ class Injection:
         fault: the fault's name (a key of :data:`~hil.inject.catalog.FAULTS`).
         settings: its table, checked (the fault's section dataclass).
         source: where it came from ("machine file", "--inject", "adapter", ...).
-        timed: the table gave ``at_s`` (a request without one acts when it arrives).
+        timed: it acts at ``at_s`` (a run-time request without one acts when it arrives).
     """
     fault: str
     settings: object
@@ -71,10 +71,11 @@ class Injection:
                 "source": self.source}
 
 
-def check(fault: str, table: dict, cfg: MachineConfig, where: str,
-          source: str) -> Injection:
+def check(fault: str, table: dict, cfg: MachineConfig, where: str, source: str,
+          runtime: bool = False) -> Injection:
     """One ``[inject.FAULT]`` table checked against the catalog and ``cfg``; a
-    :class:`ConfigError` naming ``where``, the table and the key otherwise."""
+    :class:`ConfigError` naming ``where``, the table and the key otherwise.  ``runtime``:
+    a request made while running, which acts on arrival unless it gives ``at_s``."""
     f = FAULTS.get(fault)
     if f is None:
         raise ConfigError(f"{where}: unknown fault [{SECTION}.{fault}]; faults: "
@@ -85,7 +86,7 @@ def check(fault: str, table: dict, cfg: MachineConfig, where: str,
     why = f.why_not(cfg)
     if why:
         raise ConfigError(f"{where}: [{SECTION}.{fault}] {why}")
-    return Injection(fault, settings, source, "at_s" in table)
+    return Injection(fault, settings, source, "at_s" in table or not runtime)
 
 
 def from_machine(cfg: MachineConfig) -> list[Injection]:
@@ -199,7 +200,7 @@ class Injector:
         while self.requests:
             fault, table, source = self.requests.popleft()
             try:
-                inj = check(fault, table, self.cfg, source, source)
+                inj = check(fault, table, self.cfg, source, source, runtime=True)
             except ConfigError as e:
                 self.events.append(InjectEvent(t_s, "refused", str(e)))
                 continue

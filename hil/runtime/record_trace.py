@@ -98,11 +98,17 @@ class AxisTrace:
         return {name: np.asarray(v, dtype=np.float64) for name, v in zip(self.names(), values)}
 
     def metadata(self, rec: Recording) -> dict[str, str]:
-        """The trace header's ``# key: value`` lines."""
+        """The trace header's ``# key: value`` lines; each fault injected into this axis
+        (the recording's ``inject`` events) as ``injected_N: T s: what``."""
+        ev = rec.events()
+        injected = [f"{t:.6g} s: {why}" for t, src, kind, axis, why in zip(
+            ev["t_s"], ev["source"], ev["kind"], ev["axis"], ev["reason"])
+            if src == "inject" and kind == "injected" and axis == self.name]
         return {"sample_time_s": repr(self.period_s), "axis": self.name,
                 "machine": rec.meta.get("machine", ""),
                 "machine_file": rec.meta.get("machine_file", ""),
-                "source": f"hil run recording {rec.folder} (adapter {rec.meta.get('adapter')})"}
+                "source": f"hil run recording {rec.folder} (adapter {rec.meta.get('adapter')})",
+                **{f"injected_{i + 1}": text for i, text in enumerate(injected)}}
 
 
 def axis_trace(rec: Recording, axis: str | None = None) -> AxisTrace:
