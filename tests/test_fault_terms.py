@@ -27,6 +27,7 @@ from tests.conftest import CONFIGS
 from tests.kernel_reference import REFERENCE, SNAPSHOT_EVERY, START_POS_M, cases, set_inputs
 
 ARROW = CONFIGS / "arrow500_x.toml"
+GEISS = CONFIGS / "geiss_c_axis.toml"  # the commutation model
 #: the fault terms' state (not in the healthy kernel's reference trajectories)
 FAULT_STATE = (L.S_ENC_LOST, L.S_ENC_PREV, L.S_ENC_NOISE)
 TABLE_M = 0.25  # table start: mid travel
@@ -52,10 +53,10 @@ def with_faults(plant: Plant, **values: float) -> Plant:
     return plant
 
 
-def spinning_arrow(omega_m: float, *extra: dict, **faults: float) -> Plant:
-    """The Arrow with the locked rotor turning at ``omega_m`` (rad/s): every torsional
-    node and the table move together, so the chain starts without strain."""
-    plant = Plant.from_file(ARROW, table_pos=TABLE_M,
+def spinning(config, omega_m: float, *extra: dict, **faults: float) -> Plant:
+    """The machine file ``config`` with the locked rotor turning at ``omega_m`` (rad/s):
+    every torsional node and the table move together, so the chain starts without strain."""
+    plant = Plant.from_file(config, table_pos=TABLE_M if config == ARROW else 0.0,
                             overrides=E.merged(E.LOCKED, E.QUIET, E.NO_COGGING, *extra))
     p, s = plant.params, plant.state
     ro, nr = int(p[L.P_SOFF_ROT]), int(p[L.P_N_ROT])
@@ -187,19 +188,24 @@ def test_c_port_runs_only_the_healthy_machine():
 #: (its lag turns the ripple's phase by about 1 %; the tolerances below are 2 %)
 OMEGA_SLOW = 10.0
 SETTLE = 200  # PWM periods (25 ms: the loop settles within a few ms)
-PERIODS = 3400  # 0.425 s: two electrical revolutions
+PERIODS = 3400  # 0.425 s: two electrical revolutions at OMEGA_SLOW
 
 
-def test_offset_gives_the_analytic_1x_ripple():
+@pytest.mark.parametrize("config, omega_m, periods", [
+    (ARROW, OMEGA_SLOW, PERIODS),
+    # the commutation model's coil current, no field weakening at this speed (gamma = 0):
+    # 11 rad/s electrical against a loop of ~2.7e3 rad/s, two revolutions
+    (GEISS, 0.5, 9200)])
+def test_offset_gives_the_analytic_1x_ripple(config, omega_m, periods):
     """Offset o on phase a: the loop holds the measurement at (0, i_ref), so the true q
     current is i_ref - o (cos/sqrt(3) - sin) (the error's opposite): mean i_ref, a 1x
     ripple of amplitude 2 o / sqrt(3), no 2x; least-squares fit over two electrical
     revolutions within 2 % of the amplitude."""
     o, i_ref = 0.5, 2.0
-    plant = spinning_arrow(OMEGA_SLOW, P_I_OFFSET=o)
+    plant = spinning(config, omega_m, P_I_OFFSET=o)
     plant.set_input(iq_ref_a=i_ref)
     run_periods(plant, SETTLE)
-    c = harmonics(*run_periods(plant, PERIODS))
+    c = harmonics(*run_periods(plant, periods))
     amp = 2.0 * o / math.sqrt(3.0)
     assert math.hypot(c[1], c[2]) == pytest.approx(amp, rel=0.02)
     np.testing.assert_allclose(c, [i_ref, -o / math.sqrt(3.0), o, 0.0, 0.0], atol=0.02 * amp)
@@ -211,7 +217,7 @@ def test_gain_error_gives_the_analytic_mean_and_2x_ripple():
     i_ref (1 - g/(2 (1+g))), a 2x ripple of amplitude i_ref g/((1+g) sqrt 3), no 1x; the
     fit within 2 % of the ripple's amplitude."""
     g, i_ref = 0.05, 10.0
-    plant = spinning_arrow(OMEGA_SLOW, P_I_GAIN_ERR=g)
+    plant = spinning(ARROW, OMEGA_SLOW, P_I_GAIN_ERR=g)
     plant.set_input(iq_ref_a=i_ref)
     run_periods(plant, SETTLE)
     c = harmonics(*run_periods(plant, PERIODS))
@@ -275,7 +281,7 @@ def test_lost_counts_are_a_bernoulli_sum_against_the_motion(omega_m):
     (encoder - floor(theta cpr), and S_ENC_LOST) within 4 sigma of 1e-4 N, sigma =
     sqrt(1e-4 N) bounding the Bernoulli sum's spread; its sign opposite to the motion."""
     lost_per_count = 1e-4
-    plant = spinning_arrow(omega_m, P_ENC_LOST=lost_per_count)
+    plant = spinning(ARROW, omega_m, P_ENC_LOST=lost_per_count)
     per_rad = plant.params[L.P_ENC_COUNTS_PER_RAD]
     start = math.floor(plant.out[L.O_MOTOR_POS] * per_rad)
     err = encoder_error(plant, 8000)
@@ -301,7 +307,7 @@ def test_torque_ripple_is_proportional_to_the_motor_torque():
     i_q and theta_e at that sub-step's start, to 1e-9 relative (L_d = L_q: no reluctance
     torque)."""
     a, k, phi = 0.08, 1.5, 0.7
-    plant = spinning_arrow(OMEGA_SLOW, P_RIPPLE_AMP=a, P_RIPPLE_ORDER=k, P_RIPPLE_PHASE=phi)
+    plant = spinning(ARROW, OMEGA_SLOW, P_RIPPLE_AMP=a, P_RIPPLE_ORDER=k, P_RIPPLE_PHASE=phi)
     p, s = plant.params, plant.state
     ro = int(p[L.P_SOFF_ROT])
     plant.set_input(iq_ref_a=5.0)
@@ -321,7 +327,7 @@ ALL_FAULTS = {"P_ENC_NOISE": 1.5, "P_ENC_LOST": 1e-4, "P_I_OFFSET": 0.2, "P_I_GA
 
 
 def _faulty_run(seed: int) -> np.ndarray:
-    plant = spinning_arrow(OMEGA_SLOW, {"sensors": {"current_noise_a": 0.01, "seed": seed}},
+    plant = spinning(ARROW, OMEGA_SLOW, {"sensors": {"current_noise_a": 0.01, "seed": seed}},
                            **ALL_FAULTS)
     plant.set_input(iq_ref_a=3.0)
     plant.step(400 * plant.sub_per_pwm)
