@@ -2,7 +2,9 @@
 results: the two-sensor Clarke/Park transform written out from its definition, the
 closed current loop's quasi-static solution (the loop makes the measurement equal the
 reference), Sheppard's quantization variance, the Bernoulli sum of lost counts, the
-ripple formula, and the healthy kernel's reference trajectories.
+ripple formula, and the healthy kernel (every fault value 0 on the fault path against
+P_FAULTS = 0; P_FAULTS = 0 against the reference trajectories is
+tests/test_kernel_speed.py's).
 
 The Arrow 500 X runs with a rotor of 1e6 kg·m² (hil.validate.experiments.electrical's
 LOCKED): it keeps the speed it is given, so the electrical angle sweeps at a constant
@@ -10,7 +12,6 @@ rate while the current loop and the sensors do their work; current noise and cog
 are off where they would blur the comparison.
 """
 
-import json
 import math
 
 import numpy as np
@@ -24,11 +25,11 @@ from plant import Plant
 from plant import layout as L
 from plant.effects.faults import faults_active, first_order_target, two_sensor_dq
 from tests.conftest import CONFIGS
-from tests.kernel_reference import REFERENCE, SNAPSHOT_EVERY, START_POS_M, cases, set_inputs
+from tests.kernel_reference import START_POS_M, cases, set_inputs
 
 ARROW = CONFIGS / "arrow500_x.toml"
 GEISS = CONFIGS / "geiss_c_axis.toml"  # the commutation model
-#: the fault terms' state (not in the healthy kernel's reference trajectories)
+#: the fault terms' state (S_ENC_PREV follows the encoder on the fault path)
 FAULT_STATE = (L.S_ENC_LOST, L.S_ENC_PREV, L.S_ENC_NOISE)
 TABLE_M = 0.25  # table start: mid travel
 
@@ -104,34 +105,6 @@ def test_two_sensor_transform_against_its_definition(i_d, i_q, theta, offset_a, 
     got = two_sensor_dq(i_d, i_q, theta, offset_a, gain_err)
     want = two_sensor_reference(i_d, i_q, theta, offset_a, gain_err)
     assert abs(got[0] - want[0]) < 1e-12 and abs(got[1] - want[1]) < 1e-12
-
-
-def _hex_state(plant: Plant, ref_len: int) -> list[str]:
-    """The state's hex values without the fault terms' entries if the reference predates
-    them (they are 0 in a healthy run)."""
-    state = [x.hex() for x in plant.state]
-    if len(state) == ref_len:
-        return state
-    assert all(plant.state[i] == 0.0 for i in FAULT_STATE)
-    return [x for i, x in enumerate(state) if i not in FAULT_STATE]
-
-
-@pytest.mark.parametrize("name", sorted(cases()))
-def test_healthy_kernel_reproduces_the_reference_bit_for_bit(name):
-    """Every fault parameter 0 (P_FAULTS 0): the reference trajectories of the kernel
-    before the fault terms (tests/data/kernel_reference.json), every bit."""
-    ref = json.loads(REFERENCE.read_text())[name]
-    cfg, overrides = cases()[name]
-    plant = Plant.from_file(cfg, table_pos=START_POS_M, overrides=overrides)
-    assert faults_active(plant.params) == 0.0 and plant.params[L.P_FAULTS] == 0.0
-    rng = np.random.default_rng(12)
-    for k in range(len(ref["state"]) * SNAPSHOT_EVERY):
-        set_inputs(k, plant, rng)
-        plant.step(plant.sub_per_pwm)
-        if (k + 1) % SNAPSHOT_EVERY == 0:
-            snap = (k + 1) // SNAPSHOT_EVERY - 1
-            assert _hex_state(plant, len(ref["state"][snap])) == ref["state"][snap], k
-            assert [x.hex() for x in plant.out] == ref["out"][snap], f"call {k}"
 
 
 @pytest.mark.parametrize("name", sorted(cases()))
