@@ -11,7 +11,8 @@ sample of N periods earlier, which is what the outputs show.  The ring is filled
 the present signals at reset, so the first N periods show the rest state.  The delay
 lives on the PWM grid: a kernel call that ends inside a period shows the sample of the
 last completed period, N periods back (a drive calls once per period, so it sees exactly
-N periods).
+N periods).  A faulty encoder's reading (noise, lost counts: :mod:`plant.effects.faults`)
+is what is sampled, with or without a delay.
 """
 
 from numba import njit

@@ -111,7 +111,7 @@ class CStep:
 
     def supports(self, params: np.ndarray) -> bool:
         """Whether the port runs the axis ``params`` describes (d-q motor, screw, lumped
-        solver, no presliding)."""
+        solver, no presliding, no fault terms: ``P_FAULTS`` 0)."""
         return bool(self._lib.c_supports(params))
 
     def axis_step(self, params: np.ndarray, state: np.ndarray, inp: np.ndarray,

@@ -9,8 +9,9 @@
  * reads and writes the same flat arrays (plant/layout.py); the indices (and
  * STRIBECK_CUTOFF) come from layout.h, which hil.bench.csubstep writes from plant.layout
  * at build time.  Other models (first-order and commutation motors, rigid and two-mass
- * mechanics, the TLM solver, presliding friction) are not ported: c_supports() says
- * whether a params vector is one this file runs.
+ * mechanics, the TLM solver, presliding friction, the fault terms of
+ * plant/effects/faults.py) are not ported: c_supports() says whether a params vector is
+ * one this file runs.
  */
 #include <math.h>
 #include <stdint.h>
@@ -467,10 +468,11 @@ static void write_outputs(const double *p, const double *s, double *out, int sta
 /* ---- the exported API ---------------------------------------------------------------- */
 
 /* 1 when this file runs the axis `p` describes (d-q motor, screw, lumped solver, no
- * presliding), else 0. */
+ * presliding, no fault terms: the healthy machine's baseline), else 0. */
 int c_supports(const double *p) {
     return p[P_MOTOR_MODEL] == MOTOR_DQ && p[P_MECH_MODEL] == MECH_SCREW
-           && p[P_SOLVER] == SOLVER_LUMPED && !(p[P_PRE_ENABLED] > 0.0);
+           && p[P_SOLVER] == SOLVER_LUMPED && !(p[P_PRE_ENABLED] > 0.0)
+           && !(p[P_FAULTS] > 0.0);
 }
 
 /* plant.kernel.axis_step_nb: n_sub sub-steps with inp held, then the state check (n_s
