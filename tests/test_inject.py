@@ -239,3 +239,15 @@ def test_hil_controller_checks_its_injections_before_start_and_sends_them_in_tim
     assert sender.due(1.0) == [InjectRequest(0, "encoder_noise", {"noise_counts": 1.0})]
     assert sender.due(5.0) == [InjectRequest(0, "current_offset", {"offset_a": 0.1})]
     assert sender.due(6.0) == [] and len(sender.sent) == 2
+
+
+def test_counts_an_encoder_lost_stay_lost_when_the_fault_heals():
+    """encoder_lost_counts ramped back to 0 leaves the fault terms on (the kernel shows the
+    lost counts only while they are): the loss stays until the axis is referenced again."""
+    cfg = arrow({"encoder_lost_counts": {"lost_ppm": 100}})
+    plant = Plant(cfg)
+    inj = Injector(plant.params, cfg, from_machine(cfg))
+    inj.update(0.0)
+    inj.request("encoder_lost_counts", {"lost_ppm": 0.0}, "test")
+    inj.update(1.0)
+    assert plant.params[L.P_ENC_LOST] == 0.0 and plant.params[L.P_FAULTS] == 1.0

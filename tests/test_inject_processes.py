@@ -38,7 +38,9 @@ def test_an_inject_message_on_udp_changes_the_plant_and_is_recorded(config, tmp_
     naming a fault the machine does not know.  The measured q current, which the current
     loop holds at its setpoint, shows the offset's ripple in the true current instead; the
     recording's metadata names the flag's injection, its events all three (the refused
-    one with its reason), report.json the levels at the end."""
+    one with its reason), report.json the levels at the end; hil replay, which hands the
+    requests on again at their ticks, reproduces the recording; hil export's trace header
+    names both injections."""
     run = tmp_path / "run"
     with Children(tmp_path) as children:
         proc, url = children.emulator(config, "udp://127.0.0.1:0", run, "--no-rt",
@@ -68,6 +70,9 @@ def test_an_inject_message_on_udp_changes_the_plant_and_is_recorded(config, tmp_
     assert report["injections"]["X"]["levels_at_end"] == {"encoder_noise": 1.5,
                                                           "current_offset": 0.5}
     assert report["adapter"]["stats"]["injections"] == 2
+    from hil.replay.replay import replay_run
+    replayed = replay_run(run)
+    assert replayed.matches, replayed.line()
     from hil.runtime.export import export_csv
     from hil.runtime.record_trace import axis_trace
     from hil.trace_file import read_trace
@@ -120,9 +125,9 @@ def test_an_sdo_write_of_2f00h_injects_and_reads_back(config, tmp_path, multicas
             network.disconnect()
         assert terminate(proc) == 0, children.log("emulator")
     events = [e for e in _events(run) if e["source"] == "inject"]
-    assert [e["kind"] for e in events] == ["injected", "reached"]
+    assert [e["kind"] for e in events] == ["request", "injected", "reached"]
     assert "friction_growth growth_pct=50 on arrival, ramp 0.2 s (SDO 2F00h)" in \
-        events[0]["reason"]
+        events[1]["reason"]
 
 
 def test_hil_controller_sends_its_injection_over_serial_at_its_program_time(config, tmp_path):
@@ -148,5 +153,5 @@ def test_hil_controller_sends_its_injection_over_serial_at_its_program_time(conf
     assert report["adapter"]["stats"]["injections"] == 1
     assert report["injections"]["X"]["levels_at_end"] == {"friction_growth": 80.0}
     events = [e for e in _events(tmp_path / "emulator") if e["source"] == "inject"]
-    assert [e["kind"] for e in events] == ["injected", "reached"]
-    assert events[1]["tick"] - events[0]["tick"] == round(0.2 * 2000)
+    assert [e["kind"] for e in events] == ["request", "injected", "reached"]
+    assert events[2]["tick"] - events[1]["tick"] == round(0.2 * 2000)

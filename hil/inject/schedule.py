@@ -12,6 +12,7 @@ level ``ramp_s`` later; a later injection of the same fault takes over from wher
 earlier one stands, so a fault can also be ramped back to 0.
 """
 
+import json
 import math
 from collections import deque
 from dataclasses import asdict, dataclass, fields
@@ -142,8 +143,10 @@ def from_flags(flags: list[str] | tuple[str, ...], cfg: MachineConfig,
 
 @dataclass(frozen=True)
 class InjectEvent:
-    """What an injector did: ``kind`` is "injected" (a ramp or step began), "reached" (a
-    ramp ended at its level) or "refused" (a run-time request that did not check)."""
+    """What an injector did: ``kind`` is "request" (a run-time request as it came, its
+    ``reason`` the JSON object ``{"fault", "settings", "source"}``: what ``hil replay``
+    feeds the replayed run), "injected" (a ramp or step began), "reached" (a ramp ended
+    at its level) or "refused" (a run-time request that did not check)."""
     t_s: float
     kind: str
     reason: str
@@ -185,6 +188,7 @@ class Injector:
         self.ramps: dict[str, _Ramp] = {}
         self.requests: deque = deque()
         self.events: list[InjectEvent] = []
+        self.counts_lost = False
 
     @property
     def busy(self) -> bool:
@@ -199,6 +203,8 @@ class Injector:
         """Bring the fault parameters to drive time ``t_s`` (s)."""
         while self.requests:
             fault, table, source = self.requests.popleft()
+            self.events.append(InjectEvent(t_s, "request", json.dumps(
+                {"fault": fault, "settings": table, "source": source})))
             try:
                 inj = check(fault, table, self.cfg, source, source, runtime=True)
             except ConfigError as e:
@@ -227,7 +233,10 @@ class Injector:
         level = r.start + (r.target - r.start) * share
         self.levels[r.fault.name] = level
         r.fault.write(self.params, self.base, level, r.settings)
-        self.params[L.P_FAULTS] = faults_active(self.params)
+        # counts an encoder lost stay lost when the fault heals (until it is referenced
+        # again): the kernel shows them only while its fault terms are on
+        self.counts_lost |= r.fault.name == "encoder_lost_counts" and level != 0.0
+        self.params[L.P_FAULTS] = max(faults_active(self.params), float(self.counts_lost))
         if share >= 1.0:
             del self.ramps[r.fault.name]
             if r.ramp_s > 0.0:

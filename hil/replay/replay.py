@@ -25,6 +25,11 @@ channel and tick are reported either way.  Not compared: the loop's measurements
 round-trip stamps (wall-clock times, which the replay does not have) and the setpoint
 columns (the replay's input).
 
+Fault injections (:mod:`hil.inject`) are replayed as they acted: those of the machine
+files and the ``--inject`` flags are rebuilt with the emulator, and each request the
+adapter handed on is handed on again in the tick the run took it (the recording's
+``inject`` events of kind ``request``).
+
 What the replay cannot reproduce, and refuses: a run over ``can://`` (its link conditions
 -- heartbeat, NMT -- and SDO writes to the drive's parameters are not in the recording), a
 recording without the ``sp_refused`` column (written before it existed), and ticks the
@@ -33,6 +38,7 @@ policy was not ``skip``).  A recording cut short (SIGKILL) is replayed up to its
 complete batch.
 """
 
+import json
 import math
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -46,7 +52,7 @@ from hil.runtime.emulator import Emulator
 from hil.runtime.emulator_config import RuntimeConfig
 from hil.runtime.record_reader import Recording, RecordingError
 from hil.runtime.recording import SP_FLOATS
-from io_adapters.messages import axis_records
+from io_adapters.messages import InjectRequest, axis_records
 from plant.errors import ConfigError
 from plant.machines import load_machine_set
 
@@ -125,13 +131,19 @@ class RecordedSetpoints:
     Args:
         cols: the recording's columns (name -> array over the rows).
         prefixes: the per-axis column prefixes ("" on a single axis).
+        requests: the fault-injection requests the adapter handed on, by tick
+            (:func:`injection_requests`).
     """
 
     heard_for_s = 0.0  # udp:// and serial://: a setpoint stands for its tick only
 
-    def __init__(self, cols: dict[str, np.ndarray], prefixes: tuple[str, ...]):
+    def __init__(self, cols: dict[str, np.ndarray], prefixes: tuple[str, ...],
+                 requests: dict[int, list[InjectRequest]] | None = None):
         self.row = 0
         self.refused_axes = 0
+        self.injections: list[InjectRequest] = []
+        self._requests = requests or {}
+        self._tick = cols["tick"]
         self._new = cols["sp_new"]
         self._seq = cols["sp_seq"]
         self._refused = cols["sp_refused"]
@@ -149,6 +161,7 @@ class RecordedSetpoints:
             for name, values in ints:
                 setattr(sp, name, int(values[i]))
         self.refused_axes = int(self._refused[i])
+        self.injections.extend(self._requests.get(int(self._tick[i]), ()))
         return bool(self._new[i])
 
     def send_feedback(self, fb) -> bool:
@@ -158,6 +171,21 @@ class RecordedSetpoints:
     def link_conditions(self, axis: int) -> int:
         """udp:// and serial:// have none."""
         return 0
+
+
+def injection_requests(rec: Recording) -> dict[int, list[InjectRequest]]:
+    """The run-time fault-injection requests of ``rec`` (its ``inject`` events of kind
+    ``request``) by the tick they were taken in, in order."""
+    ev = rec.events()
+    axes = [a["name"] for a in rec.meta["axes"]]
+    out: dict[int, list[InjectRequest]] = {}
+    for tick, src, kind, axis, reason in zip(ev["tick"], ev["source"], ev["kind"],
+                                             ev["axis"], ev["reason"]):
+        if src == "inject" and kind == "request":
+            r = json.loads(reason)
+            out.setdefault(int(tick), []).append(InjectRequest(axes.index(axis), r["fault"],
+                                                               r["settings"]))
+    return out
 
 
 def _runtime(meta: dict, machine_file: Path, where: str) -> RuntimeConfig:
@@ -241,7 +269,7 @@ def replay_run(folder: Path | str, tolerance: float = TOLERANCE) -> ReplayResult
     if emu.timing.period_ns != rec.period_ns:
         raise ReplayError(f"{where}: period {emu.timing.period_ns} ns rebuilt, "
                           f"{rec.period_ns} ns recorded")
-    endpoint = RecordedSetpoints(cols, prefixes)
+    endpoint = RecordedSetpoints(cols, prefixes, injection_requests(rec))
     emu.endpoint = endpoint
     recorder, cmp = emu.recorder, _Comparison(cols, compared)
     n = ticks.size
