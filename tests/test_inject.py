@@ -251,3 +251,15 @@ def test_counts_an_encoder_lost_stay_lost_when_the_fault_heals():
     inj.request("encoder_lost_counts", {"lost_ppm": 0.0}, "test")
     inj.update(1.0)
     assert plant.params[L.P_ENC_LOST] == 0.0 and plant.params[L.P_FAULTS] == 1.0
+
+
+def test_on_a_machine_of_several_axes_a_flag_names_its_axis():
+    """arrow500_xy: Y/... injects into Y only; a flag naming no axis is refused."""
+    from hil.inject.schedule import injectors_for
+    from plant.machines import load_machine_set
+    m = load_machine_set(CONFIGS / "machines" / "arrow500_xy.toml")
+    plants = [Plant(c) for c in m.configs]
+    x, y = injectors_for(plants, m.configs, m.names, ["Y/preload_loss:loss_pct=20"])
+    assert (x.injections, [i.fault for i in y.injections]) == ([], ["preload_loss"])
+    with pytest.raises(ConfigError, match="name one: AXIS/FAULT"):
+        injectors_for(plants, m.configs, m.names, ["preload_loss:loss_pct=20"])
