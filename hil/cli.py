@@ -127,8 +127,10 @@ def cmd_config_keys(args) -> int:
 
     hil_sections = [("controller", ControllerSection), ("drive", DriveSection)] + [
         (f"inject.{name}", f.section) for name, f in FAULTS.items()]
+    # a fault's level first, then when it acts (inherited keys come first in a dataclass)
     rows = schema_rows() + [{"section": name, **row} for name, cls in hil_sections
-                            for row in describe(cls)]
+                            for row in sorted(describe(cls),
+                                              key=lambda r: r["key"] in ("at_s", "ramp_s"))]
     if args.markdown:
         print("| section | key | unit | range | default | applies to | meaning |")
         print("|---|---|---|---|---|---|---|")

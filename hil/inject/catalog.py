@@ -51,89 +51,72 @@ from plant.config import MachineConfig
 from plant.schema import key
 
 
-def _at() -> float:
-    return key("s", "Drive time at which the fault starts (0: from the start).", 0.0, ge=0.0,
-               le=1e7)
-
-
-def _ramp() -> float:
-    return key("s", "Time the fault takes to grow linearly from its present level to this "
-               "one (0: a step).", 0.0, ge=0.0, le=1e7)
+@dataclass(frozen=True, kw_only=True)
+class _Timed:
+    """When a fault acts: the keys every fault's table has besides its level."""
+    at_s: float = key("s", "Drive time at which the fault starts (0: from the start).", 0.0,
+                      ge=0.0, le=1e7)
+    ramp_s: float = key("s", "Time the fault takes to grow linearly from its present level to "
+                        "this one (0: a step).", 0.0, ge=0.0, le=1e7)
 
 
 @dataclass(frozen=True, kw_only=True)
-class FrictionGrowth:
+class FrictionGrowth(_Timed):
     """Friction growth (wear, lubrication loss)."""
     growth_pct: float = key("%", "Growth of every friction coefficient (Coulomb, breakaway, "
                             "viscous; table, nut and bearings); negative: less friction.",
                             ge=-90.0, le=1000.0)
-    at_s: float = _at()
-    ramp_s: float = _ramp()
 
 
 @dataclass(frozen=True, kw_only=True)
-class BacklashGrowth:
+class BacklashGrowth(_Timed):
     """Backlash growth in the ball-screw nut (ball and raceway wear)."""
     growth_m: float = key("m", "Added to the nut's backlash (total dead-zone width).",
                           ge=0.0, le=1e-3)
-    at_s: float = _at()
-    ramp_s: float = _ramp()
 
 
 @dataclass(frozen=True, kw_only=True)
-class PreloadLoss:
+class PreloadLoss(_Timed):
     """Preload loss of the ball-screw nut: its axial stiffness drops."""
     loss_pct: float = key("%", "Share of the nut's axial stiffness lost.", ge=0.0, le=90.0)
-    at_s: float = _at()
-    ramp_s: float = _ramp()
 
 
 @dataclass(frozen=True, kw_only=True)
-class TorqueConstantLoss:
+class TorqueConstantLoss(_Timed):
     """Demagnetisation: the magnet flux, and with it the torque and back-EMF constants,
     drops; the drive does not know."""
     loss_pct: float = key("%", "Share of the magnet flux lost.", ge=0.0, le=90.0)
-    at_s: float = _at()
-    ramp_s: float = _ramp()
 
 
 @dataclass(frozen=True, kw_only=True)
-class EncoderNoise:
+class EncoderNoise(_Timed):
     """Noise on the motor encoder's samples (a dirty disc, interference on sin/cos)."""
     noise_counts: float = key("1", "Standard deviation of the noise, encoder counts.",
                               ge=0.0, le=1e6)
-    at_s: float = _at()
-    ramp_s: float = _ramp()
 
 
 @dataclass(frozen=True, kw_only=True)
-class EncoderLostCounts:
+class EncoderLostCounts(_Timed):
     """Counts the motor encoder misses (signal drop-outs)."""
     lost_ppm: float = key("1e-6", "Counts missed per million counts travelled.", ge=0.0,
                           le=1e5)
-    at_s: float = _at()
-    ramp_s: float = _ramp()
 
 
 @dataclass(frozen=True, kw_only=True)
-class CurrentOffset:
+class CurrentOffset(_Timed):
     """Offset of the phase-a current sensor."""
     offset_a: float = key("A", "Offset of the phase-a current measurement.", ge=-1e3, le=1e3)
-    at_s: float = _at()
-    ramp_s: float = _ramp()
 
 
 @dataclass(frozen=True, kw_only=True)
-class CurrentGainError:
+class CurrentGainError(_Timed):
     """Gain error of the phase-a current sensor."""
     gain_error_pct: float = key("%", "Relative gain error of the phase-a current "
                                 "measurement (positive: it reads high).", ge=-50.0, le=50.0)
-    at_s: float = _at()
-    ramp_s: float = _ramp()
 
 
 @dataclass(frozen=True, kw_only=True)
-class TorqueRipple:
+class TorqueRipple(_Timed):
     """Broken-bar-like torque ripple, proportional to the motor's torque."""
     ripple_pct: float = key("%", "Ripple amplitude as a share of the motor's torque.",
                             ge=0.0, le=100.0)
@@ -141,12 +124,6 @@ class TorqueRipple:
                        1.0, gt=0.0, le=1000.0)
     phase_deg: float = key("deg", "Phase of the ripple against the electrical angle.", 0.0,
                            ge=-360.0, le=360.0)
-    at_s: float = _at()
-    ramp_s: float = _ramp()
-
-
-#: keys of every fault's table that are not its level
-TIMING_KEYS = ("at_s", "ramp_s")
 
 
 def _scale(indices: tuple[int, ...], sign: float) -> Callable:
