@@ -324,7 +324,7 @@ def noise_faults(ident) -> list[Fault]:
         return []
     return [Fault("encoder_noise", sigma, "noise_counts", "1", sigma / NOISE_MIN_COUNTS,
                   f"the motor encoder scatters by {sigma:.3g} counts rms from sample to "
-                  "sample, its quantisation alone 0.3", "interference on the encoder cable, "
+                  "sample, its quantisation alone about 0.4", "interference on the encoder cable, "
                   "a dirty disc, a loose read head", {})]
 
 
@@ -340,3 +340,23 @@ def diagnose(ident) -> list[Fault]:
 
 def as_json(faults: list[Fault]) -> list[dict]:
     return [asdict(f) for f in faults]
+
+
+def faults_markdown(faults: list[dict]) -> list[str]:
+    """report.md's "Faults" section from report.json's ``faults``."""
+    lines = ["## Faults", ""]
+    if not faults:
+        return lines + ["No fault found.", ""]
+    lines += ["| fault | level | evidence | could also be |", "|---|---|---|---|"]
+    for f in faults:
+        lines.append(f"| `{f['name']}` | {f['level_key']} ≈ {f['level']:.3g} {f['unit']} | "
+                     f"{f['evidence']} | {f['alternatives']} |")
+    return lines + [""]
+
+
+def summary_lines(faults: list[dict]) -> list[str]:
+    """One line per fault for the command's output ("no fault found" when none)."""
+    if not faults:
+        return ["no fault found"]
+    return [f"fault: {f['name']} {f['level_key']} ~ {f['level']:.3g} {f['unit']}"
+            for f in faults]
