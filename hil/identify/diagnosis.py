@@ -78,7 +78,8 @@ class Fault:
     extra: dict
 
     def line(self) -> str:
-        return f"{self.name}: {self.level_key} ~ {self.level:.3g} {self.unit} ({self.evidence})"
+        unit = "" if self.unit == "1" else f" {self.unit}"
+        return f"{self.name}: {self.level_key} ~ {self.level:.3g}{unit} ({self.evidence})"
 
 
 def _changes(ident) -> dict:
