@@ -52,9 +52,9 @@ CASES = {
                             "100 ppm: 14 µm over the program's 140 mm"),
     "current_offset": ("current_offset:offset_a=0.3", 0.3, (0.27, 0.33),
                        "1 % of the 28 A range, an uncompensated sensor drift"),
-    "current_gain_error": ("current_gain_error:gain_error_pct=10", 10.0, (7.0, 13.0),
+    "current_gain_error": ("current_gain_error:gain_error_pct=10", 10.0, (8.5, 11.5),
                            "10 %, a sensor off its calibration"),
-    "torque_ripple": ("torque_ripple:ripple_pct=5,order=3", 5.0, (3.5, 6.5),
+    "torque_ripple": ("torque_ripple:ripple_pct=5,order=3", 5.0, (4.25, 5.75),
                       "5 % of the torque at the 3rd electrical order"),
 }
 
