@@ -10,6 +10,7 @@ under the inverse model's 50 Hz low-pass for the ripples' orders) and ends with 
 least twice above the diagnosis's threshold for it (:mod:`hil.identify.diagnosis`)."""
 
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
@@ -36,8 +37,18 @@ N110 G1 X250 F60
 N120 M30
 """
 
-#: fault -> (--inject flag, injected level, estimate's band (lo, hi), why this level)
-CASES = {
+
+@dataclass(frozen=True)
+class Case:
+    """One fault's trace: its ``--inject`` flag, the level injected (the catalog's unit),
+    the band (lo, hi) its estimate must fall in and why that level."""
+    flag: str
+    level: float
+    band: tuple[float, float]
+    why: str
+
+
+CASES = {name: Case(*args) for name, args in {
     "friction_growth": ("friction_growth:growth_pct=50", 50.0, (40.0, 60.0),
                         "half as much friction again: a dry guide or a worn wiper"),
     "backlash_growth": ("backlash_growth:growth_m=2e-5", 2e-5, (1.8e-5, 2.2e-5),
@@ -49,14 +60,14 @@ CASES = {
     "encoder_noise": ("encoder_noise:noise_counts=20", 20.0, (15.0, 25.0),
                       "20 counts (48 nm) of a 22-bit interpolated encoder: interference"),
     "encoder_lost_counts": ("encoder_lost_counts:lost_ppm=100", 100.0, (80.0, 120.0),
-                            "100 ppm: 14 µm over the program's 140 mm"),
+                            "100 ppm: 4 µm at the program's farthest point, 40 mm out"),
     "current_offset": ("current_offset:offset_a=0.3", 0.3, (0.27, 0.33),
                        "1 % of the 28 A range, an uncompensated sensor drift"),
     "current_gain_error": ("current_gain_error:gain_error_pct=10", 10.0, (8.5, 11.5),
                            "10 %, a sensor off its calibration"),
     "torque_ripple": ("torque_ripple:ripple_pct=5,order=3", 5.0, (4.25, 5.75),
                       "5 % of the torque at the 3rd electrical order"),
-}
+}.items()}
 
 
 @pytest.fixture(scope="module")
@@ -66,7 +77,7 @@ def traces(tmp_path_factory):
     program = d / "p.nc"
     program.write_text(PROGRAM)
     out = {}
-    for name, inject in [("healthy", ())] + [(n, (c[0],)) for n, c in CASES.items()]:
+    for name, inject in [("healthy", ())] + [(n, (c.flag,)) for n, c in CASES.items()]:
         run_sim(ARROW, program, d / name, 250.0, None, None, inject=inject)
         out[name] = d / name / "trace.csv"
     return out
@@ -83,11 +94,12 @@ def _diagnose(trace: Path):
 
 @pytest.mark.parametrize("fault", list(CASES))
 def test_the_injected_fault_is_named_first_with_its_level(traces, fault):
-    flag, level, (lo, hi), _why = CASES[fault]
+    case = CASES[fault]
     faults = _diagnose(traces[fault])
-    assert faults, f"{fault} ({flag}): no fault found"
+    assert faults, f"{case.flag}: no fault found"
     assert faults[0].name == fault, [f.line() for f in faults]
-    assert lo <= faults[0].level <= hi, faults[0].line()
+    lo, hi = case.band
+    assert lo <= faults[0].level <= hi, f"{case.flag}: {faults[0].line()}"
     if fault == "torque_ripple":
         assert faults[0].extra["order"] == 3
 

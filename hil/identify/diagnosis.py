@@ -9,8 +9,9 @@ of its level in the catalog's unit and what else could explain the same evidence
   up too, by about the same factor 1/(1 - loss), is ``torque_constant_loss`` (fewer
   newtons per ampere scale every force-side coefficient alike);
 * **ripple** (:func:`ripple_evidence`): the final model's force residual regressed on
-  ``sin/cos(k theta_e)`` (a load-independent ripple) and ``iq sin/cos(k theta_e)`` (one
-  proportional to the current) at whole electrical orders: order 1 load-independent is a
+  ``sin/cos(k theta_e)`` (a load-independent ripple) and ``i_load sin/cos(k theta_e)``
+  (one proportional to the current the model says the motion needs) at whole electrical
+  orders: order 1 load-independent is a
   phase-current offset, order 2 proportional a phase-current gain error, another order
   proportional a torque ripple;
 * **drive train** (:func:`train_evidence`): table minus motor position regressed on the
@@ -333,13 +334,14 @@ def encoder_noise_counts(ident) -> float | None:
 
 
 def noise_faults(ident) -> list[Fault]:
+    """``encoder_noise`` when the motor encoder's scatter exceeds NOISE_MIN_COUNTS."""
     sigma = encoder_noise_counts(ident)
     if sigma is None or sigma < NOISE_MIN_COUNTS:
         return []
     return [Fault("encoder_noise", sigma, "noise_counts", "1", sigma / NOISE_MIN_COUNTS,
                   f"the motor encoder scatters by {sigma:.3g} counts rms from sample to "
-                  "sample, its quantisation alone about 0.4", "interference on the encoder cable, "
-                  "a dirty disc, a loose read head", {})]
+                  "sample, its quantisation alone about 0.4",
+                  "interference on the encoder cable, a dirty disc, a loose read head", {})]
 
 
 def diagnose(ident) -> list[Fault]:
@@ -353,6 +355,7 @@ def diagnose(ident) -> list[Fault]:
 
 
 def as_json(faults: list[Fault]) -> list[dict]:
+    """The faults as report.json's ``faults`` list."""
     return [asdict(f) for f in faults]
 
 
