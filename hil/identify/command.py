@@ -6,6 +6,7 @@ import time
 from pathlib import Path
 
 from hil.identify.candidates import default_workers
+from hil.identify.diagnosis import summary_lines
 from hil.identify.effects import NAMES
 from hil.identify.fit import Identification, record_errors
 from hil.identify.model import DEFAULT_TOLERANCE, Model
@@ -119,4 +120,6 @@ def run_from_args(args) -> int:
     else:
         print(f"effects added: {', '.join(rep['effects_added']) or 'none'}; report in "
               f"{args.out / 'report.md'}")
+        for line in summary_lines(rep["faults"]):
+            print(line)
     return 0

@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 
 from hil.identify.config_out import write_config
+from hil.identify.diagnosis import as_json, diagnose, faults_markdown
 from hil.identify.effects import FORCE
 from hil.identify.fit import Identification
 from hil.identify.spectrum import position_spectrum
@@ -72,6 +73,7 @@ def summary(ident: Identification, validation: dict | None, elapsed_s: float,
         "error_after_over_floor": over_floor(ident.error_after, ident.floor),
         "proposals": ident.proposals, "rounds": ident.rounds,
         "declared_changes": ident.declared_changes,
+        "faults": as_json(diagnose(ident)),
         "refinement": ident.refinement, "rejected": ident.rejected,
         "unexplained": ident.unexplained, "not_looked_for": ident.skipped,
         "thresholds": {"min_explained": ident.min_explained,
@@ -108,6 +110,7 @@ def markdown(rep: dict) -> str:
              f"Method: {rep['method']}", "",
              "Effects added, in order: " + (", ".join(f"`{e}`" for e in rep["effects_added"])
                                             or "none"), "",
+             *faults_markdown(rep.get("faults", [])),
              "## Errors (closed-loop replay, from sample 50; relerr = 100 ||y - y^|| / ||y||)",
              "", "| record | model | " + " | ".join(keys) + " |",
              "|---" * (len(keys) + 2) + "|"]
