@@ -8,6 +8,7 @@ import time
 import numpy as np
 import pytest
 
+from hil.inject.catalog import FAULTS
 from hil.runtime.record_reader import Recording
 from io_adapters import Feedback, Setpoint, open_endpoint
 from io_adapters.messages import InjectRequest
@@ -155,3 +156,44 @@ def test_hil_controller_sends_its_injection_over_serial_at_its_program_time(conf
     events = [e for e in _events(tmp_path / "emulator") if e["source"] == "inject"]
     assert [e["kind"] for e in events] == ["request", "injected", "reached"]
     assert events[2]["tick"] - events[1]["tick"] == round(0.2 * 2000)
+
+
+#: one run-time request per fault of the catalog (levels well inside their ranges)
+EVERY_FAULT = {"friction_growth": {"growth_pct": 30.0}, "backlash_growth": {"growth_m": 1e-5},
+               "preload_loss": {"loss_pct": 40.0}, "torque_constant_loss": {"loss_pct": 10.0},
+               "encoder_noise": {"noise_counts": 3.0}, "encoder_lost_counts": {"lost_ppm": 50.0},
+               "current_offset": {"offset_a": 0.2}, "current_gain_error": {"gain_error_pct": 5.0},
+               "torque_ripple": {"ripple_pct": 4.0, "order": 3.0}}
+
+
+def test_every_fault_of_the_catalog_injects_over_udp_and_replays(config, tmp_path):
+    """One INJECT per fault, ramped over 0.1 s, while the drive holds the axis in CST: every
+    level is in force at the end (report.json), each has its events, and hil replay
+    reproduces the run with all nine acting."""
+    from hil.inject import FAULT_NAMES
+    from hil.replay.replay import replay_run
+    assert tuple(EVERY_FAULT) == FAULT_NAMES
+    run = tmp_path / "run"
+    with Children(tmp_path) as children:
+        proc, url = children.emulator(config, "udp://127.0.0.1:0", run, "--no-rt",
+                                      "--start", 250)
+        ep = open_endpoint(url, "controller")
+        try:
+            sp, fb = Setpoint(), Feedback()
+            ep.send_setpoint(sp)
+            enable(ep, sp, fb)
+            for fault, table in EVERY_FAULT.items():
+                ep.send_injection(InjectRequest(0, fault, {**table, "ramp_s": 0.1}))
+            exchange(ep, sp, fb, 400, iq=1.0)
+        finally:
+            ep.close()
+        assert terminate(proc) == 0, children.log("emulator")
+    report, _ = read_run(run)
+    levels = report["injections"]["X"]["levels_at_end"]
+    assert levels == {f: t[FAULTS[f].level_key] for f, t in EVERY_FAULT.items()}
+    kinds = [(e["kind"], e["reason"].split()[0]) for e in _events(run)
+             if e["source"] == "inject" and e["kind"] != "request"]
+    assert sorted(kinds) == sorted([(k, f) for f in FAULT_NAMES for k in ("injected",
+                                                                            "reached")])
+    replayed = replay_run(run)
+    assert replayed.matches, replayed.line()
