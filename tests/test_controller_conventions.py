@@ -15,6 +15,9 @@ Independent references:
 * anti-windup: the PI's limit K_t I_max (clamp), the conditional modes' peak velocity as
   the validate row computes it (hil.validate.experiments.moves.linear_move), and the
   ordering of the overshoots;
+* the drive's own speed loop (CSV): its compiled cycle (hil.drive.compiled) against its
+  Python cycle, bit for bit, with 'clamp' and 'none' (the Python path's SpeedLoop honours
+  the key, so the compiled one must too);
 * identify: a ``hil sim`` trace (a separate process) of a machine file with all four
   non-default conventions, replayed by hil identify's replay through the same file, is
   given back to one scale count; without the conventions the replay misses it by far.
@@ -28,6 +31,7 @@ from dataclasses import dataclass
 import numpy as np
 import pytest
 
+from hil.cia402 import EnableSequencer
 from hil.controller.alarms import AlarmNumber
 from hil.controller.config import axis_limits, load_controller
 from hil.controller.interpolator import ProfileSamples, plan
@@ -35,7 +39,10 @@ from hil.controller.program import parse_program
 from hil.identify.config_out import patch_config
 from hil.identify.record import load_record
 from hil.identify.replay import replay
+from hil.drive import EmulatedDrive
 from hil.sim import LockStep
+from io_adapters.messages import MODE_CSV, Feedback, Setpoint
+from plant import Plant
 from hil.validate.experiments import moves
 from plant.config import ConfigError, MachineConfig, load_machine
 from tests.conftest import CONFIGS
@@ -193,6 +200,33 @@ def test_conditional_modes_as_the_validate_row_has_them(steps):
     assert steps["conditional"].peak_velocity == as_is.peak_velocity
     assert steps["torque_setpoint"].peak_velocity == pytest.approx(as_is.peak_velocity,
                                                                    abs=1e-3)
+
+
+@pytest.mark.parametrize("mode", ["clamp", "none"])
+def test_drive_speed_loop_compiled_is_python_with_the_anti_windup(mode):
+    """The drive in CSV, speed steps that hold the current at its limit (the integrator
+    winds up with 'none', is held with 'clamp'): the compiled drive cycle gives the Python
+    cycle's feedback and plant state to the bit every tick, and ran most of them."""
+    cfg = arrow(speed_antiwindup=mode)
+    drives = [EmulatedDrive(Plant(cfg, table_pos=0.25), compiled=c) for c in (False, True)]
+    fbs = [Feedback(), Feedback()]
+    sp = Setpoint()
+    enable = EnableSequencer(timeout_cycles=10_000)
+    enable.enable()
+    sp.mode = MODE_CSV
+    integ_peak = 0.0
+    for k, target in enumerate([0.0] * 300 + [1.5e8] * 1500 + [-1.5e8] * 1500):
+        sp.seq = k
+        sp.controlword = enable.next_controlword(fbs[0].statusword)
+        sp.target_velocity_counts_s = target
+        for drive, fb in zip(drives, fbs):
+            drive.cycle(sp, fb)
+        assert fbs[0] == fbs[1], k
+        assert drives[0].plant.state.tobytes() == drives[1].plant.state.tobytes(), k
+        integ_peak = max(integ_peak, abs(drives[0].loops.speed.pi.integ))
+    assert drives[1].compiled.cycles > 3000
+    limit = drives[0].loops.speed.pi.limit
+    assert integ_peak > 1.5 * limit if mode == "none" else integ_peak == limit
 
 
 def test_the_old_integrator_stop_key_is_refused_naming_the_new_one():
