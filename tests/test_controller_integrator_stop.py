@@ -1,7 +1,8 @@
-"""The speed integrator's stop (issue 14 part 5): conditional integration on the PI's own
-output or, as SINAMICS freezes the I component at the torque limit, on the whole torque
-setpoint; against hand-computed integrator values, and the LD386 finding that neither
-removes the 1 m step's overshoot."""
+"""The speed integrator's stop (issue 14 part 5; since issue 13 the ``speed_antiwindup`` modes
+'conditional' and 'torque_setpoint'): conditional integration on the PI's own output or, as
+SINAMICS freezes the I component at the torque limit, on the whole torque setpoint; against
+hand-computed integrator values, and the LD386 finding that neither removes the 1 m step's
+overshoot."""
 
 import pytest
 
@@ -24,14 +25,14 @@ def test_step_within_stops_the_integrator_on_the_total():
 
 
 def speed_loop(stop: str) -> SpeedLoop:
-    cfg = load_machine(moves.LD386, overrides={"controller": {"speed_integrator_stop": stop}})
+    cfg = load_machine(moves.LD386, overrides={"controller": {"speed_antiwindup": stop}})
     sec = load_controller(cfg)
     mo = cfg.motor
     return SpeedLoop(sec, 1.0 / mo.pwm_frequency_hz, cfg.machine.kind,
                      mo.force_constant_n_per_a, mo.current_max_a)
 
 
-@pytest.mark.parametrize("stop", ["pi_output", "torque_setpoint"])
+@pytest.mark.parametrize("stop", ["conditional", "torque_setpoint"])
 def test_feed_forward_at_the_current_limit(stop):
     """With the current feed-forward alone at I_max and a small speed error pushing further,
     the current setpoint sits at I_max either way; the integrator grows by K_p T / T_n e
@@ -41,7 +42,7 @@ def test_feed_forward_at_the_current_limit(stop):
     err, n = 0.01, 50
     for _ in range(n):
         assert loop.step(err, 0.0, loop.i_max) == loop.i_max
-    expected = n * loop.pi.ki_t * err if stop == "pi_output" else 0.0
+    expected = n * loop.pi.ki_t * err if stop == "conditional" else 0.0
     assert loop.pi.integ == pytest.approx(expected, abs=1e-12)
 
 
@@ -51,7 +52,7 @@ def test_ld386_overshoot_is_not_removed_by_freezing_at_the_torque_limit():
     paper's 2.5 m/s, while the integrator held at the cruise force agrees with it."""
     cfg = load_machine(moves.LD386)
     frozen = moves.linear_move(load_machine(moves.LD386, overrides={
-        "controller": {"speed_integrator_stop": "torque_setpoint"}}))
+        "controller": {"speed_antiwindup": "torque_setpoint"}}))
     as_is = moves.linear_move(cfg)
     held = moves.linear_move(cfg, moves.cruise_force(cfg))
     assert frozen.peak_velocity == pytest.approx(as_is.peak_velocity, abs=1e-3)

@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 from scipy.signal import lfilter
 
-from hil.controller.blocks import PI
+from hil.controller.blocks import PI, ClampPI, WindupPI
 from hil.controller.config import axis_limits, load_controller
 from hil.controller.interpolator import ProfileSamples, plan
 from hil.controller.nc import Controller
@@ -29,7 +29,7 @@ from hil.drive import EmulatedDrive
 from hil.identify.conventions import ConventionError, read_conventions
 from hil.identify.record import Record, load_record
 from hil.identify.replay import replay
-from hil.identify.trace_controller import ClampPI, TraceController, WindupPI
+from hil.identify.trace_controller import TraceController
 from hil.sim import LockStep
 from hil.trace_file import write_trace
 from io_adapters.messages import Feedback, Setpoint

@@ -302,9 +302,8 @@ def test_load_record_errors_name_what_is_wrong(tmp_path):
         load_record(not_mat)
 
 
-@pytest.mark.parametrize("antiwindup, stop", [("clamp", "pi_output"), ("none", "pi_output"),
-                                              ("conditional", "torque_setpoint")])
-def test_compiled_replay_is_the_python_loop_sample_for_sample(tmp_path, antiwindup, stop):
+@pytest.mark.parametrize("antiwindup", ["clamp", "none", "torque_setpoint"])
+def test_compiled_replay_is_the_python_loop_sample_for_sample(tmp_path, antiwindup):
     """hil.identify.replay_kernel.nc_loop against the Python TraceController and
     EmulatedDrive it replaces (replay(..., compiled=False)), on a trace whose header sets
     every convention the loop honours: a 2 ms position cycle against the 1 ms trace, the
@@ -315,8 +314,7 @@ def test_compiled_replay_is_the_python_loop_sample_for_sample(tmp_path, antiwind
     way too (the identification compares wrong ones)."""
     over = {"controller": {"speed_setpoint_lowpass_hz": 800.0,
                            "current_setpoint_lowpass_hz": 1500.0, "notch_hz": 600.0,
-                           "notch_bandwidth_hz": 200.0, "notch_depth_db": -20.0,
-                           "speed_integrator_stop": stop}}
+                           "notch_bandwidth_hz": 200.0, "notch_depth_db": -20.0}}
     cfg = load_machine(CONFIGS / "ld386_linear.toml", over)
     sec = load_controller(cfg)
     pwm = 1.0 / cfg.motor.pwm_frequency_hz

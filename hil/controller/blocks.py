@@ -55,6 +55,27 @@ class PI:
         return u
 
 
+class ClampPI(PI):
+    """PI whose integrator is held within ±limit and always integrates (no conditional
+    integration): the integrator itself cannot wind up beyond the limit."""
+
+    def step(self, err: float) -> float:
+        """Output for the control error ``err``, limited to ±limit."""
+        u = self.kp * err + self.integ
+        self.integ = max(-self.limit, min(self.limit, self.integ + self.ki_t * err))
+        return max(-self.limit, min(self.limit, u))
+
+
+class WindupPI(PI):
+    """PI without anti-windup: the integrator integrates whatever the output's limit."""
+
+    def step(self, err: float) -> float:
+        """Output for the control error ``err``, limited to ±limit."""
+        u = self.kp * err + self.integ
+        self.integ += self.ki_t * err
+        return max(-self.limit, min(self.limit, u))
+
+
 class PT1:
     """First-order lag with time constant ``tau_s`` (exact for a held input); tau 0 passes."""
 
@@ -74,6 +95,31 @@ class PT1:
         """New output for input ``u``."""
         self.y = u + (self.y - u) * self.a
         return self.y
+
+
+class Delay:
+    """A signal delayed by ``n`` calls (a ring of the last n inputs, oldest at ``head``);
+    n = 0 passes it unchanged.  Starts (and resets) with zeros in the ring."""
+
+    def __init__(self, n: int):
+        self.ring = [0.0] * n
+        self.head = 0
+
+    def reset(self) -> None:
+        """Fill the ring with zeros."""
+        for i in range(len(self.ring)):
+            self.ring[i] = 0.0
+        self.head = 0
+
+    def step(self, x: float) -> float:
+        """The input of ``n`` calls ago (``x`` itself for n = 0); ``x`` goes into the ring."""
+        ring = self.ring
+        if not ring:
+            return x
+        out = ring[self.head]
+        ring[self.head] = x
+        self.head = (self.head + 1) % len(ring)
+        return out
 
 
 class Biquad:

@@ -28,6 +28,10 @@ LINEAR_KINDS = "kind=screw|linear"
 #: change, subprogram end, spindle positioning, gear stages, spindle to axis mode): not
 #: available as clamp M functions
 RESERVED_M_CODES = frozenset((0, 1, 2, 3, 4, 5, 6, 17, 19, 30, 40, 41, 42, 43, 44, 45, 70))
+#: the speed integrator's anti-windup (``speed_antiwindup``)
+ANTIWINDUP_MODES = ("conditional", "torque_setpoint", "clamp", "none")
+#: ``speed_integrator_stop`` moved into ``speed_antiwindup``: its values there
+INTEGRATOR_STOP_MOVED = {"pi_output": "conditional", "torque_setpoint": "torque_setpoint"}
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -54,22 +58,25 @@ class ControllerSection:
     feedforward_interpolation: str = key("-", "Speed feed-forward between position cycles: "
                                          "'hold' (held per position cycle) or 'linear' "
                                          "(interpolated at every speed cycle towards the next "
-                                         "position cycle's value, a fine interpolation); "
-                                         "'linear': hil identify's replay only so far.", "hold",
+                                         "position cycle's value, a fine interpolation; the "
+                                         "P part is held).", "hold",
                                          choices=("hold", "linear"))
     speed_actual_filter_s: float = key("s", "Time constant of the first-order filter on the "
-                                       "measured motor speed (p1441 class); 0: none; hil "
-                                       "identify's replay only so far.", 0.0, ge=0.0, le=1.0)
+                                       "measured motor speed the speed loop uses (p1441 "
+                                       "class, exact for a held input); 0: none.", 0.0,
+                                       ge=0.0, le=1.0)
     speed_antiwindup: str = key("-", "Anti-windup of the speed integrator at the current "
-                                "limit: 'conditional' (no integration that drives further "
-                                "into the limit), 'clamp' (the integrator itself held within "
-                                "the limit) or 'none'; the last two: hil identify's replay "
-                                "only so far.", "conditional",
-                                choices=("conditional", "clamp", "none"))
+                                "limit: 'conditional' (no integration that drives the PI's "
+                                "own output further into the limit K_t I_max), "
+                                "'torque_setpoint' (the same on the whole torque setpoint, "
+                                "PI + D + feed-forward, as SINAMICS freezes the I component "
+                                "at the torque limit, r1407.5/.7), 'clamp' (the integrator "
+                                "itself held within the limit, always integrating) or "
+                                "'none'.", "conditional",
+                                choices=ANTIWINDUP_MODES)
     current_delay_cycles: int = key("1", "Computation delay of the current setpoint in PWM "
                                     "periods: the drive applies the speed loop's output this "
-                                    "many periods later; hil identify's replay only so far.",
-                                    0, ge=0, le=64)
+                                    "many periods later.", 0, ge=0, le=64)
     speedctrl_equiv_time_s: float = key("s", "Equivalent time constant of the closed speed "
                                         "loop (MD32810); delays the position setpoint of the P "
                                         "path when feed-forward is on.", 0.0, ge=0.0, le=1.0)
@@ -79,12 +86,6 @@ class ControllerSection:
                                    ge=0.0, le=1e7, only="kind=linear")
     speed_tn_s: float = key("s", "Speed-controller integral time (p1462); 0: P only.", 0.0,
                             ge=0.0, le=10.0)
-    speed_integrator_stop: str = key("-", "What stops the speed integrator (conditional "
-                                     "integration): 'pi_output', the PI's own output at the "
-                                     "limit K_t I_max, or 'torque_setpoint', the whole torque "
-                                     "setpoint (PI + D + feed-forward) at it, as SINAMICS "
-                                     "freezes the I component at the torque limit (r1407.5/.7).",
-                                     "pi_output", choices=("pi_output", "torque_setpoint"))
     speed_kd_nms2_per_rad: float = key("N*m*s^2/rad", "Speed-controller D gain (seed 003 eq. "
                                        "7).", 0.0, ge=0.0, le=10.0, only="kind=screw|rotary")
     speed_kd_ns2_per_m: float = key("N*s^2/m", "Speed-controller D gain of a linear motor.",
@@ -229,12 +230,25 @@ def axis_limits(cfg: MachineConfig, section: ControllerSection) -> AxisLimits:
                       section.max_jerk_m_s3)
 
 
+def _refuse_moved_key(cfg: MachineConfig, raw: dict) -> None:
+    """ConfigError for a key that moved, naming the key and value to write instead (a
+    silent alias would leave two spellings of one setting in the machine files)."""
+    if "speed_integrator_stop" in raw:
+        old = raw["speed_integrator_stop"]
+        new = INTEGRATOR_STOP_MOVED.get(old) if isinstance(old, str) else None
+        instead = (f"speed_antiwindup = {new!r}" if new else "speed_antiwindup, one of "
+                   + ", ".join(map(repr, ANTIWINDUP_MODES)))
+        raise ConfigError(f"{cfg.path}: [controller] speed_integrator_stop = {old!r}: the key "
+                          f"has moved; write {instead}")
+
+
 def load_controller(cfg: MachineConfig) -> ControllerSection:
     """Check the machine file's ``[controller]`` section; ConfigError names file and key."""
     raw = cfg.section("controller")
     if not raw:
         raise ConfigError(f"{cfg.path}: section [controller] is missing (the simulated "
                           "controller needs its machine data)")
+    _refuse_moved_key(cfg, raw)
     sec = build_section(ControllerSection, raw, cfg.path, "controller")
     check_applies(sec, raw, {"kind": cfg.machine.kind, "model": cfg.motor.model}, cfg.path,
                 "controller")

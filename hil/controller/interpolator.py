@@ -242,3 +242,12 @@ class FineInterpolator:
         if self._m == self._ratio:
             self._m = 0
             self._k = k + 1
+
+    @property
+    def next_vel(self) -> float:
+        """The velocity (m/s or rad/s) the next :meth:`step` sets: the next position-control
+        cycle's, towards which a linear fine interpolation of the feed-forward runs."""
+        k = self._k
+        if k >= self._last:
+            return self._v[-1]
+        return self._v[k] + (self._v[k + 1] - self._v[k]) * self._frac[self._m]

@@ -8,11 +8,13 @@ rotary tables), currents in A.
 
 import math
 
-from hil.controller.blocks import PI, PT1, lowpass2, notch
+from hil.controller.blocks import PI, PT1, ClampPI, WindupPI, lowpass2, notch
 from hil.controller.config import ControllerSection, kv_si
 
 #: damping of the PT2 setpoint low-passes (the drives' default)
 PT2_DAMPING = 0.7
+#: the speed PI of the ``speed_antiwindup`` modes that are no conditional integration
+_PI_CLASSES = {"clamp": ClampPI, "none": WindupPI}
 
 
 class PositionLoop:
@@ -42,7 +44,13 @@ class PositionLoop:
     def step(self, x_set: float, v_set: float, x_act: float) -> float:
         """Velocity command (table units per s) for this position cycle."""
         self.error = self.sym.step(x_set) - x_act
-        v = self.kv * self.error + self.ff * v_set
+        return self.command(v_set)
+
+    def command(self, v_ff: float) -> float:
+        """Velocity command (table units per s) of the last cycle's P part with the speed
+        feed-forward ``v_ff`` (table units per s): between position cycles, a finely
+        interpolated feed-forward (``feedforward_interpolation = 'linear'``)."""
+        v = self.kv * self.error + self.ff * v_ff
         return max(-self.v_lim, min(self.v_lim, v))
 
 
@@ -50,25 +58,29 @@ class SpeedLoop:
     """Speed controller: PT2 setpoint filter, PI (+ D, seed 003 eq. 7), torque / K_t,
     current feed-forward, PT2 and notch current-setpoint filters, current limit.
 
-    The integrator's stop (``speed_integrator_stop``): 'torque_setpoint' stops it while the
-    whole torque setpoint, PI + D + current feed-forward, is at the limit K_t I_max and
+    The integrator's anti-windup (``speed_antiwindup``): 'torque_setpoint' stops it while
+    the whole torque setpoint, PI + D + current feed-forward, is at the limit K_t I_max and
     the error pushes further (SINAMICS: I component frozen when the torque limit is
-    reached); 'pi_output' tests the PI's own output only, so D and feed-forward can hold
-    the current at its limit while the integrator keeps integrating."""
+    reached); 'conditional' tests the PI's own output only, so D and feed-forward can hold
+    the current at its limit while the integrator keeps integrating; 'clamp' holds the
+    integrator within the limit (:class:`~hil.controller.blocks.ClampPI`), 'none' lets it
+    wind up (:class:`~hil.controller.blocks.WindupPI`)."""
 
     def __init__(self, sec: ControllerSection, period_s: float, kind: str, kt: float,
                  i_max: float):
         linear = kind == "linear"
         kp = sec.speed_kp_ns_per_m if linear else sec.speed_kp_nms_per_rad
         self.kd_t = (sec.speed_kd_ns2_per_m if linear else sec.speed_kd_nms2_per_rad) / period_s
-        self.pi = PI(kp, sec.speed_tn_s, period_s, kt * i_max)
+        self.antiwindup = sec.speed_antiwindup
+        pi_class = _PI_CLASSES.get(sec.speed_antiwindup, PI)
+        self.pi = pi_class(kp, sec.speed_tn_s, period_s, kt * i_max)
         self.set_filter = lowpass2(sec.speed_setpoint_lowpass_hz, PT2_DAMPING, period_s)
         self.cur_filter = lowpass2(sec.current_setpoint_lowpass_hz, PT2_DAMPING, period_s)
         self.notch = notch(sec.notch_hz, sec.notch_bandwidth_hz, sec.notch_depth_db, period_s)
         self.inv_kt = 1.0 / kt
         self.i_max = i_max
         self.kt = kt
-        self.stop_on_total = sec.speed_integrator_stop == "torque_setpoint"
+        self.stop_on_total = sec.speed_antiwindup == "torque_setpoint"
         self.e_prev = 0.0
 
     def reset(self) -> None:

@@ -10,7 +10,12 @@ Per tick, in the order a SINUMERIK 840D with SINAMICS runs them:
   interpolated setpoint, the axis monitoring (:mod:`hil.controller.monitoring`: contour,
   standstill, clamping) and the position loop;
 * every speed cycle the speed loop on the speed measured from the motor
-  encoder (difference over the speed cycle);
+  encoder (difference over the speed cycle, through the first-order filter of
+  ``speed_actual_filter_s``); with ``feedforward_interpolation = "linear"`` the speed
+  feed-forward between position cycles moved linearly towards the next cycle's (the P
+  part held);
+* the current setpoint delayed by ``current_delay_cycles`` PWM periods (the drive's
+  computation delay);
 * every tick, when the plant takes voltage, the current loop;
 * the NC's own state checked: a NaN or infinite loop state is alarm 1000, the loops are
   cleared; it never raises.
@@ -41,6 +46,7 @@ from hil.controller.alarms import (
     drive_fault_detail,
     feedback_detail,
 )
+from hil.controller.blocks import PT1, Delay
 from hil.controller.config import (
     ControllerSection,
     axis_limits,
@@ -79,7 +85,8 @@ class Controller:
 
     Signals of the last tick (SI, table units unless named otherwise) are
     attributes: ``x_set, v_set, a_set, x_act, theta_act (motor encoder, rad), v_act, v_cmd,
-    w_set, w_act, iq_set``,
+    w_set, w_act, iq_set`` (``w_act`` the measured speed through ``speed_actual_filter_s``,
+    ``iq_set`` the speed loop's output before ``current_delay_cycles``),
     ``following_error`` (x_set - x_act, taken at the position-control cycle like the
     NC's own, and held between cycles) and ``contour_deviation`` (actual minus the
     contour model's position, at the position-control cycle).  ``alarms`` is the axis's
@@ -107,6 +114,10 @@ class Controller:
             motor = (poles, kt / (1.5 * poles), mo.inductance_d_h, mo.inductance_q_h)
             self.cur_loop = CurrentLoop(sec, period_s, voltage_limit(cfg), motor)
         self.i_ff_gain = reflected_inertia(cfg) / (self.ratio * kt) if sec.torque_ff else 0.0
+        self.speed_filter = PT1(sec.speed_actual_filter_s, period_s * sec.speed_cycle_ratio)
+        self.filter_speed = sec.speed_actual_filter_s > 0.0
+        self.ff_linear = sec.feedforward_interpolation == "linear" and sec.speed_ff
+        self.iq_delay = Delay(sec.current_delay_cycles)
         if kind == "linear":
             self.rad_per_count = cfg.sensors.encoder_resolution_m
         else:
@@ -142,11 +153,7 @@ class Controller:
         self.phase = Phase.RUN
         self.feedback_ok = True
         self._fine_cycles = 0
-        self.pos_loop.reset(x0)
-        self.speed_loop.reset()
-        if self.cur_loop is not None:
-            self.cur_loop.reset()
-        self.monitor.active = False
+        self._clear_loops()
 
     @property
     def enabled(self) -> bool:
@@ -251,8 +258,10 @@ class Controller:
         if k % n_speed == 0:
             if self.theta_prev is not None:
                 self.w_act = (theta - self.theta_prev) / (self.period * n_speed)
-                self.v_act = self.w_act * self.ratio
             self.theta_prev = theta
+            if self.filter_speed:
+                self.w_act = self.speed_filter.step(self.w_act)
+            self.v_act = self.w_act * self.ratio
         self.theta_act = theta
         x = fb.scale_counts * self.scale_res if self.scale_res else theta * self.ratio
         self.x_act = self.polarity * x
@@ -287,6 +296,8 @@ class Controller:
     def _clear_loops(self) -> None:
         self.pos_loop.reset(self.x_act)
         self.speed_loop.reset()
+        self.speed_filter.reset()
+        self.iq_delay.reset()
         if self.cur_loop is not None:
             self.cur_loop.reset()
         self.monitor.active = False
@@ -329,6 +340,9 @@ class Controller:
     def _run(self, k: int) -> None:
         """The program or test mode's cycles due at tick ``k``."""
         sec = self.sec
+        if (self.ff_linear and self.mode == "position" and k % sec.position_cycle_ratio
+                and k % sec.speed_cycle_ratio == 0):
+            self._interpolate_feed_forward(k)
         due = sec.speed_cycle_ratio if self.mode == "speed" else sec.position_cycle_ratio
         if k % due == 0:
             self._position_cycle()
@@ -343,6 +357,20 @@ class Controller:
                 self.iq_set = self.speed_loop.step(self.w_set, self.w_act, self.i_ff)
             if self.monitor.active:
                 self.monitor.model.speed_cycle()
+
+    def _interpolate_feed_forward(self, k: int) -> None:
+        """A speed cycle between position cycles: the speed command of the held P part
+        with the feed-forward on the line from this position cycle's value to the next's."""
+        n_pos = self.sec.position_cycle_ratio
+        frac = (k % n_pos) / n_pos
+        v_ff = self.v_set + (self._next_feed_forward() - self.v_set) * frac
+        self.v_cmd = self.pos_loop.command(v_ff)
+        self.w_set = self.v_cmd / self.ratio
+
+    def _next_feed_forward(self) -> float:
+        """The next position cycle's speed feed-forward (m/s or rad/s): the fine
+        interpolator's, or this cycle's when no program runs."""
+        return self.v_set if self.fine is None else self.fine.next_vel
 
     def _brake(self, k: int) -> None:
         """Speed setpoint zero, position loop open (the following error and the contour
@@ -396,16 +424,16 @@ class Controller:
             self._run(k)
         if self.phase is Phase.BRAKE:
             self._brake(k)
+        iq_ref = self.iq_delay.step(self.iq_set)
         ud = uq = 0.0
         if self.cur_loop is not None:
-            ud, uq = self.cur_loop.step(0.0, self.iq_set, self.id_meas, self.iq_meas,
-                                        self.w_act)
+            ud, uq = self.cur_loop.step(0.0, iq_ref, self.id_meas, self.iq_meas, self.w_act)
         if not self._state_finite(ud, uq):
             self._state_alarm()
-            ud = uq = 0.0
+            ud = uq = iq_ref = 0.0
         if self.cur_loop is None:
             sp.mode = MODE_CST
-            sp.iq_ref_a = self.iq_set
+            sp.iq_ref_a = iq_ref
             sp.id_ref_a = 0.0
         else:
             sp.mode = MODE_VOLTAGE

@@ -89,14 +89,14 @@ I_SEQ, I_CW, I_MODE = range(3)
 #: 6072h, 6065h-6068h, the I²t levels, the overspeed and standstill speeds, 60C2h (s), the
 #: home shift (increments), 2.0 (``pow``'s exponent); the adapter's bounds (wire units);
 #: the position loop (K_v 1/s, feed-forward weight, symmetrising PT1 factor, speed limit),
-#: the speed loop (K_d/T, K_p, K_i T, the PI's limit, 1/K_t, I_max, K_t, stop on the total
-#: torque 1/0) and its three biquads (b0, b1, b2, a1, a2 each): motor units, s, A
+#: the speed loop (K_d/T, K_p, K_i T, the PI's limit, 1/K_t, I_max, K_t, the anti-windup's
+#: :data:`ANTIWINDUP_CODES`) and its three biquads (b0, b1, b2, a1, a2 each): motor units, s, A
 (R_RPC, R_SPEED_PERIOD, R_CYCLE, R_LIMIT_MIN, R_LIMIT_MAX, R_MAX_SPEED, R_MAX_CURRENT,
  R_FE_WINDOW, R_FE_TIME, R_POS_WINDOW, R_POS_WINDOW_TIME, R_I2T_TRIP, R_I2T_COOLED,
  R_I2T_WARNING, R_CONTINUOUS2, R_OVERSPEED, R_STANDSTILL, R_INTERP_PERIOD, R_SHIFT, R_TWO,
  R_B_POSITION, R_B_VELOCITY, R_B_CURRENT, R_B_VOLTAGE,
  R_KV, R_FF, R_SYM_A, R_V_LIM, R_KD_T, R_KP, R_KI_T, R_PI_LIMIT, R_INV_KT, R_I_MAX, R_KT,
- R_STOP_ON_TOTAL,
+ R_ANTIWINDUP,
  R_SET_B0, R_SET_B1, R_SET_B2, R_SET_A1, R_SET_A2,
  R_CUR_B0, R_CUR_B1, R_CUR_B2, R_CUR_A1, R_CUR_A2,
  R_NOTCH_B0, R_NOTCH_B1, R_NOTCH_B2, R_NOTCH_A1, R_NOTCH_A2, N_PRM) = range(52)
@@ -110,6 +110,10 @@ I_SEQ, I_CW, I_MODE = range(3)
 (J_TICK, J_LIMITED, J_HOT, J_MONITOR_FLAGS, J_STATUSWORD, J_INTERP_SEQ, J_CYCLES, J_LENGTH,
  J_SPEED_RATIO, J_POSITION_RATIO, J_N_SUB, J_MODE, J_CONTROLWORD, J_ROW, N_IST) = range(15)
 B_TIME, B_ENCODER, B_SCALE, B_VELOCITY, B_IQ, B_ID = range(6)
+#: ``[controller] speed_antiwindup`` in ``prm[R_ANTIWINDUP]``
+AW_CONDITIONAL, AW_TORQUE_SETPOINT, AW_CLAMP, AW_NONE = 0.0, 1.0, 2.0, 3.0
+ANTIWINDUP_CODES = {"conditional": AW_CONDITIONAL, "torque_setpoint": AW_TORQUE_SETPOINT,
+                    "clamp": AW_CLAMP, "none": AW_NONE}
 N_FBF = 6
 
 
@@ -272,11 +276,16 @@ def _speed_loop(prm, w, wi, w_set, w_act, i_ff):
         return w[F_IQ]
     e = _biquad(prm, R_SET_B0, w, F_SET_Z1, w_set) - w_act
     d_part = prm[R_KD_T] * (e - w[F_E_PREV])
-    outer = d_part + i_ff * prm[R_KT] if prm[R_STOP_ON_TOTAL] != 0.0 else 0.0
+    mode = prm[R_ANTIWINDUP]
+    outer = d_part + i_ff * prm[R_KT] if mode == AW_TORQUE_SETPOINT else 0.0
     u = prm[R_KP] * e + w[F_INTEG]  # PI.step_within
     total = u + outer
     limit = prm[R_PI_LIMIT]
-    if total > limit:
+    if mode >= AW_CLAMP:  # ClampPI.step, WindupPI.step
+        integ = w[F_INTEG] + prm[R_KI_T] * e
+        w[F_INTEG] = _py_max(-limit, _py_min(limit, integ)) if mode == AW_CLAMP else integ
+        u = _py_max(-limit, _py_min(limit, u))
+    elif total > limit:
         if e < 0.0:
             w[F_INTEG] += prm[R_KI_T] * e
         u = _py_min(u, limit)

@@ -153,8 +153,9 @@ class CompiledPath:
             bounds.voltage_v)
         prm[[C.R_KV, C.R_FF, C.R_SYM_A, C.R_V_LIM]] = pos.kv, pos.ff, pos.sym.a, pos.v_lim
         prm[[C.R_KD_T, C.R_KP, C.R_KI_T, C.R_PI_LIMIT, C.R_INV_KT, C.R_I_MAX, C.R_KT,
-             C.R_STOP_ON_TOTAL]] = (spd.kd_t, spd.pi.kp, spd.pi.ki_t, spd.pi.limit,
-                                    spd.inv_kt, spd.i_max, spd.kt, float(spd.stop_on_total))
+             C.R_ANTIWINDUP]] = (spd.kd_t, spd.pi.kp, spd.pi.ki_t, spd.pi.limit,
+                                 spd.inv_kt, spd.i_max, spd.kt,
+                                 C.ANTIWINDUP_CODES[spd.antiwindup])
         for base, f in ((C.R_SET_B0, spd.set_filter), (C.R_CUR_B0, spd.cur_filter),
                         (C.R_NOTCH_B0, spd.notch)):
             prm[base:base + 5] = f.b0, f.b1, f.b2, f.a1, f.a2

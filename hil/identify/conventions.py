@@ -34,6 +34,7 @@ import dataclasses
 import math
 from dataclasses import dataclass, field
 
+from hil.controller.config import ANTIWINDUP_MODES
 from hil.identify.record import Record
 from hil.trace_file import TraceFormatError
 from plant.config import MachineConfig
@@ -157,7 +158,7 @@ def read_conventions(rec: Record, cfg: MachineConfig) -> Conventions:
                                                 meta["speed_actual_filter_s"], hi=1.0, unit="s")
     if has("speed_antiwindup"):
         ctrl["speed_antiwindup"] = _choice(rec, "speed_antiwindup", meta["speed_antiwindup"],
-                                           ("conditional", "clamp", "none"))
+                                           ANTIWINDUP_MODES)
     if has("current_delay_cycles"):
         ctrl["current_delay_cycles"] = _number(rec, "current_delay_cycles",
                                                meta["current_delay_cycles"], integer=True,

@@ -28,8 +28,8 @@ import math
 import numpy as np
 from numba import njit
 
-from hil.controller.blocks import PI, Biquad
-from hil.identify.trace_controller import ClampPI, TraceController, WindupPI
+from hil.controller.blocks import Biquad
+from hil.identify.trace_controller import TraceController
 from plant import Plant
 from plant import layout as L
 from plant.kernel import axis_step_nb
@@ -43,8 +43,10 @@ C_INV_KT, C_KT, C_I_MAX, C_STOP_ON_TOTAL, C_DRIVE_I_MAX = 20, 21, 22, 23, 24
 C_FILTER_A, C_FILTER_ON, C_FF_LINEAR, C_PER_AMP = 25, 26, 27, 28
 C_SET_FILTER, C_CUR_FILTER, C_NOTCH = 29, 34, 39  # five biquad coefficients each
 C_COUNT = 44
-#: the speed PI's anti-windup (C_PI_MODE): conditional, integrator clamped, none
+#: the speed PI's anti-windup (C_PI_MODE): conditional (on the PI's output or, with
+#: C_STOP_ON_TOTAL, on the whole torque setpoint), integrator clamped, none
 PI_CONDITIONAL, PI_CLAMP, PI_NONE = 0.0, 1.0, 2.0
+_PI_MODES = {"clamp": PI_CLAMP, "none": PI_NONE}
 
 # -- loop state, array s -----------------------------------------------------------------
 S_K, S_X_ACT, S_THETA_ACT, S_W_ACT, S_THETA_PREV = 0, 1, 2, 3, 4
@@ -62,14 +64,6 @@ def _biquad(c: np.ndarray, s: np.ndarray, ci: int, si: int, f: Biquad) -> None:
     s[si:si + 2] = (f.z1, f.z2)
 
 
-def _pi_mode(pi: PI) -> float:
-    if isinstance(pi, ClampPI):
-        return PI_CLAMP
-    if isinstance(pi, WindupPI):
-        return PI_NONE
-    return PI_CONDITIONAL
-
-
 def pack(ctrl: TraceController, plant: Plant, drive_i_max: float, every: int,
          per_amp: float) -> tuple[np.ndarray, np.ndarray]:
     """The controller's coefficients and states as the kernel's arrays (c, s)."""
@@ -85,7 +79,7 @@ def pack(ctrl: TraceController, plant: Plant, drive_i_max: float, every: int,
     c[C_KV], c[C_FF], c[C_SYM_A], c[C_V_LIM] = pl.kv, pl.ff, pl.sym.a, pl.v_lim
     c[C_I_FF_GAIN] = ctrl.i_ff_gain
     c[C_KP], c[C_KI_T], c[C_PI_LIMIT] = sl.pi.kp, sl.pi.ki_t, sl.pi.limit
-    c[C_PI_MODE], c[C_KD_T] = _pi_mode(sl.pi), sl.kd_t
+    c[C_PI_MODE], c[C_KD_T] = _PI_MODES.get(sl.antiwindup, PI_CONDITIONAL), sl.kd_t
     c[C_INV_KT], c[C_KT], c[C_I_MAX] = sl.inv_kt, sl.kt, sl.i_max
     c[C_STOP_ON_TOTAL], c[C_DRIVE_I_MAX] = float(sl.stop_on_total), drive_i_max
     c[C_FILTER_A], c[C_FILTER_ON] = ctrl.speed_filter.a, float(sec.speed_actual_filter_s > 0)
@@ -100,6 +94,7 @@ def pack(ctrl: TraceController, plant: Plant, drive_i_max: float, every: int,
     s[S_V_CMD], s[S_W_SET], s[S_IQ_SET] = ctrl.v_cmd, ctrl.w_set, ctrl.iq_set
     s[S_SYM_Y], s[S_POS_ERROR] = pl.sym.y, pl.error
     s[S_INTEG], s[S_E_PREV], s[S_FILTER_Y] = sl.pi.integ, sl.e_prev, ctrl.speed_filter.y
+    s[S_DELAY_HEAD] = ctrl.iq_delay.head
     return c, s
 
 
@@ -118,7 +113,7 @@ class CompiledLoop:
     def __init__(self, ctrl: TraceController, plant: Plant, drive_i_max: float, every: int,
                  per_amp: float):
         self.c, self.s = pack(ctrl, plant, drive_i_max, every, per_amp)
-        self.delay = np.array(list(ctrl._delay), dtype=np.float64)
+        self.delay = np.array(ctrl.iq_delay.ring, dtype=np.float64)
         self.plant = plant
 
     def run(self, fine: tuple[np.ndarray, np.ndarray, np.ndarray], v_pos: np.ndarray,
@@ -150,14 +145,15 @@ def _biquad_step(c, ci, s, si, x):
 
 @njit(cache=True)
 def _speed_pi(c, s, e, outer):
-    """The speed PI's output (PI.step_within, ClampPI.step, WindupPI.step)."""
+    """The speed PI's output (PI.step_within; ClampPI.step, WindupPI.step of
+    hil.controller.blocks)."""
     u = c[C_KP] * e + s[S_INTEG]
     lim = c[C_PI_LIMIT]
     mode = c[C_PI_MODE]
-    if c[C_STOP_ON_TOTAL] == 0.0 and mode == PI_CLAMP:
+    if mode == PI_CLAMP:
         s[S_INTEG] = max(-lim, min(lim, s[S_INTEG] + c[C_KI_T] * e))
         return max(-lim, min(lim, u))
-    if c[C_STOP_ON_TOTAL] == 0.0 and mode == PI_NONE:
+    if mode == PI_NONE:
         s[S_INTEG] += c[C_KI_T] * e
         return max(-lim, min(lim, u))
     total = u + outer
@@ -216,7 +212,7 @@ def _position_cycle(c, s, fine_pos, fine_vel, fine_acc):
 
 @njit(cache=True)
 def _measure(c, s, out, k, n_speed):
-    """Controller._measure (+ the trace controller's actual-speed filter)."""
+    """Controller._measure, its actual-speed filter included."""
     theta = out[L.O_ENCODER] * c[C_RAD_PER_COUNT]
     if k % n_speed == 0:
         if s[S_THETA_PREV] == s[S_THETA_PREV]:
@@ -241,7 +237,8 @@ def nc_loop(c, s, p, ps, inp, out, fine_pos, fine_vel, fine_acc, v_pos, delay, r
     ``ticks`` ticks.
 
     ``c``/``s`` from :func:`pack`; ``p, ps, inp, out`` the plant's arrays; ``delay`` the
-    current setpoints still in the computation delay (oldest first), shape (d,);
+    current setpoints still in the computation delay (a ring, the oldest at
+    ``s[S_DELAY_HEAD]``), shape (d,);
     ``v_pos`` the feed-forward at each position cycle from the first on.  Returns
     STATUS_OK, a plant status, or STATUS_LOOP_NONFINITE."""
     n_pos = int(c[C_N_POS])

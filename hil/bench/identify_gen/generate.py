@@ -59,7 +59,9 @@ class _PI:
     def __call__(self, e: float) -> float:
         u = self.kp * e + self.integ
         lim = self.limit
-        if self.mode == "conditional":
+        # the generator has no D part and no torque feed-forward (_check_supported): the
+        # whole torque setpoint is the PI's output, so 'torque_setpoint' is 'conditional'
+        if self.mode in ("conditional", "torque_setpoint"):
             if (u > lim and e > 0) or (u < -lim and e < 0):
                 return max(-lim, min(lim, u))
             self.integ += self.ki_t * e

@@ -272,7 +272,7 @@ def seed002_linear_move(out_dir: Path | None) -> list[Result]:
              ", current loop 1350/(s+1380)": linear_move(load_machine(LD386, overrides={
                  "current_loop": {"time_constant_s": CURRENT_LOOP_ZEROS_S}})),
              ", integrator frozen at the torque limit": linear_move(load_machine(
-                 LD386, overrides={"controller": {"speed_integrator_stop": "torque_setpoint"}}))}
+                 LD386, overrides={"controller": {"speed_antiwindup": "torque_setpoint"}}))}
     as_is, held, fast, frozen = moves.values()
     # below this speed error the P part alone is under the force limit: the integrator runs
     unsaturated = cfg.motor.force_constant_n_per_a * cfg.motor.current_max_a \
@@ -284,7 +284,7 @@ def seed002_linear_move(out_dir: Path | None) -> list[Result]:
               f"axis closes the last {unsaturated:.2f} m/s to the limited speed command behind "
               "the current loop's lag: stopping the integrator at the limit does not prevent "
               "that, neither ours (conditional integration) nor SINAMICS's (I component frozen "
-              "at the torque limit, [controller] speed_integrator_stop = 'torque_setpoint': peak "
+              "at the torque limit, [controller] speed_antiwindup = 'torque_setpoint': peak "
               f"{frozen.peak_velocity:.2f} m/s).  Seed 002's 'anti-integral windup' (Fig. 4) "
               "must hold the integrator nearer the cruise force; the paper does not say how.  "
               "The current loop is not the cause: read as 1350/(s+1380) it still peaks at "
