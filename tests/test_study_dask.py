@@ -71,10 +71,12 @@ def stop(proc: subprocess.Popen) -> None:
             proc.wait(timeout=30)
 
 
-@pytest.fixture
+@pytest.fixture(scope="module")
 def dask_cluster():
     """``dask scheduler`` and ``dask worker`` (two worker processes, one thread each) on
-    127.0.0.1, started as separate processes; yields the scheduler address."""
+    127.0.0.1, started as separate processes; yields the scheduler address.  The module's
+    pipeline and tuning studies share it (an existing cluster, as a user's would be); the
+    LocalCluster path has its own tests (the small study, resume, SIGTERM, the bench)."""
     address = f"tcp://127.0.0.1:{free_port()}"
     port = address.rsplit(":", 1)[1]
     procs = [subprocess.Popen(["dask", "scheduler", "--host", "127.0.0.1", "--port", port,
@@ -198,12 +200,12 @@ def test_sigterm_stops_the_study_and_its_workers(tmp_path):
     assert table(out).num_rows >= 1
 
 
-def test_ishigami_sobol_indices_through_the_pipeline(tmp_path):
+def test_ishigami_sobol_indices_through_the_pipeline(tmp_path, dask_cluster):
     """A pipeline check (analytic function, no physics): spec, Saltelli design, Dask
     tasks, Parquet store and SALib give the closed-form indices."""
     out = tmp_path / "out"
     summary = run_json(str(STUDIES / "pipeline_ishigami.toml"), "--out", str(out),
-                       "--workers", "2")
+                       "--scheduler", dask_cluster)
     assert summary["samples"] == 1024 * 5
     got = summary["indices"]["y"]["parameters"]
     first, total = ishigami_indices()
@@ -215,7 +217,7 @@ def test_ishigami_sobol_indices_through_the_pipeline(tmp_path):
     assert (out / "sensitivity.png").stat().st_size > 0
 
 
-def test_morris_indices_of_a_linear_function_through_the_pipeline(tmp_path):
+def test_morris_indices_of_a_linear_function_through_the_pipeline(tmp_path, dask_cluster):
     """A pipeline check: Morris elementary effects of y = x1 + 2 x2 + 0 x3, x_i uniform on
     [-1, 1], are the coefficients times the range (2): mu* = 2, 4, 0 and sigma 0."""
     spec = tmp_path / "morris.toml"
@@ -234,7 +236,7 @@ x1 = { uniform = [-1.0, 1.0] }
 x2 = { uniform = [-1.0, 1.0] }
 x3 = { uniform = [-1.0, 1.0] }
 """)
-    summary = run_json(str(spec), "--out", str(tmp_path / "out"), "--workers", "1")
+    summary = run_json(str(spec), "--out", str(tmp_path / "out"), "--scheduler", dask_cluster)
     assert summary["samples"] == 12 * 4
     got = summary["indices"]["y"]["parameters"]
     for name, mu in (("analytic.x1", 2.0), ("analytic.x2", 4.0), ("analytic.x3", 0.0)):
@@ -243,10 +245,10 @@ x3 = { uniform = [-1.0, 1.0] }
     assert summary["outputs"] == {}  # a Morris grid is not a sample of the distributions
 
 
-def test_tuning_finds_the_constrained_optimum(tmp_path):
+def test_tuning_finds_the_constrained_optimum(tmp_path, dask_cluster):
     out = tmp_path / "out"
     summary = run_json(str(STUDIES / "pipeline_tuning.toml"), "--out", str(out),
-                       "--workers", "2")
+                       "--scheduler", dask_cluster)
     best = summary["tuning"]["best"]
     x1, x2 = best["params"]["analytic.x1"], best["params"]["analytic.x2"]
     assert x1 + x2 <= 2.0  # feasible
@@ -256,11 +258,11 @@ def test_tuning_finds_the_constrained_optimum(tmp_path):
     assert (out / "pareto.png").stat().st_size > 0
 
 
-def test_robust_tuning_finds_the_worst_case_optimum(tmp_path):
+def test_robust_tuning_finds_the_worst_case_optimum(tmp_path, dask_cluster):
     spec = STUDIES / "pipeline_tuning_robust.toml"
     x3 = robust_values(load_study(spec))[:, 0]
     out = tmp_path / "out"
-    summary = run_json(str(spec), "--out", str(out), "--workers", "2")
+    summary = run_json(str(spec), "--out", str(out), "--scheduler", dask_cluster)
     best = summary["tuning"]["best"]
     # worst over the 8 machines of (x1 - 1 - x3)^2 is least at the middle of x3's values
     assert best["params"]["analytic.x1"] == pytest.approx(1.0 + (x3.max() + x3.min()) / 2,
@@ -270,7 +272,7 @@ def test_robust_tuning_finds_the_worst_case_optimum(tmp_path):
     assert table(out).num_rows == 200 * 8
 
 
-def test_tuned_machine_file_loads_and_holds_the_best_trial(tmp_path):
+def test_tuned_machine_file_loads_and_holds_the_best_trial(tmp_path, dask_cluster):
     """K_v of the Arrow 500 X tuned for the shortest lag with the overshoot bounded: the
     lag falls as K_v rises (linear theory: the P loop's time constant is 1/K_v), so the
     best trial is the largest feasible K_v; its machine file loads and says so."""
@@ -296,7 +298,7 @@ minimize = ["lag_50pct_s"]
 overshoot_pct = {{ max = 5.0 }}
 """)
     out = tmp_path / "out"
-    summary = run_json(str(spec), "--out", str(out), "--workers", "2")
+    summary = run_json(str(spec), "--out", str(out), "--scheduler", dask_cluster)
     trials = summary["tuning"]["trial_rows"]
     kv = np.array([t["params"]["controller.kv_m_min_per_mm"] for t in trials])
     lag = np.array([t["values"]["lag_50pct_s"] for t in trials])
