@@ -10,7 +10,9 @@ under the inverse model's 50 Hz low-pass for the ripples' orders) and ends with 
 least twice above the diagnosis's threshold for it (:mod:`hil.identify.diagnosis`)."""
 
 import time
+from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
+from multiprocessing import get_context
 from pathlib import Path
 
 import pytest
@@ -70,32 +72,38 @@ CASES = {name: Case(*args) for name, args in {
 }.items()}
 
 
-@pytest.fixture(scope="module")
-def traces(tmp_path_factory):
-    """fault (or "healthy") -> its trace; every trace from the same program."""
-    d = tmp_path_factory.mktemp("faults")
-    program = d / "p.nc"
-    program.write_text(PROGRAM)
-    out = {}
-    for name, inject in [("healthy", ())] + [(n, (c.flag,)) for n, c in CASES.items()]:
-        run_sim(ARROW, program, d / name, 250.0, None, None, inject=inject)
-        out[name] = d / name / "trace.csv"
-    return out
-
-
-def _diagnose(trace: Path):
+def _trace_and_diagnosis(name: str, folder: Path) -> tuple[Path, list]:
+    """Simulate the program with fault ``name`` (or none: "healthy") into ``folder`` and
+    diagnose it (with nothing printed but the time, for the test log)."""
+    program = folder / "p.nc"
+    inject = () if name == "healthy" else (CASES[name].flag,)
+    run_sim(ARROW, program, folder / name, 250.0, None, None, inject=inject)
+    trace = folder / name / "trace.csv"
     t0 = time.monotonic()
     ident = Identification(ARROW, load_record(trace), workers=1).fit()
-    faults = diagnose(ident)
-    print(f"{trace.parent.name}: identified and diagnosed in {time.monotonic() - t0:.1f} s: "
-          + "; ".join(f.line() for f in faults))
-    return faults
+    return trace, diagnose(ident), time.monotonic() - t0
+
+
+@pytest.fixture(scope="module")
+def diagnosed(tmp_path_factory):
+    """fault (or "healthy") -> (its trace, the faults named, seconds to identify): every
+    trace from the same program, simulated and identified two at a time (the suite runs
+    on one core; the machine has two)."""
+    d = tmp_path_factory.mktemp("faults")
+    (d / "p.nc").write_text(PROGRAM)
+    names = ["healthy", *CASES]
+    with ProcessPoolExecutor(2, mp_context=get_context("spawn")) as pool:
+        results = dict(zip(names, pool.map(_trace_and_diagnosis, names, [d] * len(names))))
+    for name, (_, faults, seconds) in results.items():
+        print(f"{name}: identified and diagnosed in {seconds:.1f} s: "
+              + "; ".join(f.line() for f in faults))
+    return results
 
 
 @pytest.mark.parametrize("fault", list(CASES))
-def test_the_injected_fault_is_named_first_with_its_level(traces, fault):
+def test_the_injected_fault_is_named_first_with_its_level(diagnosed, fault):
     case = CASES[fault]
-    faults = _diagnose(traces[fault])
+    faults = diagnosed[fault][1]
     assert faults, f"{case.flag}: no fault found"
     assert faults[0].name == fault, [f.line() for f in faults]
     lo, hi = case.band
@@ -104,16 +112,17 @@ def test_the_injected_fault_is_named_first_with_its_level(traces, fault):
         assert faults[0].extra["order"] == 3
 
 
-def test_the_healthy_trace_names_no_fault_and_the_report_says_so(traces, tmp_path):
+def test_the_healthy_trace_names_no_fault_and_the_report_says_so(diagnosed, tmp_path):
     """The same program without a fault: the thresholds leave every estimate of the
     healthy trace (quantisation and current noise only) below them."""
-    rep = identify(traces["healthy"], ARROW, tmp_path, workers=1)
+    assert diagnosed["healthy"][1] == []
+    rep = identify(diagnosed["healthy"][0], ARROW, tmp_path, workers=1)
     assert rep["faults"] == []
     assert "No fault found." in (tmp_path / "report.md").read_text()
 
 
-def test_the_report_lists_the_fault_with_its_evidence(traces, tmp_path):
-    rep = identify(traces["current_offset"], ARROW, tmp_path, workers=1)
+def test_the_report_lists_the_fault_with_its_evidence(diagnosed, tmp_path):
+    rep = identify(diagnosed["current_offset"][0], ARROW, tmp_path, workers=1)
     first = rep["faults"][0]
     assert first["name"] == "current_offset" and first["level_key"] == "offset_a"
     assert "1x the electrical frequency" in first["evidence"]
