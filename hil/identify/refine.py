@@ -20,10 +20,11 @@ earlier or later), so the finite-difference Jacobian can stop the least-squares 
 well short of the minimum of the sum of squares, which is smooth on the scale of a
 percent: on screw_stribeck of ``hil bench identify`` they ended at 1.6x the table scale's
 floor with the mass 2 % high, where the truth's own parameters give 1.3x.  A
-derivative-free pass (Powell's conjugate directions, :data:`POLISH_REPLAYS` replays per
-parameter at most) polishes their point on the same sum of squares.  The declared coefficients keep their prior
-(:class:`hil.identify.model.Model`): one more residual (c - c_declared) / (tolerance
-|c_declared|) each.
+derivative-free pass (Powell's conjugate directions, at most :data:`POLISH_REPLAYS`
+replays per parameter) polishes their point on the same sum of squares.
+
+The declared coefficients keep their prior (:class:`hil.identify.model.Model`): one more
+residual (c - c_declared) / (tolerance |c_declared|) each.
 
 The Jacobian at the solution, its rows in those deviations, gives each parameter's
 standard uncertainty: sqrt of the diagonal of (JᵀJ)⁻¹.
@@ -188,10 +189,9 @@ def refine(model: Model, rec: Record, floor: dict, n_eff: float, max_nfev: int,
             "cost_after": j1, "replays": count[0]}
 
 
-
 def _polish(residual, z: np.ndarray, bounds: tuple, scale: np.ndarray,
             max_replays: int) -> np.ndarray:
-    """Powell's method from ``z`` on 0.5 |residual|², in the coordinates (z - z0) / scale
+    """Powell's method from ``z`` on 0.5 |residual|², in the coordinates (z' - z) / scale
     within ``bounds`` (lo, hi); the best point seen (``z`` when nothing is better)."""
     seen = {"cost": math.inf, "z": z}
 
