@@ -21,7 +21,8 @@ well short of the minimum of the sum of squares, which is smooth on the scale of
 percent: on screw_stribeck of ``hil bench identify`` they ended at 1.6x the table scale's
 floor with the mass 2 % high, where the truth's own parameters give 1.3x.  A
 derivative-free pass (Powell's conjugate directions, at most :data:`POLISH_REPLAYS`
-replays per parameter) polishes their point on the same sum of squares.
+replays per parameter) polishes their point on the same sum of squares, kept where J
+falls by it.
 
 The declared coefficients keep their prior (:class:`hil.identify.model.Model`): one more
 residual (c - c_declared) / (tolerance |c_declared|) each.
@@ -165,8 +166,12 @@ def refine(model: Model, rec: Record, floor: dict, n_eff: float, max_nfev: int,
         if sol.cost < best_cost:
             best = sol.x
     residual(best)
+    j_passes = costs[-1]
     scale_k[:] = np.maximum(last, 1.0)
-    best = _polish(residual, best, (lo, hi), scale, POLISH_REPLAYS * len(params))
+    polished = _polish(residual, best, (lo, hi), scale, POLISH_REPLAYS * len(params))
+    residual(polished)
+    if costs[-1] < j_passes:
+        best = polished
     jac = _jacobian(residual, best, (lo, hi), DIFF_STEPS[-1])
     residual(best)
     j1 = costs[-1]
