@@ -18,8 +18,12 @@ in another formulation where the kernel's is a numerical choice:
   +-F_C, restarted at each reversal (handled between integration intervals);
 * cogging: sum A_k sin(n_k theta_e + phi_k) on the motor (theta_e = pole pairs x motor angle,
   or pi x / pole pitch);
-* pitch error: the table stands at u + sum A_k sin(2 pi u / P_k + phi_k) + c u, u the
-  nut's nominal travel; the linear scale reads it, the motor encoder reads u;
+* pitch error: the table stands at x = u + e(u), e(u) = sum A_k sin(2 pi u / P_k + phi_k)
+  + c u, u the nut's nominal travel; the linear scale reads x, the motor encoder reads u.
+  The table (its mass m_t) moves with x: its velocity is g u', g = 1 + e'(u), its
+  friction, viscous and external forces act at that velocity and reach u's equation
+  times g (virtual work), and its inertia adds m_t (g^2 u'' + g e''(u) u'^2) to u's
+  (Lagrange's equation of the constraint x(u), written exactly);
 * the constant external force (torque) on the table.
 """
 
@@ -51,6 +55,7 @@ class AxisParams:
     i_max: float
     m_motor: float
     m_load: float
+    m_table: float
     two_mass: bool
     k_c: float
     c_c: float
@@ -114,7 +119,7 @@ def axis_params(cfg: MachineConfig) -> AxisParams:
     return AxisParams(
         kind=kind, ratio=r, kf=kf, t_cl=cfg.current_loop.time_constant_s,
         i_max=mo.current_max_a, m_motor=motor + half_c,
-        m_load=half_c + me.load_inertia_kgm2 / r ** 2 + table, two_mass=two,
+        m_load=half_c + me.load_inertia_kgm2 / r ** 2 + table, m_table=table, two_mass=two,
         k_c=cp.stiffness_nm_per_rad / r ** 2 if two else 0.0,
         c_c=cp.damping_nms_per_rad / r ** 2 if two else 0.0,
         backlash=cp.backlash_rad * r if two else 0.0,
@@ -130,6 +135,17 @@ def pitch_position(p: AxisParams, u: float) -> float:
     """Where the table stands when the nut's nominal travel is ``u`` (m)."""
     e = sum(a * math.sin(2 * math.pi * u / per + ph) for per, a, ph in p.pitch)
     return u + e + p.pitch_linear * u
+
+
+def pitch_slope(p: AxisParams, u: float) -> tuple[float, float]:
+    """(g, e'') at the nut's nominal travel ``u`` (m): g = dx/du = 1 + e'(u) and the
+    error's curvature e''(u) (1/m)."""
+    g, curv = 1.0 + p.pitch_linear, 0.0
+    for per, a, ph in p.pitch:
+        k = 2 * math.pi / per
+        g += a * k * math.cos(k * u + ph)
+        curv -= a * k * k * math.sin(k * u + ph)
+    return g, curv
 
 
 def nut_travel(p: AxisParams, x: float) -> float:
@@ -167,7 +183,8 @@ class Axis:
 
     def _drive(self, y: np.ndarray) -> tuple[float, float, float]:
         """(force of the motor on the motor side, coupling force on the load, external and
-        viscous force on the load) at state ``y``, friction of the contact left out."""
+        viscous force on the table, at the table's velocity) at state ``y``, friction of
+        the contact left out."""
         p = self.p
         u_m, v_m, u_l, v_l, i, _ = y
         theta_e = p.poles * u_m / p.ratio
@@ -179,36 +196,49 @@ class Axis:
             half = 0.5 * p.backlash
             de = delta - half if delta > half else (delta + half if delta < -half else 0.0)
             f_c = p.k_c * de + (p.c_c * (v_m - v_l) if de != 0.0 or half == 0.0 else 0.0)
-        return f_motor, f_c, p.f_ext - p.b * v_l - p.db * abs(v_l)
+        v_t = self._table_velocity(y)
+        return f_motor, f_c, p.f_ext - p.b * v_t - p.db * abs(v_t)
+
+    def _table_velocity(self, y: np.ndarray) -> float:
+        """The table's velocity g u_l' (m/s; rad/s) at state ``y``."""
+        return pitch_slope(self.p, y[2])[0] * y[3] if self.p.pitch else y[3]
 
     def _rhs(self, _t: float, y: np.ndarray, i_set: float, slide: float) -> list[float]:
         """d/dt y; ``slide``: the direction of sliding (0 while stuck)."""
         p = self.p
         u_m, v_m, u_l, v_l, i, f_pre = y
         f_motor, f_c, f_load = self._drive(y)
+        g, curv = pitch_slope(p, u_l) if p.pitch else (1.0, 0.0)
+        v_t = g * v_l
         di = (i_set - i) / p.t_cl
         df = 0.0
         if p.presliding is not None:
             k1, x1, a = p.presliding
-            df = k1 / (abs((u_l - self.x_rev) / x1) ** a + 1.0) * v_l if x1 > 0 else k1 * v_l
+            df = k1 / (abs((u_l - self.x_rev) / x1) ** a + 1.0) * v_t if x1 > 0 else k1 * v_t
             if (f_pre >= p.fc and df > 0) or (f_pre <= -p.fc and df < 0):
                 df = 0.0
             friction = -f_pre
         else:
-            friction = -slide * self._level(v_l)
+            friction = -slide * self._level(v_t)
+        # the table's forces reach u_l times g; its inertia is m_t g^2 and its share of the
+        # curved kinematics m_t g e'' u_l'^2 (module docstring)
+        m_extra = p.m_table * (g * g - 1.0)
+        f_table = g * (f_load + friction) - p.m_table * g * curv * v_l * v_l
         if not p.two_mass:
             if slide == 0.0 and p.presliding is None:
                 return [0.0, 0.0, 0.0, 0.0, di, 0.0]
-            acc = (f_motor + f_load + friction) / p.mass
+            acc = (f_motor + f_table) / (p.mass + m_extra)
             return [v_m, acc, v_m, acc, di, df]
         acc_l = 0.0 if slide == 0.0 and p.presliding is None else \
-            (f_c + f_load + friction) / p.m_load
+            (f_c + f_table) / (p.m_load + m_extra)
         return [v_m, (f_motor - f_c) / p.m_motor, v_l if acc_l or slide else 0.0, acc_l, di, df]
 
     def _applied(self, y: np.ndarray) -> float:
-        """The force on the load besides its sliding friction (N or N·m)."""
+        """The force on the table besides its sliding friction (N or N·m): the drive's
+        reaches it divided by g."""
         f_motor, f_c, f_load = self._drive(y)
-        return (f_c if self.p.two_mass else f_motor) + f_load
+        g = pitch_slope(self.p, y[2])[0] if self.p.pitch else 1.0
+        return (f_c if self.p.two_mass else f_motor) / g + f_load
 
     def step(self, dt: float, i_set: float) -> None:
         """Integrate over ``dt`` seconds with the current setpoint ``i_set`` (A) held."""
