@@ -430,6 +430,8 @@ def _handshake_fields(kind: int) -> tuple[Field, ...]:
 
 HANDSHAKE_FIELDS = {KIND_HELLO: _handshake_fields(KIND_HELLO),
                     KIND_WELCOME: _handshake_fields(KIND_WELCOME)}
+#: an INJECT's header and axis (its fault name and settings are checked apart)
+INJECT_HEAD = _handshake_fields(KIND_INJECT) + (_int("axis", 0, 255),)
 #: the handshake message a receiver of each record kind takes besides the records
 HANDSHAKE_TAKEN = {KIND_SETPOINT: KIND_HELLO, KIND_FEEDBACK: KIND_WELCOME}
 
@@ -461,10 +463,8 @@ def _check_inject(values: tuple) -> tuple:
     """``values`` if it is a well-formed INJECT, else :class:`FrameError` saying why."""
     if len(values) != 7:
         raise FrameError(f"{len(values)} elements, expected 7 for INJECT")
-    head = HANDSHAKE_FIELDS[KIND_HELLO][:1] + (_int("kind", KIND_INJECT, KIND_INJECT),) \
-        + HANDSHAKE_FIELDS[KIND_HELLO][2:] + (_int("axis", 0, 255),)
-    if not _valid(head, values[:5]):
-        raise FrameError(f"INJECT {_explain(head, values[:5])}")
+    if not _valid(INJECT_HEAD, values[:5]):
+        raise FrameError(f"INJECT {_explain(INJECT_HEAD, values[:5])}")
     fault, settings = values[5], values[6]
     if not _name_ok(fault):
         raise FrameError(f"INJECT fault={fault!r:.60}: expected a name of 1-"

@@ -45,11 +45,12 @@ object   meaning                      unit here                       refused (a
                                       limit switch, bit 2 home switch
                                       (read only)
 2F00h    fault injection (the test    :01-:09 each fault's level in   a fault this machine
-         bench's object,              its integer unit              cannot have, a level
-         :mod:`hil.inject`)           (:data:`~hil.inject.catalog.    out of range
-                                      FAULTS` order and               (0609 0030)
-                                      ``wire_per_unit``); :0A ramp
-                                      time of the next writes, ms
+         bench's object,              its integer unit                cannot have, a level
+         :mod:`hil.inject`)           (``wire_per_unit``, in the      out of range
+                                      order of :data:`~hil.inject.    (0609 0030)
+                                      catalog.BY_SUBINDEX`); :0A
+                                      ramp time of the next writes,
+                                      ms
 =======  ===========================  ==============================  ======================
 
 A write of 2F00h:01-09 is checked at once (an abort refuses it) and acts from the next
@@ -70,7 +71,7 @@ from dataclasses import fields, replace
 from hil.cia402 import AbortConnectionOption, FaultReactionOption, QuickStopOption
 from hil.drive.core import EmulatedDrive
 from hil.drive.homing import METHODS
-from hil.inject.catalog import FAULTS
+from hil.inject.catalog import BY_SUBINDEX
 from hil.inject.schedule import Injector, check
 from io_adapters.can_catalog import (
     DI_HOME_SWITCH,
@@ -245,7 +246,7 @@ class DriveObjects:
         inj = self.injectors[axis]
         if subindex == INJECT_RAMP_SUB:
             return self._ramp_ms[axis]
-        fault = list(FAULTS.values())[subindex - 1]
+        fault = BY_SUBINDEX[subindex - 1]
         return round(inj.levels[fault.name] * fault.wire_per_unit)
 
     def _inject(self, axis: int, subindex: int, value: float) -> None:
@@ -255,7 +256,7 @@ class DriveObjects:
         if subindex == INJECT_RAMP_SUB:
             self._ramp_ms[axis] = int(value)
             return
-        fault = list(FAULTS.values())[subindex - 1]
+        fault = BY_SUBINDEX[subindex - 1]
         table = {**inj.cfg.section("inject").get(fault.name, {}),
                  fault.level_key: value / fault.wire_per_unit,
                  "ramp_s": self._ramp_ms[axis] * 1e-3}

@@ -33,6 +33,7 @@ import numpy as np
 from hil.identify.effects import FORCE
 from hil.identify.effects.drivetrain import contact_side, transmitted_force
 from hil.identify.motion import motion
+from hil.inject.catalog import FAULTS
 
 #: smallest estimate, in standard uncertainties, that names a fault
 Z_MIN = 8.0
@@ -83,6 +84,13 @@ class Fault:
         return f"{self.name}: {self.level_key} ~ {self.level:.3g}{unit} ({self.evidence})"
 
 
+def _named(name: str, level: float, score: float, evidence: str, alternatives: str,
+           extra: dict) -> Fault:
+    """A :class:`Fault` of the catalog's ``name``, with its level key and unit."""
+    f = FAULTS[name]
+    return Fault(name, level, f.level_key, f.unit, score, evidence, alternatives, extra)
+
+
 def _changes(ident) -> dict:
     return {row["parameter"]: row for row in ident.declared_changes}
 
@@ -104,16 +112,16 @@ def force_side(ident) -> list[Fault]:
     if mass is not None and mass["beyond_tolerance"] and mass["change_pct"] > 0:
         f_mass = 1.0 + mass["change_pct"] / 100.0
         if max(f_mass / f_fric, f_fric / f_mass) <= ONE_FACTOR:
-            return [Fault(
-                "torque_constant_loss", 100.0 * (1.0 - 1.0 / f_mass), "loss_pct", "%",
+            return [_named(
+                "torque_constant_loss", 100.0 * (1.0 - 1.0 / f_mass),
                 min(score, mass["change_pct"] / mass["tolerance_pct"]),
                 f"inertia {mass['change_pct']:+.1f} % and friction ({listed}) up by about "
                 "one factor 1/(1 - loss): the torque per ampere dropped",
                 "a gain error of the current measurement that reads high on every phase "
                 "(ours, on phase a only, would also ripple at 2x the electrical frequency)",
                 {"inertia_change_pct": mass["change_pct"]})]
-    return [Fault(
-        "friction_growth", lead["change_pct"], "growth_pct", "%", score,
+    return [_named(
+        "friction_growth", lead["change_pct"], score,
         f"friction beyond its tolerance ({listed}), inertia "
         f"{mass['change_pct'] if mass else 0.0:+.1f} % (as declared)",
         "a changed load or lubrication state; viscous friction lumps in the motor's and "
@@ -206,23 +214,23 @@ def ripple_faults(ripples: list[Ripple]) -> list[Fault]:
                  "load_independent_sigma_a": r.const_sigma_a, "share_of_iq": r.share,
                  "share_sigma": r.share_sigma}
         if r.order == 1 and const_ok:
-            out.append(Fault(
-                "current_offset", r.const_a * math.sqrt(3.0) / 2.0, "offset_a", "A", score_c,
+            out.append(_named(
+                "current_offset", r.const_a * math.sqrt(3.0) / 2.0, score_c,
                 f"a load-independent ripple at 1x the electrical frequency, "
                 f"{r.const_a:.3g} ± {r.const_sigma_a:.2g} A of q current",
                 "a phase-current offset on any one sensor (the sign and phase are not "
                 "estimated), or an order-1 cogging (rotor eccentricity)", extra))
         if share_ok and r.order == 2:
-            out.append(Fault(
-                "current_gain_error", 100.0 * r.share * math.sqrt(3.0), "gain_error_pct", "%",
-                score_s, f"a ripple at 2x the electrical frequency proportional to the "
-                f"current, {100 * r.share:.3g} ± {100 * r.share_sigma:.2g} % of iq",
+            out.append(_named(
+                "current_gain_error", 100.0 * r.share * math.sqrt(3.0), score_s,
+                f"a ripple at 2x the electrical frequency proportional to the current, "
+                f"{100 * r.share:.3g} ± {100 * r.share_sigma:.2g} % of iq",
                 "a torque ripple of order 2 (a broken-bar-like fault), which also grows "
                 "with the load; a gain error also lowers the mean torque by about half "
                 "of it", extra))
         elif share_ok:
-            out.append(Fault(
-                "torque_ripple", 100.0 * r.share, "ripple_pct", "%", score_s,
+            out.append(_named(
+                "torque_ripple", 100.0 * r.share, score_s,
                 f"a ripple at order {r.order} of the electrical frequency proportional to "
                 f"the current, {100 * r.share:.3g} ± {100 * r.share_sigma:.2g} % of iq",
                 "a current-sensor gain error if the order were 2; cogging does not grow "
@@ -285,8 +293,8 @@ def train_faults(ident, train: Train) -> list[Fault]:
             gap = grown
             z[1] = max(z[1], Z_MIN * gap / GAP_MIN_M)
     if z[1] >= Z_MIN and gap >= GAP_MIN_M:
-        out.append(Fault(
-            "backlash_growth", gap, "growth_m", "m", min(z[1] / Z_MIN, gap / GAP_MIN_M),
+        out.append(_named(
+            "backlash_growth", gap, min(z[1] / Z_MIN, gap / GAP_MIN_M),
             f"table minus motor position jumps by {gap * 1e6:.3g} µm more than the healthy "
             "machine's when the force changes flank",
             "a loose coupling or a worn thrust bearing (any gap in the train)", extra))
@@ -297,8 +305,8 @@ def train_faults(ident, train: Train) -> list[Fault]:
     softer = -d[0]
     if k_nut > 0 and z[0] >= Z_MIN and softer * k_nut >= COMPLIANCE_MIN:
         loss = 1.0 - 1.0 / (1.0 + softer * k_nut)
-        out.append(Fault(
-            "preload_loss", 100.0 * loss, "loss_pct", "%",
+        out.append(_named(
+            "preload_loss", 100.0 * loss,
             min(z[0] / Z_MIN, softer * k_nut / COMPLIANCE_MIN),
             f"the train is {softer * 1e9:.3g} nm/N softer than the healthy machine's "
             f"(the nut declares {1e9 / k_nut:.3g} nm/N)",
@@ -306,8 +314,8 @@ def train_faults(ident, train: Train) -> list[Fault]:
             extra))
     ppm = d[2] * 1e6
     if z[2] >= Z_MIN and abs(ppm) >= DRIFT_MIN_PPM:
-        out.append(Fault(
-            "encoder_lost_counts", abs(ppm), "lost_ppm", "1e-6",
+        out.append(_named(
+            "encoder_lost_counts", abs(ppm),
             min(z[2] / Z_MIN, abs(ppm) / DRIFT_MIN_PPM),
             f"the motor encoder drifts against the scale by {ppm:+.3g} µm per metre of "
             "travel", "a lead error of the screw or a scale error (a drift proportional to "
@@ -338,7 +346,7 @@ def noise_faults(ident) -> list[Fault]:
     sigma = encoder_noise_counts(ident)
     if sigma is None or sigma < NOISE_MIN_COUNTS:
         return []
-    return [Fault("encoder_noise", sigma, "noise_counts", "1", sigma / NOISE_MIN_COUNTS,
+    return [_named("encoder_noise", sigma, sigma / NOISE_MIN_COUNTS,
                   f"the motor encoder scatters by {sigma:.3g} counts rms from sample to "
                   "sample, its quantisation alone about 0.4",
                   "interference on the encoder cable, a dirty disc, a loose read head", {})]

@@ -207,5 +207,5 @@ FAULTS: dict[str, Fault] = {f.name: f for f in (
           _add(L.P_I_GAIN_ERR, 0.01), 100.0),
     Fault("torque_ripple", TorqueRipple, "ripple_pct", _ripple, 100.0),
 )}
-#: the fault's sub-index of the CANopen object 2F00h (1 first, in this order)
-FAULT_NUMBERS = {name: i + 1 for i, name in enumerate(FAULTS)}
+#: the faults in order: sub-index k of the CANopen object 2F00h is ``BY_SUBINDEX[k - 1]``
+BY_SUBINDEX = tuple(FAULTS.values())

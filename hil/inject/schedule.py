@@ -115,29 +115,38 @@ def parse_flag(text: str) -> tuple[str, dict]:
     return fault.strip(), table
 
 
-def from_flags(flags: list[str] | tuple[str, ...], cfg: MachineConfig,
-               axis: str = "", names: tuple[str, ...] = ()) -> list[Injection]:
-    """The ``--inject`` flags for axis ``axis`` checked against ``cfg``; ConfigError naming
-    the flag.  On a machine of several axes (``names``) a flag names its axis first,
-    ``Y/FAULT:...``; flags of other axes are skipped."""
+def flag_target(text: str, names: tuple[str, ...] = ("",)) -> tuple[int, str, dict]:
+    """(axis index, fault, table) of an ``--inject`` flag on a machine of the axes
+    ``names`` (("",): one unnamed axis): ``AXIS/FAULT:...`` names the axis, which only a
+    machine of one axis may leave out; ConfigError saying what is wrong."""
+    target, slash, rest = text.partition("/")
+    if not slash:
+        if len(names) > 1:
+            raise ConfigError(f"--inject {text}: this machine has axes {', '.join(names)}; "
+                              f"name one: AXIS/FAULT:KEY=VALUE,...")
+        axis, rest = 0, text
+    elif target in names:
+        axis = names.index(target)
+    else:
+        raise ConfigError(f"--inject {text}: no axis {target!r} (axes: "
+                          f"{', '.join(names) if any(names) else 'one, unnamed'})")
+    try:
+        fault, table = parse_flag(rest)
+    except ValueError as e:
+        raise ConfigError(str(e)) from None
+    return axis, fault, table
+
+
+def from_flags(flags: list[str] | tuple[str, ...], cfg: MachineConfig, axis: int = 0,
+               names: tuple[str, ...] = ("",)) -> list[Injection]:
+    """The ``--inject`` flags of axis ``axis`` (of ``names``, :func:`flag_target`) checked
+    against its machine file ``cfg``; ConfigError naming the flag.  Flags of other axes are
+    skipped."""
     out = []
     for text in flags:
-        target, slash, rest = text.partition("/")
-        if not slash:
-            if len(names) > 1:
-                raise ConfigError(f"--inject {text}: this machine has axes {', '.join(names)}; "
-                                  f"name one: AXIS/FAULT:KEY=VALUE,...")
-            target, rest = axis, text
-        elif target not in names:
-            raise ConfigError(f"--inject {text}: no axis {target!r} (axes: "
-                              f"{', '.join(names) or 'one, unnamed'})")
-        if target != axis:
-            continue
-        try:
-            fault, table = parse_flag(rest)
-        except ValueError as e:
-            raise ConfigError(str(e)) from None
-        out.append(check(fault, table, cfg, f"--inject {text}", "--inject"))
+        target, fault, table = flag_target(text, names)
+        if target == axis:
+            out.append(check(fault, table, cfg, f"--inject {text}", "--inject"))
     return out
 
 
@@ -255,7 +264,5 @@ def injectors_for(plants, configs, names: tuple[str, ...],
     """One :class:`Injector` per axis (the plants' params, in axis order) with its machine
     file's ``[inject]`` tables and its ``--inject`` flags; ConfigError before anything
     runs."""
-    multi = names if len(names) > 1 else ()
-    return tuple(Injector(p.params, c, from_machine(c) + from_flags(flags, c, n if multi else "",
-                                                                    multi))
-                 for p, c, n in zip(plants, configs, names))
+    return tuple(Injector(p.params, c, from_machine(c) + from_flags(flags, c, i, names))
+                 for i, (p, c) in enumerate(zip(plants, configs)))

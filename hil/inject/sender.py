@@ -7,9 +7,8 @@ a typing error does not wait until the middle of the run."""
 
 from dataclasses import dataclass
 
-from hil.inject.schedule import check, parse_flag
+from hil.inject.schedule import check, flag_target
 from io_adapters.messages import InjectRequest
-from plant.errors import ConfigError
 from plant.machines import MachineSet
 
 
@@ -30,23 +29,9 @@ class InjectionSender:
     """
 
     def __init__(self, flags: tuple[str, ...], machine: MachineSet):
-        names = machine.names
         planned = []
         for text in flags:
-            axis_name, slash, rest = text.partition("/")
-            if not slash:
-                if machine.multi_axis:
-                    raise ConfigError(f"--inject {text}: name the axis, AXIS/FAULT:... "
-                                      f"(axes {', '.join(names)})")
-                axis_name, rest = names[0], text
-            if axis_name not in names:
-                raise ConfigError(f"--inject {text}: no axis {axis_name!r} (axes: "
-                                  f"{', '.join(names)})")
-            axis = names.index(axis_name)
-            try:
-                fault, table = parse_flag(rest)
-            except ValueError as e:
-                raise ConfigError(str(e)) from None
+            axis, fault, table = flag_target(text, machine.names)
             check(fault, table, machine.configs[axis], f"--inject {text}", "--inject")
             at_s = table.pop("at_s", 0.0)
             planned.append(Planned(at_s, InjectRequest(axis, fault, table)))
