@@ -190,6 +190,9 @@ class UdpEndpoint(MsgpackEndpoint):
         if not device:
             self._peer_origin = target  # a controller hears its device only
         self._from_ns = self._arrival_ns = 0  # kernel stamps (monotonic) or 0: none
+        # a datagram (n, origin, stamp) or receive error that the compiled tick read and
+        # handed back (io_adapters.udp_steady): the next receive returns it first
+        self._stash: tuple | OSError | None = None
         self._buf = bytearray(MAX_DATAGRAM)
         self._bufs = (self._buf,)
         self._view = memoryview(self._buf)
@@ -280,6 +283,8 @@ class UdpEndpoint(MsgpackEndpoint):
         return True
 
     def _recv_bytes(self, timeout_s: float | None) -> memoryview | None:
+        if self._stash is not None:
+            return self._unstash()
         sock = self._sock
         if timeout_s != 0.0 and not select.select((sock,), (), (), timeout_s)[0]:
             return None
@@ -289,6 +294,13 @@ class UdpEndpoint(MsgpackEndpoint):
             return None
         self._origin = addr
         self._from_ns = self._kernel_ns(ancillary)
+        return self._view[:n]
+
+    def _unstash(self) -> memoryview:
+        stash, self._stash = self._stash, None
+        if isinstance(stash, OSError):
+            raise stash
+        n, self._origin, self._from_ns = stash
         return self._view[:n]
 
     def _admissible(self, origin: tuple) -> bool:

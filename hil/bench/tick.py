@@ -50,6 +50,7 @@ import numpy as np
 from hil.cia402 import EnableSequencer, State
 from hil.drive import compiled as C
 from hil.rt.loop import Percentiles
+from hil.runtime import steady_tick as S
 from hil.runtime.emulator import Emulator, RuntimeConfig
 from io_adapters import open_endpoint
 from io_adapters.messages import MODE_CSP, axis_records, message_pair
@@ -70,6 +71,10 @@ START_S = 60.0
 SPIN_NS = 150_000
 _EXIT_NAMES = {C.EXIT_COMMAND: "command", C.EXIT_REFUSED: "refused", C.EXIT_CAUSE: "cause",
                C.EXIT_LOOP: "loop", C.EXIT_PLANT: "plant"}
+
+
+_DECLINED_NAMES = {S.DECLINED_FRAME: "frame", S.DECLINED_SEQUENCE: "sequence",
+                   S.DECLINED_CYCLE: "cycle"}
 
 
 def _controller(port: int, n_axes: int, conn) -> None:
@@ -117,7 +122,7 @@ def bench(config: Path, seconds: float, compiled: bool = True) -> dict:
     """Time ``seconds`` of ticks of ``config`` (see the module docstring); ``compiled``
     False: every drive cycle in Python (the reference: the tick before part 6)."""
     machine = load_machine_set(config)
-    rc = RuntimeConfig(config, "udp://127.0.0.1:0", realtime=False)
+    rc = RuntimeConfig(config, "udp://127.0.0.1:0", realtime=False, steady_tick=compiled)
     emulator = Emulator(rc, machine, log=lambda message: None)
     if not compiled:
         for d in emulator.drives.drives:
@@ -161,6 +166,11 @@ def bench(config: Path, seconds: float, compiled: bool = True) -> dict:
             "compiled_share_enabled": (float(taken[enabled].mean()) if enabled.any()
                                        else None),
             "exits": exits, "overruns": stats.overruns,
+            "steady_share": (emulator.steady.ticks / n_ticks if emulator.steady is not None
+                             else 0.0),
+            "steady_declined": ({_DECLINED_NAMES[c]: v
+                                 for c, v in emulator.steady.declined.items()}
+                                if emulator.steady is not None else {}),
             "setpoints_heard": emulator.setpoints_heard, "load_avg_1min": os.getloadavg()[0]}
 
 

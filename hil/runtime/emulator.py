@@ -129,12 +129,22 @@ from hil.runtime.record_writer import ESTIMATED_SHARE, RING_S, RecordingWriter
 from hil.runtime.recording import Recorder, row_bytes
 from hil.runtime.run_events import EventCollector
 from hil.runtime.run_folder import REPORT, RESERVE_BYTES, RunFolder, human_bytes
+from hil.runtime.steady_tick import SteadyTick
 from hil.runtime.streaming_loop import StreamingLoop
 from hil.runtime.sync import ShiftableClock, SyncLock
 from hil.runtime.watchdog import Watchdog
 from io_adapters import AdapterError, Endpoint, open_endpoint
 from io_adapters.can_url import IN_PROCESS_ONLY, in_process_only
-from io_adapters.messages import MODE_CSP, MODE_CST, axis_records, message_pair
+from io_adapters.messages import (
+    MODE_CSP,
+    MODE_CST,
+    Feedback,
+    FeedbackGroup,
+    Setpoint,
+    SetpointGroup,
+    axis_records,
+    message_pair,
+)
 from plant import Plant
 from plant import layout as L
 from plant.assemble import check_substep_count
@@ -189,7 +199,8 @@ class Emulator:
         self._warm_up()
         self.injectors = injectors_for(self.plants, m.configs, m.names, rc.inject)
         self.period_s = t.period_ns * 1e-9
-        self.sp, self.fb = message_pair(len(m.axes))
+        self._sp, self._fb = message_pair(len(m.axes))
+        self.steady: SteadyTick | None = None  # the compiled tick (open() builds it)
         self.watchdog = Watchdog(t.watchdog_cycles, t.period_ns * 1e-9, self._log)
         self.recorder = Recorder(max(2, math.ceil(RING_S * t.rate_hz)),
                                  tuple(c.machine.kind for c in m.configs),
@@ -213,6 +224,20 @@ class Emulator:
 
     def _log(self, message: str) -> None:
         self.log(f"hil run: {message}")
+
+    @property
+    def sp(self) -> Setpoint | SetpointGroup:
+        """The last setpoint applied (axis records in a group on several axes)."""
+        if self.steady is not None:
+            self.steady.settle()
+        return self._sp
+
+    @property
+    def fb(self) -> Feedback | FeedbackGroup:
+        """The last feedback, as the drives answered it."""
+        if self.steady is not None:
+            self.steady.settle()
+        return self._fb
 
     def _warm_up(self) -> None:
         """Warm the drives' paths on the real arrays (the kernels are compiled, or loaded
@@ -297,12 +322,19 @@ class Emulator:
             self.loop.clock = clock
             self.sync_lock = SyncLock(clock, self.timing.period_ns)
         self.url = served_url(url, getattr(self.endpoint, "address", None))
+        self.steady = SteadyTick.for_emulator(self) if self.rc.steady_tick else None
         return self.url
 
     def step(self, k: int) -> None:
         """Tick ``k``: newest setpoint, watchdog, drive cycles, feedback, record."""
         t_ns = time.monotonic_ns()
-        sp, fb, drives = self.sp, self.fb, self.drives
+        steady = self.steady
+        if steady is not None:
+            if steady.tick(k, t_ns):
+                self.setpoints_heard += 1
+                return
+            steady.settle()
+        sp, fb, drives = self._sp, self._fb, self.drives
         try:
             heard = self.endpoint.recv_setpoint(
                 sp, 0.0 if self.sync_lock is None else self.sync_lock.wait_s)
@@ -363,21 +395,22 @@ class Emulator:
         the last feedback sent to a controller still listening; returns the state reached
         (per axis letter on a machine of several axes), with the drive cycle it was
         reached in."""
-        self.sp.controlword = DISABLE_VOLTAGE.value
+        sp, fb = self.sp, self.fb
+        sp.controlword = DISABLE_VOLTAGE.value
         for _ in range(max(1, round(SAFE_STATE_MAX_S / self.plant.pwm_period))):
-            self.drives.cycle(self.sp, self.fb)
+            self.drives.cycle(sp, fb)
             if all(d.plant.inp[L.I_ENABLE] == 0.0 for d in self.drives.drives):
                 break
         if self.watchdog.answering:
             try:
-                self.endpoint.send_feedback(self.fb)
+                self.endpoint.send_feedback(fb)
             except AdapterError as e:
                 self._adapter_error("send", e)
         states = {name: {"state": d.sm.state.name, "statusword": f"0x{fb.statusword:04X}",
                          "plant_enable": float(d.plant.inp[L.I_ENABLE]),
                          "error_code": f"0x{d.fault:04X}", "cycle": d.tick - 1}
                   for name, d, fb in zip(self.machine.names, self.drives.drives,
-                                         axis_records(self.fb))}
+                                         axis_records(fb))}
         return states if self.machine.multi_axis else states[self.machine.names[0]]
 
     def run(self) -> dict:

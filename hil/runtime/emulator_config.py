@@ -42,6 +42,9 @@ class RuntimeConfig:
         start_cnc: the table's position at start in the CNC's unit (mm; deg on rotary
             tables), for every axis, or per axis letter (:func:`~hil.runtime.common.start_arg`).
         inject: ``--inject`` flags, ``[AXIS/]FAULT:KEY=VALUE,...`` (:mod:`hil.inject`).
+        steady_tick: run steady ticks in one compiled call where that applies
+            (:mod:`hil.runtime.steady_tick`); False: every tick in Python (the reference
+            the compiled tick is tested against).
     """
     machine_file: Path
     adapter_url: str
@@ -57,6 +60,7 @@ class RuntimeConfig:
     priority: int = 80
     start_cnc: float | dict = 0.0
     inject: tuple[str, ...] = ()
+    steady_tick: bool = True
 
     def __post_init__(self):
         positive = {"--duration (s)": self.duration_s, "--rate (Hz)": self.rate_hz}

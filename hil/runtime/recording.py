@@ -252,6 +252,16 @@ class Recorder:
             if path is not None:
                 path.set_row(self._row)
 
+    def steady_row(self) -> int:
+        """For a tick that writes its whole row in compiled code
+        (:mod:`hil.runtime.steady_tick`: the axis's part and the common part that
+        :meth:`record` writes; no drive's fault log grows in such a tick): its column, or
+        -1 when the ring is full (:meth:`end_tick` then counts the tick lost)."""
+        counters = self._counters
+        committed = counters[0]
+        self._skip = committed - counters[1] >= self.slots
+        return -1 if self._skip else committed % self.slots
+
     def record(self, k: int, heard: bool, tick_start_ns: int, sp, fb,
                drives: EmulatedDrive | DriveSet, refused: int = 0) -> None:
         """Tick ``k``'s row: the setpoint applied, the drives' answer and the plants'

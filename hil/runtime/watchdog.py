@@ -147,6 +147,13 @@ class Watchdog:
             self._link_events(conditions, axis, tick, seq)
             d.link_causes = causes
 
+    def heard_steady(self) -> None:
+        """:meth:`update` of a heard tick on a link without conditions or ``heard_for_s``
+        (UDP) while not tripped, where it changes nothing but the count: for the compiled
+        tick (:mod:`hil.runtime.steady_tick`)."""
+        self.silent = 0
+        self._covered = -1
+
     def _link_events(self, conditions: int, axis: int, tick: int, seq: int) -> None:
         before = self._conditions[axis]
         self._conditions[axis] = conditions & ~LINK_RESET  # a reset is an event, not a state

@@ -1,0 +1,191 @@
+"""The compiled steady-state codec (:mod:`io_adapters.codec_compiled`) against the Python
+codec it stands for (:mod:`io_adapters.codec`, msgpack's own packer and unpacker).
+
+A setpoint the compiled reader accepts must be one that :func:`io_adapters.codec.decode`
+accepts as a Setpoint with finite floats, with the same values to the bit; anything else
+(a mutated byte, a cut or lengthened message, another kind, non-finite or float32 values,
+integers out of range, in any of msgpack's integer encodings) must be declined with the
+caller's arrays untouched.  A feedback the compiled writer encodes must be the bytes
+``msgpack.packb`` gives for the same record.  hypothesis draws the values.
+"""
+
+import math
+import struct
+
+import msgpack
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from io_adapters import codec_compiled as K
+from io_adapters.base import FrameError
+from io_adapters.codec import decode, encode
+from io_adapters.messages import Feedback, Setpoint
+
+_FINITE = st.floats(allow_nan=False, allow_infinity=False)
+_U32 = st.integers(0, 2**32 - 1)
+_T_NS = st.integers(0, 2**63 - 1)
+
+
+def _setpoint(draw) -> Setpoint:
+    return Setpoint(seq=draw(_U32), controlword=draw(st.integers(0, 0xFFFF)),
+                    mode=draw(st.integers(-128, 127)),
+                    **{name: draw(_FINITE) for name in K.SP_FLOAT_FIELDS},
+                    t_ns=draw(_T_NS))
+
+
+def _compiled(payload: bytes):
+    """(accepted, ints, floats) of the compiled reader; the arrays start as sentinels."""
+    buf = np.zeros(256, np.uint8)
+    buf[:len(payload)] = np.frombuffer(payload, np.uint8)
+    ints, floats = np.full(K.N_SP_INTS, -7, np.int64), np.full(7, -7.0)
+    return K.decode_setpoint(buf, len(payload), ints, floats), ints, floats
+
+
+def _python(payload: bytes):
+    """The Python codec's values, or None where it does not take a finite Setpoint."""
+    try:
+        values = decode(payload, Setpoint)
+    except FrameError:
+        return None
+    if values[1] != 1 or not all(map(math.isfinite, values[7:14])):
+        return None
+    return values
+
+
+def _agree(payload: bytes, float64: bool = True) -> None:
+    """The compiled reader says what the Python codec says (``float64`` False: the
+    message carries a float32, which the compiled reader declines by design)."""
+    ok, ints, floats = _compiled(payload)
+    reference = _python(payload) if float64 else None
+    assert ok == (reference is not None), payload.hex()
+    if not ok:
+        assert (ints == -7).all() and (floats == -7.0).all()  # untouched
+        return
+    assert list(ints) == [reference[i] for i in (2, 3, 4, 5, 6, 14)]
+    assert np.array(reference[7:14]).tobytes() == floats.tobytes()
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.data())
+def test_reads_what_msgpack_writes(data):
+    sp = _setpoint(data.draw)
+    payload = encode(sp, data.draw(_U32), data.draw(_U32))
+    ok, ints, floats = _compiled(payload)
+    assert ok
+    assert list(ints) == [*_reference_header(payload), sp.seq, sp.controlword, sp.mode,
+                          sp.t_ns]
+    assert np.array([getattr(sp, n) for n in K.SP_FLOAT_FIELDS]).tobytes() == \
+        floats.tobytes()
+
+
+def _reference_header(payload: bytes) -> list[int]:
+    return list(msgpack.unpackb(payload)[2:4])
+
+
+def _int_any_width(draw, value: int) -> bytes:
+    """``value`` in any msgpack integer encoding wide enough for it."""
+    forms = []
+    if 0 <= value <= 0x7F:
+        forms.append(bytes([value]))
+    if -32 <= value < 0:
+        forms.append(bytes([value + 256]))
+    for code, fmt, lo, hi in ((0xCC, ">B", 0, 2**8 - 1), (0xCD, ">H", 0, 2**16 - 1),
+                              (0xCE, ">I", 0, 2**32 - 1), (0xCF, ">Q", 0, 2**64 - 1),
+                              (0xD0, ">b", -2**7, 2**7 - 1), (0xD1, ">h", -2**15, 2**15 - 1),
+                              (0xD2, ">i", -2**31, 2**31 - 1), (0xD3, ">q", -2**63, 2**63 - 1)):
+        if lo <= value <= hi:
+            forms.append(bytes([code]) + struct.pack(fmt, value))
+    return draw(st.sampled_from(forms))
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.data())
+def test_every_integer_encoding_and_range(data):
+    """Integers in any encoding, in or out of their field's range (and version, kind)."""
+    wide = st.integers(-2**63, 2**64 - 1)
+    ints = [data.draw(st.one_of(st.just(1), st.integers(-3, 6))),        # version
+            data.draw(st.one_of(st.just(1), st.integers(-3, 6))),        # kind
+            data.draw(st.one_of(_U32, wide)), data.draw(st.one_of(_U32, wide)),
+            data.draw(st.one_of(_U32, wide)),
+            data.draw(st.one_of(st.integers(0, 0xFFFF), wide)),
+            data.draw(st.one_of(st.integers(-128, 127), wide))]
+    floats = b"".join(b"\xcb" + struct.pack(">d", data.draw(_FINITE)) for _ in range(7))
+    t_ns = data.draw(st.one_of(_T_NS, wide))
+    payload = (b"\x9f" + b"".join(_int_any_width(data.draw, v) for v in ints) + floats
+               + _int_any_width(data.draw, t_ns))
+    _agree(payload)
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.data())
+def test_mutated_messages(data):
+    """One byte changed, a cut, bytes appended, a float as float32, NaN or infinity."""
+    sp = _setpoint(data.draw)
+    payload = bytearray(encode(sp, data.draw(_U32), data.draw(_U32)))
+    how = data.draw(st.sampled_from(["byte", "cut", "append", "float32", "nonfinite"]))
+    if how == "byte":
+        payload[data.draw(st.integers(0, len(payload) - 1))] = data.draw(st.integers(0, 255))
+    elif how == "cut":
+        payload = payload[:data.draw(st.integers(0, len(payload) - 1))]
+    elif how == "append":
+        payload += bytes(data.draw(st.lists(st.integers(0, 255), min_size=1, max_size=3)))
+    else:
+        values = list(msgpack.unpackb(bytes(payload)))
+        i = data.draw(st.integers(7, 13))
+        if how == "nonfinite":
+            values[i] = data.draw(st.sampled_from([math.nan, math.inf, -math.inf]))
+            payload = msgpack.packb(values)
+        else:
+            payload = (b"\x9f" + b"".join(map(msgpack.packb, values[:i])) + b"\xca"
+                       + struct.pack(">f", data.draw(_FINITE.filter(lambda v: abs(v) < 1e38)))
+                       + b"".join(map(msgpack.packb, values[i + 1:])))
+    _agree(bytes(payload), float64=how != "float32")
+
+
+@pytest.mark.parametrize("value", [0.0, -0.0, 5e-324, -5e-324, 2.2250738585072014e-308,
+                                   2.225073858507201e-308, 1.7976931348623157e308,
+                                   -1.7976931348623157e308, 1.0, -1.5, 0.1])
+def test_float_extremes(value):
+    """Signed zeros, the smallest subnormal, the largest subnormal, the smallest normal,
+    the largest double: both ways."""
+    sp = Setpoint(target_position_counts=value, uq_v=value)
+    payload = encode(sp, 1, 2)
+    ok, _, floats = _compiled(payload)
+    assert ok and np.array([value]).tobytes() == floats[0:1].tobytes()
+    fb = Feedback(encoder_counts=value, id_a=value)
+    _assert_encodes_as_msgpack(fb, 3, 4)
+
+
+def _assert_encodes_as_msgpack(fb: Feedback, session: int, frame: int) -> None:
+    ints = np.array([session, frame, fb.seq, fb.statusword, fb.fault, fb.sp_t_ns,
+                     fb.sp_rx_ns, fb.t_ns, fb.tick_ns], np.int64)
+    floats = np.array([getattr(fb, n) for n in K.FB_FLOAT_FIELDS])
+    out = np.zeros(128, np.uint8)
+    n = K.encode_feedback(out, ints, floats)
+    assert out[:n].tobytes() == encode(fb, session, frame)
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.data())
+def test_writes_what_msgpack_writes(data):
+    ints = st.one_of(st.integers(0, 300), _T_NS)
+    fb = Feedback(seq=data.draw(_U32), statusword=data.draw(st.integers(0, 0xFFFF)),
+                  fault=data.draw(st.integers(-2**31, 2**31 - 1)),
+                  **{name: data.draw(_FINITE) for name in K.FB_FLOAT_FIELDS},
+                  sp_t_ns=data.draw(ints), sp_rx_ns=data.draw(ints), t_ns=data.draw(ints),
+                  tick_ns=data.draw(ints))
+    _assert_encodes_as_msgpack(fb, data.draw(_U32), data.draw(_U32))
+
+
+def test_declines_what_it_cannot_write():
+    out = np.zeros(128, np.uint8)
+    good = np.array([1, 2, 3, 4, 5, 6, 7, 8, 9], np.int64)
+    assert K.encode_feedback(out, good, np.zeros(6)) > 0
+    for k, bad in ((0, 2**32), (3, 0x10000), (4, 2**31), (7, -1)):
+        ints = good.copy()
+        ints[k] = bad
+        assert K.encode_feedback(out, ints, np.zeros(6)) == -1
+    assert K.encode_feedback(out, good, np.array([0.0, math.nan, 0, 0, 0, 0])) == -1
+    assert K.encode_feedback(out, good, np.array([0.0, 0, 0, 0, 0, -math.inf])) == -1

@@ -1,0 +1,220 @@
+"""The tick compiled from the datagram to the answer (:mod:`hil.runtime.steady_tick`)
+against the emulator's Python tick, over real UDP sockets on 127.0.0.1, bit for bit.
+
+Two emulators of the Arrow 500 X, one with the compiled tick and one without
+(``RuntimeConfig.steady_tick``), each behind its own UDP device endpoint, get the same
+setpoints from two controller endpoints, tick by tick (:meth:`Emulator.step`, then the
+ring's ``end_tick``, as the loop calls them).  The scenarios of
+tests/test_tick_equivalence.py (enable, motion, a following-error fault, fault reset,
+CSV, CST, software limits, refused setpoints, quick stop, parameters written) run over
+the wire, with traffic that the compiled tick must hand to the Python path mixed in: a
+malformed datagram, a repeated and an older frame, a stranger's datagram, a HELLO, two
+setpoints queued in one tick, a value out of range, a silent tick.  Every tick the
+feedback each controller receives (all but the clock stamps and the session) and the
+plants' arrays must be the same bits; at the end every recording row (all but the clock
+stamps), the endpoints' counters, the watchdogs and the heard counts.  Each scenario also
+checks that the compiled tick ran most ticks and declined each kind of datagram it
+must, or the comparison would say nothing.
+"""
+
+import select
+import socket
+import time
+from dataclasses import dataclass, field, fields
+
+import numpy as np
+import pytest
+
+from hil.runtime import steady_tick as S
+from hil.runtime.emulator import Emulator, RuntimeConfig
+from io_adapters import open_endpoint
+from io_adapters.codec import encode, encode_hello
+from io_adapters.messages import Feedback, Setpoint, message_pair
+from plant.machines import load_machine_set
+from tests.conftest import CONFIGS
+from tests.test_tick_equivalence import Script
+
+ARROW_PATH = CONFIGS / "arrow500_x.toml"
+#: the feedback's clock stamps: taken on each machine, compared for consistency only
+STAMPS = ("t_ns", "sp_t_ns", "sp_rx_ns", "tick_ns", "rx_ns")
+#: the traffic of several datagrams in one tick
+MULTIPLE = ("garbage", "stranger", "hello", "queued")
+#: the recording's clock columns
+CLOCK_COLUMNS = ("tick_start_ns", "sp_t_ns", "sp_rx_ns", "fb_t_ns")
+
+
+@dataclass
+class WireTwin:
+    """An emulator behind a UDP device endpoint and the controller endpoint talking to
+    it; :meth:`tick` is what tests/test_tick_equivalence.py's Script calls.
+
+    ``extra`` maps a tick to the traffic sent before (or instead of) its setpoint."""
+    steady: bool
+    extra: dict
+    emulator: Emulator = field(init=False)
+
+    def __post_init__(self):
+        machine = load_machine_set(ARROW_PATH)
+        rc = RuntimeConfig(ARROW_PATH, "udp://127.0.0.1:0", realtime=False,
+                           steady_tick=self.steady)
+        self.emulator = Emulator(rc, machine, log=lambda message: None)
+        self.emulator.open()
+        self.drives = self.emulator.drives
+        port = self.emulator.endpoint.address[1]
+        self.ctl = open_endpoint(f"udp://127.0.0.1:{port}", "controller")
+        self.stranger = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.stranger.bind(("127.0.0.1", 0))
+        self.port = port
+        self.fb = Feedback()
+        # the handshake first: a controller repeats its HELLO every 100 ms of wall time
+        # until it is welcomed, which would make the twins' counts differ
+        select.select((self.emulator.endpoint.fileno(),), (), (), 1.0)
+        self.emulator.step(-1)
+        assert not self.ctl.recv_feedback(self.fb, 0.2) and self.ctl.welcomed
+        self.fb_t_ns: list[int] = []  # the stamps the controller received
+
+    def close(self) -> None:
+        self.ctl.close()
+        self.stranger.close()
+        self.emulator.endpoint.close()
+
+    def _raw(self, payload: bytes) -> None:
+        self.ctl._send_bytes(payload, None)
+
+    def tick(self, k: int, sp: Setpoint) -> None:
+        kind = self.extra.get(k)
+        last = self.ctl._frame - 1  # the frame number of the last setpoint sent
+        if kind in ("garbage", "garbage_only"):
+            self._raw(b"\x93\x01\x02")
+        elif kind == "stranger":
+            self.stranger.sendto(encode(sp, 7, 0), ("127.0.0.1", self.port))
+        elif kind == "hello":
+            self._raw(encode_hello(self.ctl.session, self.ctl._frame))
+        elif kind == "skip":  # a frame lost on the way
+            self.ctl._frame += 1
+        elif kind == "queued":
+            self.ctl.send_setpoint(Setpoint(seq=sp.seq, controlword=sp.controlword,
+                                            mode=sp.mode))
+        if kind in ("repeat", "older"):  # instead of this tick's setpoint
+            self._raw(encode(sp, self.ctl.session, last if kind == "repeat" else last - 1))
+        elif kind == "range":
+            bad = Setpoint(**{f.name: getattr(sp, f.name) for f in fields(Setpoint)})
+            bad.target_position_counts = 1e300
+            self.ctl.send_setpoint(bad)
+        elif kind not in ("silent", "garbage_only"):
+            self.ctl.send_setpoint(sp)
+        em = self.emulator
+        if kind != "silent":  # loopback delivers within the send, unless the kernel is
+            # busy and defers it: wait for the datagrams, as a tick on time would have
+            select.select((em.endpoint.fileno(),), (), (), 1.0)
+            if kind in MULTIPLE:
+                time.sleep(0.002)
+        em.step(k)
+        em.recorder.end_tick(k, 0, 0)
+        if em.watchdog.answering:
+            assert self.ctl.recv_feedback(self.fb, 1.0), f"tick {k}: no answer"
+            self.fb_t_ns.append(self.fb.t_ns)
+            for name in STAMPS:
+                setattr(self.fb, name, 0)
+
+
+def _compare(segments, extra: dict) -> WireTwin:
+    a, b = WireTwin(False, extra), WireTwin(True, extra)
+    try:
+        Script(segments, 1).run(a, b)
+        ea, eb = a.emulator, b.emulator
+        n = ea.recorder.committed
+        assert n == eb.recorder.committed
+        rows_a, rows_b = ea.recorder.columns(0, n), eb.recorder.columns(0, n)
+        for name, col in rows_a.items():
+            if name not in CLOCK_COLUMNS:
+                assert col.tobytes() == rows_b[name].tobytes(), name
+        # the compiled tick's row holds the stamp that went out on the wire
+        sent = rows_b["fb_t_ns"][rows_b["fb_t_ns"] != 0]
+        assert set(sent.tolist()) <= set(b.fb_t_ns)
+        assert (rows_b["sp_rx_ns"] <= rows_b["fb_t_ns"]).all()
+        assert ea.endpoint.stats == eb.endpoint.stats
+        assert eb.endpoint.stats.lost == sum(kind == "skip" for kind in extra.values())
+        assert ea.setpoints_heard == eb.setpoints_heard
+        assert (ea.watchdog.silent, ea.watchdog.tripped, ea.watchdog.events) == (
+            eb.watchdog.silent, eb.watchdog.tripped, eb.watchdog.events)
+        eb.steady.settle()
+        for name in (f.name for f in fields(Setpoint)):
+            if name not in STAMPS:
+                assert np.array(getattr(ea.sp, name)).tobytes() == np.array(
+                    getattr(eb.sp, name)).tobytes(), name
+        assert ea.steady is None
+    finally:
+        a.close()
+        b.close()
+    return b
+
+
+def test_scenario_with_every_kind_of_traffic():
+    segments = [
+        ("csp", 400, 0.0),          # enable, hold
+        ("csp", 1500, 40.0),        # CSP ramp (malformed, stranger, HELLO, repeats inside)
+        ("jump", 300, 3.0e7),       # the following-error fault
+        ("cw", 5, 0x0000),
+        ("cw", 5, 0x0080),          # fault reset
+        ("csp", 600, 0.0),          # re-enable
+        ("csv", 800, 3.0e5),        # CSV
+        ("cst", 300, 0.5),          # CST
+        ("csp", 400, -30.0),
+        ("limit", 0, 2.0e4),        # 607Dh max just ahead
+        ("csv", 800, 5.0e5),        # CSV runs into the software limit
+        ("csv", 400, -5.0e5),
+        ("nan", 20, 0.0),           # a refused setpoint (non-finite): fault
+        ("cw", 5, 0x0000),
+        ("cw", 5, 0x0080),
+        ("csp", 400, 10.0),
+        ("fe_window", 0, 0.5),      # 6065h written while running
+        ("csp", 400, 10.0),
+        ("cw", 200, 0x0002),        # quick stop
+        ("csp", 600, 5.0),          # enable again
+    ]
+    extra = {700: "garbage_only", 800: "stranger", 900: "hello", 1000: "repeat",
+             1100: "older", 1200: "queued", 1300: "silent", 1301: "silent",
+             1400: "range", 1450: "skip", 4500: "garbage", 5000: "queued", 5200: "repeat"}
+    b = _compare(segments, extra)
+    steady = b.emulator.steady
+    assert steady.ticks > 5000
+    declined = steady.declined
+    assert declined[S.DECLINED_FRAME] >= 1      # the garbage alone
+    assert declined[S.DECLINED_SEQUENCE] >= 2   # the repeat, the older frame
+    assert declined[S.DECLINED_CYCLE] >= 2      # the following error, the range
+
+
+@pytest.mark.parametrize("extra", [{}, {300 + 7 * i: kind for i, kind in enumerate(
+    ["garbage", "repeat", "silent", "queued", "older", "hello", "stranger", "range",
+     "garbage_only", "skip"] * 5)}])
+def test_steady_motion(extra):
+    """Plain CSP motion, quiet or with traffic every 7 ticks: the compiled tick runs every
+    tick of the quiet one from the drive's second steady cycle on, and declines each kind
+    of datagram it must in the other."""
+    b = _compare([("csp", 200, 0.0), ("csp", 2000, 30.0)], extra)
+    steady = b.emulator.steady
+    if not extra:
+        assert steady.ticks >= 2200 - 20
+        assert steady.declined == dict.fromkeys(steady.declined, 0)
+    else:
+        # each value out of range faults the drive, and re-enabling takes ticks
+        assert steady.ticks >= 1800
+        assert min(steady.declined.values()) >= 3
+
+
+def test_only_where_it_applies():
+    """Two axes, or a tick of several drive cycles: no compiled tick (the Python path)."""
+    two = CONFIGS / "machines" / "arrow500_xy.toml"
+    rc = RuntimeConfig(two, "udp://127.0.0.1:0", realtime=False)
+    em = Emulator(rc, load_machine_set(two), log=lambda message: None)
+    em.open()
+    assert em.steady is None
+    em.endpoint.close()
+    rc = RuntimeConfig(ARROW_PATH, "udp://127.0.0.1:0", realtime=False, rate_hz=4000.0)
+    em = Emulator(rc, load_machine_set(ARROW_PATH), log=lambda message: None)
+    em.open()
+    assert em.timing.cycles_per_tick == 2 and em.steady is None
+    em.endpoint.close()
+    sp, fb = message_pair(1)
+    assert isinstance(sp, Setpoint) and isinstance(fb, Feedback)
