@@ -14,15 +14,20 @@ layout's ranges, and returns -1 otherwise (the Python encoder then takes the rec
 Floats are taken apart and put together with ``frexp``/``ldexp``, exact for every finite
 double (subnormals included), so no scratch array or byte-order view is needed.
 
-Layouts (compile-time indices):
+Both versions are read and written: a single-axis link's version-1 records and a
+machine's version-2 groups of up to :data:`MAX_AXES` axes (a msgpack fixarray of axes).
+
+Layouts (compile-time indices), the same for both versions (a version-1 record is axis 0):
 
 * ``ints`` int64[:data:`N_SP_INTS`] of a decoded setpoint: ``I_SESSION``, ``I_FRAME``,
-  ``I_SEQ``, ``I_CONTROLWORD``, ``I_MODE``, ``I_T_NS`` (the header's session and frame,
-  then the record's integers);
-* ``floats`` float64[7]: the setpoint's floats in wire order (:data:`SP_FLOAT_FIELDS`);
+  ``I_SEQ``, ``I_T_NS``; ``axis_ints`` int64[axes, 2]: each axis's controlword and mode
+  (``A_CONTROLWORD``, ``A_MODE``); ``floats`` float64[axes, 7]: each axis's floats in
+  wire order (:data:`SP_FLOAT_FIELDS`);
 * ``fb_ints`` int64[:data:`N_FB_INTS`]: ``F_SESSION``, ``F_FRAME``, ``F_SEQ``,
-  ``F_STATUSWORD``, ``F_FAULT``, ``F_SP_T_NS``, ``F_SP_RX_NS``, ``F_T_NS``, ``F_TICK_NS``;
-  ``fb_floats`` float64[6]: :data:`FB_FLOAT_FIELDS`.
+  ``F_SP_T_NS``, ``F_SP_RX_NS``, ``F_T_NS``, ``F_TICK_NS``; ``fb_axis_ints``
+  int64[axes, 2]: each axis's statusword and fault (``A_STATUSWORD``, ``A_FAULT``);
+  ``fb_floats`` float64[axes, 6]: each axis's :data:`FB_FLOAT_FIELDS` (a group carries
+  axis 0's ``time_s`` once, in its common part).
 """
 
 import math
@@ -37,19 +42,26 @@ from io_adapters.codec import (
     T_NS_MAX,
     U32,
     VERSION,
+    VERSION_GROUP,
 )
 
 #: the setpoint's floats, in wire order
 SP_FLOAT_FIELDS = tuple(f.name for f in SETPOINT_FIELDS if f.type is float)
 #: the feedback's floats, in wire order
 FB_FLOAT_FIELDS = tuple(f.name for f in FEEDBACK_FIELDS if f.type is float)
-I_SESSION, I_FRAME, I_SEQ, I_CONTROLWORD, I_MODE, I_T_NS, N_SP_INTS = range(7)
-(F_SESSION, F_FRAME, F_SEQ, F_STATUSWORD, F_FAULT, F_SP_T_NS, F_SP_RX_NS, F_T_NS, F_TICK_NS,
- N_FB_INTS) = range(10)
+I_SESSION, I_FRAME, I_SEQ, I_T_NS, N_SP_INTS = range(5)
+A_CONTROLWORD, A_MODE = range(2)
+F_SESSION, F_FRAME, F_SEQ, F_SP_T_NS, F_SP_RX_NS, F_T_NS, F_TICK_NS, N_FB_INTS = range(8)
+A_STATUSWORD, A_FAULT = range(2)
+#: the most axes of a group read or written here (a msgpack fixarray of axes)
+MAX_AXES = 15
 #: a Setpoint's array: the header and its fields (15: a msgpack fixarray)
 _SP_LENGTH = 4 + len(SETPOINT_FIELDS)
 #: a Feedback's array (17: a msgpack array 16)
 _FB_LENGTH = 4 + len(FEEDBACK_FIELDS)
+#: a group's arrays: header, seq, t_ns, axes (7); header, seq, time_s, four stamps, axes
+#: (11); an axis's: controlword, mode, 7 floats (9); statusword, fault, 5 floats (7)
+_SPG_LENGTH, _FBG_LENGTH, _SPG_AXIS, _FBG_AXIS = 7, 11, 9, 7
 _FAULT_MIN, _FAULT_MAX = -2**31, 2**31 - 1
 _MANTISSA = 1 << 52
 _INT64_MAX = 2**63 - 1
@@ -118,48 +130,83 @@ def _read_finite(buf, pos, n):
     return True, (-v if bits < 0 else v), pos + 9
 
 
+@njit(cache=True)
+def _read_u32(buf, pos, n):
+    return _read_int(buf, pos, n, 0, U32)
+
+
+@njit(cache=True)
+def _read_axis(buf, pos, n):
+    """Check an axis's controlword, mode and 7 finite floats at ``pos``: (ok, next)."""
+    ok, _, pos = _read_int(buf, pos, n, 0, 0xFFFF)
+    if ok:
+        ok, _, pos = _read_int(buf, pos, n, -128, 127)
+    k = 0
+    while ok and k < 7:
+        ok, _, pos = _read_finite(buf, pos, n)
+        k += 1
+    return ok, pos
+
+
+@njit(cache=True)
+def _take_axis(buf, pos, n, axis_ints, floats, a):
+    """Write the axis checked by :func:`_read_axis` at ``pos``; the next position."""
+    _, axis_ints[a, A_CONTROLWORD], pos = _read_int(buf, pos, n, 0, 0xFFFF)
+    _, axis_ints[a, A_MODE], pos = _read_int(buf, pos, n, -128, 127)
+    for k in range(7):
+        _, floats[a, k], pos = _read_finite(buf, pos, n)
+    return pos
+
+
 @njit(cache=True, _nrt=False)
-def decode_setpoint(buf, n, ints, floats):
-    """Read the version-1 Setpoint in ``buf[:n]`` (uint8) into ``ints`` and ``floats``
-    (see the module docstring); False, with nothing written, unless it is one with
-    finite floats."""
-    if n < 1 or buf[0] != 0x90 + _SP_LENGTH:
+def decode_setpoint(buf, n, ints, axis_ints, floats):
+    """Read the setpoint in ``buf[:n]`` (uint8) into ``ints``, ``axis_ints`` and
+    ``floats`` (see the module docstring): a version-1 Setpoint when ``axis_ints`` has one
+    row, else a version-2 SetpointGroup of that many axes.  False, with nothing written,
+    unless it is one with every float finite."""
+    n_axes = axis_ints.shape[0]
+    group = n_axes > 1
+    if n < 1 or buf[0] != 0x90 + (_SPG_LENGTH if group else _SP_LENGTH):
         return False
-    ok, version, pos = _read_int(buf, 1, n, VERSION, VERSION)
+    ok, _, pos = _read_int(buf, 1, n, VERSION_GROUP if group else VERSION,
+                              VERSION_GROUP if group else VERSION)
+    if ok:
+        ok, _, pos = _read_int(buf, pos, n, KIND_SETPOINT, KIND_SETPOINT)
+    if ok:
+        ok, session, pos = _read_u32(buf, pos, n)
+    if ok:
+        ok, frame, pos = _read_u32(buf, pos, n)
+    if ok:
+        ok, seq, pos = _read_u32(buf, pos, n)
     if not ok:
         return False
-    ok, kind, pos = _read_int(buf, pos, n, KIND_SETPOINT, KIND_SETPOINT)
-    if not ok:
-        return False
-    ok, session, pos = _read_int(buf, pos, n, 0, U32)
-    if not ok:
-        return False
-    ok, frame, pos = _read_int(buf, pos, n, 0, U32)
-    if not ok:
-        return False
-    ok, seq, pos = _read_int(buf, pos, n, 0, U32)
-    if not ok:
-        return False
-    ok, controlword, pos = _read_int(buf, pos, n, 0, 0xFFFF)
-    if not ok:
-        return False
-    ok, mode, pos = _read_int(buf, pos, n, -128, 127)
-    if not ok:
-        return False
-    start = pos
-    for _ in range(7):
-        ok, v, pos = _read_finite(buf, pos, n)
+    if group:
+        ok, t_ns, pos = _read_int(buf, pos, n, 0, T_NS_MAX)
+        if not ok or pos >= n or buf[pos] != 0x90 + n_axes:
+            return False
+        pos += 1
+        start = pos
+        for _ in range(n_axes):
+            if pos >= n or buf[pos] != 0x90 + _SPG_AXIS:
+                return False
+            ok, pos = _read_axis(buf, pos + 1, n)
+            if not ok:
+                return False
+        if pos != n:
+            return False
+        pos = start
+        for a in range(n_axes):
+            pos = _take_axis(buf, pos + 1, n, axis_ints, floats, a)
+    else:
+        start = pos
+        ok, pos = _read_axis(buf, pos, n)
         if not ok:
             return False
-    ok, t_ns, pos = _read_int(buf, pos, n, 0, T_NS_MAX)
-    if not ok or pos != n:
-        return False
-    pos = start
-    for k in range(7):
-        ok, v, pos = _read_finite(buf, pos, n)
-        floats[k] = v
-    ints[I_SESSION], ints[I_FRAME], ints[I_SEQ] = session, frame, seq
-    ints[I_CONTROLWORD], ints[I_MODE], ints[I_T_NS] = controlword, mode, t_ns
+        ok, t_ns, pos = _read_int(buf, pos, n, 0, T_NS_MAX)
+        if not ok or pos != n:
+            return False
+        _take_axis(buf, start, n, axis_ints, floats, 0)
+    ints[I_SESSION], ints[I_FRAME], ints[I_SEQ], ints[I_T_NS] = session, frame, seq, t_ns
     return True
 
 
@@ -218,28 +265,53 @@ def _write_float(out, pos, x):
 
 
 @njit(cache=True, _nrt=False)
-def encode_feedback(out, fb_ints, fb_floats):
-    """The version-1 Feedback of ``fb_ints`` and ``fb_floats`` into ``out`` (uint8, at
-    least 120 bytes); its length, or -1 (nothing meaningful written) when a float is not
+def encode_feedback(out, fb_ints, fb_axis_ints, fb_floats):
+    """The feedback of ``fb_ints``, ``fb_axis_ints`` and ``fb_floats`` into ``out`` (uint8,
+    at least 64 + 54 bytes per axis): a version-1 Feedback for one row, else a version-2
+    FeedbackGroup.  Its length, or -1 (nothing meaningful written) when a float is not
     finite or an integer is outside its field's range."""
-    for k in range(6):
-        x = fb_floats[k]
-        if x != x or abs(x) == math.inf:
+    n_axes = fb_axis_ints.shape[0]
+    for a in range(n_axes):
+        for k in range(6):
+            x = fb_floats[a, k]
+            if x != x or abs(x) == math.inf:
+                return -1
+        if not (0 <= fb_axis_ints[a, A_STATUSWORD] <= 0xFFFF
+                and _FAULT_MIN <= fb_axis_ints[a, A_FAULT] <= _FAULT_MAX):
             return -1
     if not (0 <= fb_ints[F_SESSION] <= U32 and 0 <= fb_ints[F_FRAME] <= U32
-            and 0 <= fb_ints[F_SEQ] <= U32 and 0 <= fb_ints[F_STATUSWORD] <= 0xFFFF
-            and _FAULT_MIN <= fb_ints[F_FAULT] <= _FAULT_MAX):
+            and 0 <= fb_ints[F_SEQ] <= U32):
         return -1
     for k in range(F_SP_T_NS, N_FB_INTS):
         if fb_ints[k] < 0:
             return -1
+    if n_axes > 1:
+        out[0] = 0x90 + _FBG_LENGTH
+        pos = _write_int(out, 1, VERSION_GROUP)
+        pos = _write_int(out, pos, KIND_FEEDBACK)
+        for k in range(F_SESSION, F_SP_T_NS):
+            pos = _write_int(out, pos, fb_ints[k])
+        pos = _write_float(out, pos, fb_floats[0, 0])
+        for k in range(F_SP_T_NS, N_FB_INTS):
+            pos = _write_int(out, pos, fb_ints[k])
+        out[pos] = 0x90 + n_axes
+        pos += 1
+        for a in range(n_axes):
+            out[pos] = 0x90 + _FBG_AXIS
+            pos = _write_int(out, pos + 1, fb_axis_ints[a, A_STATUSWORD])
+            pos = _write_int(out, pos, fb_axis_ints[a, A_FAULT])
+            for k in range(1, 6):
+                pos = _write_float(out, pos, fb_floats[a, k])
+        return pos
     out[0], out[1], out[2] = 0xDC, 0, _FB_LENGTH
     pos = _write_int(out, 3, VERSION)
     pos = _write_int(out, pos, KIND_FEEDBACK)
     for k in range(F_SESSION, F_SP_T_NS):
         pos = _write_int(out, pos, fb_ints[k])
+    pos = _write_int(out, pos, fb_axis_ints[0, A_STATUSWORD])
+    pos = _write_int(out, pos, fb_axis_ints[0, A_FAULT])
     for k in range(6):
-        pos = _write_float(out, pos, fb_floats[k])
+        pos = _write_float(out, pos, fb_floats[0, k])
     for k in range(F_SP_T_NS, N_FB_INTS):
         pos = _write_int(out, pos, fb_ints[k])
     return pos

@@ -4,16 +4,16 @@
 keeps them.
 
 :meth:`SteadyLink.receive` reads one datagram into the endpoint's own receive buffer and
-offers it to the compiled tick only in the common case: a single-axis device whose peer
-is pinned, the datagram from that peer's address, nothing queued behind it.  Anything
-else -- and any datagram the compiled tick then declines (:meth:`SteadyLink.decline`) --
-is handed back to the endpoint, whose next receive returns it first, so the Python path
-counts, judges and takes it exactly as if the compiled tick had never looked.  A receive
-error is handed back the same way.  After a tick that took it, :meth:`SteadyLink.commit`
-counts the datagram as :meth:`~io_adapters.msgpack_endpoint.MsgpackEndpoint._accept`
-would (frames, bytes, lost, received; the peer's frame and last-heard time), remembers
-the setpoint's stamps for the Python path's answers, and sends the answer the compiled
-tick encoded in :attr:`SteadyLink.out`, counted as ``send_feedback`` counts it.
+offers it to the compiled tick only in the common case: a device whose peer is pinned,
+the datagram from that peer's address, nothing queued behind it.  Anything else -- and
+any datagram the compiled tick then declines (:meth:`SteadyLink.decline`) -- is handed
+back to the endpoint, whose next receive returns it first, so the Python path counts,
+judges and takes it exactly as if the compiled tick had never looked.  A receive error is
+handed back the same way.  After a tick that took it, :meth:`SteadyLink.commit` counts
+the datagram as :meth:`~io_adapters.msgpack_endpoint.MsgpackEndpoint._accept` would
+(frames, bytes, lost, received; the peer's frame and last-heard time), remembers the
+setpoint's stamps for the Python path's answers, and sends the answer the compiled tick
+encoded in :attr:`SteadyLink.out`, counted as ``send_feedback`` counts it.
 """
 
 import select
@@ -28,43 +28,52 @@ from io_adapters.codec_compiled import (
     F_SESSION,
     I_FRAME,
     I_T_NS,
+    MAX_AXES,
     N_FB_INTS,
     N_SP_INTS,
 )
 from io_adapters.udp import UdpEndpoint
 
 #: ``link``: the pinned peer's session and last frame number, the datagram's arrival
-#: (monotonic ns: the kernel's stamp, else when it was read)
-L_PEER_SESSION, L_PEER_FRAME, L_RX_NS, N_LINK = range(4)
-#: room for one encoded Feedback (at most 120 bytes)
-OUT_BYTES = 128
+#: (monotonic ns: the kernel's stamp, else when it was read), then two words of room for
+#: the compiled tick's clock reading (a struct timespec)
+L_PEER_SESSION, L_PEER_FRAME, L_RX_NS, L_CLOCK = range(4)
+N_LINK = L_CLOCK + 2
+#: room for one encoded Feedback or FeedbackGroup (at most 120 bytes; 64 + 54 per axis)
+OUT_BYTES = 1024
 
 
 class SteadyLink:
-    """The compiled tick's face of the UDP device endpoint ``endpoint`` (see the module
-    docstring).
+    """The compiled tick's face of the UDP device endpoint ``endpoint`` of a machine of
+    ``n_axes`` axes (see the module docstring).
 
     Attributes:
         buf: uint8 view of the endpoint's receive buffer (the datagram :meth:`receive`
             read, ``receive()`` bytes long).
-        sp_ints, sp_floats: the compiled reader's output arrays
+        sp_ints, axis_ints, sp_floats: the compiled reader's output arrays
             (:func:`io_adapters.codec_compiled.decode_setpoint`).
         link: int64[:data:`N_LINK`], written by :meth:`receive`.
-        fb_ints: the answer's integers (:mod:`io_adapters.codec_compiled` layout); its
-            session and frame are written by :meth:`receive`, the rest by the compiled
-            tick.
+        fb_ints, fb_axis_ints, fb_floats: the answer's values
+            (:mod:`io_adapters.codec_compiled` layout); its session and frame are
+            written by :meth:`receive`, the rest by the compiled tick and its caller.
         out: uint8[:data:`OUT_BYTES`], the encoded answer.
     """
 
-    def __init__(self, endpoint: UdpEndpoint):
+    def __init__(self, endpoint: UdpEndpoint, n_axes: int = 1):
         if not isinstance(endpoint, UdpEndpoint) or endpoint.role is not Role.DEVICE:
             raise AdapterConfigError(f"{endpoint!r}: a compiled tick needs a UDP device")
+        if not 1 <= n_axes <= MAX_AXES:
+            raise AdapterConfigError(f"a compiled tick takes 1 to {MAX_AXES} axes, not "
+                                     f"{n_axes}")
         self.endpoint = endpoint
         self.buf = np.frombuffer(endpoint._buf, np.uint8)
         self.sp_ints = np.zeros(N_SP_INTS, np.int64)
-        self.sp_floats = np.zeros(7)
+        self.axis_ints = np.zeros((n_axes, 2), np.int64)
+        self.sp_floats = np.zeros((n_axes, 7))
         self.link = np.zeros(N_LINK, np.int64)
         self.fb_ints = np.zeros(N_FB_INTS, np.int64)
+        self.fb_axis_ints = np.zeros((n_axes, 2), np.int64)
+        self.fb_floats = np.zeros((n_axes, 6))
         self.out = np.zeros(OUT_BYTES, np.uint8)
         self._out_view = memoryview(self.out)
         self._poll = select.poll()

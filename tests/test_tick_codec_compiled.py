@@ -1,12 +1,13 @@
 """The compiled steady-state codec (:mod:`io_adapters.codec_compiled`) against the Python
 codec it stands for (:mod:`io_adapters.codec`, msgpack's own packer and unpacker).
 
-A setpoint the compiled reader accepts must be one that :func:`io_adapters.codec.decode`
-accepts as a Setpoint with finite floats, with the same values to the bit; anything else
-(a mutated byte, a cut or lengthened message, another kind, non-finite or float32 values,
-integers out of range, in any of msgpack's integer encodings) must be declined with the
-caller's arrays untouched.  A feedback the compiled writer encodes must be the bytes
-``msgpack.packb`` gives for the same record.  hypothesis draws the values.
+A setpoint (a version-1 Setpoint, or a version-2 group) the compiled reader accepts must
+be one that :func:`io_adapters.codec.decode` accepts with finite floats, with the same
+values to the bit; anything else (a mutated byte, a cut or lengthened message, another
+kind, non-finite or float32 values, integers out of range, in any of msgpack's integer
+encodings) must be declined with the caller's arrays untouched.  A feedback (or group)
+the compiled writer encodes must be the bytes ``msgpack.packb`` gives for the same
+record. hypothesis draws the values.
 """
 
 import math
@@ -21,7 +22,14 @@ from hypothesis import strategies as st
 from io_adapters import codec_compiled as K
 from io_adapters.base import FrameError
 from io_adapters.codec import decode, encode
-from io_adapters.messages import Feedback, Setpoint
+from io_adapters.messages import (
+    Feedback,
+    FeedbackGroup,
+    Setpoint,
+    SetpointGroup,
+    axis_records,
+    message_pair,
+)
 
 _FINITE = st.floats(allow_nan=False, allow_infinity=False)
 _U32 = st.integers(0, 2**32 - 1)
@@ -35,12 +43,15 @@ def _setpoint(draw) -> Setpoint:
                     t_ns=draw(_T_NS))
 
 
-def _compiled(payload: bytes):
-    """(accepted, ints, floats) of the compiled reader; the arrays start as sentinels."""
-    buf = np.zeros(256, np.uint8)
+def _compiled(payload: bytes, n_axes: int = 1):
+    """(accepted, ints, axis ints, floats) of the compiled reader; the arrays start as
+    sentinels."""
+    buf = np.zeros(2048, np.uint8)
     buf[:len(payload)] = np.frombuffer(payload, np.uint8)
-    ints, floats = np.full(K.N_SP_INTS, -7, np.int64), np.full(7, -7.0)
-    return K.decode_setpoint(buf, len(payload), ints, floats), ints, floats
+    ints = np.full(K.N_SP_INTS, -7, np.int64)
+    axis_ints, floats = np.full((n_axes, 2), -7, np.int64), np.full((n_axes, 7), -7.0)
+    ok = K.decode_setpoint(buf, len(payload), ints, axis_ints, floats)
+    return ok, ints, axis_ints, floats
 
 
 def _python(payload: bytes):
@@ -57,13 +68,14 @@ def _python(payload: bytes):
 def _agree(payload: bytes, float64: bool = True) -> None:
     """The compiled reader says what the Python codec says (``float64`` False: the
     message carries a float32, which the compiled reader declines by design)."""
-    ok, ints, floats = _compiled(payload)
+    ok, ints, axis_ints, floats = _compiled(payload)
     reference = _python(payload) if float64 else None
     assert ok == (reference is not None), payload.hex()
     if not ok:
-        assert (ints == -7).all() and (floats == -7.0).all()  # untouched
+        assert (ints == -7).all() and (axis_ints == -7).all() and (floats == -7.0).all()
         return
-    assert list(ints) == [reference[i] for i in (2, 3, 4, 5, 6, 14)]
+    assert list(ints) == [reference[i] for i in (2, 3, 4, 14)]
+    assert list(axis_ints[0]) == [reference[5], reference[6]]
     assert np.array(reference[7:14]).tobytes() == floats.tobytes()
 
 
@@ -72,10 +84,10 @@ def _agree(payload: bytes, float64: bool = True) -> None:
 def test_reads_what_msgpack_writes(data):
     sp = _setpoint(data.draw)
     payload = encode(sp, data.draw(_U32), data.draw(_U32))
-    ok, ints, floats = _compiled(payload)
+    ok, ints, axis_ints, floats = _compiled(payload)
     assert ok
-    assert list(ints) == [*_reference_header(payload), sp.seq, sp.controlword, sp.mode,
-                          sp.t_ns]
+    assert list(ints) == [*_reference_header(payload), sp.seq, sp.t_ns]
+    assert list(axis_ints[0]) == [sp.controlword, sp.mode]
     assert np.array([getattr(sp, n) for n in K.SP_FLOAT_FIELDS]).tobytes() == \
         floats.tobytes()
 
@@ -152,18 +164,23 @@ def test_float_extremes(value):
     the largest double: both ways."""
     sp = Setpoint(target_position_counts=value, uq_v=value)
     payload = encode(sp, 1, 2)
-    ok, _, floats = _compiled(payload)
-    assert ok and np.array([value]).tobytes() == floats[0:1].tobytes()
+    ok, _, _, floats = _compiled(payload)
+    assert ok and np.array([value]).tobytes() == floats[0, 0:1].tobytes()
     fb = Feedback(encoder_counts=value, id_a=value)
     _assert_encodes_as_msgpack(fb, 3, 4)
 
 
-def _assert_encodes_as_msgpack(fb: Feedback, session: int, frame: int) -> None:
-    ints = np.array([session, frame, fb.seq, fb.statusword, fb.fault, fb.sp_t_ns,
-                     fb.sp_rx_ns, fb.t_ns, fb.tick_ns], np.int64)
-    floats = np.array([getattr(fb, n) for n in K.FB_FLOAT_FIELDS])
-    out = np.zeros(128, np.uint8)
-    n = K.encode_feedback(out, ints, floats)
+def _assert_encodes_as_msgpack(fb, session: int, frame: int) -> None:
+    """``fb`` a Feedback or a FeedbackGroup."""
+    ints = np.array([session, frame, fb.seq, fb.sp_t_ns, fb.sp_rx_ns, fb.t_ns, fb.tick_ns],
+                    np.int64)
+    axes = axis_records(fb)
+    axis_ints = np.array([[f.statusword, f.fault] for f in axes], np.int64)
+    floats = np.array([[getattr(f, n) for n in K.FB_FLOAT_FIELDS] for f in axes])
+    if isinstance(fb, FeedbackGroup):
+        floats[0, 0] = fb.time_s  # a group carries one time_s
+    out = np.zeros(1024, np.uint8)
+    n = K.encode_feedback(out, ints, axis_ints, floats)
     assert out[:n].tobytes() == encode(fb, session, frame)
 
 
@@ -179,13 +196,70 @@ def test_writes_what_msgpack_writes(data):
     _assert_encodes_as_msgpack(fb, data.draw(_U32), data.draw(_U32))
 
 
-def test_declines_what_it_cannot_write():
-    out = np.zeros(128, np.uint8)
-    good = np.array([1, 2, 3, 4, 5, 6, 7, 8, 9], np.int64)
-    assert K.encode_feedback(out, good, np.zeros(6)) > 0
-    for k, bad in ((0, 2**32), (3, 0x10000), (4, 2**31), (7, -1)):
+@pytest.mark.parametrize("n_axes", [1, 2])
+def test_declines_what_it_cannot_write(n_axes):
+    out = np.zeros(1024, np.uint8)
+    good = np.array([1, 2, 3, 4, 5, 6, 7], np.int64)
+    axis_ints = np.array([[0x1237, 0]] * n_axes, np.int64)
+    zeros = np.zeros((n_axes, 6))
+    assert K.encode_feedback(out, good, axis_ints, zeros) > 0
+    for k, bad in ((0, 2**32), (2, -1), (5, -1)):
         ints = good.copy()
         ints[k] = bad
-        assert K.encode_feedback(out, ints, np.zeros(6)) == -1
-    assert K.encode_feedback(out, good, np.array([0.0, math.nan, 0, 0, 0, 0])) == -1
-    assert K.encode_feedback(out, good, np.array([0.0, 0, 0, 0, 0, -math.inf])) == -1
+        assert K.encode_feedback(out, ints, axis_ints, zeros) == -1
+    for k, bad in ((0, 0x10000), (1, 2**31)):
+        wrong = axis_ints.copy()
+        wrong[-1, k] = bad
+        assert K.encode_feedback(out, good, wrong, zeros) == -1
+    for value in (math.nan, -math.inf):
+        floats = zeros.copy()
+        floats[-1, 3] = value
+        assert K.encode_feedback(out, good, axis_ints, floats) == -1
+
+
+def _group_setpoint(draw, n_axes: int) -> SetpointGroup:
+    sp, _ = message_pair(n_axes)
+    sp.seq, sp.t_ns = draw(_U32), draw(_T_NS)
+    for s in sp.axes:
+        one = _setpoint(draw)
+        for name in ("controlword", "mode", *K.SP_FLOAT_FIELDS):
+            setattr(s, name, getattr(one, name))
+    return sp
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.data(), st.integers(2, 4))
+def test_groups_both_ways(data, n_axes):
+    """Version 2: a group msgpack writes is read with the same values; a mutated one is
+    read only when the Python codec takes it; a group of feedback is written as msgpack
+    writes it."""
+    sp = _group_setpoint(data.draw, n_axes)
+    session, frame = data.draw(_U32), data.draw(_U32)
+    payload = bytearray(encode(sp, session, frame))
+    ok, ints, axis_ints, floats = _compiled(bytes(payload), n_axes)
+    assert ok and list(ints) == [session, frame, sp.seq, sp.t_ns]
+    assert axis_ints.tolist() == [[s.controlword, s.mode] for s in sp.axes]
+    assert np.array([[getattr(s, n) for n in K.SP_FLOAT_FIELDS] for s in sp.axes]
+                    ).tobytes() == floats.tobytes()
+    assert not _compiled(bytes(payload), n_axes + 1)[0]  # another number of axes
+    payload[data.draw(st.integers(0, len(payload) - 1))] = data.draw(st.integers(0, 255))
+    try:
+        values = decode(bytes(payload), SetpointGroup, n_axes)
+        taken = values[1] == 1 and all(math.isfinite(v) for a in values[-1] for v in a[2:])
+    except FrameError:
+        taken = False
+    ok, ints, axis_ints, floats = _compiled(bytes(payload), n_axes)
+    assert ok == taken
+    if ok:
+        assert list(ints) == [values[2], values[3], values[4], values[5]]
+        assert axis_ints.tolist() == [list(a[:2]) for a in values[-1]]
+        assert np.array([a[2:] for a in values[-1]]).tobytes() == floats.tobytes()
+    _, fb = message_pair(n_axes)
+    fb.seq, fb.time_s = data.draw(_U32), data.draw(_FINITE)
+    fb.sp_t_ns, fb.sp_rx_ns, fb.t_ns, fb.tick_ns = (data.draw(_T_NS) for _ in range(4))
+    for f in fb.axes:
+        f.statusword, f.fault = data.draw(st.integers(0, 0xFFFF)), data.draw(
+            st.integers(-2**31, 2**31 - 1))
+        for name in K.FB_FLOAT_FIELDS[1:]:
+            setattr(f, name, data.draw(_FINITE))
+    _assert_encodes_as_msgpack(fb, session, frame)

@@ -7,20 +7,21 @@ setpoints from two controller endpoints, tick by tick (:meth:`Emulator.step`, th
 ring's ``end_tick``, as the loop calls them).  The scenarios of
 tests/test_tick_equivalence.py (enable, motion, a following-error fault, fault reset,
 CSV, CST, software limits, refused setpoints, quick stop, parameters written) run over
-the wire, with traffic that the compiled tick must hand to the Python path mixed in: a
-malformed datagram, a repeated and an older frame, a stranger's datagram, a HELLO, two
-setpoints queued in one tick, a value out of range, a silent tick.  Every tick the
-feedback each controller receives (all but the clock stamps and the session) and the
-plants' arrays must be the same bits; at the end every recording row (all but the clock
-stamps), the endpoints' counters, the watchdogs and the heard counts.  Each scenario also
-checks that the compiled tick ran most ticks and declined each kind of datagram it
-must, or the comparison would say nothing.
+the wire, on one axis and on a machine of two, with traffic that the compiled tick must
+hand to the Python path mixed in: a malformed datagram, a repeated and an older frame, a
+stranger's datagram, a HELLO, two setpoints queued in one tick, a value out of range, a
+silent tick.  Every tick the feedback each controller receives (all but the clock stamps
+and the session) and the plants' arrays must be the same bits; at the end every
+recording row (all but the clock stamps), the endpoints' counters, the watchdogs and the
+heard counts.  Each scenario also checks that the compiled tick ran most ticks and
+declined each kind of datagram it must, or the comparison would say nothing.
 """
 
 import select
 import socket
 import time
 from dataclasses import dataclass, field, fields
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -29,12 +30,13 @@ from hil.runtime import steady_tick as S
 from hil.runtime.emulator import Emulator, RuntimeConfig
 from io_adapters import open_endpoint
 from io_adapters.codec import encode, encode_hello
-from io_adapters.messages import Feedback, Setpoint, message_pair
+from io_adapters.messages import Setpoint, SetpointGroup, axis_records, message_pair
 from plant.machines import load_machine_set
 from tests.conftest import CONFIGS
 from tests.test_tick_equivalence import Script
 
 ARROW_PATH = CONFIGS / "arrow500_x.toml"
+XY_PATH = CONFIGS / "machines" / "arrow500_xy.toml"
 #: the feedback's clock stamps: taken on each machine, compared for consistency only
 STAMPS = ("t_ns", "sp_t_ns", "sp_rx_ns", "tick_ns", "rx_ns")
 #: the traffic of several datagrams in one tick
@@ -45,17 +47,18 @@ CLOCK_COLUMNS = ("tick_start_ns", "sp_t_ns", "sp_rx_ns", "fb_t_ns")
 
 @dataclass
 class WireTwin:
-    """An emulator behind a UDP device endpoint and the controller endpoint talking to
-    it; :meth:`tick` is what tests/test_tick_equivalence.py's Script calls.
+    """An emulator of ``config`` behind a UDP device endpoint and the controller endpoint
+    talking to it; :meth:`tick` is what tests/test_tick_equivalence.py's Script calls.
 
     ``extra`` maps a tick to the traffic sent before (or instead of) its setpoint."""
     steady: bool
     extra: dict
+    config: Path = ARROW_PATH
     emulator: Emulator = field(init=False)
 
     def __post_init__(self):
-        machine = load_machine_set(ARROW_PATH)
-        rc = RuntimeConfig(ARROW_PATH, "udp://127.0.0.1:0", realtime=False,
+        machine = load_machine_set(self.config)
+        rc = RuntimeConfig(self.config, "udp://127.0.0.1:0", realtime=False,
                            steady_tick=self.steady)
         self.emulator = Emulator(rc, machine, log=lambda message: None)
         self.emulator.open()
@@ -65,7 +68,7 @@ class WireTwin:
         self.stranger = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self.stranger.bind(("127.0.0.1", 0))
         self.port = port
-        self.fb = Feedback()
+        self.fb = message_pair(len(machine.axes))[1]
         # the handshake first: a controller repeats its HELLO every 100 ms of wall time
         # until it is welcomed, which would make the twins' counts differ
         select.select((self.emulator.endpoint.fileno(),), (), (), 1.0)
@@ -81,7 +84,7 @@ class WireTwin:
     def _raw(self, payload: bytes) -> None:
         self.ctl._send_bytes(payload, None)
 
-    def tick(self, k: int, sp: Setpoint) -> None:
+    def tick(self, k: int, sp: Setpoint | SetpointGroup) -> None:
         kind = self.extra.get(k)
         last = self.ctl._frame - 1  # the frame number of the last setpoint sent
         if kind in ("garbage", "garbage_only"):
@@ -92,15 +95,15 @@ class WireTwin:
             self._raw(encode_hello(self.ctl.session, self.ctl._frame))
         elif kind == "skip":  # a frame lost on the way
             self.ctl._frame += 1
-        elif kind == "queued":
-            self.ctl.send_setpoint(Setpoint(seq=sp.seq, controlword=sp.controlword,
-                                            mode=sp.mode))
+        elif kind == "queued":  # the same setpoint twice: the newer frame is taken
+            self.ctl.send_setpoint(sp)
         if kind in ("repeat", "older"):  # instead of this tick's setpoint
             self._raw(encode(sp, self.ctl.session, last if kind == "repeat" else last - 1))
-        elif kind == "range":
-            bad = Setpoint(**{f.name: getattr(sp, f.name) for f in fields(Setpoint)})
-            bad.target_position_counts = 1e300
-            self.ctl.send_setpoint(bad)
+        elif kind == "range":  # the last axis's target beyond the drive's bound
+            last = axis_records(sp)[-1]
+            good, last.target_position_counts = last.target_position_counts, 1e300
+            self.ctl.send_setpoint(sp)
+            last.target_position_counts = good
         elif kind not in ("silent", "garbage_only"):
             self.ctl.send_setpoint(sp)
         em = self.emulator
@@ -114,14 +117,15 @@ class WireTwin:
         if em.watchdog.answering:
             assert self.ctl.recv_feedback(self.fb, 1.0), f"tick {k}: no answer"
             self.fb_t_ns.append(self.fb.t_ns)
-            for name in STAMPS:
-                setattr(self.fb, name, 0)
+            for record in (self.fb, *axis_records(self.fb)):
+                for name in STAMPS:
+                    setattr(record, name, 0)
 
 
-def _compare(segments, extra: dict) -> WireTwin:
-    a, b = WireTwin(False, extra), WireTwin(True, extra)
+def _compare(segments, extra: dict, config: Path = ARROW_PATH) -> WireTwin:
+    a, b = WireTwin(False, extra, config), WireTwin(True, extra, config)
     try:
-        Script(segments, 1).run(a, b)
+        Script(segments, len(a.drives)).run(a, b)
         ea, eb = a.emulator, b.emulator
         n = ea.recorder.committed
         assert n == eb.recorder.committed
@@ -138,11 +142,11 @@ def _compare(segments, extra: dict) -> WireTwin:
         assert ea.setpoints_heard == eb.setpoints_heard
         assert (ea.watchdog.silent, ea.watchdog.tripped, ea.watchdog.events) == (
             eb.watchdog.silent, eb.watchdog.tripped, eb.watchdog.events)
-        eb.steady.settle()
-        for name in (f.name for f in fields(Setpoint)):
-            if name not in STAMPS:
-                assert np.array(getattr(ea.sp, name)).tobytes() == np.array(
-                    getattr(eb.sp, name)).tobytes(), name
+        for sa, sb in zip(axis_records(ea.sp), axis_records(eb.sp)):
+            for name in (f.name for f in fields(Setpoint)):
+                if name not in STAMPS:
+                    assert np.array(getattr(sa, name)).tobytes() == np.array(
+                        getattr(sb, name)).tobytes(), name
         assert ea.steady is None
     finally:
         a.close()
@@ -203,18 +207,24 @@ def test_steady_motion(extra):
         assert min(steady.declined.values()) >= 3
 
 
+def test_two_axes():
+    """A machine of two axes, one group message a tick: enable, CSP, CSV, a fault on both,
+    re-enable, with traffic that goes to the Python path (a value out of range on the
+    second axis declines the tick after the first axis ran: it is put back)."""
+    extra = {500: "garbage_only", 600: "repeat", 700: "queued", 800: "range", 1500: "skip",
+             1600: "stranger"}
+    b = _compare([("csp", 300, 0.0), ("csp", 800, 25.0), ("csv", 500, -2.0e5),
+                  ("jump", 200, 3.0e7), ("cw", 3, 0), ("cw", 3, 0x80), ("csp", 400, 5.0)],
+                 extra, XY_PATH)
+    steady = b.emulator.steady
+    assert steady.ticks > 1000
+    assert min(steady.declined.values()) >= 1
+
+
 def test_only_where_it_applies():
-    """Two axes, or a tick of several drive cycles: no compiled tick (the Python path)."""
-    two = CONFIGS / "machines" / "arrow500_xy.toml"
-    rc = RuntimeConfig(two, "udp://127.0.0.1:0", realtime=False)
-    em = Emulator(rc, load_machine_set(two), log=lambda message: None)
-    em.open()
-    assert em.steady is None
-    em.endpoint.close()
+    """A tick of several drive cycles: no compiled tick (the Python path)."""
     rc = RuntimeConfig(ARROW_PATH, "udp://127.0.0.1:0", realtime=False, rate_hz=4000.0)
     em = Emulator(rc, load_machine_set(ARROW_PATH), log=lambda message: None)
     em.open()
     assert em.timing.cycles_per_tick == 2 and em.steady is None
     em.endpoint.close()
-    sp, fb = message_pair(1)
-    assert isinstance(sp, Setpoint) and isinstance(fb, Feedback)

@@ -7,7 +7,8 @@ into the recording's shared-memory ring) and the ring's :meth:`end_tick`, paced 
 machine's rate (8 kHz on the Arrow 500 X) for ``seconds``.  A controller in a child
 process (spawn) enables the drives with the CiA 402 sequence and then moves them in CSP
 (a cosine of :data:`AMPLITUDE_COUNTS` at :data:`MOTION_HZ`, with its speed
-feed-forward), answering each feedback with the next setpoint.  This process drains the
+feed-forward), one setpoint per period of its own clock, reading the newest feedback
+without waiting on the socket (as ``hil controller`` does).  This process drains the
 ring between ticks as the recording's writer would (outside the timed part), so every
 tick writes its row.
 
@@ -63,12 +64,12 @@ DEFAULT_CONFIGS = (CONFIGS / "arrow500_x.toml", CONFIGS / "machines" / "arrow500
 #: the controller's motion: a cosine of this amplitude, increments, at this frequency, Hz
 AMPLITUDE_COUNTS = 50_000.0
 MOTION_HZ = 1.0
-#: the controller's wait for a feedback before it sends its setpoint again, s
-RESEND_S = 0.05
 #: longest wait for the child to start (imports), s
 START_S = 60.0
-#: spin (rather than sleep) for the last this-many ns before a deadline
+#: spin (rather than sleep) for the last this-many ns before a deadline: the loop's, and
+#: the controller's (it need not be punctual, and shares the machine)
 SPIN_NS = 150_000
+CONTROLLER_SPIN_NS = 20_000
 _EXIT_NAMES = {C.EXIT_COMMAND: "command", C.EXIT_REFUSED: "refused", C.EXIT_CAUSE: "cause",
                C.EXIT_LOOP: "loop", C.EXIT_PLANT: "plant"}
 
@@ -77,17 +78,21 @@ _DECLINED_NAMES = {S.DECLINED_FRAME: "frame", S.DECLINED_SEQUENCE: "sequence",
                    S.DECLINED_CYCLE: "cycle"}
 
 
-def _controller(port: int, n_axes: int, conn) -> None:
-    """The child: enable, then CSP motion, one setpoint per feedback; ends when ``conn``
-    has a message."""
+def _controller(port: int, n_axes: int, period_ns: int, conn) -> None:
+    """The child: enable, then CSP motion, one setpoint per period of its own clock (as
+    ``hil controller`` and a CNC pace themselves: it never waits on the socket, so the
+    emulator's answer wakes nobody); ends when ``conn`` has a message."""
     with open_endpoint(f"udp://127.0.0.1:{port}", "controller") as ep:
+        ep.drain = True
         sp, fb = message_pair(n_axes)
         enable = EnableSequencer(timeout_cycles=10_000)
         enable.enable()
         start = None
         conn.send("ready")
         seq = 0
+        deadline = time.monotonic_ns()
         while not conn.poll():
+            ep.recv_feedback(fb, 0.0)
             seq += 1
             sp.seq = seq
             fbs = axis_records(fb)
@@ -105,14 +110,16 @@ def _controller(port: int, n_axes: int, conn) -> None:
                 s.velocity_offset_counts_s = (AMPLITUDE_COUNTS * 2.0 * math.pi * MOTION_HZ
                                               * math.sin(phase))
             ep.send_setpoint(sp)
-            ep.recv_feedback(fb, RESEND_S)
+            deadline += period_ns
+            _wait_until(deadline, CONTROLLER_SPIN_NS)
 
 
-def _wait_until(deadline_ns: int) -> int:
-    """Sleep, then spin, until ``deadline_ns`` (monotonic); returns the time woken."""
+def _wait_until(deadline_ns: int, spin_ns: int = SPIN_NS) -> int:
+    """Sleep, then spin for the last ``spin_ns``, until ``deadline_ns`` (monotonic);
+    returns the time woken."""
     now = time.monotonic_ns()
-    if deadline_ns - now > SPIN_NS:
-        time.sleep((deadline_ns - now - SPIN_NS) * 1e-9)
+    if deadline_ns - now > spin_ns:
+        time.sleep((deadline_ns - now - spin_ns) * 1e-9)
     while (now := time.monotonic_ns()) < deadline_ns:
         pass
     return now
@@ -135,7 +142,7 @@ def bench(config: Path, seconds: float, compiled: bool = True) -> dict:
     parent, child_conn = ctx.Pipe()
     emulator.open()
     child = ctx.Process(target=_controller, args=(emulator.endpoint.address[1],
-                                                  len(drives), child_conn))
+                                                  len(drives), period_ns, child_conn))
     child.start()
     try:
         if not parent.poll(START_S):

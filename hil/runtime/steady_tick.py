@@ -1,22 +1,24 @@
 """The emulator's tick in one compiled call, from the setpoint's bytes to the answer's
 (issue 12 part 6: "Python touches only the socket").
 
-In steady state -- one axis, one drive cycle per tick, a UDP link whose controller is
-pinned, the drive's compiled path holding its state (:mod:`hil.drive.compiled_path`:
-OPERATION ENABLED in CSP, CSV or CST, nothing to react to), the watchdog content, no
-injection under way -- a tick is: read the datagram (Python: the socket), then one call
-of :func:`steady_tick` that decodes the setpoint (:func:`io_adapters.codec_compiled.
-decode_setpoint`), checks its session and frame number, runs the drive cycle
-(:func:`hil.drive.compiled.steady_cycle`, which writes the axis's recording row), stamps
-and encodes the feedback (:func:`io_adapters.codec_compiled.encode_feedback`) and writes
-the row's common part; then (Python) the endpoint's books and the send
-(:class:`io_adapters.udp_steady.SteadyLink`), the watchdog's "heard", the drive's
-counters.
+In steady state -- one drive cycle per tick, a UDP link whose controller is pinned, every
+drive's compiled path holding its state (:mod:`hil.drive.compiled_path`: OPERATION
+ENABLED in CSP, CSV or CST, nothing to react to), the watchdog content, no injection
+under way -- a tick is: read the datagram (Python: the socket), then one call of
+:func:`steady_tick` (one axis) or :func:`steady_tick_group` (a machine of up to
+:data:`~io_adapters.codec_compiled.MAX_AXES` axes) that decodes the setpoint
+(:func:`io_adapters.codec_compiled.decode_setpoint`), checks its session and frame
+number, runs each axis's drive cycle (:func:`hil.drive.compiled.steady_cycle`, which
+writes the axis's recording row), stamps and encodes the feedback
+(:func:`io_adapters.codec_compiled.encode_feedback`) and writes the row's common part;
+then (Python) the endpoint's books and the send (:class:`io_adapters.udp_steady.
+SteadyLink`), the watchdog's "heard", the drives' counters.
 
-Anything outside that case is declined *before* any state has changed: the datagram goes
+Anything outside that case is declined with every state as it was: the datagram goes
 back to the endpoint and :meth:`hil.runtime.emulator.Emulator.step`'s Python path runs
 the tick as it always has (the endpoint counts and judges the datagram, the drive's
-Python path reacts), so there is one owner of every decision and the compiled tick adds
+Python path reacts; an axis that declines after others ran has them put back from a
+snapshot taken before each), so there is one owner of every decision and the compiled tick adds
 nothing but speed.  tests/test_tick_steady.py runs the same datagrams through an emulator
 with and one without it and compares every feedback byte, recording row and counter.
 
@@ -35,8 +37,15 @@ from hil.drive import compiled as C
 from io_adapters import codec_compiled as K
 from io_adapters.base import AdapterError
 from io_adapters.codec import U32
+from io_adapters.messages import FeedbackGroup, axis_records
 from io_adapters.udp import UdpEndpoint
-from io_adapters.udp_steady import L_PEER_FRAME, L_PEER_SESSION, L_RX_NS, SteadyLink
+from io_adapters.udp_steady import (
+    L_CLOCK,
+    L_PEER_FRAME,
+    L_PEER_SESSION,
+    L_RX_NS,
+    SteadyLink,
+)
 
 #: the C library's clock, resolved by name when the kernel is linked (so that numba can
 #: cache it, as it cannot a ctypes pointer): the same clock as ``time.monotonic_ns()``
@@ -49,6 +58,8 @@ R_TICK_START, R_SP_T_NS, R_SP_RX_NS, R_FB_T_NS, R_SP_NEW, R_SP_SEQ, R_SP_REFUSED
 DECLINED_FRAME, DECLINED_SEQUENCE, DECLINED_CYCLE = -1, -2, -3
 #: the tick ran but its answer did not encode (the Python path sends it)
 UNENCODED = 0
+#: where SteadyTick's argument list has the datagram's length, the row and the tick's start
+_N, _J, _TICK_NS = 1, 24, 25
 #: the wire's setpoint floats (codec_compiled.SP_FLOAT_FIELDS) in the drive's ``spf``
 _SPF_SLOT = tuple(C.SP_FLOATS.index(name) for name in K.SP_FLOAT_FIELDS)
 
@@ -59,60 +70,124 @@ def _monotonic_ns(timespec):
     return timespec[0] * 1_000_000_000 + timespec[1]
 
 
+@njit(cache=True, inline="always")
+def _copy(src, dst, n):
+    for k in range(n):
+        dst[k] = src[k]
+
+
+@njit(cache=True, inline="always")
+def _save(snap, offset, src):
+    """``snap[offset:offset + len(src)] = src``; the next offset."""
+    for k in range(src.size):
+        snap[offset + k] = src[k]
+    return offset + src.size
+
+
+@njit(cache=True, inline="always")
+def _restore(snap, offset, dst):
+    for k in range(dst.size):
+        dst[k] = snap[offset + k]
+    return offset + dst.size
+
+
 @njit(cache=True, _nrt=False)
-def steady_tick(buf, n, sp_ints, sp_floats, link, fb_ints, out, prm, fst, ist, spf, spi,
-                saved, fbf, p, s, inp, plant_out, ring_f, ring_i, common, j, tick_ns,
-                scratch_f, scratch_i):
-    """One tick (see the module docstring).  ``buf[:n]``: the datagram; ``sp_ints``,
-    ``sp_floats``, ``link``, ``fb_ints``, ``out``: :class:`~io_adapters.udp_steady.
-    SteadyLink`'s arrays; ``prm`` .. ``fbf``: the drive's compiled path's
-    (:class:`~hil.drive.compiled_path.CompiledPath`); ``p``, ``s``, ``inp``,
-    ``plant_out``: the plant's; ``ring_f``, ``ring_i``: this axis's planes of the
-    recording's ring, ``common`` its common block, ``j`` the row's column (-1: not
-    recorded); ``tick_ns``: the tick's start (monotonic ns); ``scratch_f`` float64[7+],
-    ``scratch_i`` int64[5+].  Returns the answer's length, or :data:`UNENCODED` (the tick
-    ran), or a ``DECLINED_*`` code (nothing changed)."""
-    if not K.decode_setpoint(buf, n, sp_ints, sp_floats):
+def _tick(buf, n, sp_ints, axis_ints, sp_floats, link, fb_ints, fb_axis_ints, fb_floats,
+          out, prms, fsts, ists, spfs, spis, saveds, fbfs, ps, ss, inps, outs, rings_f,
+          rings_i, common, j, tick_ns, snap_f, snap_i):
+    """The tick of :func:`steady_tick_group`, every per-axis argument a tuple."""
+    if not K.decode_setpoint(buf, n, sp_ints, axis_ints, sp_floats):
         return DECLINED_FRAME
     if sp_ints[K.I_SESSION] != link[L_PEER_SESSION]:
         return DECLINED_SEQUENCE
     ahead = (sp_ints[K.I_FRAME] - link[L_PEER_FRAME]) & U32
     if ahead == 0 or ahead > U32 // 2:  # a repeat or an older frame: counted in Python
         return DECLINED_SEQUENCE
-    for k in range(C.N_SPF):  # the setpoint applied so far, back if the cycle declines
-        scratch_f[k] = spf[k]
-    for k in range(3):
-        scratch_i[k] = spi[k]
-    for k in range(7):
-        spf[_SPF_SLOT[k]] = sp_floats[k]
-    spi[C.I_SEQ], spi[C.I_CW] = sp_ints[K.I_SEQ], sp_ints[K.I_CONTROLWORD]
-    spi[C.I_MODE] = sp_ints[K.I_MODE]
-    ist[C.J_ROW] = j
-    status = C.steady_cycle(prm, fst, ist, spf, spi, p, s, inp, plant_out, saved, fbf,
-                            ring_f, ring_i)
-    ist[C.J_ROW] = -1
-    if status != C.DONE:
-        for k in range(C.N_SPF):
-            spf[k] = scratch_f[k]
-        for k in range(3):
-            spi[k] = scratch_i[k]
-        return DECLINED_CYCLE
-    fb_ints[K.F_SEQ] = spi[C.I_SEQ]
-    fb_ints[K.F_STATUSWORD] = ist[C.J_STATUSWORD]
+    n_axes = len(prms)
+    seq = sp_ints[K.I_SEQ]
+    for a in range(n_axes):
+        fst, ist, spf, spi = fsts[a], ists[a], spfs[a], spis[a]
+        # the axis as it was: its setpoint arrays always (the cycle reads them), and
+        # everything the cycle changes where a later axis may still decline
+        _copy(spf, snap_f[a], C.N_SPF)
+        _copy(spi, snap_i[a], 3)
+        if a < n_axes - 1:
+            at = _save(snap_f[a], C.N_SPF, fst[:C.N_FST])
+            at = _save(snap_f[a], at, fbfs[a])
+            at = _save(snap_f[a], at, ss[a])
+            at = _save(snap_f[a], at, inps[a])
+            _save(snap_f[a], at, outs[a])
+            _save(snap_i[a], 3, ist[:C.N_IST])
+        for k in range(7):
+            spf[_SPF_SLOT[k]] = sp_floats[a, k]
+        spi[C.I_SEQ] = seq
+        spi[C.I_CW] = axis_ints[a, K.A_CONTROLWORD]
+        spi[C.I_MODE] = axis_ints[a, K.A_MODE]
+        ist[C.J_ROW] = j
+        status = C.steady_cycle(prms[a], fst, ist, spf, spi, ps[a], ss[a], inps[a],
+                                outs[a], saveds[a], fbfs[a], rings_f[a], rings_i[a])
+        ist[C.J_ROW] = -1
+        if status != C.DONE:
+            for b in range(a + 1):
+                _copy(snap_f[b], spfs[b], C.N_SPF)
+                _copy(snap_i[b], spis[b], 3)
+                if b < a:
+                    at = _restore(snap_f[b], C.N_SPF, fsts[b][:C.N_FST])
+                    at = _restore(snap_f[b], at, fbfs[b])
+                    at = _restore(snap_f[b], at, ss[b])
+                    at = _restore(snap_f[b], at, inps[b])
+                    _restore(snap_f[b], at, outs[b])
+                    _restore(snap_i[b], 3, ists[b][:C.N_IST])
+            return DECLINED_CYCLE
+    for a in range(n_axes):
+        fb_axis_ints[a, K.A_STATUSWORD] = ists[a][C.J_STATUSWORD]
+        _copy(fbfs[a], fb_floats[a], C.N_FBF)
+    fb_ints[K.F_SEQ] = seq
     fb_ints[K.F_SP_T_NS] = sp_ints[K.I_T_NS]
     fb_ints[K.F_SP_RX_NS] = link[L_RX_NS]
     fb_ints[K.F_TICK_NS] = tick_ns
-    fb_ints[K.F_T_NS] = _monotonic_ns(scratch_i[3:5])
-    length = K.encode_feedback(out, fb_ints, fbf)
+    fb_ints[K.F_T_NS] = _monotonic_ns(link[L_CLOCK:])
+    length = K.encode_feedback(out, fb_ints, fb_axis_ints, fb_floats)
     if j >= 0:
         common[R_TICK_START, j] = tick_ns
         common[R_SP_T_NS, j] = sp_ints[K.I_T_NS]
         common[R_SP_RX_NS, j] = link[L_RX_NS]
         common[R_FB_T_NS, j] = fb_ints[K.F_T_NS]
         common[R_SP_NEW, j] = 1
-        common[R_SP_SEQ, j] = spi[C.I_SEQ]
+        common[R_SP_SEQ, j] = seq
         common[R_SP_REFUSED, j] = 0
     return length if length > 0 else UNENCODED
+
+
+@njit(cache=True, _nrt=False)
+def steady_tick(buf, n, sp_ints, axis_ints, sp_floats, link, fb_ints, fb_axis_ints,
+                fb_floats, out, prm, fst, ist, spf, spi, saved, fbf, p, s, inp, plant_out,
+                ring_f, ring_i, common, j, tick_ns, snap_f, snap_i):
+    """One tick of a single-axis machine (see the module docstring), its arrays passed one
+    by one (a tuple costs the call more than the tick saves).  ``buf[:n]``: the datagram;
+    ``sp_ints`` .. ``out``: :class:`~io_adapters.udp_steady.SteadyLink`'s arrays;
+    ``prm`` .. ``fbf``: the drive's compiled path's
+    (:class:`~hil.drive.compiled_path.CompiledPath`); ``p``, ``s``, ``inp``,
+    ``plant_out``: the plant's; ``ring_f``, ``ring_i``: the axis's planes of the
+    recording's ring, ``common`` its common block, ``j`` the row's column (-1: not
+    recorded); ``tick_ns``: the tick's start (monotonic ns); ``snap_f``, ``snap_i``: the
+    per-axis snapshots (:class:`SteadyTick`).  Returns the answer's length, or
+    :data:`UNENCODED` (the tick ran), or a ``DECLINED_*`` code (nothing changed)."""
+    return _tick(buf, n, sp_ints, axis_ints, sp_floats, link, fb_ints, fb_axis_ints,
+                 fb_floats, out, (prm,), (fst,), (ist,), (spf,), (spi,), (saved,), (fbf,),
+                 (p,), (s,), (inp,), (plant_out,), (ring_f,), (ring_i,), common, j, tick_ns,
+                 snap_f, snap_i)
+
+
+@njit(cache=True, _nrt=False)
+def steady_tick_group(buf, n, sp_ints, axis_ints, sp_floats, link, fb_ints, fb_axis_ints,
+                      fb_floats, out, prms, fsts, ists, spfs, spis, saveds, fbfs, ps, ss,
+                      inps, outs, rings_f, rings_i, common, j, tick_ns, snap_f, snap_i):
+    """One tick of a machine of several axes: :func:`steady_tick` with a tuple of every
+    axis's array in place of each per-axis array."""
+    return _tick(buf, n, sp_ints, axis_ints, sp_floats, link, fb_ints, fb_axis_ints,
+                 fb_floats, out, prms, fsts, ists, spfs, spis, saveds, fbfs, ps, ss, inps,
+                 outs, rings_f, rings_i, common, j, tick_ns, snap_f, snap_i)
 
 
 class SteadyTick:
@@ -130,72 +205,93 @@ class SteadyTick:
     def __init__(self, emulator, link: SteadyLink):
         self.emulator = emulator
         self.link = link
-        self.drive = drive = emulator.drives.drives[0]
-        self.path = path = drive.compiled
-        plant = drive.plant
-        self._arrays = (link.buf, 0, link.sp_ints, link.sp_floats, link.link, link.fb_ints,
-                        link.out, path.prm, path.fst, path.ist, path.spf, path.spi,
-                        path.saved, path.fbf, plant.params, plant.state, plant.inp,
-                        plant.out, path.ring_f, path.ring_i, emulator.recorder.common)
-        self._scratch_f = np.zeros(C.N_SPF)
-        self._scratch_i = np.zeros(5, np.int64)
+        self.drives = drives = emulator.drives.drives
+        self.paths = paths = tuple(d.compiled for d in drives)
+        plants = [d.plant for d in drives]
+        group = len(drives) > 1
+        snap_width = C.N_SPF + C.N_FST + C.N_FBF + max(
+            p.state.size + p.inp.size + p.out.size for p in plants)
+        per_axis = [tuple(getattr(x, name) for x in paths)
+                    for name in ("prm", "fst", "ist", "spf", "spi", "saved", "fbf")]
+        per_axis += [tuple(getattr(p, name) for p in plants)
+                     for name in ("params", "state", "inp", "out")]
+        per_axis += [tuple(x.ring_f for x in paths), tuple(x.ring_i for x in paths)]
+        # the call's arguments, n, j and tick_ns (_N, _J, _TICK_NS) written per tick
+        self._args = [link.buf, 0, link.sp_ints, link.axis_ints, link.sp_floats, link.link,
+                      link.fb_ints, link.fb_axis_ints, link.fb_floats, link.out,
+                      *(per_axis if group else (a[0] for a in per_axis)),
+                      emulator.recorder.common, -1, 0,
+                      np.zeros((len(drives), snap_width)),
+                      np.zeros((len(drives), 3 + C.N_IST), np.int64)]
+        self._call = steady_tick_group if group else steady_tick
+        self._faults_written = False
         self.ticks = 0
         self.declined = {DECLINED_FRAME: 0, DECLINED_SEQUENCE: 0, DECLINED_CYCLE: 0}
         self.dirty = False
         # compiled (or loaded from numba's cache) now, before any clock starts: a
         # zero-length datagram is declined at once and changes nothing
-        steady_tick(*self._arrays, -1, 0, self._scratch_f, self._scratch_i)
+        self._call(*self._args)
 
     @classmethod
     def for_emulator(cls, emulator) -> "SteadyTick | None":
-        """The compiled tick of an emulator that can take one: one axis, one drive cycle
-        per tick, a UDP device endpoint refusing what its drive refuses, no SYNC, the
-        drive's compiled path; else None."""
+        """The compiled tick of an emulator that can take one: one drive cycle per tick,
+        at most :data:`~io_adapters.codec_compiled.MAX_AXES` axes, a UDP device endpoint
+        refusing what its drives refuse, no SYNC, every drive's compiled path; else
+        None."""
         ep = emulator.endpoint
         drives = emulator.drives.drives
-        if (len(drives) != 1 or emulator.timing.cycles_per_tick != 1
+        if (len(drives) > K.MAX_AXES or emulator.timing.cycles_per_tick != 1
                 or type(ep) is not UdpEndpoint or emulator.sync_lock is not None
-                or drives[0].compiled is None
-                or ep.setpoint_bounds != (drives[0].setpoint_bounds(),)):
+                or any(d.compiled is None for d in drives)
+                or ep.setpoint_bounds != tuple(d.setpoint_bounds() for d in drives)):
             return None
-        return cls(emulator, SteadyLink(ep))
+        return cls(emulator, SteadyLink(ep, len(drives)))
 
     def tick(self, k: int, t_ns: int) -> bool:
         """Run tick ``k``, started at ``t_ns`` (monotonic ns), compiled if it may; False:
         nothing changed, the Python path runs it (a datagram read is back in the
         endpoint)."""
-        em, path, d = self.emulator, self.path, self.drive
-        if (not path.active or d.link_causes or d.faults.latched or em.watchdog.tripped
-                or d.params.generation != path._generation or em.injectors[0].busy):
+        em = self.emulator
+        for d, path, inj in zip(self.drives, self.paths, em.injectors):
+            if (not path.active or d.link_causes or d.faults.latched or inj.busy
+                    or d.params.generation != path._generation):
+                self._faults_written = False
+                return False
+        if em.watchdog.tripped:
+            self._faults_written = False
             return False
         link = self.link
         n = link.receive()
         if not n:
+            self._faults_written = False
             return False
-        a = self._arrays
-        link.fb_ints[K.F_FAULT] = d.fault
-        j = em.recorder.steady_row()
-        result = steady_tick(a[0], n, a[2], a[3], a[4], a[5], a[6], a[7], a[8], a[9], a[10],
-                             a[11], a[12], a[13], a[14], a[15], a[16], a[17], a[18], a[19],
-                             a[20], j, t_ns, self._scratch_f, self._scratch_i)
+        if not self._faults_written:  # 603Fh changes in the Python path's ticks only
+            for a, d in enumerate(self.drives):
+                link.fb_axis_ints[a, K.A_FAULT] = d.fault
+            self._faults_written = True
+        args = self._args
+        args[_N], args[_J], args[_TICK_NS] = n, em.recorder.steady_row(), t_ns
+        result = self._call(*args)
         if result < 0:
+            self._faults_written = False
             self.declined[result] += 1
             link.decline()
             return False
         self.ticks += 1
         self.dirty = True
-        path.cycles += 1
-        d.tick += 1
+        for d, path in zip(self.drives, self.paths):
+            path.cycles += 1
+            d.tick += 1
         em.watchdog.heard_steady()
         try:
             link.commit(result)
         except AdapterError as e:
             em._adapter_error("send", e)
         if result == UNENCODED:
-            self._answer_in_python(j)
+            self._answer_in_python()
         return True
 
-    def _answer_in_python(self, j: int) -> None:
+    def _answer_in_python(self) -> None:
         """The answer the compiled writer declined (a non-finite value), sent by the
         Python encoder as the Python path sends it."""
         self.settle()
@@ -204,23 +300,30 @@ class SteadyTick:
             em.endpoint.send_feedback(em._fb)
         except AdapterError as e:
             em._adapter_error("send", e)
-        if j >= 0:
-            em.recorder.common[R_FB_T_NS, j] = em._fb.t_ns
+        row = em.recorder.steady_row()
+        if row >= 0:
+            em.recorder.common[R_FB_T_NS, row] = em._fb.t_ns
 
     def settle(self) -> None:
-        """Write the emulator's Setpoint and Feedback records from the arrays (the last
-        setpoint applied, the last answer), if compiled ticks ran since the last call."""
+        """Write the emulator's Setpoint and Feedback records (plain or groups) from the
+        arrays -- the last setpoint applied, the last answer -- as the Python path leaves
+        them, if compiled ticks ran since the last call."""
         if not self.dirty:
             return
         self.dirty = False
-        sp, fb, path = self.emulator._sp, self.emulator._fb, self.path
+        sp, fb = self.emulator._sp, self.emulator._fb
         f = self.link.fb_ints.tolist()
-        sp.seq, sp.controlword, sp.mode = path.spi.tolist()
-        for name, value in zip(C.SP_FLOATS, path.spf.tolist()):
-            setattr(sp, name, value)
-        sp.t_ns, sp.rx_ns = f[K.F_SP_T_NS], f[K.F_SP_RX_NS]
-        fb.seq, fb.statusword, fb.fault = f[K.F_SEQ], f[K.F_STATUSWORD], self.drive.fault
-        for name, value in zip(K.FB_FLOAT_FIELDS, path.fbf.tolist()):
-            setattr(fb, name, value)
-        fb.sp_t_ns, fb.sp_rx_ns = f[K.F_SP_T_NS], f[K.F_SP_RX_NS]
+        sp.seq, sp.t_ns, sp.rx_ns = f[K.F_SEQ], f[K.F_SP_T_NS], f[K.F_SP_RX_NS]
+        fb.seq, fb.sp_t_ns, fb.sp_rx_ns = f[K.F_SEQ], f[K.F_SP_T_NS], f[K.F_SP_RX_NS]
         fb.t_ns, fb.tick_ns = f[K.F_T_NS], f[K.F_TICK_NS]
+        for s, fa, d, path in zip(axis_records(sp), axis_records(fb), self.drives,
+                                  self.paths):
+            s.seq, s.controlword, s.mode = path.spi.tolist()
+            s.t_ns = f[K.F_SP_T_NS]
+            for name, value in zip(C.SP_FLOATS, path.spf.tolist()):
+                setattr(s, name, value)
+            fa.seq, fa.statusword, fa.fault = f[K.F_SEQ], int(path.ist[C.J_STATUSWORD]), d.fault
+            for name, value in zip(K.FB_FLOAT_FIELDS, path.fbf.tolist()):
+                setattr(fa, name, value)
+        if isinstance(fb, FeedbackGroup):
+            fb.time_s = fb.axes[0].time_s
