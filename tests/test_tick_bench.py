@@ -30,6 +30,10 @@ def _check(row: dict, axes: int) -> None:
         row["ticks"]
     assert row["exits"]["cause"] == row["exits"]["refused"] == 0
     assert row["exits"]["plant"] == row["exits"]["loop"] == 0
+    # the compiled tick ran (a share that depends on how the two processes' clocks
+    # line up on a loaded machine); its ticks are compiled drive cycles too
+    assert 0.1 < row["steady_share"] <= row["compiled_share"]
+    assert set(row["steady_declined"]) == {"frame", "sequence", "cycle"}
     assert row["overruns"] >= 0
 
 

@@ -19,15 +19,19 @@ machine's state.  JSON, per machine file::
     {"config", "axes", "rate_hz", "drive", "seconds", "ticks",
      "tick_compute_us": {"p50", "p99", "p999", "max"}, "tick_cpu_us": {...},
      "plant_step_us": {"p50", "p999"},
-     "ratio_p50", "compiled_share", "enabled_ticks", "compiled_share_enabled",
+     "ratio_p50", "steady_share", "steady_declined", "compiled_share", "enabled_ticks",
+     "compiled_share_enabled",
      "exits", "overruns", "setpoints_heard", "load_avg_1min"}
 
 ``tick_compute_us`` is from the start of the step to the end of ``end_tick`` (wall
 time), ``tick_cpu_us`` the loop thread's CPU time in it (what the tick costs whatever
 else the machine runs: on a loaded machine the wall time includes the other processes'
 turns);
-``ratio_p50`` the tick's p50 over the plant step's; ``compiled_share`` the share of ticks
-whose every drive cycle took the compiled path (:mod:`hil.drive.compiled_path`),
+``ratio_p50`` the tick's p50 over the plant step's; ``steady_share`` the share of ticks
+run whole by the compiled tick (:mod:`hil.runtime.steady_tick`: from the datagram to the
+answer), ``steady_declined`` the datagrams it handed to the Python path, by reason;
+``compiled_share`` the share of ticks whose every drive cycle took the compiled path
+(:mod:`hil.drive.compiled_path`; a compiled tick's included),
 ``compiled_share_enabled`` that share among the ticks that started with every drive in
 OPERATION ENABLED; ``exits`` how often a drive handed a cycle back to Python, by reason;
 an overrun is a tick that ended after the next deadline.  ``--python-drive`` times the
@@ -263,6 +267,7 @@ def run_from_args(args: argparse.Namespace) -> int:
               f"{r['ticks']} ticks: tick p50 {t['p50']:.1f} p99 {t['p99']:.1f} p99.9 "
               f"{t['p999']:.1f} max {t['max']:.1f} µs; plant step p50 "
               f"{r['plant_step_us']['p50']:.1f} µs; tick/plant {r['ratio_p50']:.2f}; "
-              f"compiled {100 * r['compiled_share']:.1f} % of ticks; overruns "
+              f"compiled tick {100 * r['steady_share']:.1f} %, compiled drive cycles "
+              f"{100 * r['compiled_share']:.1f} % of ticks; overruns "
               f"{r['overruns']}; load {r['load_avg_1min']:.2f}", file=sys.stdout)
     return 0

@@ -303,7 +303,10 @@ class Recorder:
             counters[2] += 1
             counters[3] = k
             return
-        self.common[:3, counters[0] % self.slots] = (k, lateness_ns, compute_ns)
+        j, common = counters[0] % self.slots, self.common
+        common[0, j] = k  # three scalar stores take half the time of a slice from a tuple
+        common[1, j] = lateness_ns
+        common[2, j] = compute_ns
         counters[0] += 1  # after the row: the writer reads rows below this count
 
     def pending(self) -> tuple[int, int]:
