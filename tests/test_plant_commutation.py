@@ -69,3 +69,15 @@ def test_beyond_omega_max_field_weakening_agrees_with_the_dq_steady_state():
     on = E.held_speed_torque(E.GEISS, omega, drive.i_max, weakening=True)
     reference = drive.steady_torque(omega, drive.k0 * drive.i_max, weakening=True)
     assert abs(on - reference) <= 1e-3 * drive.k0 * drive.i_max
+
+
+def test_the_validation_grid_is_the_scalar_voltage_excess():
+    """SeedOneDrive.voltage_excess_grid (the root search's grid, at once) against
+    voltage_excess point by point, on both sides of 0 A, with and without weakening."""
+    drive = E.SeedOneDrive.from_config(Plant.from_file(E.GEISS).config)
+    currents = np.linspace(-2.0 * drive.i_max, 2.0 * drive.i_max, 401)
+    for omega in (0.3 * drive.omega_max, 1.1 * drive.omega_max):
+        for k in (drive.k0, 0.6 * drive.k0):
+            grid = drive.voltage_excess_grid(omega, k, currents)
+            scalar = [drive.voltage_excess(omega, k, i) for i in currents]
+            np.testing.assert_allclose(grid, scalar, rtol=1e-12, atol=1e-9)
