@@ -232,8 +232,9 @@ def build_parser() -> argparse.ArgumentParser:
     bl.add_argument("--seconds", type=float, default=5.0, help="run per rate and tool, s")
     bl.add_argument("--with-plant", action="store_true",
                     help="step the Arrow 500 X plant every tick")
-    bl.add_argument("--adapter", choices=("udp",), help="step the plant behind this adapter, "
-                    "a controller process on the other end (needs --with-plant)")
+    bl.add_argument("--adapter", choices=("udp",), help="the emulator's whole tick (drive, "
+                    "recording) behind this adapter, a controller process on the other end "
+                    "(needs --with-plant)")
     bl.add_argument("--json", action="store_true")
     bl.set_defaults(func=cmd_bench_loop)
 

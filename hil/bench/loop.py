@@ -22,40 +22,33 @@ or failed; the reason goes to stderr.  The goal: lateness p99.9 at or below
 cyclictest's, at no more than half a core (``cpu_fraction`` <= 0.5) at 8 kHz.
 
 With an adapter (``adapter="udp"``, with the plant; issue 12 part 8) the tick is the
-emulator's real workload: the device end of a UDP link on 127.0.0.1 takes the setpoints
-that arrived (none waits: the socket is polled), the plant runs one PWM period on the
-latest one's current setpoint, and the feedback (sequence number, encoder and scale
-counts, speed, measured current, time) goes back.  The controller is a child process
-(spawned) that answers every feedback with the next setpoint, a square wave of
-:data:`SQUARE_A` amperes changing sign every :data:`SQUARE_HALF` setpoints, so the axis
-moves to and fro.  The row adds ``adapter`` (null without one) and ``link``:
-``{"setpoints", "feedbacks", "ticks_without_setpoint"}`` counted over the run, the last
-saying how often the controller had not answered in time for the next tick.
+emulator's real one, :meth:`hil.runtime.emulator.Emulator.step` on the Arrow 500 X at
+that rate: the UDP adapter's device end on 127.0.0.1, the watchdog, the drive (its
+compiled cycle, and the tick compiled from the datagram to the answer where it applies,
+:mod:`hil.runtime.steady_tick`), the feedback, the row written into the recording's ring
+(drained between ticks, as the recording's writer would).  The controller is
+``hil bench tick``'s: a child process (spawned) that enables the drive and moves it in
+CSP, one setpoint per period of its own clock.  The row adds ``adapter`` (null without
+one) and ``link``: ``{"setpoints", "feedbacks", "ticks_without_setpoint",
+"compiled_ticks"}`` counted over the run.
 """
 
-import select
 import sys
 from collections.abc import Callable
 from contextlib import ExitStack
 from pathlib import Path
 
+from hil.bench import tick as bench_tick
 from hil.bench.adapters import server
 from hil.rt.cyclictest import CyclictestError, run_cyclictest
 from hil.rt.loop import OverrunPolicy, RealTimeLoop
 from hil.rt.scheduling import SchedulingRequest, last_cpu, realtime_scheduling
-from io_adapters import Feedback, Setpoint, open_endpoint
-from io_adapters.codec import U32
-from io_adapters.messages import MODE_CST
 
 PLANT_CONFIG = Path(__file__).resolve().parents[2] / "configs" / "arrow500_x.toml"
 #: kernel calls before the clock starts: compiled code, caches and branch history warm.
 PLANT_WARMUP_CALLS = 2000
 #: the adapters the loop can put in the tick
 ADAPTERS = ("udp",)
-#: the controller child's current setpoint: +-SQUARE_A A, sign changing every SQUARE_HALF
-#: setpoints (50 ms at 8 kHz: the Arrow 500 X moves a few mm to and fro)
-SQUARE_A = 1.0
-SQUARE_HALF = 400
 
 
 def _idle_step(k: int) -> None:
@@ -77,77 +70,62 @@ def plant_step(config: Path = PLANT_CONFIG) -> Callable[[int], None]:
     return step
 
 
-def square_wave_controller(url: str, conn) -> None:
-    """The controller child: answers every feedback on ``url`` with the next setpoint
-    (current mode, :data:`SQUARE_A` square wave) until ``conn`` says stop."""
-    with open_endpoint(url, "controller") as ep:
-        sp, fb = Setpoint(controlword=0x000F, mode=MODE_CST), Feedback()
-        ep.send_setpoint(sp)
-        conn.send(None)
-        while conn not in select.select((ep, conn), (), ())[0]:
-            while ep.recv_feedback(fb, 0):
-                sp.seq = (fb.seq + 1) & U32
-                sp.iq_ref_a = SQUARE_A if (sp.seq // SQUARE_HALF) % 2 == 0 else -SQUARE_A
-                ep.send_setpoint(sp)
-
-
-class PlantOverAdapter:
-    """The tick with the adapter: poll the setpoints, one PWM period of the plant, send
-    the feedback (see the module docstring); counts what went over the link.
+class EmulatorTick:
+    """The emulator's real tick at ``rate_hz`` behind a UDP device end (see the module
+    docstring); call it with the tick's index.
 
     Args:
-        endpoint: the device end of the link, open.
+        rate_hz: the loop's rate (the drive cycles per tick follow from the PWM's).
         config: the machine file.
     """
 
-    def __init__(self, endpoint, config: Path = PLANT_CONFIG):
-        from plant import Plant
-        from plant.layout import P_ENC_COUNTS_PER_RAD
+    def __init__(self, rate_hz: int, config: Path = PLANT_CONFIG):
+        from hil.runtime.emulator import Emulator, RuntimeConfig
+        from plant.machines import load_machine_set
 
-        self.endpoint = endpoint
-        self.plant = Plant.from_file(config)
-        self._counts_per_rad = float(self.plant.params[P_ENC_COUNTS_PER_RAD])
-        self.setpoint, self.feedback = Setpoint(), Feedback()
-        self.setpoints = self.feedbacks = self.ticks_without_setpoint = 0
+        rc = RuntimeConfig(config, "udp://127.0.0.1:0", realtime=False, rate_hz=rate_hz)
+        self.emulator = Emulator(rc, load_machine_set(config), log=lambda message: None)
+        self.emulator.open()
+        self.recorder = self.emulator.recorder
+        self.period_ns = self.emulator.timing.period_ns
+        self._counted = (0, 0, 0, 0)
+        self.ticks = 0
+
+    @property
+    def port(self) -> int:
+        return self.emulator.endpoint.address[1]
 
     def __call__(self, k: int) -> None:
-        ep, sp, fb, plant = self.endpoint, self.setpoint, self.feedback, self.plant
-        fresh = 0
-        while ep.recv_setpoint(sp, 0):
-            fresh += 1
-        self.setpoints += fresh
-        self.ticks_without_setpoint += fresh == 0
-        plant.set_input(iq_ref_a=sp.iq_ref_a)
-        plant.step(plant.sub_per_pwm)
-        fb.seq = sp.seq
-        fb.time_s = plant.output("time_s")
-        fb.encoder_counts = plant.output("encoder_counts")
-        fb.scale_counts = plant.output("scale_counts")
-        fb.velocity_counts_s = plant.output("motor_vel") * self._counts_per_rad
-        fb.iq_a = plant.output("iq_meas_a")
-        self.feedbacks += ep.send_feedback(fb)
+        self.emulator.step(k)
+        self.recorder.end_tick(k, 0, 0)
+        self.recorder.release(self.recorder.committed)  # the writer's part
+        self.ticks += 1
 
     def link(self) -> dict:
-        """The counts since the last call (then zeroed): setpoints, feedbacks sent, ticks
-        that found no new setpoint."""
-        counts = {"setpoints": self.setpoints, "feedbacks": self.feedbacks,
-                  "ticks_without_setpoint": self.ticks_without_setpoint}
-        self.setpoints = self.feedbacks = self.ticks_without_setpoint = 0
-        return counts
+        """The counts since the last call: setpoints heard, feedbacks sent, ticks that
+        heard none, ticks the compiled tick ran."""
+        em = self.emulator
+        now = (em.setpoints_heard, em.endpoint.stats.sent, self.ticks,
+               em.steady.ticks if em.steady is not None else 0)
+        heard, sent, ticks, compiled = (a - b for a, b in zip(now, self._counted))
+        self._counted = now
+        return {"setpoints": heard, "feedbacks": sent, "ticks_without_setpoint": ticks - heard,
+                "compiled_ticks": compiled}
+
+    def close(self) -> None:
+        self.emulator.endpoint.close()
 
 
-def adapter_step(stack: ExitStack, adapter: str, config: Path = PLANT_CONFIG
-                 ) -> PlantOverAdapter:
-    """The plant behind ``adapter``'s device end with its controller child running, both
-    closed by ``stack``; warmed (compiled code and the link) before it is returned."""
+def adapter_step(stack: ExitStack, adapter: str, rate_hz: int,
+                 config: Path = PLANT_CONFIG) -> EmulatorTick:
+    """The emulator behind ``adapter``'s device end with its controller child running,
+    both closed by ``stack``; the emulator warm (compiled code loaded) before it is
+    returned, and the link counts zeroed."""
     if adapter not in ADAPTERS:
         raise ValueError(f"adapter must be one of {ADAPTERS}, got {adapter!r}")
-    ep = stack.enter_context(open_endpoint("udp://127.0.0.1:0", "device"))
-    stack.enter_context(server(square_wave_controller, f"udp://127.0.0.1:{ep.address[1]}"))
-    step = PlantOverAdapter(ep, config)
-    for k in range(PLANT_WARMUP_CALLS):
-        step(k)
-        select.select((ep,), (), (), 0.01)  # the controller's answer, not a busy wait
+    step = EmulatorTick(rate_hz, config)
+    stack.callback(step.close)
+    stack.enter_context(server(bench_tick.controller, step.port, 1, step.period_ns))
     step.link()
     return step
 
@@ -181,27 +159,28 @@ def run(rates: list[int], seconds: float, with_plant: bool,
 
     Args:
         note: receives a line per finished rate and any reason ``cyclictest_us`` is null.
-        adapter: None, or one of :data:`ADAPTERS` (needs ``with_plant``): the plant is
-            stepped behind that adapter's device end, a controller child on the other.
+        adapter: None, or one of :data:`ADAPTERS` (needs ``with_plant``): the tick is the
+            emulator's behind that adapter's device end, a controller child on the other.
     """
     if any(not 1 <= r <= 1_000_000 for r in rates):
         raise ValueError(f"rates must be 1..1000000 Hz, got {rates}")
     if adapter is not None and not with_plant:
         raise ValueError(f"adapter={adapter!r} needs with_plant: the adapter carries the "
                          f"plant's setpoints and feedback")
-    with ExitStack() as stack:
-        linked = adapter_step(stack, adapter) if adapter is not None else None
-        step = linked or (plant_step() if with_plant else _idle_step)
-        cpu = last_cpu()
-        rows = []
-        for rate_hz in rates:
-            row = {**bench_rate(rate_hz, seconds, step, cpu, note), "with_plant": with_plant,
-                   "adapter": adapter, "link": None if linked is None else linked.link()}
+    cpu = last_cpu()
+    rows = []
+    shared = plant_step() if with_plant and adapter is None else _idle_step
+    for rate_hz in rates:
+        with ExitStack() as stack:  # the emulator runs at the row's rate
+            linked = adapter_step(stack, adapter, rate_hz) if adapter is not None else None
+            row = {**bench_rate(rate_hz, seconds, linked or shared, cpu, note),
+                   "with_plant": with_plant, "adapter": adapter,
+                   "link": None if linked is None else linked.link()}
             rows.append(row)
-            ref = row["cyclictest_us"]
-            note(f"  {rate_hz:6d} Hz  lateness p99.9 {row['lateness_us']['p999']:8.2f} µs  "
-                 f"cyclictest p99.9 {'-' if ref is None else format(ref['p999'], '8.2f')} "
-                 f"µs  overruns {row['overruns']}  CPU {row['cpu_fraction']:.0%}")
+        ref = row["cyclictest_us"]
+        note(f"  {rate_hz:6d} Hz  lateness p99.9 {row['lateness_us']['p999']:8.2f} µs  "
+             f"cyclictest p99.9 {'-' if ref is None else format(ref['p999'], '8.2f')} "
+             f"µs  overruns {row['overruns']}  CPU {row['cpu_fraction']:.0%}")
     return rows
 
 

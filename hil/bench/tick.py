@@ -82,7 +82,7 @@ _DECLINED_NAMES = {S.DECLINED_FRAME: "frame", S.DECLINED_SEQUENCE: "sequence",
                    S.DECLINED_CYCLE: "cycle"}
 
 
-def _controller(port: int, n_axes: int, period_ns: int, conn) -> None:
+def controller(port: int, n_axes: int, period_ns: int, conn) -> None:
     """The child: enable, then CSP motion, one setpoint per period of its own clock (as
     ``hil controller`` and a CNC pace themselves: it never waits on the socket, so the
     emulator's answer wakes nobody); ends when ``conn`` has a message."""
@@ -145,7 +145,7 @@ def bench(config: Path, seconds: float, compiled: bool = True) -> dict:
     ctx = multiprocessing.get_context("spawn")
     parent, child_conn = ctx.Pipe()
     emulator.open()
-    child = ctx.Process(target=_controller, args=(emulator.endpoint.address[1],
+    child = ctx.Process(target=controller, args=(emulator.endpoint.address[1],
                                                   len(drives), period_ns, child_conn))
     child.start()
     try:
