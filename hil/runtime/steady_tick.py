@@ -58,8 +58,6 @@ R_TICK_START, R_SP_T_NS, R_SP_RX_NS, R_FB_T_NS, R_SP_NEW, R_SP_SEQ, R_SP_REFUSED
 DECLINED_FRAME, DECLINED_SEQUENCE, DECLINED_CYCLE = -1, -2, -3
 #: the tick ran but its answer did not encode (the Python path sends it)
 UNENCODED = 0
-#: where SteadyTick's argument list has the datagram's length, the row and the tick's start
-_N, _J, _TICK_NS = 1, 24, 25
 #: the wire's setpoint floats (codec_compiled.SP_FLOAT_FIELDS) in the drive's ``spf``
 _SPF_SLOT = tuple(C.SP_FLOATS.index(name) for name in K.SP_FLOAT_FIELDS)
 
@@ -216,13 +214,14 @@ class SteadyTick:
         per_axis += [tuple(getattr(p, name) for p in plants)
                      for name in ("params", "state", "inp", "out")]
         per_axis += [tuple(x.ring_f for x in paths), tuple(x.ring_i for x in paths)]
-        # the call's arguments, n, j and tick_ns (_N, _J, _TICK_NS) written per tick
-        self._args = [link.buf, 0, link.sp_ints, link.axis_ints, link.sp_floats, link.link,
-                      link.fb_ints, link.fb_axis_ints, link.fb_floats, link.out,
-                      *(per_axis if group else (a[0] for a in per_axis)),
-                      emulator.recorder.common, -1, 0,
-                      np.zeros((len(drives), snap_width)),
-                      np.zeros((len(drives), 3 + C.N_IST), np.int64)]
+        # the call's arguments; the datagram's length (index 1), the row and the tick's
+        # start (self._j, + 1) are written per tick
+        head = [link.buf, 0, link.sp_ints, link.axis_ints, link.sp_floats, link.link,
+                link.fb_ints, link.fb_axis_ints, link.fb_floats, link.out,
+                *(per_axis if group else (a[0] for a in per_axis)), emulator.recorder.common]
+        self._j = len(head)
+        self._args = head + [-1, 0, np.zeros((len(drives), snap_width)),
+                             np.zeros((len(drives), 3 + C.N_IST), np.int64)]
         self._call = steady_tick_group if group else steady_tick
         self._faults_written = False
         self.ticks = 0
@@ -269,8 +268,8 @@ class SteadyTick:
             for a, d in enumerate(self.drives):
                 link.fb_axis_ints[a, K.A_FAULT] = d.fault
             self._faults_written = True
-        args = self._args
-        args[_N], args[_J], args[_TICK_NS] = n, em.recorder.steady_row(), t_ns
+        args, j = self._args, self._j
+        args[1], args[j], args[j + 1] = n, em.recorder.steady_row(), t_ns
         result = self._call(*args)
         if result < 0:
             self._faults_written = False
@@ -288,19 +287,19 @@ class SteadyTick:
         except AdapterError as e:
             em._adapter_error("send", e)
         if result == UNENCODED:
-            self._answer_in_python()
+            self._answer_in_python(args[j])
         return True
 
-    def _answer_in_python(self) -> None:
+    def _answer_in_python(self, row: int) -> None:
         """The answer the compiled writer declined (a non-finite value), sent by the
-        Python encoder as the Python path sends it."""
+        Python encoder as the Python path sends it; ``row``: the tick's column in the
+        ring (-1: none)."""
         self.settle()
         em = self.emulator
         try:
             em.endpoint.send_feedback(em._fb)
         except AdapterError as e:
             em._adapter_error("send", e)
-        row = em.recorder.steady_row()
         if row >= 0:
             em.recorder.common[R_FB_T_NS, row] = em._fb.t_ns
 
