@@ -49,3 +49,8 @@ def test_cli_prints_json():
                          capture_output=True, text=True, timeout=300, check=True)
     (row,) = json.loads(out.stdout)
     _check(row, 1)
+    calls = row["socket_calls_us"]
+    assert set(calls) == {"recvmsg", "poll", "sendto", "sum"}
+    assert min(calls.values()) > 0.0
+    assert calls["sum"] == calls["recvmsg"] + calls["poll"] + calls["sendto"]
+    assert row["tick_without_socket_p50_us"] == row["tick_compute_us"]["p50"] - calls["sum"]

@@ -21,7 +21,9 @@ machine's state.  JSON, per machine file::
      "plant_step_us": {"p50", "p999"},
      "ratio_p50", "steady_share", "steady_declined", "compiled_share", "enabled_ticks",
      "compiled_share_enabled",
-     "exits", "overruns", "setpoints_heard", "load_avg_1min"}
+     "exits", "overruns", "setpoints_heard", "load_avg_1min",
+     "socket_calls_us": {"recvmsg", "poll", "sendto", "sum"}, "tick_without_socket_p50_us",
+     "ratio_without_socket_p50"}
 
 ``tick_compute_us`` is from the start of the step to the end of ``end_tick`` (wall
 time), ``tick_cpu_us`` the loop thread's CPU time in it (what the tick costs whatever
@@ -34,7 +36,11 @@ answer), ``steady_declined`` the datagrams it handed to the Python path, by reas
 (:mod:`hil.drive.compiled_path`; a compiled tick's included),
 ``compiled_share_enabled`` that share among the ticks that started with every drive in
 OPERATION ENABLED; ``exits`` how often a drive handed a cycle back to Python, by reason;
-an overrun is a tick that ended after the next deadline.  ``--python-drive`` times the
+an overrun is a tick that ended after the next deadline.  ``socket_calls_us``: the
+tick's three socket calls timed alone in the same run (:func:`socket_calls_us`: the
+kernel's part, which no compiled code removes), ``tick_without_socket_p50_us`` the tick's
+p50 less their sum, and ``ratio_without_socket_p50`` that over the plant step's (an
+estimate: a difference of medians).  ``--python-drive`` times the
 same tick with every drive cycle in Python (``"drive": "python"``), the reference.  The
 goal on the Arrow 500 X at 8 kHz: p50 <= 15 µs, p99.9 <= 40 µs, ``ratio_p50`` <= 1.5,
 and two axes without overruns on a quiet machine.
@@ -45,6 +51,8 @@ import json
 import math
 import multiprocessing
 import os
+import select
+import socket
 import sys
 import time
 from dataclasses import dataclass
@@ -59,6 +67,7 @@ from hil.runtime import steady_tick as S
 from hil.runtime.emulator import Emulator, RuntimeConfig
 from io_adapters import open_endpoint
 from io_adapters.messages import MODE_CSP, axis_records, message_pair
+from io_adapters.udp import MAX_DATAGRAM, SO_TIMESTAMPNS, TIMESPEC
 from plant import Plant
 from plant.machines import load_machine_set
 
@@ -68,6 +77,10 @@ DEFAULT_CONFIGS = (CONFIGS / "arrow500_x.toml", CONFIGS / "machines" / "arrow500
 #: the controller's motion: a cosine of this amplitude, increments, at this frequency, Hz
 AMPLITUDE_COUNTS = 50_000.0
 MOTION_HZ = 1.0
+#: calls timed by :func:`socket_calls_us`, and its datagrams' sizes (a version-1 setpoint,
+#: a feedback), bytes
+SOCKET_SAMPLES = 20_000
+SETPOINT_BYTES, FEEDBACK_BYTES = 110, 120
 #: longest wait for the child to start (imports), s
 START_S = 60.0
 #: spin (rather than sleep) for the last this-many ns before a deadline: the loop's, and
@@ -255,9 +268,57 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--json", action="store_true")
 
 
+def socket_calls_us(n: int = SOCKET_SAMPLES) -> dict:
+    """The kernel's part of a tick's socket calls, measured alone: on a pair of UDP
+    sockets on 127.0.0.1 in this process, one receiving as the device does
+    (``recvmsg_into`` with the kernel's receive stamp, then ``poll`` for anything queued
+    behind) and answering with ``sendto``, datagrams of a setpoint's and a feedback's
+    size; the peer reads without waiting (as the bench's controller does), so no send
+    wakes it.  p50 of ``n`` calls each, µs."""
+    device = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    peer = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    try:
+        device.bind(("127.0.0.1", 0))
+        peer.bind(("127.0.0.1", 0))
+        device.setblocking(False)
+        peer.setblocking(False)
+        if SO_TIMESTAMPNS is not None:
+            device.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)
+        poller = select.poll()
+        poller.register(device, select.POLLIN)
+        buf = (bytearray(MAX_DATAGRAM),)
+        ancillary = socket.CMSG_SPACE(TIMESPEC.size)
+        setpoint, feedback = bytes(SETPOINT_BYTES), bytes(FEEDBACK_BYTES)
+        to_device, to_peer = device.getsockname(), peer.getsockname()
+        times = np.zeros((3, n), dtype=np.int64)
+        for k in range(n):
+            peer.sendto(setpoint, to_device)
+            t0 = time.perf_counter_ns()
+            device.recvmsg_into(buf, ancillary)
+            t1 = time.perf_counter_ns()
+            poller.poll(0)
+            t2 = time.perf_counter_ns()
+            device.sendto(feedback, to_peer)
+            t3 = time.perf_counter_ns()
+            peer.recv(MAX_DATAGRAM)
+            times[:, k] = t1 - t0, t2 - t1, t3 - t2
+    finally:
+        device.close()
+        peer.close()
+    p50 = np.median(times, axis=1) * 1e-3
+    return {"recvmsg": float(p50[0]), "poll": float(p50[1]), "sendto": float(p50[2]),
+            "sum": float(p50.sum())}
+
+
 def run_from_args(args: argparse.Namespace) -> int:
     rows = [bench(c, args.seconds, not args.python_drive)
             for c in (args.config or DEFAULT_CONFIGS)]
+    calls = socket_calls_us()
+    for r in rows:
+        r["socket_calls_us"] = calls
+        r["tick_without_socket_p50_us"] = r["tick_compute_us"]["p50"] - calls["sum"]
+        r["ratio_without_socket_p50"] = (r["tick_without_socket_p50_us"]
+                                         / r["plant_step_us"]["p50"])
     if args.json:
         print(json.dumps(rows, indent=2))
         return 0
@@ -270,4 +331,9 @@ def run_from_args(args: argparse.Namespace) -> int:
               f"compiled tick {100 * r['steady_share']:.1f} %, compiled drive cycles "
               f"{100 * r['compiled_share']:.1f} % of ticks; overruns "
               f"{r['overruns']}; load {r['load_avg_1min']:.2f}", file=sys.stdout)
+        c = r["socket_calls_us"]
+        print(f"  the socket calls alone: recvmsg {c['recvmsg']:.1f} poll {c['poll']:.1f} "
+              f"sendto {c['sendto']:.1f} µs; the tick without them p50 "
+              f"{r['tick_without_socket_p50_us']:.1f} µs, "
+              f"{r['ratio_without_socket_p50']:.2f} x the plant step", file=sys.stdout)
     return 0
