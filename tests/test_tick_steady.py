@@ -54,12 +54,13 @@ class WireTwin:
     steady: bool
     extra: dict
     config: Path = ARROW_PATH
+    rate_hz: float | None = None
     emulator: Emulator = field(init=False)
 
     def __post_init__(self):
         machine = load_machine_set(self.config)
         rc = RuntimeConfig(self.config, "udp://127.0.0.1:0", realtime=False,
-                           steady_tick=self.steady)
+                           steady_tick=self.steady, rate_hz=self.rate_hz)
         self.emulator = Emulator(rc, machine, log=lambda message: None)
         self.emulator.open()
         self.drives = self.emulator.drives
@@ -122,8 +123,9 @@ class WireTwin:
                     setattr(record, name, 0)
 
 
-def _compare(segments, extra: dict, config: Path = ARROW_PATH) -> WireTwin:
-    a, b = WireTwin(False, extra, config), WireTwin(True, extra, config)
+def _compare(segments, extra: dict, config: Path = ARROW_PATH,
+             rate_hz: float | None = None) -> WireTwin:
+    a, b = WireTwin(False, extra, config, rate_hz), WireTwin(True, extra, config, rate_hz)
     try:
         Script(segments, len(a.drives)).run(a, b)
         ea, eb = a.emulator, b.emulator
@@ -221,10 +223,15 @@ def test_two_axes():
     assert min(steady.declined.values()) >= 1
 
 
-def test_only_where_it_applies():
-    """A tick of several drive cycles: no compiled tick (the Python path)."""
-    rc = RuntimeConfig(ARROW_PATH, "udp://127.0.0.1:0", realtime=False, rate_hz=4000.0)
-    em = Emulator(rc, load_machine_set(ARROW_PATH), log=lambda message: None)
-    em.open()
-    assert em.timing.cycles_per_tick == 2 and em.steady is None
-    em.endpoint.close()
+@pytest.mark.parametrize("config", [ARROW_PATH, XY_PATH])
+def test_several_drive_cycles_a_tick(config):
+    """At 2 kHz a tick is four PWM periods of the Arrow's drives: the compiled tick runs
+    them all, and a fault in the third puts the first two back (the Python tick runs the
+    tick again)."""
+    extra = {300: "garbage_only", 400: "repeat", 500: "range", 700: "skip"}
+    b = _compare([("csp", 150, 0.0), ("csp", 500, 100.0), ("jump", 150, 3.0e7),
+                  ("cw", 3, 0), ("cw", 3, 0x80), ("csp", 200, 5.0)], extra, config, 2000.0)
+    steady = b.emulator.steady
+    assert steady.cycles == 4
+    assert steady.ticks > 500
+    assert min(steady.declined.values()) >= 1

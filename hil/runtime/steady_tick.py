@@ -1,15 +1,15 @@
 """The emulator's tick in one compiled call, from the setpoint's bytes to the answer's
 (issue 12 part 6: "Python touches only the socket").
 
-In steady state -- one drive cycle per tick, a UDP link whose controller is pinned, every
+In steady state -- a UDP link whose controller is pinned, every
 drive's compiled path holding its state (:mod:`hil.drive.compiled_path`: OPERATION
 ENABLED in CSP, CSV or CST, nothing to react to), the watchdog content, no injection
 under way -- a tick is: read the datagram (Python: the socket), then one call of
 :func:`steady_tick` (one axis) or :func:`steady_tick_group` (a machine of up to
 :data:`~io_adapters.codec_compiled.MAX_AXES` axes) that decodes the setpoint
 (:func:`io_adapters.codec_compiled.decode_setpoint`), checks its session and frame
-number, runs each axis's drive cycle (:func:`hil.drive.compiled.steady_cycle`, which
-writes the axis's recording row), stamps and encodes the feedback
+number, runs the tick's drive cycles (:func:`hil.drive.compiled.steady_cycle`, each
+axis in turn, as many as a tick has PWM periods; it writes the axis's recording row), stamps and encodes the feedback
 (:func:`io_adapters.codec_compiled.encode_feedback`) and writes the row's common part;
 then (Python) the endpoint's books and the send (:class:`io_adapters.udp_steady.
 SteadyLink`), the watchdog's "heard", the drives' counters.
@@ -17,8 +17,8 @@ SteadyLink`), the watchdog's "heard", the drives' counters.
 Anything outside that case is declined with every state as it was: the datagram goes
 back to the endpoint and :meth:`hil.runtime.emulator.Emulator.step`'s Python path runs
 the tick as it always has (the endpoint counts and judges the datagram, the drive's
-Python path reacts; an axis that declines after others ran has them put back from a
-snapshot taken before each), so there is one owner of every decision and the compiled tick adds
+Python path reacts; a cycle that declines after others ran has them put back from a
+snapshot taken at the tick's start), so there is one owner of every decision and the compiled tick adds
 nothing but speed.  tests/test_tick_steady.py runs the same datagrams through an emulator
 with and one without it and compares every feedback byte, recording row and counter.
 
@@ -92,7 +92,7 @@ def _restore(snap, offset, dst):
 @njit(cache=True, _nrt=False)
 def _tick(buf, n, sp_ints, axis_ints, sp_floats, link, fb_ints, fb_axis_ints, fb_floats,
           out, prms, fsts, ists, spfs, spis, saveds, fbfs, ps, ss, inps, outs, rings_f,
-          rings_i, common, j, tick_ns, snap_f, snap_i):
+          rings_i, common, j, tick_ns, n_cycles, snap_f, snap_i):
     """The tick of :func:`steady_tick_group`, every per-axis argument a tuple."""
     if not K.decode_setpoint(buf, n, sp_ints, axis_ints, sp_floats):
         return DECLINED_FRAME
@@ -103,40 +103,45 @@ def _tick(buf, n, sp_ints, axis_ints, sp_floats, link, fb_ints, fb_axis_ints, fb
         return DECLINED_SEQUENCE
     n_axes = len(prms)
     seq = sp_ints[K.I_SEQ]
+    # every axis as it was: its setpoint arrays always (the cycle reads them), and all the
+    # cycle changes where a later cycle or axis may still decline
+    whole = n_cycles > 1 or n_axes > 1
     for a in range(n_axes):
-        fst, ist, spf, spi = fsts[a], ists[a], spfs[a], spis[a]
-        # the axis as it was: its setpoint arrays always (the cycle reads them), and
-        # everything the cycle changes where a later axis may still decline
+        spf, spi = spfs[a], spis[a]
         _copy(spf, snap_f[a], C.N_SPF)
         _copy(spi, snap_i[a], 3)
-        if a < n_axes - 1:
-            at = _save(snap_f[a], C.N_SPF, fst[:C.N_FST])
+        if whole:
+            at = _save(snap_f[a], C.N_SPF, fsts[a][:C.N_FST])
             at = _save(snap_f[a], at, fbfs[a])
             at = _save(snap_f[a], at, ss[a])
             at = _save(snap_f[a], at, inps[a])
             _save(snap_f[a], at, outs[a])
-            _save(snap_i[a], 3, ist[:C.N_IST])
+            _save(snap_i[a], 3, ists[a][:C.N_IST])
         for k in range(7):
             spf[_SPF_SLOT[k]] = sp_floats[a, k]
         spi[C.I_SEQ] = seq
         spi[C.I_CW] = axis_ints[a, K.A_CONTROLWORD]
         spi[C.I_MODE] = axis_ints[a, K.A_MODE]
-        ist[C.J_ROW] = j
-        status = C.steady_cycle(prms[a], fst, ist, spf, spi, ps[a], ss[a], inps[a],
-                                outs[a], saveds[a], fbfs[a], rings_f[a], rings_i[a])
-        ist[C.J_ROW] = -1
-        if status != C.DONE:
-            for b in range(a + 1):
-                _copy(snap_f[b], spfs[b], C.N_SPF)
-                _copy(snap_i[b], spis[b], 3)
-                if b < a:
-                    at = _restore(snap_f[b], C.N_SPF, fsts[b][:C.N_FST])
-                    at = _restore(snap_f[b], at, fbfs[b])
-                    at = _restore(snap_f[b], at, ss[b])
-                    at = _restore(snap_f[b], at, inps[b])
-                    _restore(snap_f[b], at, outs[b])
-                    _restore(snap_i[b], 3, ists[b][:C.N_IST])
-            return DECLINED_CYCLE
+    for _ in range(n_cycles):  # as the Python tick: each cycle steps every axis in turn
+        for a in range(n_axes):
+            ist = ists[a]
+            ist[C.J_ROW] = j
+            status = C.steady_cycle(prms[a], fsts[a], ist, spfs[a], spis[a], ps[a], ss[a],
+                                    inps[a], outs[a], saveds[a], fbfs[a], rings_f[a],
+                                    rings_i[a])
+            ist[C.J_ROW] = -1
+            if status != C.DONE:
+                for b in range(n_axes):
+                    _copy(snap_f[b], spfs[b], C.N_SPF)
+                    _copy(snap_i[b], spis[b], 3)
+                    if whole:
+                        at = _restore(snap_f[b], C.N_SPF, fsts[b][:C.N_FST])
+                        at = _restore(snap_f[b], at, fbfs[b])
+                        at = _restore(snap_f[b], at, ss[b])
+                        at = _restore(snap_f[b], at, inps[b])
+                        _restore(snap_f[b], at, outs[b])
+                        _restore(snap_i[b], 3, ists[b][:C.N_IST])
+                return DECLINED_CYCLE
     for a in range(n_axes):
         fb_axis_ints[a, K.A_STATUSWORD] = ists[a][C.J_STATUSWORD]
         _copy(fbfs[a], fb_floats[a], C.N_FBF)
@@ -160,7 +165,7 @@ def _tick(buf, n, sp_ints, axis_ints, sp_floats, link, fb_ints, fb_axis_ints, fb
 @njit(cache=True, _nrt=False)
 def steady_tick(buf, n, sp_ints, axis_ints, sp_floats, link, fb_ints, fb_axis_ints,
                 fb_floats, out, prm, fst, ist, spf, spi, saved, fbf, p, s, inp, plant_out,
-                ring_f, ring_i, common, j, tick_ns, snap_f, snap_i):
+                ring_f, ring_i, common, j, tick_ns, n_cycles, snap_f, snap_i):
     """One tick of a single-axis machine (see the module docstring), its arrays passed one
     by one (a tuple costs the call more than the tick saves).  ``buf[:n]``: the datagram;
     ``sp_ints`` .. ``out``: :class:`~io_adapters.udp_steady.SteadyLink`'s arrays;
@@ -168,24 +173,25 @@ def steady_tick(buf, n, sp_ints, axis_ints, sp_floats, link, fb_ints, fb_axis_in
     (:class:`~hil.drive.compiled_path.CompiledPath`); ``p``, ``s``, ``inp``,
     ``plant_out``: the plant's; ``ring_f``, ``ring_i``: the axis's planes of the
     recording's ring, ``common`` its common block, ``j`` the row's column (-1: not
-    recorded); ``tick_ns``: the tick's start (monotonic ns); ``snap_f``, ``snap_i``: the
-    per-axis snapshots (:class:`SteadyTick`).  Returns the answer's length, or
+    recorded); ``tick_ns``: the tick's start (monotonic ns); ``n_cycles``: drive cycles
+    per tick; ``snap_f``, ``snap_i``: the per-axis snapshots (:class:`SteadyTick`).  Returns the answer's length, or
     :data:`UNENCODED` (the tick ran), or a ``DECLINED_*`` code (nothing changed)."""
     return _tick(buf, n, sp_ints, axis_ints, sp_floats, link, fb_ints, fb_axis_ints,
                  fb_floats, out, (prm,), (fst,), (ist,), (spf,), (spi,), (saved,), (fbf,),
                  (p,), (s,), (inp,), (plant_out,), (ring_f,), (ring_i,), common, j, tick_ns,
-                 snap_f, snap_i)
+                 n_cycles, snap_f, snap_i)
 
 
 @njit(cache=True, _nrt=False)
 def steady_tick_group(buf, n, sp_ints, axis_ints, sp_floats, link, fb_ints, fb_axis_ints,
                       fb_floats, out, prms, fsts, ists, spfs, spis, saveds, fbfs, ps, ss,
-                      inps, outs, rings_f, rings_i, common, j, tick_ns, snap_f, snap_i):
+                      inps, outs, rings_f, rings_i, common, j, tick_ns, n_cycles, snap_f,
+                      snap_i):
     """One tick of a machine of several axes: :func:`steady_tick` with a tuple of every
     axis's array in place of each per-axis array."""
     return _tick(buf, n, sp_ints, axis_ints, sp_floats, link, fb_ints, fb_axis_ints,
                  fb_floats, out, prms, fsts, ists, spfs, spis, saveds, fbfs, ps, ss, inps,
-                 outs, rings_f, rings_i, common, j, tick_ns, snap_f, snap_i)
+                 outs, rings_f, rings_i, common, j, tick_ns, n_cycles, snap_f, snap_i)
 
 
 class SteadyTick:
@@ -220,7 +226,8 @@ class SteadyTick:
                 link.fb_ints, link.fb_axis_ints, link.fb_floats, link.out,
                 *(per_axis if group else (a[0] for a in per_axis)), emulator.recorder.common]
         self._j = len(head)
-        self._args = head + [-1, 0, np.zeros((len(drives), snap_width)),
+        self.cycles = emulator.timing.cycles_per_tick
+        self._args = head + [-1, 0, self.cycles, np.zeros((len(drives), snap_width)),
                              np.zeros((len(drives), 3 + C.N_IST), np.int64)]
         self._call = steady_tick_group if group else steady_tick
         self._faults_written = False
@@ -233,14 +240,12 @@ class SteadyTick:
 
     @classmethod
     def for_emulator(cls, emulator) -> "SteadyTick | None":
-        """The compiled tick of an emulator that can take one: one drive cycle per tick,
-        at most :data:`~io_adapters.codec_compiled.MAX_AXES` axes, a UDP device endpoint
-        refusing what its drives refuse, no SYNC, every drive's compiled path; else
-        None."""
+        """The compiled tick of an emulator that can take one: at most
+        :data:`~io_adapters.codec_compiled.MAX_AXES` axes, a UDP device endpoint refusing
+        what its drives refuse, no SYNC, every drive's compiled path; else None."""
         ep = emulator.endpoint
         drives = emulator.drives.drives
-        if (len(drives) > K.MAX_AXES or emulator.timing.cycles_per_tick != 1
-                or type(ep) is not UdpEndpoint or emulator.sync_lock is not None
+        if (len(drives) > K.MAX_AXES or type(ep) is not UdpEndpoint or emulator.sync_lock is not None
                 or any(d.compiled is None for d in drives)
                 or ep.setpoint_bounds != tuple(d.setpoint_bounds() for d in drives)):
             return None
@@ -279,8 +284,8 @@ class SteadyTick:
         self.ticks += 1
         self.dirty = True
         for d, path in zip(self.drives, self.paths):
-            path.cycles += 1
-            d.tick += 1
+            path.cycles += self.cycles
+            d.tick += self.cycles
         em.watchdog.heard_steady()
         try:
             link.commit(result)
