@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from hil.controller.config import axis_limits, clamp_codes, cnc_unit, load_controller
-from hil.controller.interpolator import plan
+from hil.controller.interpolator import SETTLE_S, plan
 from hil.controller.program import read_program
 from hil.figures import plot_sim, plot_step
 from hil.measure.frequency_response import bandwidth_hz, bode_plot, peaks, write_csv
@@ -23,8 +23,6 @@ from hil.trace_file import write_trace
 from plant.assemble import transmission_ratio
 from plant.config import MachineConfig, load_machine
 
-#: seconds simulated after the program's end so the axis settles
-SETTLE_S = 0.2
 #: resonance peaks are reported down to this far below the low-frequency gain, dB
 PEAK_RANGE_DB = 20.0
 

@@ -17,6 +17,23 @@ def configs_dir() -> Path:
     return CONFIGS
 
 
+@pytest.fixture(scope="session")
+def experiment_rows():
+    """``hil validate``'s experiment by its registry name -> its rows (``run_all`` with that
+    one only, no plots), each experiment run once per session: the physics tests check its
+    verification rows and tests/test_validate_rows.py every row's kind, seed passage and
+    verdict, on the same (frozen) rows."""
+    from hil.validate.core import run_all
+
+    done: dict[str, list] = {}
+
+    def rows(name: str) -> list:
+        if name not in done:
+            done[name] = run_all(None, [name])
+        return done[name]
+    return rows
+
+
 @pytest.fixture
 def multicast_group():
     """A multicast group of its own, routed over lo for the test: (group, port)."""

@@ -3,6 +3,8 @@ io_adapters nothing from plant or hil (style guide habit 11).  Checked on the so
 with the ast module, so a lazy import inside a function is caught as well."""
 
 import ast
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -49,3 +51,14 @@ def test_the_kernel_guard_catches_a_violation(tmp_path):
     bad = tmp_path / "m.py"
     bad.write_text("def f():\n    from hil.cli import main\n")
     assert "hil" in imported_top_names(bad)
+
+
+def test_the_controller_process_loads_no_plotting_or_analysis_stack():
+    """``hil controller`` starts once per loopback run, and its start is on the test's and
+    the user's clock: matplotlib and scipy.signal (``hil sim``'s figures and ``hil
+    measure``'s analysis, about 0.8 s of imports) are no part of its work."""
+    probe = ("import sys, hil.runtime.controller_proc; "
+             "print(sorted({'matplotlib', 'scipy.signal'} & set(sys.modules)))")
+    done = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True,
+                          cwd=ROOT, timeout=120, check=True)
+    assert done.stdout.strip() == "[]", done.stdout

@@ -2,7 +2,7 @@
 
 import numpy as np
 
-from hil.validate.experiments.cogging import cogging_spectrum, position_spectrum
+from hil.validate.experiments.cogging import position_spectrum
 
 
 def test_position_spectrum_recovers_a_known_signal():
@@ -20,11 +20,11 @@ def test_position_spectrum_recovers_a_known_signal():
     assert sp.amplitudes[12] < 0.01
 
 
-def test_ld386_cogging_and_friction_match_seed_002():
+def test_ld386_cogging_and_friction_match_seed_002(experiment_rows):
     """Seed 002 Fig. 9 / §5: at constant velocity under a velocity loop the motor force's
     position spectrum shows 1.39, 2.62, 1.52 N at 1, 2, 4 cycles per electrical revolution
     and a DC part of 18.76 N (friction)."""
-    rows = cogging_spectrum(None)
+    rows = experiment_rows("cogging_spectrum")
     assert len(rows) == 4
     for r in rows:
         assert r.ok, r

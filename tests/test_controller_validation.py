@@ -16,17 +16,17 @@ from hil.validate.experiments import seed000_loops as L0
 from plant.assemble import natural_frequencies, transmission_ratio
 from plant.config import load_machine
 
-EXPERIMENTS = (L0.seed000_current_steps, L0.seed000_velocity_steps, L0.seed000_position_step,
-               L0.seed000_speed_loop_bode, MV.seed003_trapezoid, MV.seed002_linear_move)
+EXPERIMENTS = ("seed000_current_steps", "seed000_velocity_steps", "seed000_position_step",
+               "seed000_speed_loop_bode", "seed003_trapezoid", "seed002_linear_move")
 
 
-@pytest.mark.parametrize("run", EXPERIMENTS, ids=lambda f: f.__name__)
-def test_experiment_rows_ok(run):
+@pytest.mark.parametrize("name", EXPERIMENTS)
+def test_experiment_rows_ok(experiment_rows, name):
     """Every verification row against its reference: the analytic current loop, a
     scipy.signal linear analysis of the position loop, the linearised mechanics' modes,
     v / K_v, the speed quantization (see each row); the seed rows are checked in
     test_validate_rows.py."""
-    rows = run(None)
+    rows = experiment_rows(name)
     failing = failing_verifications(rows)
     assert rows and not failing, "\n".join(
         f"{r.experiment}: paper {r.paper} model {r.model} {r.unit} ({r.tolerance})"

@@ -23,11 +23,11 @@ def quiet_locked_arrow() -> Plant:
 
 # --- current loop ----------------------------------------------------------------------
 
-def test_current_steps_rows_ok():
+def test_current_steps_rows_ok(experiment_rows):
     """Kernel current steps of 0.84 A and 2.8 A vs the exact discrete loop built with
     scipy.signal (ZOH R-L plant, discrete PI, one PWM period of delay) and seed 000 §5's
     step heights (3 % and 10 % of I_max)."""
-    assert_rows_ok(E.current_steps(None))
+    assert_rows_ok(experiment_rows("current_steps"))
 
 
 def test_analytic_loop_first_samples_by_hand():
@@ -99,18 +99,18 @@ def test_voltage_mode_limits_vector_to_the_svpwm_limit():
 
 # --- field weakening -------------------------------------------------------------------
 
-def test_field_weakening_rows_ok():
+def test_field_weakening_rows_ok(experiment_rows):
     """Steady torque at held speeds, with and without field weakening, vs the test's own
     implementation of seed 001 eq. 2, 4-6 and 8-10 with the current limit."""
-    assert_rows_ok(E.field_weakening(None))
+    assert_rows_ok(experiment_rows("field_weakening"))
 
 
 # --- current measurement ---------------------------------------------------------------
 
-def test_current_noise_quantization_rows_ok():
+def test_current_noise_quantization_rows_ok(experiment_rows):
     """Standstill measurement statistics vs the configured noise, the exact std of a
     Gaussian rounded to the ADC grid, the grid itself and sample and hold."""
-    assert_rows_ok(E.current_noise_quantization(None))
+    assert_rows_ok(experiment_rows("current_noise_quantization"))
 
 
 def test_quantized_gaussian_std_limits():
@@ -137,10 +137,10 @@ def test_measured_current_with_flowing_current_on_grid_and_near_truth():
 
 # --- encoder ---------------------------------------------------------------------------
 
-def test_encoder_resolution_rows_ok():
+def test_encoder_resolution_rows_ok(experiment_rows):
     """Slow coasting on the seed 004 XY table: counts per revolution, lead, 38 nm per
     count (seed 004 §2.1) and count increments of 0 or 1."""
-    assert_rows_ok(E.encoder_resolution(None))
+    assert_rows_ok(experiment_rows("encoder_resolution"))
 
 
 def test_encoder_counts_whole_revolutions():

@@ -27,9 +27,9 @@ def test_rig_friction_is_the_papers():
     assert fr.PAPER_F_H == pytest.approx(37.5, abs=0.05)
 
 
-def test_coulomb_hold():
+def test_coulomb_hold(experiment_rows):
     """Stiction below F_H, motion above, breakaway at seed 003's F_H = 37.5 N."""
-    assert_rows_ok(fr.coulomb_hold(None))
+    assert_rows_ok(experiment_rows("coulomb_hold"))
 
 
 def test_breakaway_needs_f_h_not_f_c():
@@ -40,9 +40,9 @@ def test_breakaway_needs_f_h_not_f_c():
     assert travel == 0.0
 
 
-def test_backlash_lost_motion():
+def test_backlash_lost_motion(experiment_rows):
     """Lost motion after reversal vs the gap D (seed 003 Table 1) plus 2 F_C / k."""
-    assert_rows_ok(fr.backlash_lost_motion(None))
+    assert_rows_ok(experiment_rows("backlash_lost_motion"))
 
 
 def test_lost_motions_of_an_ideal_backlash():
@@ -60,8 +60,8 @@ def test_lost_motions_of_an_ideal_backlash():
 
 
 @pytest.fixture(scope="module")
-def presliding_rows():
-    return fr.presliding_seed004(None)
+def presliding_rows(experiment_rows):
+    return experiment_rows("presliding_seed004")
 
 
 def test_presliding_seed004(presliding_rows):
@@ -95,9 +95,9 @@ def test_presliding_loop_closes():
     assert up == pytest.approx(down, rel=1e-12)
 
 
-def test_stribeck_curve():
+def test_stribeck_curve(experiment_rows):
     """Steady sliding friction from the torque balance vs the analytic Stribeck law."""
-    assert_rows_ok(fr.stribeck_curve(None))
+    assert_rows_ok(experiment_rows("stribeck_curve"))
 
 
 def test_stribeck_law_limits():

@@ -4,6 +4,9 @@ model, and the command's outputs and refusals on a generated trace."""
 import json
 import subprocess
 import sys
+from concurrent.futures import ProcessPoolExecutor
+from multiprocessing import get_context
+from pathlib import Path
 
 import pytest
 
@@ -18,6 +21,27 @@ needs_emps = pytest.mark.skipif(not EMPS_DIR.is_dir(),
                                 reason=f"EMPS benchmark data not found at {EMPS_DIR}")
 
 
+def _identify_emps(out: Path, exclude: tuple[str, ...]) -> dict:
+    """``hil identify`` of DATA_EMPS from configs/emps.toml, validated on DATA_EMPS_PULSES,
+    into ``out``; report.json's content."""
+    return identify(EMPS_DIR / "DATA_EMPS.mat", ROOT / "configs" / "emps.toml", out,
+                    EMPS_DIR / "DATA_EMPS_PULSES.mat", exclude=exclude)
+
+
+@pytest.fixture(scope="module")
+def emps(tmp_path_factory):
+    """"symmetric" (without viscous_asymmetry) and "whole library" -> (report, out folder):
+    the two identifications the EMPS tests check, run two at a time (each is about 25 s on
+    one core and the suite runs on one; the machine has two), both even when one test is
+    selected."""
+    runs = {"symmetric": ("viscous_asymmetry",), "whole library": ()}
+    outs = {name: tmp_path_factory.mktemp(name.replace(" ", "_")) for name in runs}
+    with ProcessPoolExecutor(2, mp_context=get_context("spawn")) as pool:
+        done = {name: pool.submit(_identify_emps, outs[name], exclude)
+                for name, exclude in runs.items()}
+        return {name: (future.result(), outs[name]) for name, future in done.items()}
+
+
 def beats_the_published_reference(rep: dict) -> None:
     assert rep["error_after"]["force_relerr_pct"] < EMPS_PUBLISHED["DATA_EMPS"][
         "force_relerr_pct"]
@@ -27,7 +51,7 @@ def beats_the_published_reference(rep: dict) -> None:
 
 
 @needs_emps
-def test_emps_with_the_symmetric_models_terms_finds_coulomb_and_the_offset(tmp_path):
+def test_emps_with_the_symmetric_models_terms_finds_coulomb_and_the_offset(emps):
     """Janot, Gautier, Brunot (2019): IDIM-LS of the symmetric model on DATA_EMPS gives
     Fc = 20.3935 N and an offset of -3.1648 N (SOURCE.md); their closed-loop force errors
     are 5.848 % on DATA_EMPS and 8.9409 % on DATA_EMPS_PULSES, the record we validate on
@@ -35,29 +59,27 @@ def test_emps_with_the_symmetric_models_terms_finds_coulomb_and_the_offset(tmp_p
     IDIM-LS; the closed-loop refinement then fits the replay's force and position (an
     output-error estimate, which the paper does not publish) and moves Coulomb's level by
     a few per cent."""
-    rep = identify(EMPS_DIR / "DATA_EMPS.mat", ROOT / "configs" / "emps.toml", tmp_path,
-                   EMPS_DIR / "DATA_EMPS_PULSES.mat", exclude=("viscous_asymmetry",))
+    rep, out = emps["symmetric"]
     added = rep["effects_added"]
     assert added[:2] == ["coulomb_friction", "gravity_offset"], added
     idim = {k: v for s in rep["steps"][:2] for k, v in s["params"].items()}
     assert rep["refinement"]["before"]["coulomb_friction"] == pytest.approx(20.39, rel=0.02)
     # the model's offset -3.16 N is a constant force of +3.16 N on the table
     assert idim["external_force_n"] == pytest.approx(3.16, rel=0.05)
-    fitted = load_machine(tmp_path / "config.toml")
+    fitted = load_machine(out / "config.toml")
     assert fitted.friction.coulomb_n == pytest.approx(20.39, rel=0.06)
     assert fitted.table.external_force_n == pytest.approx(3.16, rel=0.05)
     beats_the_published_reference(rep)
-    md = (tmp_path / "report.md").read_text()
+    md = (out / "report.md").read_text()
     assert "published reference model" in md and "8.9409" in md and "5.848" in md
 
 
 @needs_emps
-def test_emps_with_the_whole_library_finds_the_papers_asymmetric_friction(tmp_path):
+def test_emps_with_the_whole_library_finds_the_papers_asymmetric_friction(emps):
     """With every effect allowed the constant offset gives way to viscous friction that
     differs by direction, the paper's asymmetric IDIM-LS model (SOURCE.md: Fv+ 166.7,
     Fv- 240.4 N s/m, Fc+ 20.14, Fc- 20.63 N, no offset), and the errors drop further."""
-    rep = identify(EMPS_DIR / "DATA_EMPS.mat", ROOT / "configs" / "emps.toml", tmp_path,
-                   EMPS_DIR / "DATA_EMPS_PULSES.mat")
+    rep, out = emps["whole library"]
     added = rep["effects_added"]
     assert added[:2] == ["coulomb_friction", "viscous_asymmetry"], added
     # the inverse model's joint fit (IDIM-LS), which the closed-loop refinement starts from
@@ -67,7 +89,7 @@ def test_emps_with_the_whole_library_finds_the_papers_asymmetric_friction(tmp_pa
     assert fv - dfv == pytest.approx(240.4, rel=0.05)
     assert idim["coulomb_friction"] == pytest.approx(0.5 * (20.14 + 20.63), rel=0.02)
     # the refinement's output-error fit of force and position moves them a little
-    fr = load_machine(tmp_path / "config.toml").friction
+    fr = load_machine(out / "config.toml").friction
     assert fr.viscous_ns_per_m + fr.viscous_asymmetry_ns_per_m == pytest.approx(166.7, rel=0.1)
     assert fr.viscous_ns_per_m - fr.viscous_asymmetry_ns_per_m == pytest.approx(240.4, rel=0.1)
     assert fr.coulomb_n == pytest.approx(0.5 * (20.14 + 20.63), rel=0.06)

@@ -24,20 +24,20 @@ def test_experiments_registered():
         assert REGISTRY[name].seed == seed
 
 
-def test_rigid_acceleration():
+def test_rigid_acceleration(experiment_rows):
     """Rigid Arrow axis vs the analytic acceleration T / (J_m + J_load + m (lead/2pi)^2)."""
-    assert_rows_ok(mech.rigid_acceleration(None))
+    assert_rows_ok(experiment_rows("rigid_acceleration"))
 
 
-def test_two_mass_resonance():
+def test_two_mass_resonance(experiment_rows):
     """Two-mass free vibration vs the analytic sqrt(k (J1+J2)/(J1 J2)) and sqrt(k/J2)."""
-    assert_rows_ok(mech.two_mass_resonance(None))
+    assert_rows_ok(experiment_rows("two_mass_resonance"))
 
 
-def test_screw_modes():
+def test_screw_modes(experiment_rows):
     """Lumped screw vs the continuous fixed-free rod (1/N^2 convergence) and the kernel's
     modal free vibration vs the eigenvalues of mechanics_matrices."""
-    assert_rows_ok(mech.screw_modes(None))
+    assert_rows_ok(experiment_rows("screw_modes"))
 
 
 def test_rod_convergence_is_second_order():
@@ -49,9 +49,9 @@ def test_rod_convergence_is_second_order():
     assert err[1] / err[2] == pytest.approx(4.0, rel=0.02)
 
 
-def test_moving_nut_stiffness():
+def test_moving_nut_stiffness(experiment_rows):
     """Kernel static stiffness at the table vs the analytic series formula, 7 positions."""
-    assert_rows_ok(mech.moving_nut_stiffness(None))
+    assert_rows_ok(experiment_rows("moving_nut_stiffness"))
 
 
 @pytest.mark.parametrize("table_pos", [0.0, 0.147, 0.3, 0.5])
@@ -79,9 +79,9 @@ def test_lumped_nut_distance_at_nodes_and_between():
     assert mech.lumped_nut_distance(cfg, mid) == pytest.approx(3.25 * seg, rel=1e-12)
 
 
-def test_energy_conservation():
+def test_energy_conservation(experiment_rows):
     """Undamped Arrow screw model: bounded energy, no drift; trajectory vs solve_ivp DOP853."""
-    assert_rows_ok(mech.energy_conservation(None))
+    assert_rows_ok(experiment_rows("energy_conservation"))
 
 
 def test_energy_function_matches_matrices():
@@ -96,9 +96,9 @@ def test_energy_function_matches_matrices():
     assert variants.screw_energy(plant) == pytest.approx(0.5 * dq @ k_mat @ dq, rel=1e-6)
 
 
-def test_lumped_vs_tlm():
+def test_lumped_vs_tlm(experiment_rows):
     """TLM solver vs the lumped solver: first natural frequency and static stiffness."""
-    assert_rows_ok(mech.lumped_vs_tlm(None))
+    assert_rows_ok(experiment_rows("lumped_vs_tlm"))
 
 
 def test_crossing_frequency_of_a_sine():

@@ -7,8 +7,9 @@ import re
 
 import pytest
 
+import hil.validate.experiments  # noqa: F401  (registers the experiments)
 from hil.validate.command import summarize
-from hil.validate.core import PREDICTION, REPO, Kind, failing_verifications, run_all
+from hil.validate.core import PREDICTION, REGISTRY, REPO, Kind, failing_verifications
 
 SEEDS = REPO.parent / "shared" / "seeds"
 PASSAGE = re.compile(r"§|Fig\.|Table|eq\.")
@@ -40,8 +41,9 @@ KNOWN_BUGS = {
 
 
 @pytest.fixture(scope="module")
-def rows():
-    return run_all(None)
+def rows(experiment_rows):
+    """Every experiment's rows in registry order, as ``hil validate`` (run_all) gives them."""
+    return [r for name in REGISTRY for r in experiment_rows(name)]
 
 
 def seed_text(seed: str) -> str:

@@ -29,6 +29,10 @@ import numpy as np
 from hil.controller.config import AxisLimits
 from hil.controller.program import BlockKind, Program
 
+#: seconds run after the profile's end so the axis settles (``hil sim``'s lock-step and
+#: ``hil controller``'s loop alike)
+SETTLE_S = 0.2
+
 _Phase = tuple[float, float, float]
 """(duration s, acceleration at the phase start, jerk) of one phase, for a positive move."""
 

@@ -22,10 +22,11 @@ by a :class:`~hil.rt.loop.RealTimeLoop` instead of back to back with the drive:
 4. run: each tick polls the newest feedback (timeout 0), ``ctrl.tick(fb, sp)``, sends the
    setpoint; the CiA 402 enable sequence first, then, on the tick the drive reports
    OPERATION ENABLED, the program (as ``hil sim`` does), recorded for the program's
-   duration plus :data:`hil.commands.SETTLE_S`.  An alarm of the NC (:mod:`hil.controller.
-   alarms`: contour, standstill or clamping monitoring, a bad feedback value, a drive
-   fault) ends the run once the NC has stopped every axis (braked, drives disabled); the
-   ticks until then are recorded.  A tick without new feedback (a late drive
+   duration plus :data:`hil.controller.interpolator.SETTLE_S`.  An alarm of the NC
+   (:mod:`hil.controller.alarms`: contour, standstill or clamping monitoring, a bad
+   feedback value, a drive fault) ends the run once the NC has stopped every axis
+   (braked, drives disabled); the ticks until then are recorded.  A tick without new
+   feedback (a late drive
    cycle, a lost frame) extrapolates the last one with the drive's speed actual value
    (606Ch) over one period, as a controller bridges a missing bus telegram, instead of
    reading a frozen encoder as standstill; on a link whose feedback says how old it is
@@ -64,9 +65,8 @@ from pathlib import Path
 import numpy as np
 
 from hil.cia402 import DISABLE_VOLTAGE
-from hil.commands import SETTLE_S
 from hil.controller.config import clamp_codes, cnc_unit
-from hil.controller.interpolator import plan
+from hil.controller.interpolator import SETTLE_S, plan
 from hil.controller.machine import MachineController
 from hil.controller.path import read_path_program
 from hil.controller.program import ProgramError, read_program
