@@ -13,8 +13,6 @@ its feedback record, :data:`PARAMETERS` the drive's own objects (through
 
 from dataclasses import dataclass
 
-from canopen import objectdictionary as od_types
-
 SYNC_COB_ID = 0x080
 NMT_COB_ID = 0x000
 EMCY_BASE = 0x080
@@ -55,9 +53,12 @@ SDO_ABORT_VALUE_LOW = 0x0609_0032
 SDO_ABORT_MAX_BELOW_MIN = 0x0609_0036
 SDO_ABORT_DEVICE_STATE = 0x0800_0022
 
-U8, I8 = od_types.UNSIGNED8, od_types.INTEGER8
-U16, I16 = od_types.UNSIGNED16, od_types.INTEGER16
-U32, I32 = od_types.UNSIGNED32, od_types.INTEGER32
+#: CiA 301's data type codes (the object dictionary's 0002h-0007h, as canopen numbers
+#: them), written out so that the drive's objects load without canopen and python-can
+#: (and asammdf behind them): 0.65 s of every ``hil run`` start on another link
+I8, I16, I32, U8, U16, U32 = 2, 3, 4, 5, 6, 7
+#: each type's little-endian ``struct`` code (CiA 301: 1, 2 or 4 bytes)
+STRUCT_CODE = {I8: "b", I16: "h", I32: "l", U8: "B", U16: "H", U32: "L"}
 INT_RANGE = {U8: (0, 0xFF), I8: (-0x80, 0x7F), U16: (0, 0xFFFF), I16: (-2**15, 2**15 - 1),
              U32: (0, 0xFFFF_FFFF), I32: (-2**31, 2**31 - 1)}
 BITS = {U8: 8, I8: 8, U16: 16, I16: 16, U32: 32, I32: 32}

@@ -3,6 +3,7 @@ io_adapters nothing from plant or hil (style guide habit 11).  Checked on the so
 with the ast module, so a lazy import inside a function is caught as well."""
 
 import ast
+import json
 import subprocess
 import sys
 from pathlib import Path
@@ -53,12 +54,24 @@ def test_the_kernel_guard_catches_a_violation(tmp_path):
     assert "hil" in imported_top_names(bad)
 
 
+def _loaded(module: str, others: set[str]) -> list[str]:
+    """Which of ``others`` importing ``module`` loads, in a fresh interpreter."""
+    probe = (f"import json, sys, {module}; "
+             f"print(json.dumps(sorted({sorted(others)!r} & sys.modules.keys())))")
+    done = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True,
+                          cwd=ROOT, timeout=120, check=True)
+    return json.loads(done.stdout)
+
+
 def test_the_controller_process_loads_no_plotting_or_analysis_stack():
     """``hil controller`` starts once per loopback run, and its start is on the test's and
     the user's clock: matplotlib and scipy.signal (``hil sim``'s figures and ``hil
     measure``'s analysis, about 0.8 s of imports) are no part of its work."""
-    probe = ("import sys, hil.runtime.controller_proc; "
-             "print(sorted({'matplotlib', 'scipy.signal'} & set(sys.modules)))")
-    done = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True,
-                          cwd=ROOT, timeout=120, check=True)
-    assert done.stdout.strip() == "[]", done.stdout
+    assert _loaded("hil.runtime.controller_proc", {"matplotlib", "scipy.signal"}) == []
+
+
+def test_the_emulator_loads_no_can_stack():
+    """``hil run`` over UDP or serial needs neither canopen nor python-can (and asammdf,
+    pandas behind them: 0.65 s of a 1.1 s start); a ``can://`` URL loads them when the
+    endpoint opens."""
+    assert _loaded("hil.runtime.emulator", {"can", "canopen", "asammdf"}) == []
