@@ -14,7 +14,6 @@ from plant.config import load_machine
 from tests.helpers import assert_rows_ok
 
 
-
 def test_experiments_registered():
     """The six mechanical experiments are in the registry under their seed papers."""
     seeds = {"rigid_acceleration": "000", "two_mass_resonance": "000", "screw_modes": "000",

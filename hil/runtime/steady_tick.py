@@ -1,26 +1,28 @@
 """The emulator's tick in one compiled call, from the setpoint's bytes to the answer's
 (issue 12 part 6: "Python touches only the socket").
 
-In steady state -- a UDP link whose controller is pinned, every
-drive's compiled path holding its state (:mod:`hil.drive.compiled_path`: OPERATION
-ENABLED in CSP, CSV or CST, nothing to react to), the watchdog content, no injection
-under way -- a tick is: read the datagram (Python: the socket), then one call of
-:func:`steady_tick` (one axis) or :func:`steady_tick_group` (a machine of up to
+In steady state -- a UDP link whose controller is pinned, every drive's compiled path
+holding its state (:mod:`hil.drive.compiled_path`: OPERATION ENABLED in CSP, CSV or CST,
+nothing to react to), the watchdog content, no injection under way -- a tick is: read
+the datagram (Python: the socket), then one call of :func:`steady_tick` (one axis) or
+:func:`steady_tick_group` (a machine of up to
 :data:`~io_adapters.codec_compiled.MAX_AXES` axes) that decodes the setpoint
 (:func:`io_adapters.codec_compiled.decode_setpoint`), checks its session and frame
-number, runs the tick's drive cycles (:func:`hil.drive.compiled.steady_cycle`, each
-axis in turn, as many as a tick has PWM periods; it writes the axis's recording row), stamps and encodes the feedback
-(:func:`io_adapters.codec_compiled.encode_feedback`) and writes the row's common part;
-then (Python) the endpoint's books and the send (:class:`io_adapters.udp_steady.
-SteadyLink`), the watchdog's "heard", the drives' counters.
+number, runs the tick's drive cycles (:func:`hil.drive.compiled.steady_cycle`, each axis
+in turn, as many as a tick has PWM periods; it writes the axis's recording row), stamps
+and encodes the feedback (:func:`io_adapters.codec_compiled.encode_feedback`) and writes
+the row's common part; then (Python) the endpoint's books and the send
+(:class:`io_adapters.udp_steady.SteadyLink`), the watchdog's "heard", the drives'
+counters.
 
 Anything outside that case is declined with every state as it was: the datagram goes
 back to the endpoint and :meth:`hil.runtime.emulator.Emulator.step`'s Python path runs
 the tick as it always has (the endpoint counts and judges the datagram, the drive's
 Python path reacts; a cycle that declines after others ran has them put back from a
-snapshot taken at the tick's start), so there is one owner of every decision and the compiled tick adds
-nothing but speed.  tests/test_tick_steady.py runs the same datagrams through an emulator
-with and one without it and compares every feedback byte, recording row and counter.
+snapshot taken at the tick's start), so there is one owner of every decision and the
+compiled tick adds nothing but speed.  tests/test_tick_steady.py runs the same datagrams
+through an emulator with and one without it and compares every feedback value, recording
+row and counter.
 
 While compiled ticks run, the emulator's Setpoint and Feedback records are not written
 (that would cost what the compiled tick saves); :meth:`SteadyTick.settle` writes them
@@ -75,18 +77,27 @@ def _copy(src, dst, n):
 
 
 @njit(cache=True, inline="always")
-def _save(snap, offset, src):
-    """``snap[offset:offset + len(src)] = src``; the next offset."""
-    for k in range(src.size):
-        snap[offset + k] = src[k]
-    return offset + src.size
+def _keep(snap, offset, arr, back):
+    """``snap[offset:offset + arr.size] = arr``, or (``back``) the other way; the next
+    offset."""
+    for k in range(arr.size):
+        if back:
+            arr[k] = snap[offset + k]
+        else:
+            snap[offset + k] = arr[k]
+    return offset + arr.size
 
 
 @njit(cache=True, inline="always")
-def _restore(snap, offset, dst):
-    for k in range(dst.size):
-        dst[k] = snap[offset + k]
-    return offset + dst.size
+def _axis_state(snap_f, snap_i, fst, fbf, s, inp, out, ist, back):
+    """Keep everything a drive cycle changes in the axis's snapshot rows (after its
+    setpoint's ``N_SPF`` floats and 3 ints), or (``back``) put it back from them."""
+    at = _keep(snap_f, C.N_SPF, fst[:C.N_FST], back)
+    at = _keep(snap_f, at, fbf, back)
+    at = _keep(snap_f, at, s, back)
+    at = _keep(snap_f, at, inp, back)
+    _keep(snap_f, at, out, back)
+    _keep(snap_i, 3, ist[:C.N_IST], back)
 
 
 @njit(cache=True, _nrt=False)
@@ -111,12 +122,8 @@ def _tick(buf, n, sp_ints, axis_ints, sp_floats, link, fb_ints, fb_axis_ints, fb
         _copy(spf, snap_f[a], C.N_SPF)
         _copy(spi, snap_i[a], 3)
         if whole:
-            at = _save(snap_f[a], C.N_SPF, fsts[a][:C.N_FST])
-            at = _save(snap_f[a], at, fbfs[a])
-            at = _save(snap_f[a], at, ss[a])
-            at = _save(snap_f[a], at, inps[a])
-            _save(snap_f[a], at, outs[a])
-            _save(snap_i[a], 3, ists[a][:C.N_IST])
+            _axis_state(snap_f[a], snap_i[a], fsts[a], fbfs[a], ss[a], inps[a], outs[a],
+                        ists[a], False)
         for k in range(7):
             spf[_SPF_SLOT[k]] = sp_floats[a, k]
         spi[C.I_SEQ] = seq
@@ -135,12 +142,8 @@ def _tick(buf, n, sp_ints, axis_ints, sp_floats, link, fb_ints, fb_axis_ints, fb
                     _copy(snap_f[b], spfs[b], C.N_SPF)
                     _copy(snap_i[b], spis[b], 3)
                     if whole:
-                        at = _restore(snap_f[b], C.N_SPF, fsts[b][:C.N_FST])
-                        at = _restore(snap_f[b], at, fbfs[b])
-                        at = _restore(snap_f[b], at, ss[b])
-                        at = _restore(snap_f[b], at, inps[b])
-                        _restore(snap_f[b], at, outs[b])
-                        _restore(snap_i[b], 3, ists[b][:C.N_IST])
+                        _axis_state(snap_f[b], snap_i[b], fsts[b], fbfs[b], ss[b], inps[b],
+                                    outs[b], ists[b], True)
                 return DECLINED_CYCLE
     for a in range(n_axes):
         fb_axis_ints[a, K.A_STATUSWORD] = ists[a][C.J_STATUSWORD]
@@ -174,8 +177,9 @@ def steady_tick(buf, n, sp_ints, axis_ints, sp_floats, link, fb_ints, fb_axis_in
     ``plant_out``: the plant's; ``ring_f``, ``ring_i``: the axis's planes of the
     recording's ring, ``common`` its common block, ``j`` the row's column (-1: not
     recorded); ``tick_ns``: the tick's start (monotonic ns); ``n_cycles``: drive cycles
-    per tick; ``snap_f``, ``snap_i``: the per-axis snapshots (:class:`SteadyTick`).  Returns the answer's length, or
-    :data:`UNENCODED` (the tick ran), or a ``DECLINED_*`` code (nothing changed)."""
+    per tick; ``snap_f``, ``snap_i``: the per-axis snapshots (:class:`SteadyTick`).
+    Returns the answer's length, or :data:`UNENCODED` (the tick ran), or a ``DECLINED_*``
+    code (nothing changed)."""
     return _tick(buf, n, sp_ints, axis_ints, sp_floats, link, fb_ints, fb_axis_ints,
                  fb_floats, out, (prm,), (fst,), (ist,), (spf,), (spi,), (saved,), (fbf,),
                  (p,), (s,), (inp,), (plant_out,), (ring_f,), (ring_i,), common, j, tick_ns,
@@ -245,8 +249,8 @@ class SteadyTick:
         what its drives refuse, no SYNC, every drive's compiled path; else None."""
         ep = emulator.endpoint
         drives = emulator.drives.drives
-        if (len(drives) > K.MAX_AXES or type(ep) is not UdpEndpoint or emulator.sync_lock is not None
-                or any(d.compiled is None for d in drives)
+        if (len(drives) > K.MAX_AXES or type(ep) is not UdpEndpoint
+                or emulator.sync_lock is not None or any(d.compiled is None for d in drives)
                 or ep.setpoint_bounds != tuple(d.setpoint_bounds() for d in drives)):
             return None
         return cls(emulator, SteadyLink(ep, len(drives)))
