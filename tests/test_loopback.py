@@ -184,7 +184,12 @@ def test_loopback_following_error_matches_lockstep(kind, config, lockstep, tmp_p
 def test_demo_runs_both_processes_and_prints_the_comparison(tmp_path):
     """``hil demo`` (the README's main job): both processes at the default 8 kHz over UDP.
     The cyclictest baseline (5 s by default), set beside the latency figures and no part of
-    the comparison or the verdict, for 1 s."""
+    the comparison or the verdict, for 1 s.  The folder holds an earlier demo's recording,
+    as when a user runs it again: it is replaced."""
+    earlier = tmp_path / "out" / "emulator"
+    earlier.mkdir(parents=True)
+    for name in ("recording.arrows", "events.arrows"):
+        (earlier / name).write_bytes(b"an earlier run")
     with Children(tmp_path) as children:
         demo = children.start("demo", python_module("hil.runtime.demo", "--out",
                                                      tmp_path / "out",
@@ -195,3 +200,4 @@ def test_demo_runs_both_processes_and_prints_the_comparison(tmp_path):
     for name in ("emulator/recording.arrows", "emulator/report.json", "controller/trace.csv",
                  "controller/summary.json", "lockstep/trace.csv", "demo.json"):
         assert (tmp_path / "out" / name).stat().st_size > 0, name
+    assert (earlier / "recording.arrows").read_bytes() != b"an earlier run"

@@ -134,6 +134,7 @@ def run_pair(config: Path, program: Path, out: Path, realtime: bool) -> tuple[in
         try:
             emu = subprocess.Popen(_python("hil.runtime.emulator", config, "--adapter",
                                            "udp://127.0.0.1:0", "--record", out / "emulator",
+                                           "--force",  # the demo's own folder: run again
                                            "--cpu", cpus[-1], *rt),
                                    stdout=subprocess.PIPE, stderr=emu_log, text=True, env=env)
             children.append(emu)
