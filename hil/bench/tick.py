@@ -325,8 +325,8 @@ def run_from_args(args: argparse.Namespace) -> int:
     for r in rows:
         t = r["tick_compute_us"]
         print(f"{Path(r['config']).name}: {r['axes']} axis(es) at {r['rate_hz']:g} Hz, "
-              f"{r['ticks']} ticks: tick p50 {t['p50']:.1f} p99 {t['p99']:.1f} p99.9 "
-              f"{t['p999']:.1f} max {t['max']:.1f} µs; plant step p50 "
+              f"{r['ticks']} ticks: tick compute p50 {t['p50']:.1f} µs (p99 {t['p99']:.1f}, "
+              f"p99.9 {t['p999']:.1f}, max {t['max']:.1f} µs); plant step p50 "
               f"{r['plant_step_us']['p50']:.1f} µs; tick/plant {r['ratio_p50']:.2f}; "
               f"compiled tick {100 * r['steady_share']:.1f} %, compiled drive cycles "
               f"{100 * r['compiled_share']:.1f} % of ticks; overruns "

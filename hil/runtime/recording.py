@@ -242,12 +242,16 @@ class Recorder:
             if path is not None:
                 path.bind_ring(self.floats[i], self.ints[i])
 
+    def _next_column(self) -> int:
+        """The ring's column for the next row, or -1 when the ring is full."""
+        counters = self._counters
+        committed = counters[0]
+        return -1 if committed - counters[1] >= self.slots else committed % self.slots
+
     def begin_tick(self) -> None:
         """Before the drive cycles of a tick: the row the attached compiled paths write
         (none when the ring is full)."""
-        counters = self._counters
-        committed = counters[0]
-        self._row = -1 if committed - counters[1] >= self.slots else committed % self.slots
+        self._row = self._next_column()
         for path in self._compiled:
             if path is not None:
                 path.set_row(self._row)
@@ -257,10 +261,9 @@ class Recorder:
         (:mod:`hil.runtime.steady_tick`: the axis's part and the common part that
         :meth:`record` writes; no drive's fault log grows in such a tick): its column, or
         -1 when the ring is full (:meth:`end_tick` then counts the tick lost)."""
-        counters = self._counters
-        committed = counters[0]
-        self._skip = committed - counters[1] >= self.slots
-        return -1 if self._skip else committed % self.slots
+        j = self._next_column()
+        self._skip = j < 0
+        return j
 
     def record(self, k: int, heard: bool, tick_start_ns: int, sp, fb,
                drives: EmulatedDrive | DriveSet, refused: int = 0) -> None:
@@ -274,12 +277,10 @@ class Recorder:
             if n != self._faults_seen[i]:
                 self._faults_seen[i] = n
                 self.fault_marks.append((k, i, n))
-        counters = self._counters
-        committed = counters[0]
-        self._skip = committed - counters[1] >= self.slots
+        j, n_sp = self._next_column(), self._n_sp
+        self._skip = j < 0
         if self._skip:
             return
-        j, n_sp = committed % self.slots, self._n_sp
         floats, ints = self.floats, self.ints
         for i, (s, f, drive) in enumerate(zip(axis_records(sp), axis_records(fb), each)):
             path = drive.compiled

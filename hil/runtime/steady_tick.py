@@ -71,12 +71,6 @@ def _monotonic_ns(timespec):
 
 
 @njit(cache=True, inline="always")
-def _copy(src, dst, n):
-    for k in range(n):
-        dst[k] = src[k]
-
-
-@njit(cache=True, inline="always")
 def _keep(snap, offset, arr, back):
     """``snap[offset:offset + arr.size] = arr``, or (``back``) the other way; the next
     offset."""
@@ -119,8 +113,8 @@ def _tick(buf, n, sp_ints, axis_ints, sp_floats, link, fb_ints, fb_axis_ints, fb
     whole = n_cycles > 1 or n_axes > 1
     for a in range(n_axes):
         spf, spi = spfs[a], spis[a]
-        _copy(spf, snap_f[a], C.N_SPF)
-        _copy(spi, snap_i[a], 3)
+        C._copy(spf, snap_f[a], C.N_SPF)
+        C._copy(spi, snap_i[a], 3)
         if whole:
             _axis_state(snap_f[a], snap_i[a], fsts[a], fbfs[a], ss[a], inps[a], outs[a],
                         ists[a], False)
@@ -139,15 +133,15 @@ def _tick(buf, n, sp_ints, axis_ints, sp_floats, link, fb_ints, fb_axis_ints, fb
             ist[C.J_ROW] = -1
             if status != C.DONE:
                 for b in range(n_axes):
-                    _copy(snap_f[b], spfs[b], C.N_SPF)
-                    _copy(snap_i[b], spis[b], 3)
+                    C._copy(snap_f[b], spfs[b], C.N_SPF)
+                    C._copy(snap_i[b], spis[b], 3)
                     if whole:
                         _axis_state(snap_f[b], snap_i[b], fsts[b], fbfs[b], ss[b], inps[b],
                                     outs[b], ists[b], True)
                 return DECLINED_CYCLE
     for a in range(n_axes):
         fb_axis_ints[a, K.A_STATUSWORD] = ists[a][C.J_STATUSWORD]
-        _copy(fbfs[a], fb_floats[a], C.N_FBF)
+        C._copy(fbfs[a], fb_floats[a], C.N_FBF)
     fb_ints[K.F_SEQ] = seq
     fb_ints[K.F_SP_T_NS] = sp_ints[K.I_T_NS]
     fb_ints[K.F_SP_RX_NS] = link[L_RX_NS]
