@@ -190,9 +190,10 @@ class UdpEndpoint(MsgpackEndpoint):
         if not device:
             self._peer_origin = target  # a controller hears its device only
         self._from_ns = self._arrival_ns = 0  # kernel stamps (monotonic) or 0: none
-        # a datagram (n, origin, stamp) or receive error that the compiled tick read and
-        # handed back (io_adapters.udp_steady): the next receive returns it first
-        self._stash: tuple | OSError | None = None
+        # datagrams (n, origin, stamp, bytes) and receive errors that the compiled tick
+        # read and handed back (io_adapters.udp_steady), oldest first: the next receives
+        # return them first
+        self._stash: list[tuple | OSError] = []
         self._buf = bytearray(MAX_DATAGRAM)
         self._bufs = (self._buf,)
         self._view = memoryview(self._buf)
@@ -283,7 +284,7 @@ class UdpEndpoint(MsgpackEndpoint):
         return True
 
     def _recv_bytes(self, timeout_s: float | None) -> memoryview | None:
-        if self._stash is not None:
+        if self._stash:
             return self._unstash()
         sock = self._sock
         if timeout_s != 0.0 and not select.select((sock,), (), (), timeout_s)[0]:
@@ -297,10 +298,11 @@ class UdpEndpoint(MsgpackEndpoint):
         return self._view[:n]
 
     def _unstash(self) -> memoryview:
-        stash, self._stash = self._stash, None
+        stash = self._stash.pop(0)
         if isinstance(stash, OSError):
             raise stash
-        n, self._origin, self._from_ns = stash
+        n, self._origin, self._from_ns, data = stash
+        self._buf[:n] = data
         return self._view[:n]
 
     def _admissible(self, origin: tuple) -> bool:

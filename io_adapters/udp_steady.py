@@ -3,17 +3,21 @@
 (:mod:`io_adapters.codec_compiled`), and the endpoint's books are kept as its Python path
 keeps them.
 
-:meth:`SteadyLink.receive` reads one datagram into the endpoint's own receive buffer and
-offers it to the compiled tick only in the common case: a device whose peer is pinned,
-the datagram from that peer's address, nothing queued behind it.  Anything else -- and
-any datagram the compiled tick then declines (:meth:`SteadyLink.decline`) -- is handed
-back to the endpoint, whose next receive returns it first, so the Python path counts,
-judges and takes it exactly as if the compiled tick had never looked.  A receive error is
-handed back the same way.  After a tick that took it, :meth:`SteadyLink.commit` counts
-the datagram as :meth:`~io_adapters.msgpack_endpoint.MsgpackEndpoint._accept` would
-(frames, bytes, lost, received; the peer's frame and last-heard time), remembers the
-setpoint's stamps for the Python path's answers, and sends the answer the compiled tick
-encoded in :attr:`SteadyLink.out`, counted as ``send_feedback`` counts it.
+:meth:`SteadyLink.receive` reads every datagram queued for the tick (up to
+:data:`MAX_QUEUED`) into buffers of its own and offers them to the compiled tick only in
+the common cases: a device whose peer is pinned, and the datagrams all from that peer
+(the newest is applied, the older ones are taken and superseded, as the endpoint's drain
+does), or none (a silent tick).  Anything else -- more than :data:`MAX_QUEUED`, a
+stranger's datagram, a receive error -- and any datagrams the compiled tick then declines
+(:meth:`SteadyLink.decline`) are handed back to the endpoint, whose next receives return
+them first, so the Python path counts, judges and takes them exactly as if the compiled
+tick had never looked.  After a tick that took them, :meth:`SteadyLink.take` counts them
+as :meth:`~io_adapters.msgpack_endpoint.MsgpackEndpoint._accept` and the drain would
+(frames, bytes, lost, received, drained; the peer's frame and last-heard time) and
+remembers the setpoint's stamps for the Python path's answers; after a silent one,
+:meth:`SteadyLink.idle` counts the empty receive.  :meth:`SteadyLink.send` sends the
+answer the compiled tick encoded in :attr:`SteadyLink.out`, counted as ``send_feedback``
+counts it.
 """
 
 import select
@@ -26,19 +30,23 @@ from io_adapters.codec import U32
 from io_adapters.codec_compiled import (
     F_FRAME,
     F_SESSION,
-    I_FRAME,
     I_T_NS,
     MAX_AXES,
     N_FB_INTS,
     N_SP_INTS,
 )
-from io_adapters.udp import UdpEndpoint
+from io_adapters.udp import MAX_DATAGRAM, UdpEndpoint
 
-#: ``link``: the pinned peer's session and last frame number, the datagram's arrival
-#: (monotonic ns: the kernel's stamp, else when it was read), then two words of room for
-#: the compiled tick's clock reading (a struct timespec)
+#: datagrams a compiled tick takes at most (more queued: the Python tick drains them)
+MAX_QUEUED = 64
+#: ``link``: the pinned peer's session and last frame number, the newest datagram's
+#: arrival (monotonic ns: the kernel's stamp, else when it was read), two words of room
+#: for the compiled tick's clock reading (a struct timespec), then the datagrams' lengths
+#: and (written by the compiled tick) their frame numbers, oldest first
 L_PEER_SESSION, L_PEER_FRAME, L_RX_NS, L_CLOCK = range(4)
-N_LINK = L_CLOCK + 2
+L_LENGTHS = L_CLOCK + 2
+L_FRAMES = L_LENGTHS + MAX_QUEUED
+N_LINK = L_FRAMES + MAX_QUEUED
 #: room for one encoded Feedback or FeedbackGroup (at most 120 bytes; 64 + 54 per axis)
 OUT_BYTES = 1024
 
@@ -48,11 +56,12 @@ class SteadyLink:
     ``n_axes`` axes (see the module docstring).
 
     Attributes:
-        buf: uint8 view of the endpoint's receive buffer (the datagram :meth:`receive`
-            read, ``receive()`` bytes long).
+        bufs: uint8[:data:`MAX_QUEUED`, MAX_DATAGRAM], the datagrams :meth:`receive`
+            read, oldest first (``link[L_LENGTHS + i]`` bytes of row i).
         sp_ints, axis_ints, sp_floats: the compiled reader's output arrays
             (:func:`io_adapters.codec_compiled.decode_setpoint`).
-        link: int64[:data:`N_LINK`], written by :meth:`receive`.
+        link: int64[:data:`N_LINK`], written by :meth:`receive` (the frames by the
+            compiled tick).
         fb_ints, fb_axis_ints, fb_floats: the answer's values
             (:mod:`io_adapters.codec_compiled` layout); its session and frame are
             written by :meth:`receive`, the rest by the compiled tick and its caller.
@@ -66,7 +75,8 @@ class SteadyLink:
             raise AdapterConfigError(f"a compiled tick takes 1 to {MAX_AXES} axes, not "
                                      f"{n_axes}")
         self.endpoint = endpoint
-        self.buf = np.frombuffer(endpoint._buf, np.uint8)
+        self.bufs = np.zeros((MAX_QUEUED, MAX_DATAGRAM), np.uint8)
+        self._slots = [(memoryview(row),) for row in self.bufs]
         self.sp_ints = np.zeros(N_SP_INTS, np.int64)
         self.axis_ints = np.zeros((n_axes, 2), np.int64)
         self.sp_floats = np.zeros((n_axes, 7))
@@ -78,59 +88,84 @@ class SteadyLink:
         self._out_view = memoryview(self.out)
         self._poll = select.poll()
         self._poll.register(endpoint._sock, select.POLLIN)
-        self._datagram: tuple | None = None
+        # what receive() read, oldest first: (n, origin, kernel stamp) or a receive error
+        self._datagrams: list[tuple | OSError] = []
 
     def receive(self) -> int:
-        """Read one datagram; its length when the compiled tick may take it, else 0
-        (none came, or it went back to the endpoint: see the module docstring)."""
+        """Read the tick's datagrams (module docstring): how many, when the compiled tick
+        may take them (0: none came); -1 when they went back to the endpoint."""
         ep = self.endpoint
-        if ep._peer_session is None or ep._stash is not None:
-            return 0
-        try:
-            n, ancillary, _, origin = ep._sock.recvmsg_into(ep._bufs, ep._ancillary)
-        except BlockingIOError:
-            return 0
-        except OSError as e:
-            ep._stash = e
-            return 0
-        from_ns = ep._kernel_ns(ancillary)
-        self._datagram = (n, origin, from_ns)
-        if origin != ep._peer_origin or self._poll.poll(0):
+        if ep._peer_session is None or ep._stash:
+            return -1
+        link, got = self.link, self._datagrams
+        sock, ancillary, peer = ep._sock, ep._ancillary, ep._peer_origin
+        for slot in self._slots:
+            try:
+                n, anc, _, origin = sock.recvmsg_into(slot, ancillary)
+            except BlockingIOError:
+                break
+            except OSError as e:
+                got.append(e)
+                break
+            link[L_LENGTHS + len(got)] = n
+            got.append((n, origin, ep._kernel_ns(anc)))
+            if origin != peer or not self._poll.poll(0):
+                break
+        else:  # more than MAX_QUEUED
             self.decline()
-            return 0
-        link = self.link
+            return -1
+        if got:
+            if isinstance(got[-1], OSError) or got[-1][1] != peer:
+                self.decline()
+                return -1
+            link[L_RX_NS] = got[-1][2] or time.monotonic_ns()
         link[L_PEER_SESSION] = ep._peer_session
         link[L_PEER_FRAME] = ep._peer_frame
-        link[L_RX_NS] = from_ns or time.monotonic_ns()
         self.fb_ints[F_SESSION] = ep.session
         self.fb_ints[F_FRAME] = ep._frame
-        return n
+        return len(got)
 
     def decline(self) -> None:
-        """Hand the datagram :meth:`receive` read back to the endpoint."""
-        self.endpoint._stash, self._datagram = self._datagram, None
+        """Hand the datagrams :meth:`receive` read back to the endpoint."""
+        self.endpoint._stash.extend(
+            d if isinstance(d, OSError) else (*d, self.bufs[i, :d[0]].tobytes())
+            for i, d in enumerate(self._datagrams))
+        self._datagrams.clear()
 
-    def commit(self, n_out: int) -> bool:
-        """Count the datagram taken (its setpoint is the one applied) and send the answer,
-        ``out[:n_out]`` (``n_out`` 0: none was encoded, the caller's Python path sends
-        it); True when sent (False: nothing to send, nobody to send to, or no room,
-        counted in ``stats.send_dropped``).  Raises :class:`~io_adapters.base.AdapterError`
-        when the send fails otherwise, as ``send_feedback`` does."""
+    def take(self) -> int:
+        """Count the datagrams the compiled tick took (the newest one's setpoint is the
+        one applied); how many older ones it superseded."""
         ep, st = self.endpoint, self.endpoint.stats
-        n = self._datagram[0]
-        self._datagram = None
-        frame = int(self.sp_ints[I_FRAME])
-        st.frames += 1
-        st.bytes_received += n
-        st.lost += ((frame - ep._peer_frame) & U32) - 1
-        st.received += 1
-        ep._peer_frame = frame
+        got = self._datagrams
+        for i, (n, _, _) in enumerate(got):
+            frame = int(self.link[L_FRAMES + i])
+            st.frames += 1
+            st.bytes_received += n
+            st.lost += ((frame - ep._peer_frame) & U32) - 1
+            st.received += 1
+            ep._peer_frame = frame
+        superseded = len(got) - 1
+        st.drained += superseded
+        got.clear()
         ep._heard_ns = time.monotonic_ns()
         ep.refused_axes = 0
         ep._sp_t_ns = int(self.sp_ints[I_T_NS])
         ep._sp_rx_ns = int(self.link[L_RX_NS])
+        return superseded
+    def idle(self) -> None:
+        """Count a tick's receive that found nothing, as ``recv_setpoint`` counts it."""
+        self.endpoint.stats.timeouts += 1
+        self.endpoint.refused_axes = 0
+
+    def send(self, n_out: int) -> bool:
+        """Send the answer ``out[:n_out]`` (``n_out`` 0: none was encoded, the caller's
+        Python path sends it); True when sent (False: nothing to send, nobody to send to,
+        or no room, counted in ``stats.send_dropped``).  Raises
+        :class:`~io_adapters.base.AdapterError` when the send fails otherwise, as
+        ``send_feedback`` does."""
         if n_out <= 0:
             return False
+        ep, st = self.endpoint, self.endpoint.stats
         try:
             sent = ep._send_bytes(self._out_view[:n_out], None)
         except OSError as e:

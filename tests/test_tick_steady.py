@@ -7,13 +7,16 @@ setpoints from two controller endpoints, tick by tick (:meth:`Emulator.step`, th
 ring's ``end_tick``, as the loop calls them).  The scenarios of
 tests/test_tick_equivalence.py (enable, motion, a following-error fault, fault reset,
 CSV, CST, software limits, refused setpoints, quick stop, parameters written) run over
-the wire, on one axis and on a machine of two, with traffic that the compiled tick must
-hand to the Python path mixed in: a malformed datagram, a repeated and an older frame, a
-stranger's datagram, a HELLO, two setpoints queued in one tick, a value out of range, a
-silent tick.  Every tick the feedback each controller receives (all but the clock stamps
-and the session) and the plants' arrays must be the same bits; at the end every
-recording row (all but the clock stamps), the endpoints' counters, the watchdogs and the
-heard counts.  Each scenario also checks that the compiled tick ran most ticks and
+the wire, on one axis and on a machine of two, with traffic mixed in: what the compiled
+tick takes itself (two or three setpoints queued in one tick, a silent tick, also after a
+tick the Python path ran) and what it must hand to the Python path (a malformed
+datagram, a repeated and an older frame, a stranger's datagram, a HELLO, a value out of
+range; a setpoint followed by a malformed datagram or by a repeat of its frame, a value
+out of range followed by a good setpoint, more setpoints queued than the compiled tick
+takes).  Every tick the feedback each controller receives (all but the clock stamps and
+the session) and the plants' arrays must be the same bits; at the end every recording
+row (all but the clock stamps), the endpoints' counters, the watchdogs and the heard
+counts.  Each scenario also checks that the compiled tick ran most ticks and
 declined each kind of datagram it must, or the comparison would say nothing.
 """
 
@@ -31,6 +34,7 @@ from hil.runtime.emulator import Emulator, RuntimeConfig
 from io_adapters import open_endpoint
 from io_adapters.codec import encode, encode_hello
 from io_adapters.messages import Setpoint, SetpointGroup, axis_records, message_pair
+from io_adapters.udp_steady import MAX_QUEUED
 from plant.machines import load_machine_set
 from tests.conftest import CONFIGS
 from tests.test_tick_equivalence import Script
@@ -40,7 +44,8 @@ XY_PATH = CONFIGS / "machines" / "arrow500_xy.toml"
 #: the feedback's clock stamps: taken on each machine, compared for consistency only
 STAMPS = ("t_ns", "sp_t_ns", "sp_rx_ns", "tick_ns", "rx_ns")
 #: the traffic of several datagrams in one tick
-MULTIPLE = ("garbage", "stranger", "hello", "queued")
+MULTIPLE = ("garbage", "stranger", "hello", "queued", "queued3", "flood", "then_garbage",
+            "then_repeat", "range_then_good")
 #: the recording's clock columns
 CLOCK_COLUMNS = ("tick_start_ns", "sp_t_ns", "sp_rx_ns", "fb_t_ns")
 
@@ -55,12 +60,14 @@ class WireTwin:
     extra: dict
     config: Path = ARROW_PATH
     rate_hz: float | None = None
+    watchdog_cycles: int | None = None
     emulator: Emulator = field(init=False)
 
     def __post_init__(self):
         machine = load_machine_set(self.config)
         rc = RuntimeConfig(self.config, "udp://127.0.0.1:0", realtime=False,
-                           steady_tick=self.steady, rate_hz=self.rate_hz)
+                           steady_tick=self.steady, rate_hz=self.rate_hz,
+                           watchdog_cycles=self.watchdog_cycles)
         self.emulator = Emulator(rc, machine, log=lambda message: None)
         self.emulator.open()
         self.drives = self.emulator.drives
@@ -85,6 +92,13 @@ class WireTwin:
     def _raw(self, payload: bytes) -> None:
         self.ctl._send_bytes(payload, None)
 
+    def _send_shifted(self, sp: Setpoint | SetpointGroup, counts: float) -> None:
+        """Send ``sp`` with the last axis's target ``counts`` further."""
+        last = axis_records(sp)[-1]
+        last.target_position_counts += counts
+        self.ctl.send_setpoint(sp)
+        last.target_position_counts -= counts
+
     def tick(self, k: int, sp: Setpoint | SetpointGroup) -> None:
         kind = self.extra.get(k)
         last = self.ctl._frame - 1  # the frame number of the last setpoint sent
@@ -96,17 +110,24 @@ class WireTwin:
             self._raw(encode_hello(self.ctl.session, self.ctl._frame))
         elif kind == "skip":  # a frame lost on the way
             self.ctl._frame += 1
-        elif kind == "queued":  # the same setpoint twice: the newer frame is taken
-            self.ctl.send_setpoint(sp)
+        elif kind in ("queued", "queued3", "flood"):  # other targets first: the newest
+            for i in range({"queued": 1, "queued3": 2, "flood": MAX_QUEUED}[kind]):  # is taken
+                self._send_shifted(sp, 1000.0 * (i + 1))
         if kind in ("repeat", "older"):  # instead of this tick's setpoint
             self._raw(encode(sp, self.ctl.session, last if kind == "repeat" else last - 1))
-        elif kind == "range":  # the last axis's target beyond the drive's bound
-            last = axis_records(sp)[-1]
+        elif kind in ("range", "range_then_good"):  # the last axis's target beyond its
+            last = axis_records(sp)[-1]                # drive's bound
             good, last.target_position_counts = last.target_position_counts, 1e300
             self.ctl.send_setpoint(sp)
             last.target_position_counts = good
+            if kind == "range_then_good":
+                self.ctl.send_setpoint(sp)
         elif kind not in ("silent", "garbage_only"):
             self.ctl.send_setpoint(sp)
+        if kind == "then_garbage":
+            self._raw(b"\x93\x01\x02")
+        elif kind == "then_repeat":
+            self._raw(encode(sp, self.ctl.session, self.ctl._frame - 1))
         em = self.emulator
         if kind != "silent":  # loopback delivers within the send, unless the kernel is
             # busy and defers it: wait for the datagrams, as a tick on time would have
@@ -123,9 +144,10 @@ class WireTwin:
                     setattr(record, name, 0)
 
 
-def _compare(segments, extra: dict, config: Path = ARROW_PATH,
-             rate_hz: float | None = None) -> WireTwin:
-    a, b = WireTwin(False, extra, config, rate_hz), WireTwin(True, extra, config, rate_hz)
+def _compare(segments, extra: dict, config: Path = ARROW_PATH, rate_hz: float | None = None,
+             watchdog_cycles: int | None = None) -> WireTwin:
+    a, b = (WireTwin(steady, extra, config, rate_hz, watchdog_cycles)
+            for steady in (False, True))
     try:
         Script(segments, len(a.drives)).run(a, b)
         ea, eb = a.emulator, b.emulator
@@ -179,9 +201,10 @@ def test_scenario_with_every_kind_of_traffic():
         ("cw", 200, 0x0002),        # quick stop
         ("csp", 600, 5.0),          # enable again
     ]
-    extra = {700: "garbage_only", 800: "stranger", 900: "hello", 1000: "repeat",
+    extra = {700: "garbage_only", 701: "silent", 800: "stranger", 900: "hello", 1000: "repeat",
              1100: "older", 1200: "queued", 1300: "silent", 1301: "silent",
-             1400: "range", 1450: "skip", 4500: "garbage", 5000: "queued", 5200: "repeat"}
+             1400: "range", 1450: "skip", 4500: "garbage", 4501: "silent", 5000: "queued",
+             5200: "repeat"}
     b = _compare(segments, extra)
     steady = b.emulator.steady
     assert steady.ticks > 5000
@@ -189,11 +212,13 @@ def test_scenario_with_every_kind_of_traffic():
     assert declined[S.DECLINED_FRAME] >= 1      # the garbage alone
     assert declined[S.DECLINED_SEQUENCE] >= 2   # the repeat, the older frame
     assert declined[S.DECLINED_CYCLE] >= 2      # the following error, the range
+    assert steady.silent == 4 and steady.queued == 2  # taken compiled
 
 
 @pytest.mark.parametrize("extra", [{}, {300 + 7 * i: kind for i, kind in enumerate(
     ["garbage", "repeat", "silent", "queued", "older", "hello", "stranger", "range",
-     "garbage_only", "skip"] * 5)}])
+     "garbage_only", "skip", "queued3", "then_garbage", "then_repeat",
+     "range_then_good"] * 5)}])
 def test_steady_motion(extra):
     """Plain CSP motion, quiet or with traffic every 7 ticks: the compiled tick runs every
     tick of the quiet one from the drive's second steady cycle on, and declines each kind
@@ -205,22 +230,26 @@ def test_steady_motion(extra):
         assert steady.declined == dict.fromkeys(steady.declined, 0)
     else:
         # each value out of range faults the drive, and re-enabling takes ticks
-        assert steady.ticks >= 1800
+        assert steady.ticks >= 1700
         assert min(steady.declined.values()) >= 3
+        # taken compiled unless the drive was still re-enabling after a range fault
+        assert steady.silent >= 3 and steady.queued >= 3
 
 
 def test_two_axes():
     """A machine of two axes, one group message a tick: enable, CSP, CSV, a fault on both,
     re-enable, with traffic that goes to the Python path (a value out of range on the
     second axis declines the tick after the first axis ran: it is put back)."""
-    extra = {500: "garbage_only", 600: "repeat", 700: "queued", 800: "range", 1500: "skip",
-             1600: "stranger"}
+    extra = {500: "garbage_only", 501: "silent", 600: "repeat", 650: "silent",
+             700: "queued", 710: "flood", 750: "then_garbage", 770: "garbage", 771: "silent",
+             800: "range", 1500: "skip", 1600: "stranger"}
     b = _compare([("csp", 300, 0.0), ("csp", 800, 25.0), ("csv", 500, -2.0e5),
                   ("jump", 200, 3.0e7), ("cw", 3, 0), ("cw", 3, 0x80), ("csp", 400, 5.0)],
                  extra, XY_PATH)
     steady = b.emulator.steady
     assert steady.ticks > 1000
     assert min(steady.declined.values()) >= 1
+    assert steady.silent == 3 and steady.queued == 1
 
 
 @pytest.mark.parametrize("config", [ARROW_PATH, XY_PATH])
@@ -235,3 +264,15 @@ def test_several_drive_cycles_a_tick(config):
     assert steady.cycles == 4
     assert steady.ticks > 500
     assert min(steady.declined.values()) >= 1
+
+
+def test_silence_up_to_the_watchdog():
+    """25 silent ticks against a watchdog of 20: the compiled tick runs the 19 that only
+    count, the Python path the one that trips it (the drive faults, as 6007h says) and
+    every one after."""
+    silence = {300 + i: "silent" for i in range(25)}
+    b = _compare([("csp", 200, 0.0), ("csp", 300, 20.0)], silence, watchdog_cycles=20)
+    steady, watchdog = b.emulator.steady, b.emulator.watchdog
+    assert steady.silent == 19
+    assert [e.kind for e in watchdog.events] == ["tripped", "recovered"]
+    assert watchdog.events[0].tick == 319

@@ -103,7 +103,7 @@ class EmulatorTick:
 
     def link(self) -> dict:
         """The counts since the last call: setpoints heard, feedbacks sent, ticks that
-        heard none, ticks the compiled tick ran."""
+        heard none, ticks the compiled tick ran (silent ones included)."""
         em = self.emulator
         now = (em.setpoints_heard, em.endpoint.stats.sent, self.ticks,
                em.steady.ticks if em.steady is not None else 0)

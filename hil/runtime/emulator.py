@@ -63,8 +63,11 @@ feedback's values and the axis's row of the recording's ring.  Anything else -- 
 cause, a changed controlword or mode, a refused setpoint, a plant status not OK -- hands
 that cycle to the Python drive, before anything changed, which stays the one owner of the
 state machine, the faults and their reactions (:mod:`hil.drive.compiled_path`; both give
-the same bits, ``tests/test_tick_equivalence.py``).  Python still decodes the setpoint,
-runs the watchdog, encodes and sends the feedback and writes the row's common columns.
+the same bits, ``tests/test_tick_equivalence.py``).  Over UDP the whole steady tick is
+one compiled call, from the datagrams to the answer (:mod:`hil.runtime.steady_tick`:
+silent ticks and setpoints queued behind a late tick included); on the other links
+Python decodes the setpoint, runs the watchdog, encodes and sends the feedback and
+writes the row's common columns.
 
 The recording streams to disk while the loop runs (:mod:`hil.runtime.record_writer`: a
 separate process reads the ring in shared memory, about a second of it, whatever the
@@ -330,8 +333,9 @@ class Emulator:
         t_ns = time.monotonic_ns()
         steady = self.steady
         if steady is not None:
-            if steady.tick(k, t_ns):
-                self.setpoints_heard += 1
+            heard = steady.tick(k, t_ns)
+            if heard is not None:
+                self.setpoints_heard += heard
                 return
             steady.settle()
         sp, fb, drives = self._sp, self._fb, self.drives

@@ -154,6 +154,16 @@ class Watchdog:
         self.silent = 0
         self._covered = -1
 
+    def may_stay_silent(self) -> bool:
+        """A tick that hears nothing would change nothing but the count: no setpoint
+        covers it, and it stays below the limit (no trip, no cause)."""
+        return not self.tripped and self._covered <= 0 and self.silent + 1 < self.limit
+
+    def silent_steady(self) -> None:
+        """:meth:`update` of a tick that heard nothing on a link without conditions
+        (UDP) where :meth:`may_stay_silent` said so: for the compiled tick."""
+        self.silent += 1
+
     def _link_events(self, conditions: int, axis: int, tick: int, seq: int) -> None:
         before = self._conditions[axis]
         self._conditions[axis] = conditions & ~LINK_RESET  # a reset is an event, not a state
