@@ -40,10 +40,11 @@ from io_adapters.udp import MAX_DATAGRAM, UdpEndpoint
 #: datagrams a compiled tick takes at most (more queued: the Python tick drains them)
 MAX_QUEUED = 64
 #: ``link``: the pinned peer's session and last frame number, the newest datagram's
-#: arrival (monotonic ns: the kernel's stamp, else when it was read), two words of room
-#: for the compiled tick's clock reading (a struct timespec), then the datagrams' lengths
-#: and (written by the compiled tick) their frame numbers, oldest first
-L_PEER_SESSION, L_PEER_FRAME, L_RX_NS, L_CLOCK = range(4)
+#: arrival (monotonic ns: the kernel's stamp, else when it was read), when the compiled
+#: tick's call began (monotonic ns, written by it), two words of room for its clock
+#: readings (a struct timespec), then the datagrams' lengths and (written by the compiled
+#: tick) their frame numbers, oldest first
+L_PEER_SESSION, L_PEER_FRAME, L_RX_NS, L_CALL_NS, L_CLOCK = range(5)
 L_LENGTHS = L_CLOCK + 2
 L_FRAMES = L_LENGTHS + MAX_QUEUED
 N_LINK = L_FRAMES + MAX_QUEUED

@@ -34,6 +34,11 @@ def _check(row: dict, axes: int) -> None:
     # line up on a loaded machine); its ticks are compiled drive cycles too
     assert 0.1 < row["steady_share"] <= row["compiled_share"]
     assert set(row["steady_declined"]) == {"frame", "sequence", "cycle"}
+    # the compiled call is timed inside the tick that ran it
+    call = row["compiled_call_us"]
+    assert set(call) == PERCENTILES and 0.0 < call["p50"] <= call["max"]
+    assert call["max"] <= row["tick_compute_us"]["max"]
+    assert row["ratio_compiled_call_p50"] == call["p50"] / row["plant_step_us"]["p50"]
     assert row["overruns"] >= 0
 
 

@@ -19,8 +19,9 @@ machine's state.  JSON, per machine file::
     {"config", "axes", "rate_hz", "drive", "seconds", "ticks",
      "tick_compute_us": {"p50", "p99", "p999", "max"}, "tick_cpu_us": {...},
      "plant_step_us": {"p50", "p999"},
-     "ratio_p50", "steady_share", "steady_declined", "compiled_share", "enabled_ticks",
-     "compiled_share_enabled",
+     "ratio_p50", "compiled_call_us": {"p50", "p99", "p999", "max"},
+     "ratio_compiled_call_p50", "steady_share", "steady_declined", "compiled_share",
+     "enabled_ticks", "compiled_share_enabled",
      "exits", "overruns", "setpoints_heard", "load_avg_1min",
      "socket_calls_us": {"recvmsg", "poll", "sendto", "sum"}, "tick_without_socket_p50_us",
      "ratio_without_socket_p50"}
@@ -29,7 +30,12 @@ machine's state.  JSON, per machine file::
 time), ``tick_cpu_us`` the loop thread's CPU time in it (what the tick costs whatever
 else the machine runs: on a loaded machine the wall time includes the other processes'
 turns);
-``ratio_p50`` the tick's p50 over the plant step's; ``steady_share`` the share of ticks
+``ratio_p50`` the tick's p50 over the plant step's; ``compiled_call_us`` the compiled
+tick's call alone, in the ticks it ran (from its start to the answer's stamp: the
+setpoints decoded, the drive cycles with the plant's sub-steps and the recording rows;
+without the call's dispatch, the answer's encoding and the socket calls; null with
+``--python-drive``), ``ratio_compiled_call_p50`` its p50 over the plant step's;
+``steady_share`` the share of ticks
 run whole by the compiled tick (:mod:`hil.runtime.steady_tick`: from the datagram to the
 answer), ``steady_declined`` the datagrams it handed to the Python path, by reason;
 ``compiled_share`` the share of ticks whose every drive cycle took the compiled path
@@ -65,9 +71,11 @@ from hil.drive import compiled as C
 from hil.rt.loop import Percentiles
 from hil.runtime import steady_tick as S
 from hil.runtime.emulator import Emulator, RuntimeConfig
+from io_adapters import codec_compiled as K
 from io_adapters import open_endpoint
 from io_adapters.messages import MODE_CSP, axis_records, message_pair
 from io_adapters.udp import MAX_DATAGRAM, SO_TIMESTAMPNS, TIMESPEC
+from io_adapters.udp_steady import L_CALL_NS
 from plant import Plant
 from plant.machines import load_machine_set
 
@@ -176,6 +184,8 @@ def bench(config: Path, seconds: float, compiled: bool = True) -> dict:
     tick_p = Percentiles.of_ns_in_us(stats.compute_ns)
     cpu_p = Percentiles.of_ns_in_us(stats.cpu_ns)
     plant_p = Percentiles.of_ns_in_us(stats.plant_ns)
+    calls = stats.call_ns[stats.call_ns >= 0]
+    call_p = Percentiles.of_ns_in_us(calls) if calls.size else None
     taken, enabled = stats.compiled, stats.enabled
     exits = {name: sum(d.compiled.exits[code] for d in drives if d.compiled is not None)
              for code, name in _EXIT_NAMES.items()}
@@ -185,6 +195,9 @@ def bench(config: Path, seconds: float, compiled: bool = True) -> dict:
             "tick_compute_us": tick_p.as_dict(), "tick_cpu_us": cpu_p.as_dict(),
             "plant_step_us": {"p50": plant_p.p50, "p999": plant_p.p999},
             "ratio_p50": tick_p.p50 / plant_p.p50,
+            "compiled_call_us": call_p.as_dict() if call_p is not None else None,
+            "ratio_compiled_call_p50": call_p.p50 / plant_p.p50 if call_p is not None
+            else None,
             "compiled_share": float(taken.mean()),
             "enabled_ticks": int(enabled.sum()),
             "compiled_share_enabled": (float(taken[enabled].mean()) if enabled.any()
@@ -207,6 +220,8 @@ class TickSamples:
         cpu_ns: the loop thread's CPU time in them, ns (without the time other processes
             took the CPU: a loaded machine inflates ``compute_ns`` only).
         plant_ns: wall time of the twin plant's step alone, ns.
+        call_ns: in a tick the compiled tick ran, its call's own time (from its start to
+            the answer's stamp, :data:`~io_adapters.udp_steady.L_CALL_NS`), ns; else -1.
         compiled: every drive cycle of the tick took the compiled path.
         enabled: every drive was in OPERATION ENABLED at the start of the tick.
         overruns: ticks that ended after the next deadline.
@@ -214,6 +229,7 @@ class TickSamples:
     compute_ns: np.ndarray
     cpu_ns: np.ndarray
     plant_ns: np.ndarray
+    call_ns: np.ndarray
     compiled: np.ndarray
     enabled: np.ndarray
     overruns: int
@@ -227,6 +243,8 @@ def _ticks(emulator: Emulator, twin: Plant, n_ticks: int, period_ns: int) -> Tic
     compute = np.zeros(n_ticks, dtype=np.int64)
     cpu = np.zeros(n_ticks, dtype=np.int64)
     plant_ns = np.zeros(n_ticks, dtype=np.int64)
+    call_ns = np.full(n_ticks, -1, dtype=np.int64)
+    steady = emulator.steady
     compiled = np.zeros(n_ticks, dtype=bool)
     enabled = np.zeros(n_ticks, dtype=bool)
     overruns = 0
@@ -236,6 +254,7 @@ def _ticks(emulator: Emulator, twin: Plant, n_ticks: int, period_ns: int) -> Tic
         before = [_cycles(d) for d in drives]
         woke = _wait_until(deadline)
         cpu_start = time.thread_time_ns()
+        ran = steady.ticks if steady is not None else 0
         emulator.step(k)
         recorder.end_tick(k, woke - deadline, time.monotonic_ns() - woke)
         done = time.monotonic_ns()
@@ -243,13 +262,15 @@ def _ticks(emulator: Emulator, twin: Plant, n_ticks: int, period_ns: int) -> Tic
         compute[k] = done - woke
         overruns += done > deadline + period_ns
         compiled[k] = all(_cycles(d) - b == per_tick for d, b in zip(drives, before))
+        if steady is not None and steady.ticks > ran:
+            call_ns[k] = steady.link.fb_ints[K.F_T_NS] - steady.link.link[L_CALL_NS]
         twin.inp[:] = plant.inp
         t0 = time.monotonic_ns()
         twin.step(twin.sub_per_pwm)
         plant_ns[k] = time.monotonic_ns() - t0
         recorder.release(recorder.committed)  # the writer's part, untimed
         deadline += period_ns
-    return TickSamples(compute, cpu, plant_ns, compiled, enabled, overruns)
+    return TickSamples(compute, cpu, plant_ns, call_ns, compiled, enabled, overruns)
 
 
 def _cycles(drive) -> int:
@@ -336,4 +357,8 @@ def run_from_args(args: argparse.Namespace) -> int:
               f"sendto {c['sendto']:.1f} µs; the tick without them p50 "
               f"{r['tick_without_socket_p50_us']:.1f} µs, "
               f"{r['ratio_without_socket_p50']:.2f} x the plant step", file=sys.stdout)
+        if r["compiled_call_us"] is not None:
+            k = r["compiled_call_us"]
+            print(f"  the compiled call alone: p50 {k['p50']:.1f} µs (p99.9 {k['p999']:.1f}), "
+                  f"{r['ratio_compiled_call_p50']:.2f} x the plant step", file=sys.stdout)
     return 0

@@ -47,6 +47,7 @@ from io_adapters.codec import U32
 from io_adapters.messages import FeedbackGroup, axis_records
 from io_adapters.udp import UdpEndpoint
 from io_adapters.udp_steady import (
+    L_CALL_NS,
     L_CLOCK,
     L_FRAMES,
     L_LENGTHS,
@@ -146,6 +147,8 @@ def _tick(bufs, n, sp_ints, axis_ints, sp_floats, link, fb_ints, fb_axis_ints, f
     """The tick of :func:`steady_tick_group`, every per-axis argument a tuple."""
     if n < 0:
         return DECLINED_FRAME
+    # the call's own time ends at the answer's stamp (hil bench tick reports it)
+    link[L_CALL_NS] = _monotonic_ns(link[L_CLOCK:])
     n_axes = len(prms)
     # every axis as it was: its setpoint arrays always (the cycle reads them), and all the
     # cycle changes where a later cycle or axis may still decline
