@@ -263,3 +263,22 @@ def test_on_a_machine_of_several_axes_a_flag_names_its_axis():
     assert (x.injections, [i.fault for i in y.injections]) == ([], ["preload_loss"])
     with pytest.raises(ConfigError, match="name one: AXIS/FAULT"):
         injectors_for(plants, m.configs, m.names, ["preload_loss:loss_pct=20"])
+
+
+def test_the_injector_loads_its_kernel_before_the_clock_starts():
+    """An injection's start calls plant.effects.faults.faults_active, a numba function:
+    building the Injector (before the loop's clock starts) must compile or load it, or
+    the first injection stalls the loop for the compile (on a cold cache, seconds: the
+    controller's contour monitoring alarmed).  In a fresh process, where nothing else
+    has called it."""
+    import subprocess
+    import sys
+    code = ("from plant import Plant; from plant.config import load_machine; "
+            "from plant.effects.faults import faults_active as f; "
+            "from hil.inject.schedule import Injector; "
+            f"cfg = load_machine({str(CONFIGS / 'arrow500_x.toml')!r}); "
+            "before = len(f.signatures); Injector(Plant(cfg).params, cfg); "
+            "print(before, len(f.signatures))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         timeout=300, check=True)
+    assert out.stdout.split() == ["0", "1"]

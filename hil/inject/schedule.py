@@ -198,6 +198,10 @@ class Injector:
         self.requests: deque = deque()
         self.events: list[InjectEvent] = []
         self.counts_lost = False
+        # compiled (or loaded from numba's cache) now, before any clock starts: its first
+        # call at an injection's start compiled it in the loop on a cold cache (a stall of
+        # seconds)
+        faults_active(params)
 
     @property
     def busy(self) -> bool:
