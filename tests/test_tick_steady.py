@@ -16,10 +16,13 @@ out of range followed by a good setpoint, more setpoints queued than the compile
 takes).  Every tick the feedback each controller receives (all but the clock stamps and
 the session) and the plants' arrays must be the same bits; at the end every recording
 row (all but the clock stamps), the endpoints' counters, the watchdogs and the heard
-counts.  Each scenario also checks that the compiled tick ran most ticks and
+counts; and that no numba function was compiled or loaded from the cache once the
+emulators were open (a fault injection included: such a first call stalls the loop).
+Each scenario also checks that the compiled tick ran most ticks and
 declined each kind of datagram it must, or the comparison would say nothing.
 """
 
+import gc
 import select
 import socket
 import time
@@ -28,12 +31,19 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from numba.core.registry import CPUDispatcher
 
 from hil.runtime import steady_tick as S
 from hil.runtime.emulator import Emulator, RuntimeConfig
 from io_adapters import open_endpoint
 from io_adapters.codec import encode, encode_hello
-from io_adapters.messages import Setpoint, SetpointGroup, axis_records, message_pair
+from io_adapters.messages import (
+    InjectRequest,
+    Setpoint,
+    SetpointGroup,
+    axis_records,
+    message_pair,
+)
 from io_adapters.udp_steady import MAX_QUEUED
 from plant.machines import load_machine_set
 from tests.conftest import CONFIGS
@@ -44,8 +54,8 @@ XY_PATH = CONFIGS / "machines" / "arrow500_xy.toml"
 #: the feedback's clock stamps: taken on each machine, compared for consistency only
 STAMPS = ("t_ns", "sp_t_ns", "sp_rx_ns", "tick_ns", "rx_ns")
 #: the traffic of several datagrams in one tick
-MULTIPLE = ("garbage", "stranger", "hello", "queued", "queued3", "flood", "then_garbage",
-            "then_repeat", "range_then_good")
+MULTIPLE = ("garbage", "stranger", "hello", "inject", "queued", "queued3", "flood",
+            "then_garbage", "then_repeat", "range_then_good")
 #: the recording's clock columns
 CLOCK_COLUMNS = ("tick_start_ns", "sp_t_ns", "sp_rx_ns", "fb_t_ns")
 
@@ -108,6 +118,8 @@ class WireTwin:
             self.stranger.sendto(encode(sp, 7, 0), ("127.0.0.1", self.port))
         elif kind == "hello":
             self._raw(encode_hello(self.ctl.session, self.ctl._frame))
+        elif kind == "inject":  # a friction growth at once, before this tick's setpoint
+            self.ctl.send_injection(InjectRequest(0, "friction_growth", {"growth_pct": 20.0}))
         elif kind == "skip":  # a frame lost on the way
             self.ctl._frame += 1
         elif kind in ("queued", "queued3", "flood"):  # other targets first: the newest
@@ -144,12 +156,23 @@ class WireTwin:
                     setattr(record, name, 0)
 
 
+def _specialisations() -> dict:
+    """Every numba function of this process -> its compiled signatures."""
+    return {f: len(f.signatures) for f in gc.get_objects() if isinstance(f, CPUDispatcher)}
+
+
 def _compare(segments, extra: dict, config: Path = ARROW_PATH, rate_hz: float | None = None,
              watchdog_cycles: int | None = None) -> WireTwin:
     a, b = (WireTwin(steady, extra, config, rate_hz, watchdog_cycles)
             for steady in (False, True))
     try:
+        opened = _specialisations()
         Script(segments, len(a.drives)).run(a, b)
+        # nothing compiled (or loaded from numba's cache) once the emulators were open: a
+        # kernel first called in the loop stalls it for the compile (seconds, cold cache)
+        late = {f.py_func.__qualname__ for f, n in _specialisations().items()
+                if n > opened.get(f, 0)}
+        assert not late, f"compiled after open(): {sorted(late)}"
         ea, eb = a.emulator, b.emulator
         n = ea.recorder.committed
         assert n == eb.recorder.committed
@@ -202,7 +225,7 @@ def test_scenario_with_every_kind_of_traffic():
         ("csp", 600, 5.0),          # enable again
     ]
     extra = {700: "garbage_only", 701: "silent", 800: "stranger", 900: "hello", 1000: "repeat",
-             1100: "older", 1200: "queued", 1300: "silent", 1301: "silent",
+             1100: "older", 1200: "queued", 1250: "inject", 1300: "silent", 1301: "silent",
              1400: "range", 1450: "skip", 4500: "garbage", 4501: "silent", 5000: "queued",
              5200: "repeat"}
     b = _compare(segments, extra)
@@ -213,6 +236,7 @@ def test_scenario_with_every_kind_of_traffic():
     assert declined[S.DECLINED_SEQUENCE] >= 2   # the repeat, the older frame
     assert declined[S.DECLINED_CYCLE] >= 2      # the following error, the range
     assert steady.silent == 4 and steady.queued == 2  # taken compiled
+    assert b.emulator.injectors[0].levels["friction_growth"] == 20.0
 
 
 @pytest.mark.parametrize("extra", [{}, {300 + 7 * i: kind for i, kind in enumerate(
