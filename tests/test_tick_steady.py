@@ -122,13 +122,13 @@ class WireTwin:
             self.ctl.send_injection(InjectRequest(0, "friction_growth", {"growth_pct": 20.0}))
         elif kind == "skip":  # a frame lost on the way
             self.ctl._frame += 1
-        elif kind in ("queued", "queued3", "flood"):  # other targets first: the newest
-            for i in range({"queued": 1, "queued3": 2, "flood": MAX_QUEUED}[kind]):  # is taken
+        elif kind in ("queued", "queued3", "flood"):  # older targets first, newest taken
+            for i in range({"queued": 1, "queued3": 2, "flood": MAX_QUEUED}[kind]):
                 self._send_shifted(sp, 1000.0 * (i + 1))
         if kind in ("repeat", "older"):  # instead of this tick's setpoint
             self._raw(encode(sp, self.ctl.session, last if kind == "repeat" else last - 1))
-        elif kind in ("range", "range_then_good"):  # the last axis's target beyond its
-            last = axis_records(sp)[-1]                # drive's bound
+        elif kind in ("range", "range_then_good"):  # last axis's target beyond its bound
+            last = axis_records(sp)[-1]
             good, last.target_position_counts = last.target_position_counts, 1e300
             self.ctl.send_setpoint(sp)
             last.target_position_counts = good
