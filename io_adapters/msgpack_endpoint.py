@@ -119,6 +119,12 @@ class MsgpackEndpoint(Endpoint):
         payload = encode(record, self.session, self._frame)
         if not (self._device or self.welcomed):
             self._hello_if_due()
+        return self._send_record(payload)
+
+    def _send_record(self, payload: bytes | memoryview) -> bool:
+        """Send one record already encoded with this endpoint's session and next frame
+        number (:meth:`_write`, or a compiled encoder: :mod:`io_adapters.udp_steady`) and
+        count it; False if nobody or no room took it."""
         if not self._send_message(payload, None):
             return False
         self._frame = (self._frame + 1) & U32

@@ -153,6 +153,7 @@ class SteadyLink:
         ep._sp_t_ns = int(self.sp_ints[I_T_NS])
         ep._sp_rx_ns = int(self.link[L_RX_NS])
         return superseded
+
     def idle(self) -> None:
         """Count a tick's receive that found nothing, as ``recv_setpoint`` counts it."""
         self.endpoint.stats.timeouts += 1
@@ -166,13 +167,10 @@ class SteadyLink:
         ``send_feedback`` does."""
         if n_out <= 0:
             return False
-        ep, st = self.endpoint, self.endpoint.stats
+        ep = self.endpoint
         try:
-            sent = ep._send_bytes(self._out_view[:n_out], None)
+            sent = ep._send_record(self._out_view[:n_out])
         except OSError as e:
             raise AdapterError(f"{ep!r}: send failed: {e}") from e
-        if sent:
-            st.bytes_sent += n_out
-            st.sent += 1
-            ep._frame = (ep._frame + 1) & U32
+        ep.stats.sent += sent
         return sent

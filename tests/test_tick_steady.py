@@ -157,8 +157,11 @@ class WireTwin:
 
 
 def _specialisations() -> dict:
-    """Every numba function of this process -> its compiled signatures."""
-    return {f: len(f.signatures) for f in gc.get_objects() if isinstance(f, CPUDispatcher)}
+    """Every numba function of this process -> its compiled signatures (by type():
+    isinstance asks ``__class__``, which some objects' ``__getattr__`` answer with an
+    error, as a canopen object left by another test does)."""
+    return {f: len(f.signatures) for f in gc.get_objects()
+            if issubclass(type(f), CPUDispatcher)}
 
 
 def _compare(segments, extra: dict, config: Path = ARROW_PATH, rate_hz: float | None = None,
