@@ -13,6 +13,9 @@ the declared machine file.  Scores per trace:
   motor encoder where a scale closes the loop;
 * **truth / floor**: the same ratio for the truth's own machine file replayed with the
   header's conventions: how far the emulator's replay can follow this simulator at all;
+* **repeat / floor**: the generator against itself, the same truth integrated at ten times
+  the relative tolerance (same noise): where the closed loop amplifies a difference that
+  small, no model follows the trace closer than this, and the floor goal is out of reach;
 * the time identification took.
 
 The traces are generated once into ``OUT/traces`` and reused (delete them to regenerate).
@@ -24,6 +27,7 @@ import time
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
+from hil.bench.identify_gen.axis import RTOL
 from hil.bench.identify_gen.cases import (
     ADC_BITS,
     CASES,
@@ -35,7 +39,7 @@ from hil.bench.identify_gen.cases import (
     case,
     merged,
 )
-from hil.bench.identify_gen.generate import simulate, write
+from hil.bench.identify_gen.generate import deviation, simulate, write
 from hil.bench.identify_gen.trajectory import bench_moves
 from hil.identify.config_out import patch_config
 from hil.identify.fit import Identification, record_errors
@@ -47,7 +51,7 @@ from plant.config import load_machine
 #: factor of its floor
 FLOOR_GOAL = 1.5
 #: the generator's version: a cached trace of another version is generated again
-GENERATOR_VERSION = 5
+GENERATOR_VERSION = 6
 
 
 def _rms_keys(err: dict) -> list[str]:
@@ -63,9 +67,9 @@ def ratios(err: dict, floor: dict) -> dict:
 
 def prepare(c: Case, folder: Path, log=None, duration_s: float | None = None) -> dict:
     """Write the case's truth and start machine files and its trace into ``folder`` (the
-    trace only when absent or of another generator version or duration); returns the floor
-    and paths.  ``duration_s``: the program repeated to at least this long (None: one pass,
-    13-32 s)."""
+    trace only when absent or of another generator version or duration); returns the floor,
+    the generator's repeat deviation (:func:`~.generate.deviation`) and paths.
+    ``duration_s``: the program repeated to at least this long (None: one pass, 13-32 s)."""
     folder.mkdir(parents=True, exist_ok=True)
     text = c.axis.read_text()
     truth = folder / "truth.toml"
@@ -80,15 +84,17 @@ def prepare(c: Case, folder: Path, log=None, duration_s: float | None = None) ->
     if cached.get("version") != GENERATOR_VERSION or cached.get("duration_s") != duration_s:
         t0 = time.monotonic()
         traj = bench_moves(c.travel, c.speed, 0.3 * c.travel, duration_s)
-        rec = simulate(truth, traj, record_every=RECORD_EVERY, preroll_s=PREROLL_S,
-                       adc_bits=ADC_BITS, seed=c.seed)
+        rec, again = (simulate(truth, traj, record_every=RECORD_EVERY, preroll_s=PREROLL_S,
+                               adc_bits=ADC_BITS, seed=c.seed, rtol=rtol)
+                      for rtol in (RTOL, 10.0 * RTOL))
         write(rec, trace, f"hil bench identify ({c.name})")
         cached = {"version": GENERATOR_VERSION, "duration_s": duration_s, "floor": rec.floor,
-                  "generated_s": time.monotonic() - t0}
+                  "repeat": deviation(rec, again), "generated_s": time.monotonic() - t0}
         info.write_text(json.dumps(cached, indent=1))
         if log:
             log(f"{c.name}: generated {traj.duration_s:.1f} s in {cached['generated_s']:.0f} s")
-    return {"floor": cached["floor"], "trace": trace, "start": start, "truth": truth_plain}
+    return {"floor": cached["floor"], "repeat": cached["repeat"], "trace": trace,
+            "start": start, "truth": truth_plain}
 
 
 def traces_folder(out: Path, duration_s: float | None) -> Path:
@@ -117,6 +123,7 @@ def run_case(name: str, out: Path, refine_nfev: int = 10, log=None,
         "floor": floor, "error_before": ident.error_before, "error_after": ident.error_after,
         "before_over_floor": ratios(ident.error_before, floor), "after_over_floor": after,
         "truth_over_floor": ratios(truth_err, floor),
+        "repeat_over_floor": ratios(files["repeat"], floor),
         "at_floor": bool(after) and max(after.values()) <= FLOOR_GOAL,
         "identify_s": elapsed, "samples": rec.n, "duration_s": rec.n * rec.dt,
     }
@@ -146,6 +153,8 @@ def run(names: list[str], out: Path, workers: int = 2, refine_nfev: int = 10,
     summary = {
         "cases": len(rows), "named_first": sum(r["named_first"] for r in rows),
         "at_floor": sum(r["at_floor"] for r in rows),
+        "repeatable": sum(_repeatable(r) for r in rows),
+        "at_floor_of_repeatable": sum(r["at_floor"] and _repeatable(r) for r in rows),
         "max_identify_s": max(r["identify_s"] for r in rows), "floor_goal": FLOOR_GOAL,
         "elapsed_s": time.monotonic() - t0, "duration_s": duration_s,
     }
@@ -153,6 +162,11 @@ def run(names: list[str], out: Path, workers: int = 2, refine_nfev: int = 10,
     suffix = "" if duration_s is None else f"_{duration_s:g}s"
     (out / f"bench_identify{suffix}.json").write_text(json.dumps(result, indent=1))
     return result
+
+
+def _repeatable(row: dict) -> bool:
+    """The generator repeats the trace within the floor goal on every main channel."""
+    return max(row["repeat_over_floor"].values(), default=0.0) <= FLOOR_GOAL
 
 
 def _fmt(ratio: dict) -> str:
@@ -167,17 +181,21 @@ def _line(r: dict) -> str:
 def table(result: dict) -> str:
     """The bench as a Markdown table (ratios: current / position / motor encoder)."""
     lines = ["| trace | axis | undeclared | added (in order) | named first | before / floor "
-             "| after / floor | truth / floor | trace, s | identify, s |", "|---" * 10 + "|"]
+             "| after / floor | truth / floor | repeat / floor | trace, s | identify, s |",
+             "|---" * 11 + "|"]
     for r in result["rows"]:
         lines.append(
             f"| {r['case']} | {r['axis']} | {', '.join(r['undeclared'])} | "
             f"{', '.join(r['added']) or '-'} | {'yes' if r['named_first'] else 'no'} | "
             f"{_fmt(r['before_over_floor'])} | {_fmt(r['after_over_floor'])} | "
-            f"{_fmt(r['truth_over_floor'])} | {r['duration_s']:.0f} | {r['identify_s']:.0f} |")
+            f"{_fmt(r['truth_over_floor'])} | {_fmt(r['repeat_over_floor'])} | "
+            f"{r['duration_s']:.0f} | {r['identify_s']:.0f} |")
     s = result["summary"]
     lines.append(f"\nnamed first {s['named_first']}/{s['cases']}, after within "
                  f"{s['floor_goal']}x the floor on every main channel {s['at_floor']}/"
-                 f"{s['cases']}, longest identification {s['max_identify_s']:.0f} s")
+                 f"{s['cases']} ({s['at_floor_of_repeatable']}/{s['repeatable']} of the traces "
+                 f"the generator repeats within it), longest identification "
+                 f"{s['max_identify_s']:.0f} s")
     return "\n".join(lines)
 
 

@@ -172,9 +172,11 @@ class Axis:
     ``direction`` hold the presliding spring's last reversal.
     """
 
-    def __init__(self, p: AxisParams, x0: float):
-        """At rest with the table at ``x0`` (m or rad)."""
+    def __init__(self, p: AxisParams, x0: float, rtol: float = RTOL):
+        """At rest with the table at ``x0`` (m or rad); ``rtol``: solve_ivp's relative
+        tolerance (the absolute ones are ATOL)."""
         self.p = p
+        self.rtol = rtol
         u0 = nut_travel(p, x0) if p.pitch else x0
         self.y = np.array([u0, 0.0, u0, 0.0, 0.0, 0.0])
         self.x_rev = u0
@@ -269,8 +271,9 @@ class Axis:
                     self.stuck = False
                     slide = math.copysign(1.0, f)
                 else:
-                    sol = solve_ivp(self._rhs, (t, dt), y, args=(i_set, 0.0), rtol=RTOL,
-                                    atol=ATOL, max_step=dt, events=self._release)
+                    sol = solve_ivp(self._rhs, (t, dt), y, args=(i_set, 0.0),
+                                    rtol=self.rtol, atol=ATOL, max_step=dt,
+                                    events=self._release)
                     y = sol.y[:, -1].copy()
                     y[3] = 0.0
                     if not p.two_mass:
@@ -289,14 +292,14 @@ class Axis:
                 return yy[3]
             zero.terminal = True
             zero.direction = -slide
-            sol = solve_ivp(self._rhs, (t, dt), y, args=(i_set, slide), rtol=RTOL, atol=ATOL,
-                            max_step=dt, events=zero)
+            sol = solve_ivp(self._rhs, (t, dt), y, args=(i_set, slide), rtol=self.rtol,
+                            atol=ATOL, max_step=dt, events=zero)
             y = sol.y[:, -1].copy()
             if sol.status != 1:
                 break
             if sol.t[-1] <= t + 1e-9 * dt:
                 # a zero at the interval's start (the load just released): slide through it
-                sol = solve_ivp(self._rhs, (t, dt), y, args=(i_set, slide), rtol=RTOL,
+                sol = solve_ivp(self._rhs, (t, dt), y, args=(i_set, slide), rtol=self.rtol,
                                 atol=ATOL, max_step=dt)
                 y = sol.y[:, -1].copy()
                 break
@@ -321,8 +324,9 @@ class Axis:
                 return yy[3]
             reversal.terminal = True
             reversal.direction = -self.direction
-            sol = solve_ivp(self._rhs, (t, dt), y, args=(i_set, 1.0), rtol=RTOL, atol=ATOL,
-                            max_step=dt, events=reversal if self.direction else None)
+            sol = solve_ivp(self._rhs, (t, dt), y, args=(i_set, 1.0), rtol=self.rtol,
+                            atol=ATOL, max_step=dt,
+                            events=reversal if self.direction else None)
             y = sol.y[:, -1].copy()
             y[5] = max(-p.fc, min(p.fc, y[5]))
             if sol.status != 1:

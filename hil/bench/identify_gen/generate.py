@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from hil.bench.identify_gen.axis import Axis, AxisParams, UnsupportedModel, axis_params
+from hil.bench.identify_gen.axis import RTOL, Axis, AxisParams, UnsupportedModel, axis_params
 from hil.bench.identify_gen.trajectory import Trajectory
 from hil.controller.config import ControllerSection, axis_limits, kv_si, load_controller
 from hil.trace_file import write_trace
@@ -115,7 +115,7 @@ def _conventions(cfg: MachineConfig, sec: ControllerSection, dt_rec: float,
 
 
 def simulate(truth: str | Path, traj: Trajectory, *, record_every: int, preroll_s: float,
-             adc_bits: int, seed: int, progress=None) -> Recording:
+             adc_bits: int, seed: int, rtol: float = RTOL, progress=None) -> Recording:
     """Run ``traj`` on the machine file ``truth`` (its ``[controller]`` with the
     conventions of the module docstring) and record every ``record_every`` PWM periods.
 
@@ -127,6 +127,8 @@ def simulate(truth: str | Path, traj: Trajectory, *, record_every: int, preroll_
         adc_bits: the current ADC's bits; its full scale is 2^(bits-1) times
             ``[sensors] current_lsb_a``.
         seed: of the measurement noise.
+        rtol: the integration's relative tolerance (the bench's repeat uses ten times
+            RTOL: a trace that changes with it cannot be followed closer by any model).
         progress: optional callable(fraction).
     """
     cfg = load_machine(truth)
@@ -137,7 +139,7 @@ def simulate(truth: str | Path, traj: Trajectory, *, record_every: int, preroll_
     lim = axis_limits(cfg, sec)
     p: AxisParams = axis_params(cfg)
     x_start, _ = traj.at(0.0)
-    axis = Axis(p, float(x_start[0]))
+    axis = Axis(p, float(x_start[0]), rtol)
     sen = cfg.sensors
     rng = np.random.default_rng(seed)
     lsb = sen.current_lsb_a
@@ -248,6 +250,23 @@ def _recording(cfg, sec, rec: dict, dt: float, preroll_s: float, adc_bits: int,
     if feedback_scale:
         floor["motor_pos_rms_um"] = rms(rec["motor"], rec["motor_true"]) * 1e6
     return Recording(cols, floor, meta)
+
+
+#: the floor's channels: (column, factor from the column's unit to the floor's)
+_CHANNELS = {"iq_rms_a": ("iq_a", 1.0), "pos_rms_um": ("pos_mm", 1e3),
+             "pos_rms_urad": ("pos_deg", math.pi / 180.0 * 1e6),
+             "motor_pos_rms_um": ("motor_pos_mm", 1e3)}
+
+
+def deviation(a: Recording, b: Recording) -> dict:
+    """The rms deviation (about its mean, as the floor) of two recordings of one program
+    per floor channel, in the floor's units: with ``b`` the same truth integrated at another
+    tolerance, how closely the generator repeats itself through the sensors."""
+    out = {}
+    for key in a.floor:
+        col, k = _CHANNELS[key]
+        out[key] = float(np.std(a.columns[col] - b.columns[col]) * k)
+    return out
 
 
 def write(recording: Recording, path: Path, source: str) -> Path:
