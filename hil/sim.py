@@ -3,7 +3,9 @@
 Each basic-clock tick the controller reads the last feedback and writes a
 setpoint, then the drive applies it and advances the plant one PWM period.
 The same Controller and EmulatedDrive objects run in real time over an
-adapter; here they are only called back to back, faster than real time.
+adapter; here they are only called back to back, faster than real time.  The drives take
+their compiled steady-state path as the emulator's do (:mod:`hil.drive.compiled_path`:
+the same results bit for bit, about half the lock-step's time).
 :class:`MachineLockStep` does the same for every axis of a machine at once.  An alarm of
 the NC (:mod:`hil.controller.alarms`) does not end a run: the axes brake and are disabled
 as the NC does it, the run goes on to its end, and the alarms are in the result.
@@ -124,15 +126,17 @@ class LockStep(_Stepper):
         axis: the axis name in the NC's alarms (default X, or C on a rotary table).
         inject: ``--inject`` flags (:mod:`hil.inject`), besides the machine file's
             ``[inject]`` tables.
+        compiled: the drive's compiled steady-state path (False: every drive cycle in
+            Python, the reference it equals).
     """
 
     def __init__(self, cfg: MachineConfig, x0: float = 0.0, feedback_delay_ticks: int = 0,
-                 axis: str | None = None, inject: Sequence[str] = ()):
+                 axis: str | None = None, inject: Sequence[str] = (), compiled: bool = True):
         _check_delay(feedback_delay_ticks)
         self.cfg = cfg
         self.plant = Plant(cfg, table_pos=x0)
         self._inject((self.plant,), (cfg,), ("",), inject)
-        self.drive = EmulatedDrive(self.plant)
+        self.drive = EmulatedDrive(self.plant, compiled=compiled)
         self._cycle = self.drive.cycle
         self.ctrl = Controller(cfg, self.plant.pwm_period, x0, axis=axis)
         self.sp = Setpoint()
@@ -199,16 +203,18 @@ class MachineLockStep(_Stepper):
         x0: each axis's table position at start (SI; default all 0).
         feedback_delay_ticks: as for :class:`LockStep`.
         inject: as for :class:`LockStep` (``AXIS/FAULT:...`` on several axes).
+        compiled: as for :class:`LockStep`.
     """
 
     def __init__(self, machine: MachineSet, x0: Sequence[float] | None = None,
-                 feedback_delay_ticks: int = 0, inject: Sequence[str] = ()):
+                 feedback_delay_ticks: int = 0, inject: Sequence[str] = (),
+                 compiled: bool = True):
         _check_delay(feedback_delay_ticks)
         self.machine = machine
         x0 = tuple(x0) if x0 is not None else (0.0,) * len(machine.axes)
         self.plants = tuple(Plant(a.config, table_pos=x) for a, x in zip(machine.axes, x0))
         self._inject(self.plants, machine.configs, machine.names, inject)
-        self.drives = DriveSet([EmulatedDrive(p) for p in self.plants])
+        self.drives = DriveSet([EmulatedDrive(p, compiled=compiled) for p in self.plants])
         self.period = self.plants[0].pwm_period
         self.ctrl = MachineController(machine, self.period, x0)
         n = len(machine.axes)

@@ -18,11 +18,11 @@ does).
 
 import numpy as np
 
-from hil.cia402 import State
+from hil.cia402 import EnableSequencer, State
 from hil.drive import compiled as C
 from hil.drive.faults import OVERSPEED_FACTOR
 from hil.drive.monitor import I2T_COOLED, I2T_WARNING
-from io_adapters.messages import MODE_CSP, MODE_CST, MODE_CSV
+from io_adapters.messages import MODE_CSP, MODE_CST, MODE_CSV, axis_records, message_pair
 
 #: the modes the compiled path runs
 CYCLIC = frozenset((MODE_CSP, MODE_CSV, MODE_CST))
@@ -210,3 +210,23 @@ class CompiledPath:
         spd.cur_filter.z1, spd.cur_filter.z2 = f[C.F_CUR_Z1], f[C.F_CUR_Z2]
         spd.notch.z1, spd.notch.z2 = f[C.F_NOTCH_Z1], f[C.F_NOTCH_Z2]
         d.sm._statusword = i[C.J_STATUSWORD]
+
+
+def warm(drives, cycles: int, stop=lambda: False) -> int:
+    """Run ``drives`` (a :class:`~hil.drive.core.DriveSet` of compiled drives) enabled as a
+    controller enables them, then holding their position in CSP (CST on a drive without
+    loops), for ``cycles`` cycles or until ``stop()``: every kernel of the Python and the
+    compiled path is compiled, or loaded from numba's cache, by then.  Returns the cycles
+    run; the drives and their plants have moved and are to be built afresh."""
+    sp, fb = message_pair(len(drives.drives))
+    enable = EnableSequencer(timeout_cycles=cycles)
+    enable.enable()
+    n = 0
+    while n < cycles and not stop():
+        sp.controlword = enable.next_controlword(axis_records(fb)[0].statusword)
+        for s, f, d in zip(axis_records(sp), axis_records(fb), drives.drives):
+            s.mode = MODE_CSP if d.loops is not None else MODE_CST
+            s.target_position_counts = f.encoder_counts
+        drives.cycle(sp, fb)
+        n += 1
+    return n

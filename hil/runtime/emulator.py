@@ -102,8 +102,9 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
 
-from hil.cia402 import DISABLE_VOLTAGE, EnableSequencer
+from hil.cia402 import DISABLE_VOLTAGE
 from hil.drive import DriveSet, EmulatedDrive
+from hil.drive.compiled_path import warm
 from hil.drive.objects import DriveObjects
 from hil.inject.schedule import InjectEvent, injectors_for
 from hil.rt.loop import OverrunPolicy
@@ -139,8 +140,6 @@ from hil.runtime.watchdog import Watchdog
 from io_adapters import AdapterError, Endpoint, open_endpoint
 from io_adapters.can_url import IN_PROCESS_ONLY, in_process_only
 from io_adapters.messages import (
-    MODE_CSP,
-    MODE_CST,
     Feedback,
     FeedbackGroup,
     Setpoint,
@@ -251,17 +250,7 @@ class Emulator:
         ran).  ``drives`` cycles every axis (:class:`DriveSet`); ``drive`` is axis 0's."""
         # the drives check [controller] for the CSP/CSV loops
         self.drives = DriveSet([EmulatedDrive(p, compiled=True) for p in self.plants])
-        sp, fb = message_pair(len(self.plants))
-        enable = EnableSequencer(timeout_cycles=WARMUP_CYCLES)
-        enable.enable()
-        self.warmup_cycles = 0
-        while self.warmup_cycles < WARMUP_CYCLES and not self.stop.requested:
-            sp.controlword = enable.next_controlword(axis_records(fb)[0].statusword)
-            for s, f, d in zip(axis_records(sp), axis_records(fb), self.drives.drives):
-                s.mode = MODE_CSP if d.loops is not None else MODE_CST
-                s.target_position_counts = f.encoder_counts
-            self.drives.cycle(sp, fb)
-            self.warmup_cycles += 1
+        self.warmup_cycles = warm(self.drives, WARMUP_CYCLES, lambda: self.stop.requested)
         for p, x in zip(self.plants, self.x0):
             p.reset(x)
         self.drives = DriveSet([EmulatedDrive(p, compiled=True) for p in self.plants])

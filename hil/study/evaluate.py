@@ -8,8 +8,9 @@ raises) is a row with its reason in ``status`` and NaN outputs, not a failed tas
 
 :class:`KernelWarmup` is registered on every worker, those of a remote cluster that join
 later included: it loads the plant's compiled kernels (numba's on-disk cache, compiled on
-the first use on that machine) and steps the study's machine once, so each worker
-compiles once, before its first task, not inside one.
+the first use on that machine) by running the study's machine's drives enabled through
+their compiled path (:func:`hil.drive.compiled_path.warm`), so each worker compiles once,
+before its first task, not inside one.
 """
 
 import math
@@ -20,10 +21,16 @@ import numpy as np
 import pyarrow as pa
 from distributed import WorkerPlugin, get_worker
 
+from hil.drive import DriveSet, EmulatedDrive
+from hil.drive.compiled_path import warm
 from hil.study.experiments import Experiment
 from hil.study.keys import KeyRef, overrides_of
 from hil.study.machine import MachineSource
 from plant import Plant
+
+#: drive cycles a worker runs before its first task: the drives enabled and holding, the
+#: compiled path entered
+WARM_CYCLES = 2000
 
 
 @dataclass(frozen=True)
@@ -100,8 +107,8 @@ def evaluate_chunk(job: Job, ids: np.ndarray, values: np.ndarray) -> pa.Table:
 
 
 class KernelWarmup(WorkerPlugin):
-    """Load (or compile, once per machine) the plant's kernels on a worker as it starts,
-    and step the study's machine once (module docstring)."""
+    """Load (or compile, once per machine) the plant's and the drive's kernels on a worker
+    as it starts, by running the study's machine's drives (module docstring)."""
 
     name = "hil-study-kernel-warmup"
 
@@ -111,6 +118,7 @@ class KernelWarmup(WorkerPlugin):
     def setup(self, worker) -> None:
         if self.machine is None:
             return
-        for axis in self.machine.build().axes:
-            plant = Plant(axis.config)
-            plant.step(plant.sub_per_pwm)
+        # the lock-step's drives run their compiled path (hil.sim): its kernels and the
+        # plant's, stepped by the drives
+        plants = [Plant(axis.config) for axis in self.machine.build().axes]
+        warm(DriveSet([EmulatedDrive(p, compiled=True) for p in plants]), WARM_CYCLES)
