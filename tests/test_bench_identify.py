@@ -31,8 +31,9 @@ from hil.bench.identify_gen.cases import (
     SCREW,
     TWO_MASS,
 )
-from hil.bench.identify_gen.generate import Recording, deviation
+from hil.bench.identify_gen.generate import Recording, _recording, deviation
 from hil.bench.identify_gen.trajectory import bench_moves, moves
+from hil.controller.config import load_controller
 from hil.identify.floor import replay_floor
 from hil.identify.record import load_record
 from plant.assemble import reflected_inertia, transmission_ratio
@@ -117,19 +118,26 @@ def test_the_generator_repeats_the_ci_traces(ci_bench):
                                                                row["repeat_over_floor"])
 
 
+def _recorded(path, **signals) -> Recording:
+    """A generator recording (:func:`~hil.bench.identify_gen.generate._recording`, SI in,
+    the trace's units out) of 1000 samples, zero where ``signals`` gives nothing."""
+    cfg = load_machine(path)
+    rec = {k: np.zeros(1000) for k in ("t", "x_set", "v_ff", "x", "v", "iq_set", "iq",
+                                       "motor", "x_true", "motor_true", "iq_true")}
+    rec.update(signals)
+    sec = load_controller(cfg)
+    return _recording(cfg, sec, rec, 1e-3, 0.0, 12, sec.feedback == "scale")
+
+
 def test_repeat_deviation_in_the_floors_units():
     """1 count of 50 nm on every other sample of the position, 2 mA on the current, one
     millidegree on a rotary position: the rms about the mean, in um, A and urad."""
-    n = 1000
-    alt = np.arange(n) % 2
-    floor = {"iq_rms_a": 1.0, "pos_rms_um": 1.0}
-    a = Recording({"iq_a": np.zeros(n), "pos_mm": np.zeros(n)}, floor, {})
-    b = Recording({"iq_a": 0.002 * alt, "pos_mm": 5e-5 * alt}, floor, {})
-    d = deviation(a, b)
-    assert d == pytest.approx({"iq_rms_a": 0.001, "pos_rms_um": 0.025}, rel=1e-12)
-    rot = Recording({"pos_deg": 1e-3 * alt}, {"pos_rms_urad": 1.0}, {})
-    zero = Recording({"pos_deg": np.zeros(n)}, {"pos_rms_urad": 1.0}, {})
-    assert deviation(rot, zero)["pos_rms_urad"] == pytest.approx(
+    alt = (np.arange(1000) % 2).astype(float)
+    d = deviation(_recorded(SCREW), _recorded(SCREW, iq=0.002 * alt, x=5e-8 * alt))
+    assert d == pytest.approx({"iq_rms_a": 0.001, "pos_rms_um": 0.025,
+                               "motor_pos_rms_um": 0.0}, rel=1e-12, abs=1e-15)
+    rot = _recorded(ROTARY, x=math.radians(1e-3) * alt)
+    assert deviation(rot, _recorded(ROTARY))["pos_rms_urad"] == pytest.approx(
         0.5e-3 * math.pi / 180 * 1e6, rel=1e-12)
 
 

@@ -43,10 +43,12 @@ class Recording:
         floor: deviation of measured minus true per channel: ``iq_rms_a``, ``pos_rms_um`` (or
             ``_urad``), ``motor_pos_rms_um``: what no model can explain.
         meta: the header's conventions.
+        measured: the floor's channels as measured, in the floor's units (A, um, urad).
     """
     columns: dict
     floor: dict
     meta: dict
+    measured: dict
 
 
 class _PI:
@@ -240,33 +242,27 @@ def _recording(cfg, sec, rec: dict, dt: float, preroll_s: float, adc_bits: int,
     full_scale = cfg.sensors.current_lsb_a * 2 ** (adc_bits - 1)
     meta = _conventions(cfg, sec, dt, preroll_s, (adc_bits, full_scale))
 
-    def rms(a, b):
-        # about its mean: a sensor's zero (a floor's half step) is no error a model can make
-        return float(np.std(a - b))
-
     pos_key = "pos_rms_urad" if rotary else "pos_rms_um"
     true_pos = rec["x_true"] if feedback_scale else rec["motor_true"]
-    floor = {"iq_rms_a": rms(rec["iq"], rec["iq_true"]), pos_key: rms(rec["x"], true_pos) * 1e6}
+    measured = {"iq_rms_a": rec["iq"], pos_key: rec["x"] * 1e6}
+    true = {"iq_rms_a": rec["iq_true"], pos_key: true_pos * 1e6}
     if feedback_scale:
-        floor["motor_pos_rms_um"] = rms(rec["motor"], rec["motor_true"]) * 1e6
-    return Recording(cols, floor, meta)
+        measured["motor_pos_rms_um"] = rec["motor"] * 1e6
+        true["motor_pos_rms_um"] = rec["motor_true"] * 1e6
+    return Recording(cols, _rms_about_mean(measured, true), meta, measured)
 
 
-#: the floor's channels: (column, factor from the column's unit to the floor's)
-_CHANNELS = {"iq_rms_a": ("iq_a", 1.0), "pos_rms_um": ("pos_mm", 1e3),
-             "pos_rms_urad": ("pos_deg", math.pi / 180.0 * 1e6),
-             "motor_pos_rms_um": ("motor_pos_mm", 1e3)}
+def _rms_about_mean(a: dict, b: dict) -> dict:
+    """Per channel of ``a`` the rms of a - b about its mean: a sensor's zero (a floor's half
+    step) is no error a model can make."""
+    return {k: float(np.std(a[k] - b[k])) for k in a}
 
 
 def deviation(a: Recording, b: Recording) -> dict:
     """The rms deviation (about its mean, as the floor) of two recordings of one program
     per floor channel, in the floor's units: with ``b`` the same truth integrated at another
     tolerance, how closely the generator repeats itself through the sensors."""
-    out = {}
-    for key in a.floor:
-        col, k = _CHANNELS[key]
-        out[key] = float(np.std(a.columns[col] - b.columns[col]) * k)
-    return out
+    return _rms_about_mean(a.measured, b.measured)
 
 
 def write(recording: Recording, path: Path, source: str) -> Path:
