@@ -17,6 +17,7 @@ import sys
 import time
 from pathlib import Path
 
+import dask
 import numpy as np
 import pyarrow.parquet as pq
 import pytest
@@ -27,6 +28,7 @@ from hil.controller.config import load_controller
 from hil.measure.runs import position_step
 from hil.study.analytic import ishigami_indices
 from hil.study.outputs import step_metrics
+from hil.study.run import dask_client
 from hil.study.spec import load_study
 from hil.study.tuning import robust_values
 from plant.config import load_machine
@@ -130,6 +132,26 @@ def test_small_study_same_numbers_on_local_cluster_and_separate_dask_processes(t
     m = step_metrics(res.t_s[post], res.response[post], 0.25, 0.0005, 2.0)
     assert reference["lag_50pct_s"][k].as_py() == m.lag_50pct_s
     assert reference["rise_time_s"][k].as_py() == m.rise_time_s
+
+
+def _event_loop_module(dask_worker) -> str:
+    return type(dask_worker.loop.asyncio_loop).__module__
+
+
+# the module's separately started cluster may hold the dashboard's port: Dask then takes
+# another one, and the note gives that link
+@pytest.mark.filterwarnings("ignore:Port 8787 is already in use")
+def test_the_local_cluster_a_study_starts_has_quiet_workers_on_uvloop():
+    """The LocalCluster a study starts (hil.study.run.dask_client): its workers' profiler
+    is off and their event loop is uvloop's, the settings that cut the loop's work per
+    task; the dashboard's link is given."""
+    notes = []
+    with dask_client(None, 1, notes.append) as client:
+        (loop_module,) = client.run(_event_loop_module).values()
+        (profile,) = client.run(dask.config.get, "distributed.worker.profile.enabled").values()
+    assert loop_module.startswith("uvloop"), loop_module
+    assert profile is False
+    assert "dashboard http://127.0.0.1:" in notes[0]
 
 
 def test_study_killed_halfway_resumes_without_recomputing(tmp_path):
@@ -317,18 +339,23 @@ overshoot_pct = {{ max = 5.0 }}
 
 def test_bench_study_reports_both_cluster_sizes():
     """``hil bench study`` on a small load: every sample ran in every round, on one and on
-    two workers, and its ratios are the ones its figures give (no timing is asserted)."""
-    res = subprocess.run([sys.executable, "-m", "hil.bench.study", "--samples", "4",
+    two workers, and in hil study's own task size; its ratios are the ones its figures
+    give (no timing is asserted)."""
+    res = subprocess.run([sys.executable, "-m", "hil.bench.study", "--samples", "8",
                           "--seconds", "0.1", "--rounds", "2", "--json"], capture_output=True,
                          text=True, timeout=STUDY_TIMEOUT_S, cwd=ROOT, check=False)
     assert res.returncode == 0, res.stderr[-3000:]
     r = json.loads(res.stdout)
     one, two = r["one_worker"], r["two_workers"]
     assert len(one["rounds"]) == len(two["rounds"]) == 2
-    assert all((x["samples"], x["failed"], x["distinct_workers"]) == (4, 0, 1)
+    assert all((x["samples"], x["failed"], x["distinct_workers"], x["tasks"]) == (8, 0, 1, 8)
                for x in one["rounds"])
-    assert all((x["samples"], x["failed"], x["distinct_workers"]) == (4, 0, 2)
+    assert all((x["samples"], x["failed"], x["distinct_workers"]) == (8, 0, 2)
                for x in two["rounds"])
+    # hil study's size on one worker: about four tasks, here two samples each
+    assert r["study_task_size"] == 2
+    assert all((x["samples"], x["failed"], x["task_size"], x["tasks"]) == (8, 0, 2, 4)
+               for x in one["study_task_size_rounds"])
     assert one["wall_s"] == sorted(x["wall_s"] for x in one["rounds"])[1]
     assert r["scaling_ratio"] == pytest.approx(two["samples_per_s"] / (2 * one["samples_per_s"]))
     # the first bare run, then one after each round; each round against its neighbours
@@ -336,6 +363,12 @@ def test_bench_study_reports_both_cluster_sizes():
     assert len(bares) == 3 and len(r["overhead_pct_per_round"]) == 2
     last = 0.5 * (bares[1] + bares[2])
     assert r["overhead_pct_per_round"][1] == pytest.approx(
-        100 * (one["rounds"][1]["wall_s"] / 4 - last) / last)
+        100 * (one["rounds"][1]["wall_s"] / 8 - last) / last)
     assert r["overhead_pct"] == pytest.approx(np.median(r["overhead_pct_per_round"]))
     assert 0.0 < one["worker_compute_s"] < one["wall_s"]
+    # the event loop's CPU is read on its own thread: some per task, less than the task
+    assert all(0.0 < x["worker_loop_cpu_s"] < x["wall_s"] for x in one["rounds"])
+    floors = one["dask_floor_rounds"]
+    assert len(floors) == 2 and all(f["worker_loop_cpu_s"] > 0.0 for f in floors)
+    assert r["dask_floor_pct"] == pytest.approx(
+        100 * np.median([f["worker_loop_cpu_s"] for f in floors]) / r["bare_s_per_sample"])

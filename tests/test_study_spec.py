@@ -139,6 +139,21 @@ def test_manifest_keys_name_their_axis(tmp_path):
     assert study.varied[0].nominal == 550.0  # the manifest's override of Y
 
 
+def test_a_samples_keys_do_not_stay_in_the_next_samples_machine(tmp_path):
+    """The worker parses the machine's text once and builds every sample from a copy: a
+    sample's keys, and the manifest's overrides, apply to that sample only."""
+    study = load_study(write(tmp_path, GOOD.replace(str(ARROW), str(ARROW_XY))
+                             .replace("[vary.table]", "[vary.Y.table]")))
+    source = study.machine
+    changed = source.build({"Y": {"table": {"mass_kg": 700.0}}, "X": {"friction":
+                                                                      {"coulomb_n": 90.0}}})
+    assert changed.axes[1].config.table.mass_kg == 700.0
+    plain = source.build()
+    assert plain.axes[1].config.table.mass_kg == 550.0  # the manifest's Y override
+    assert plain.axes[0].config.friction.coulomb_n == load_machine(ARROW).friction.coulomb_n
+    assert plain.axes[0].config.table.mass_kg == load_machine(ARROW).table.mass_kg
+
+
 def test_bad_spec_stops_hil_study_before_any_work(tmp_path):
     spec = write(tmp_path, GOOD.replace("tolerance_pct = 10.0", "tolerance_pct = 150.0"))
     out = tmp_path / "out"

@@ -1,6 +1,7 @@
 """The measurements of ``hil bench study`` (:mod:`hil.bench.study` says what they mean);
 imported only when the benchmark runs, so the ``hil`` command line starts without Dask."""
 
+import math
 import os
 import resource
 import tempfile
@@ -8,6 +9,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from distributed import as_completed
 
 from hil.study.keys import overrides_of
 from hil.study.progress import Progress
@@ -17,6 +19,7 @@ from hil.study.run import (
     job_of,
     send_job,
     study_design,
+    task_size,
     warm_workers,
 )
 from hil.study.spec import Study, load_study
@@ -76,46 +79,83 @@ def bare_seconds(study: Study) -> tuple[float, float]:
     return float(wall), float(cpu)
 
 
-def pipeline_round(client, study: Study, folder: Path, label: str) -> dict:
-    """One run of the whole study on ``client``'s cluster (one sample per task, a fresh
-    store in ``folder``): wall time, the samples' own time on the workers, and the CPU
-    time of every process of the pipeline (this one, with the scheduler, and the
-    workers)."""
+def loop_cpu_seconds(client) -> float:
+    """The CPU time of every worker's event-loop thread so far, s (``client.run`` calls
+    its function on that thread)."""
+    return sum(client.run(time.thread_time).values())
+
+
+def pipeline_round(client, study: Study, folder: Path, label: str, size: int = 1) -> dict:
+    """One run of the whole study on ``client``'s cluster (``size`` samples per task, a
+    fresh store in ``folder``): wall time, the samples' own time on the workers, the CPU
+    time of every process of the pipeline (this one, with the scheduler, and the workers)
+    and of the workers' event-loop threads."""
     store = ResultStore(folder, study, fresh=True)
     design = study_design(study)
     progress = Progress()
     progress.start(design.ids.size, label)
     before = cpu_seconds() + sum(client.run(cpu_seconds).values())
-    batch = dispatch(client, send_job(client, job_of(study, store)), design, store, 1,
+    loop_before = loop_cpu_seconds(client)
+    batch = dispatch(client, send_job(client, job_of(study, store)), design, store, size,
                      progress)
+    loop = loop_cpu_seconds(client) - loop_before
     cpu = cpu_seconds() + sum(client.run(cpu_seconds).values()) - before
     results = store.read()
     compute = results.table["compute_s"].to_numpy()
-    return {"samples": batch.done, "failed": batch.failed, "wall_s": batch.wall_s,
+    return {"samples": batch.done, "failed": batch.failed, "task_size": size,
+            "tasks": math.ceil(batch.done / size), "wall_s": batch.wall_s,
             "samples_per_s": batch.done / batch.wall_s,
             "worker_compute_s": float(np.sum(compute)),
             "worker_compute_median_s": float(np.median(compute)), "cpu_s": cpu,
+            "worker_loop_cpu_s": loop,
             "distinct_workers": len(set(results.table["worker"].to_pylist()))}
 
 
+def dask_floor_round(client, tasks: int, seconds: float) -> dict:
+    """Dask's own cost per task on ``client``'s cluster: ``tasks`` tasks that each sleep
+    ``seconds`` (the GIL free, nothing simulated), sent, fetched and released as
+    :func:`~hil.study.run.dispatch` does.  Wall time per task beyond the sleep, s, and
+    the workers' event-loop CPU per task, s: all of that work needs the GIL, so a task
+    that holds it, as a sample does, waits for it (or the loop's work for the task)."""
+    loop_before = loop_cpu_seconds(client)
+    t0 = time.perf_counter()
+    futures = [client.submit(time.sleep, seconds, pure=False) for _ in range(tasks)]
+    for future in as_completed(futures):
+        future.result()
+        future.release()
+    wall = time.perf_counter() - t0
+    return {"wall_beyond_sleep_s": wall / tasks - seconds,
+            "worker_loop_cpu_s": (loop_cpu_seconds(client) - loop_before) / tasks}
+
+
 def cluster_rounds(study: Study, workers: int, rounds: int, folder: Path, note,
-                   bare: bool = False) -> dict:
-    """``rounds`` runs of the study on one LocalCluster of ``workers``; with ``bare``,
-    after each the bare simulation in this process and in a worker (the cluster idle
-    meanwhile).  The round of median wall time is the figure; every round is kept."""
-    runs, bare_here, bare_worker = [], [], []
+                   bare_s: float | None = None) -> dict:
+    """``rounds`` runs of the study on one LocalCluster of ``workers``, one sample per
+    task.  With ``bare_s`` (the bare simulation's seconds), after each run: the same study
+    in the task size ``hil study`` picks, Dask's floor (:func:`dask_floor_round`, tasks
+    sleeping ``bare_s``), and the bare simulation in this process and in a worker (the
+    cluster idle meanwhile).  The round of median wall time is the figure; every round
+    is kept."""
+    runs, own_size, floors, bare_here, bare_worker = [], [], [], [], []
     with dask_client(None, workers, note) as client:
         warm_workers(client, study)
         for r in range(rounds):
+            label = f"{workers} worker(s), round {r + 1}/{rounds}"
             runs.append(pipeline_round(client, study, folder / f"workers_{workers}_{r}",
-                                       f"{workers} worker(s), round {r + 1}/{rounds}"))
-            if bare:
-                bare_here.append(bare_seconds(study))
-                bare_worker.append(next(iter(client.run(bare_seconds, study).values())))
+                                       label))
+            if bare_s is None:
+                continue
+            size = task_size(client, study.study.samples, 0)
+            own_size.append(pipeline_round(client, study, folder / f"own_size_{r}",
+                                           f"{label}, {size} samples per task", size))
+            floors.append(dask_floor_round(client, study.study.samples, bare_s))
+            bare_here.append(bare_seconds(study))
+            bare_worker.append(next(iter(client.run(bare_seconds, study).values())))
     median = sorted(runs, key=lambda x: x["wall_s"])[len(runs) // 2]
     out = {"workers": workers, **median, "rounds": runs}
-    if bare:
-        out.update({"bare_s_after_rounds": [b[0] for b in bare_here],
+    if bare_s is not None:
+        out.update({"study_task_size_rounds": own_size, "dask_floor_rounds": floors,
+                    "bare_s_after_rounds": [b[0] for b in bare_here],
                     "bare_cpu_s_after_rounds": [b[1] for b in bare_here],
                     "bare_in_worker_s_after_rounds": [b[0] for b in bare_worker]})
     return out
@@ -128,13 +168,17 @@ def run(samples: int, seconds: float, rounds: int = 3, note=lambda message: None
         folder = Path(tmp)
         study = bench_study(folder, samples, seconds)
         first = bare_seconds(study)
-        one = cluster_rounds(study, 1, rounds, folder, note, bare=True)
+        one = cluster_rounds(study, 1, rounds, folder, note, bare_s=first[0])
         two = cluster_rounds(study, 2, rounds, folder, note)
     bares = [first[0], *one["bare_s_after_rounds"]]
     bare_cpus = [first[1], *one["bare_cpu_s_after_rounds"]]
     # each round against the bare simulation measured just before and just after it
     around = [0.5 * (bares[i] + bares[i + 1]) for i in range(rounds)]
     extra = [rd["wall_s"] / rd["samples"] - b for rd, b in zip(one["rounds"], around)]
+    extra_own = [rd["wall_s"] / rd["samples"] - b
+                 for rd, b in zip(one["study_task_size_rounds"], around)]
+    floor_wall = float(np.median([f["wall_beyond_sleep_s"] for f in one["dask_floor_rounds"]]))
+    floor_loop = float(np.median([f["worker_loop_cpu_s"] for f in one["dask_floor_rounds"]]))
     bare, bare_cpu = float(np.median(bares)), float(np.median(bare_cpus))
     in_worker = float(np.median(one["bare_in_worker_s_after_rounds"]))
     note(f"bare: {bare * 1e3:.1f} ms per {seconds:g} s simulation here (each: "
@@ -150,6 +194,14 @@ def run(samples: int, seconds: float, rounds: int = 3, note=lambda message: None
         "overhead_pct_per_round": [100.0 * e / b for e, b in zip(extra, around)],
         "overhead_pct": 100.0 * float(np.median([e / b for e, b in zip(extra, around)])),
         "overhead_per_task_s": float(np.median(extra)),
+        "worker_loop_cpu_per_task_s": float(np.median(
+            [rd["worker_loop_cpu_s"] / rd["tasks"] for rd in one["rounds"]])),
+        "dask_floor_wall_per_task_s": floor_wall,
+        "dask_floor_loop_cpu_per_task_s": floor_loop,
+        "dask_floor_pct": 100.0 * floor_loop / bare,
+        "study_task_size": one["study_task_size_rounds"][0]["task_size"],
+        "overhead_pct_study_task_size": 100.0 * float(np.median(
+            [e / b for e, b in zip(extra_own, around)])),
         "task_vs_worker_bare_pct": 100.0 * (one["worker_compute_median_s"] - in_worker)
         / in_worker,
         "cpu_overhead_pct": 100.0 * (cpu_per_sample - bare_cpu) / bare_cpu,
