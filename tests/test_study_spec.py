@@ -8,6 +8,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pyarrow.parquet as pq
 import pytest
 import scipy.optimize
 from hypothesis import given, settings
@@ -319,13 +320,23 @@ def test_store_keeps_whole_files_records_refusals_and_refuses_another_study(tmp_
     # sample 1's mass is one the machine-file loader refuses: a row with its reason
     table = evaluate_chunk(job, np.array([0, 1]), np.array([[350.0], [-1.0]]))
     store.write(table)
-    (store.dir / "part-00000002-00000002.parquet.tmp").write_bytes(b"cut short by a kill")
+    # what a kill during the next write leaves: the file under its temporary name
+    cut_short = store.dir / ".part-00000002-00000002.parquet.tmp"
+    cut_short.write_bytes(b"cut short by a kill")
     assert store.done_ids() == {0, 1}
+    # the results folder stays one Parquet dataset any reader opens
+    assert sorted(pq.read_table(store.dir)["sample_id"].to_pylist()) == [0, 1]
     results = store.read()
     assert results.status[0] == "ok" and results.status[1].startswith("ConfigError")
     assert "mass_kg" in results.status[1]
     assert np.isnan(results.outputs["lag_50pct_s"][1])
     assert results.outputs["lag_50pct_s"][0] > 0.0
+    # the study resumed: the leftover goes, the whole files stay
+    assert ResultStore(tmp_path / "out", study).done_ids() == {0, 1}
+    assert not cut_short.exists()
+    written = store.write(evaluate_chunk(job, np.array([2]), np.array([[360.0]])))
+    assert written.name == "part-00000002-00000002.parquet"
+    assert [f.name for f in store.dir.iterdir() if f.name.startswith(".")] == []
     other = load_study(write(tmp_path, GOOD.replace("samples = 4", "samples = 8"), "b.toml"))
     with pytest.raises(StudySpecError, match="another study"):
         ResultStore(tmp_path / "out", other)

@@ -5,9 +5,11 @@
     OUT/study.json                       the study's fingerprint, columns and curve grids
     OUT/results/part-<first>-<last>.parquet   one finished task's samples
 
-Each file is written under a temporary name and renamed when complete, so a study killed
-at any moment leaves only whole files; on a restart the sample ids found in them are not
-computed again (``--fresh`` starts over).  A folder that holds another study's results
+Each file is written under a hidden temporary name (``.part-*.tmp``, which Parquet
+readers such as ``pyarrow.parquet.read_table(OUT/results)`` skip) and renamed when
+complete, so a study killed at any moment leaves only whole files to read; on a restart
+the leftover of a write cut short is removed, and the sample ids found in the whole
+files are not computed again (``--fresh`` starts over).  A folder that holds another study's results
 (another fingerprint) is refused.
 
 Columns: ``sample_id`` (int64), ``status`` ("ok" or why the sample failed), ``worker``
@@ -98,6 +100,8 @@ class ResultStore:
                     f"fingerprint {earlier.get('fingerprint')}; this one is "
                     f"{study.fingerprint}): use --fresh to replace them, or another --out")
         self.dir.mkdir(parents=True, exist_ok=True)
+        for cut_short in self.dir.glob(".part-*.tmp"):  # a write a kill interrupted
+            cut_short.unlink()
         curves = {f"curve_{i}": {"experiment": exp.kind, "name": exp.curve.name,
                                  "unit": exp.curve.unit, "grid": exp.curve.grid.tolist(),
                                  "grid_name": exp.curve.grid_name,
@@ -124,7 +128,7 @@ class ResultStore:
         """Store one finished task's samples (whole file or nothing)."""
         ids = table["sample_id"].to_pylist()
         path = self.dir / f"part-{min(ids):08d}-{max(ids):08d}.parquet"
-        tmp = path.with_suffix(".parquet.tmp")
+        tmp = path.with_name(f".{path.name}.tmp")
         pq.write_table(table.cast(self.schema), tmp)
         os.replace(tmp, path)
         return path
