@@ -23,10 +23,11 @@ from hil.study.distributions import Distribution
 from hil.study.evaluate import evaluate_chunk
 from hil.study.keys import StudySpecError, _range, declared_field
 from hil.study.outputs import margins, step_metrics
-from hil.study.run import job_of
+from hil.study.run import job_of, study_design
 from hil.study.sampling import design, monte_carlo, sobol_sequence
 from hil.study.spec import load_study
 from hil.study.store import ResultStore
+from hil.study.tuning import robust_values
 from plant.config import load_machine
 from plant.errors import ConfigError
 from plant.schema import in_range, range_text
@@ -367,3 +368,27 @@ def test_a_study_file_that_is_no_file_or_no_toml_is_refused_in_one_line(tmp_path
     bad.write_text("[study]\nmethod = \n")
     with pytest.raises(StudySpecError, match="line 2"):
         load_study(bad)
+
+
+STUDIES = ROOT / "configs" / "studies"
+
+
+@pytest.mark.parametrize("path", sorted(STUDIES.glob("*.toml")), ids=lambda p: p.stem)
+def test_every_shipped_study_file_loads(path):
+    study = load_study(path)
+    assert study.parameters and study.outputs
+
+
+def test_the_speed_tuning_reference_runs_on_the_tunings_own_machines():
+    """README: the machine file's own speed-loop settings are measured on the machines the
+    tuning runs every trial on (arrow500_speed_as_written.toml's samples are
+    arrow500_speed_tuning.toml's robust sample)."""
+    tuning = load_study(STUDIES / "arrow500_speed_tuning.toml")
+    reference = load_study(STUDIES / "arrow500_speed_as_written.toml")
+    assert [r.name for r in reference.varied] == [r.name for r in tuning.varied]
+    machines = robust_values(tuning)
+    assert machines.shape == (4, 2)
+    np.testing.assert_array_equal(study_design(reference).values, machines)
+    # the same measurement (its options), keeping the outputs the tuning is judged by
+    assert reference.experiments[0].opts == tuning.experiments[0].opts
+    assert set(reference.outputs) <= set(tuning.outputs)
