@@ -9,8 +9,8 @@ Each file is written under a hidden temporary name (``.part-*.tmp``, which Parqu
 readers such as ``pyarrow.parquet.read_table(OUT/results)`` skip) and renamed when
 complete, so a study killed at any moment leaves only whole files to read; on a restart
 the leftover of a write cut short is removed, and the sample ids found in the whole
-files are not computed again (``--fresh`` starts over).  A folder that holds another study's results
-(another fingerprint) is refused.
+files are not computed again (``--fresh`` starts over).  A folder that holds another
+study's results (another fingerprint) is refused.
 
 Columns: ``sample_id`` (int64), ``status`` ("ok" or why the sample failed), ``worker``
 (the Dask worker that ran it), ``started_utc`` / ``finished_utc`` (timestamps, µs),
