@@ -370,5 +370,6 @@ def test_bench_study_reports_both_cluster_sizes():
     assert all(0.0 < x["worker_loop_cpu_s"] < x["wall_s"] for x in one["rounds"])
     floors = one["dask_floor_rounds"]
     assert len(floors) == 2 and all(f["worker_loop_cpu_s"] > 0.0 for f in floors)
+    assert 0.0 < r["machine_build_s_per_sample"] < r["bare_s_per_sample"]
     assert r["dask_floor_pct"] == pytest.approx(
         100 * np.median([f["worker_loop_cpu_s"] for f in floors]) / r["bare_s_per_sample"])

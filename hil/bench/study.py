@@ -32,17 +32,18 @@ the median over the rounds of (wall(1) / samples - bare) / bare, the per-task ov
 against a bare simulation of the same length (goal <= 5 % of a 1 s simulation);
 ``task_vs_worker_bare_pct``: a sample's median time inside a task against the bare
 simulation in the same worker process (what the task machinery costs the simulation
-itself; the task's time includes building the sample's machine, about 0.1 ms, which
-the bare time leaves out); ``dispatch_overhead_ms`` = (wall(1) - the samples' own
-compute time on the worker) / samples, the same overhead without the simulation's own
-variation; ``cpu_overhead_pct``: the CPU time of every process of the 1-worker pipeline
-(this one with the scheduler, and the worker) per sample against the bare simulation's,
-the overhead as it stands when other work shares the CPUs and the wall-clock figures
-say little; ``worker_loop_cpu_per_task_s``: the CPU the worker's event-loop thread
-spends per task in those rounds; ``dask_floor_pct`` = the floor's loop CPU per task /
-bare, the share of the overhead that no code of the study can remove on this machine
-with one sample per task; ``overhead_pct_study_task_size``: the overhead per sample with
-``hil study``'s task size.  The load average before and after is reported.
+itself; the task's time includes building the sample's machine,
+``machine_build_s_per_sample``, which the bare time leaves out);
+``dispatch_overhead_ms`` = (wall(1) - the samples' own compute time on the worker) /
+samples, the same overhead without the simulation's own variation; ``cpu_overhead_pct``:
+the CPU time of every process of the 1-worker pipeline (this one with the scheduler, and
+the worker) per sample against the bare simulation's, the overhead as it stands when
+other work shares the CPUs and the wall-clock figures say little;
+``worker_loop_cpu_per_task_s``: the CPU the worker's event-loop thread spends per task
+in those rounds; ``dask_floor_pct`` = the floor's loop CPU per task / bare, the share of
+the overhead that no code of the study can remove on this machine with one sample per
+task; ``overhead_pct_study_task_size``: the overhead per sample with ``hil study``'s
+task size.  The load average before and after is reported.
 """
 
 import argparse
@@ -75,10 +76,11 @@ def text(r: dict) -> str:
          f"sleep: {r['dask_floor_wall_per_task_s'] * 1e3:.1f} ms wall beyond the sleep)"),
         (f"  worker's event loop       {r['worker_loop_cpu_per_task_s'] * 1e3:8.1f} ms CPU per "
          "task with the simulation in it"),
-        (f"  {r['study_task_size']} samples per task         "
+        (f"  {str(r['study_task_size']) + ' samples per task':26s}"
          f"{r['overhead_pct_study_task_size']:+8.1f} % per sample (hil study's task size)"),
         (f"  in a task / bare, worker  {r['task_vs_worker_bare_pct']:+8.1f} % (bare in the "
-         f"worker {r['bare_in_worker_s_per_sample'] * 1e3:.1f} ms)"),
+         f"worker {r['bare_in_worker_s_per_sample'] * 1e3:.1f} ms; building a sample's "
+         f"machine {r['machine_build_s_per_sample'] * 1e3:.2f} ms)"),
         (f"  dispatch overhead         {r['dispatch_overhead_ms']:8.1f} ms per task (wall - "
          "worker compute)"),
         (f"  CPU per sample            {r['one_worker']['cpu_s'] / r['samples'] * 1e3:8.1f} ms "

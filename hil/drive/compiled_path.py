@@ -26,6 +26,9 @@ from io_adapters.messages import MODE_CSP, MODE_CST, MODE_CSV, axis_records, mes
 
 #: the modes the compiled path runs
 CYCLIC = frozenset((MODE_CSP, MODE_CSV, MODE_CST))
+#: cycles of :func:`warm`: the drives enabled, holding, and on the compiled path long
+#: enough that every kernel of both paths has run
+WARM_CYCLES = 2000
 #: controlword bits 7, 3, 2, 1, 0 of enable operation (hil.cia402.ENABLE_OPERATION): the
 #: only command under which OPERATION ENABLED takes no transition
 _ENABLE_MASK, _ENABLE_VALUE = 0x008F, 0x000F
@@ -212,7 +215,7 @@ class CompiledPath:
         d.sm._statusword = i[C.J_STATUSWORD]
 
 
-def warm(drives, cycles: int, stop=lambda: False) -> int:
+def warm(drives, cycles: int = WARM_CYCLES, stop=lambda: False) -> int:
     """Run ``drives`` (a :class:`~hil.drive.core.DriveSet` of compiled drives) enabled as a
     controller enables them, then holding their position in CSP (CST on a drive without
     loops), for ``cycles`` cycles or until ``stop()``: every kernel of the Python and the

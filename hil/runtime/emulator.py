@@ -104,7 +104,7 @@ from dataclasses import dataclass, field, replace
 
 from hil.cia402 import DISABLE_VOLTAGE
 from hil.drive import DriveSet, EmulatedDrive
-from hil.drive.compiled_path import warm
+from hil.drive.compiled_path import WARM_CYCLES, warm
 from hil.drive.objects import DriveObjects
 from hil.inject.schedule import InjectEvent, injectors_for
 from hil.rt.loop import OverrunPolicy
@@ -159,7 +159,7 @@ __all__ = ["Emulator", "RuntimeConfig", "Timing", "add_arguments",
            "main", "resolve_timing", "run_from_args", "signals_end_process"]
 
 #: drive cycles run on the plant before the clock starts (compiled code and caches warm)
-WARMUP_CYCLES = 2000
+WARMUP_CYCLES = WARM_CYCLES
 #: the longest a fault reaction may still brake in the safe state at shutdown, s of drive time
 SAFE_STATE_MAX_S = 5.0
 #: without --duration, the run folder must have room for at least this long a recording, s

@@ -63,20 +63,23 @@ def cpu_seconds() -> float:
     return usage.ru_utime + usage.ru_stime
 
 
-def bare_seconds(study: Study) -> tuple[float, float]:
+def bare_seconds(study: Study) -> tuple[float, float, float]:
     """Median (wall, CPU) seconds of the experiment called directly on the first samples'
-    machines."""
+    machines, and the median wall seconds of building a sample's machine (which a task
+    does and the bare time leaves out)."""
     design = study_design(study)
     refs = study.parameters
     exp = study.experiments[0]
     times = []
     for values in design.values[:BARE_SAMPLES + 1]:
+        t_build = time.perf_counter()
         machine = study.machine.build(overrides_of(refs, values))
         t0, c0 = time.perf_counter(), cpu_seconds()
         exp.run(machine, {r.name: v for r, v in zip(refs, values)})
-        times.append((time.perf_counter() - t0, cpu_seconds() - c0))
-    wall, cpu = np.median(np.array(times[1:]), axis=0)  # the first call loads the kernels
-    return float(wall), float(cpu)
+        times.append((time.perf_counter() - t0, cpu_seconds() - c0, t0 - t_build))
+    # the first call loads the kernels (and parses the machine file)
+    wall, cpu, build = np.median(np.array(times[1:]), axis=0)
+    return float(wall), float(cpu), float(build)
 
 
 def loop_cpu_seconds(client) -> float:
@@ -139,13 +142,13 @@ def cluster_rounds(study: Study, workers: int, rounds: int, folder: Path, note,
     runs, own_size, floors, bare_here, bare_worker = [], [], [], [], []
     with dask_client(None, workers, note) as client:
         warm_workers(client, study)
+        size = task_size(client, study.study.samples, 0)
         for r in range(rounds):
             label = f"{workers} worker(s), round {r + 1}/{rounds}"
             runs.append(pipeline_round(client, study, folder / f"workers_{workers}_{r}",
                                        label))
             if bare_s is None:
                 continue
-            size = task_size(client, study.study.samples, 0)
             own_size.append(pipeline_round(client, study, folder / f"own_size_{r}",
                                            f"{label}, {size} samples per task", size))
             floors.append(dask_floor_round(client, study.study.samples, bare_s))
@@ -157,6 +160,7 @@ def cluster_rounds(study: Study, workers: int, rounds: int, folder: Path, note,
         out.update({"study_task_size_rounds": own_size, "dask_floor_rounds": floors,
                     "bare_s_after_rounds": [b[0] for b in bare_here],
                     "bare_cpu_s_after_rounds": [b[1] for b in bare_here],
+                    "build_s_after_rounds": [b[2] for b in bare_here],
                     "bare_in_worker_s_after_rounds": [b[0] for b in bare_worker]})
     return out
 
@@ -189,6 +193,7 @@ def run(samples: int, seconds: float, rounds: int = 3, note=lambda message: None
         "simulated_s": seconds, "samples": samples, "rounds": rounds, "cpus": os.cpu_count(),
         "bare_s_per_sample": bare, "bare_cpu_s_per_sample": bare_cpu,
         "bare_in_worker_s_per_sample": in_worker,
+        "machine_build_s_per_sample": float(np.median([first[2], *one["build_s_after_rounds"]])),
         "one_worker": one, "two_workers": two,
         "scaling_ratio": two["samples_per_s"] / (2.0 * one["samples_per_s"]),
         "overhead_pct_per_round": [100.0 * e / b for e, b in zip(extra, around)],

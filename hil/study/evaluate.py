@@ -28,10 +28,6 @@ from hil.study.keys import KeyRef, overrides_of
 from hil.study.machine import MachineSource
 from plant import Plant
 
-#: drive cycles a worker runs before its first task: the drives enabled and holding, the
-#: compiled path entered
-WARM_CYCLES = 2000
-
 
 @dataclass(frozen=True)
 class Job:
@@ -121,4 +117,4 @@ class KernelWarmup(WorkerPlugin):
         # the lock-step's drives run their compiled path (hil.sim): its kernels and the
         # plant's, stepped by the drives
         plants = [Plant(axis.config) for axis in self.machine.build().axes]
-        warm(DriveSet([EmulatedDrive(p, compiled=True) for p in plants]), WARM_CYCLES)
+        warm(DriveSet([EmulatedDrive(p, compiled=True) for p in plants]))

@@ -87,9 +87,8 @@ def dask_client(scheduler: str | None, workers: int,
         # every callback of a worker's event loop takes the GIL from the simulation in the
         # task thread: its statistical profiler (every 10 ms) is off, and the event-loop
         # lag check (20 ms) and the system and memory monitors (0.5 s, 0.1 s) are slowed,
-        # on the cluster the study starts itself (a quarter less of the loop's CPU per
-        # task); uvloop's loop does its socket work in C and takes the GIL less often (a
-        # sixth less of the loop's CPU per task with a sample running)
+        # on the cluster the study starts itself; uvloop's loop does its socket work in C
+        # and takes the GIL less often (hil bench study shows the loop's CPU per task)
         with dask.config.set(QUIET_WORKERS):
             cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
                                    host="127.0.0.1", dashboard_address=DASHBOARD)
