@@ -76,10 +76,11 @@ the next :meth:`recv_setpoint` (the drive faults, FF10h), a refused SDO write is
 with its abort only.  A frame the bus cannot take is dropped and counted in
 ``send_dropped``.  Counted in :attr:`stats` (:class:`CanStats`): ``received`` cycles heard,
 ``timeouts`` polls that found no new cycle, ``lost`` cycles a newer SYNC overwrote before
-:meth:`recv_setpoint` took them, ``malformed`` RPDO frames dropped (a DLC other than the
-mapping's, stricter than CiA 301), the bus's load per cycle and the refused starts.  The
-bus's receive thread (python-can's ``Notifier``, run by canopen) is stopped by
-:meth:`close`.
+:meth:`recv_setpoint` took them, ``malformed`` frames dropped (an RPDO of a DLC other than
+the mapping's, stricter than CiA 301, which the EMCY 8210h reports,
+:mod:`io_adapters.can_node`; an SDO request of another length than 8 bytes), the bus's
+load per cycle and the refused starts.  The bus's receive thread (python-can's
+``Notifier``, run by canopen) is stopped by :meth:`close`.
 """
 
 import ipaddress
@@ -377,10 +378,7 @@ class CanDriveEndpoint(Endpoint):
         for node in self._nodes:
             due = node.emcy_due()
             if due is not None:
-                try:
-                    node.local.emcy.send(*due)
-                except can.CanError:
-                    self.stats.send_dropped += 1
+                node.send_emcy(*due)
         self._send_all(frames)
         self._staged = 0
         if self._ready:

@@ -1,13 +1,27 @@
 """One CiA 402 node of the ``can://`` device endpoint (:mod:`io_adapters.can_cia402`):
 its :class:`canopen.LocalNode`, the master's process data and the drive's feedback, the
-PDO frames, the SDO checks and network management.  The node's other objects are its
-:class:`~io_adapters.can_dictionary.NodeDictionary`'s.  The endpoint owns the lock, the
-bus, the drive's objects and the setpoint bounds; a node reaches them through ``owner``.
+PDO frames, the SDO checks, the EMCYs and network management.  The node's other objects
+are its :class:`~io_adapters.can_dictionary.NodeDictionary`'s, its SDO server
+:class:`~io_adapters.can_sdo.NodeSdoServer`.  The endpoint owns the lock, the bus, the
+drive's objects and the setpoint bounds; a node reaches them through ``owner``.
+
+**An RPDO of the wrong length** (a DLC other than its mapping's, shorter or longer) is not
+processed: it is counted ``malformed`` and dropped, and reported by the EMCY 8210h "PDO
+not processed due to length error" (CiA 301; not 8220h "PDO length exceeded", which is
+for a longer PDO whose mapped bytes a device takes): 1001h with the generic bit 0 and the
+communication bit 4, bytes 3-5 the RPDO's number, the DLC received and the DLC of its
+mapping, bytes 6-7 zero.  One EMCY per error: the RPDO's error stands, and 1001h keeps the
+two bits, until a frame of the right length comes for it; when no RPDO's error stands any
+more, the EMCY "error reset" (0000h, 1001h without them) says so; an NMT reset clears
+them.  A wrong frame does not fault the drive: its process data did not come, and the
+watchdog judges the missing setpoint as it judges any silence (a cycle with no new
+process data is not heard).
 """
 
 import math
 import time
 
+import can
 import canopen
 from canopen.sdo import SdoAbortedError
 
@@ -24,13 +38,13 @@ from io_adapters.can_catalog import (
     NMT_RESET_NODE,
     NMT_START,
     NO_MODE,
-    SDO_ABORT_NO_SUBINDEX,
     SDO_ABORT_VALUE_HIGH,
     SDO_ABORT_VALUE_LOW,
     SDO_ABORT_VALUE_RANGE,
 )
 from io_adapters.can_dictionary import NodeDictionary
 from io_adapters.can_pdo import PdoConfig
+from io_adapters.can_sdo import SDO_FRAME_BYTES, NodeSdoServer
 from io_adapters.can_tpdo import TpdoTimer
 from io_adapters.can_url import CanLink
 from io_adapters.cia402_objects import (
@@ -60,6 +74,9 @@ ERROR_CODE = (0x603F, 0)
 #: the EMCY of a start refused for the bus load (CiA 301: CAN overrun, objects lost);
 #: bytes 3-4 the load needed in per mille, 5-7 the communication cycle in µs
 EMCY_BUS_OVERLOAD = 0x8110
+#: the EMCY of an RPDO of the wrong length (CiA 301: PDO not processed due to length
+#: error); bytes 3-5 the RPDO's number, the DLC received, the DLC of its mapping
+EMCY_PDO_LENGTH = 0x8210
 #: the mode whose bounds a profile mode is checked against (it runs the same loops)
 CHECKED_AS = {NO_MODE: MODE_CST, MODE_PP: MODE_CSP, MODE_PV: MODE_CSP, MODE_HM: MODE_CSP}
 
@@ -78,6 +95,7 @@ class DriveNode:
         reset_event: an NMT reset not yet reported to the loop.
         watch: the consumed heartbeat (node-ID, consumer time s, monotonic time of the
             last one, NaN before the first), or None.
+        length_errors: the numbers of the RPDOs whose last frame had the wrong length.
     """
 
     def __init__(self, axis: int, node_id: int, link: CanLink, owner):
@@ -95,10 +113,13 @@ class DriveNode:
         self.start_refused = False  # the last NMT start was refused: an EMCY is standing
         self.reset_event = False
         self.watch: tuple[int, float, float] | None = None
+        self.length_errors: set[int] = set()
         self.tpdo = TpdoTimer()
         self._getters = self._feedback_getters()
         self.local = canopen.LocalNode(node_id, drive_object_dictionary(
             node_id, link.rated_current_ma, link.rated_torque_mnm, link.heartbeat_consumer))
+        self.local.sdo = NodeSdoServer(self.local.sdo.rx_cobid, self.local.sdo.tx_cobid,
+                                       self.local)
         self.local.add_read_callback(self.on_sdo_read)
         self.local.add_write_callback(self.on_sdo_write)
 
@@ -149,7 +170,7 @@ class DriveNode:
         return {STATUSWORD: lambda fb: fb.statusword & ~SW_ECHO_MASK & 0xFFFF,
                 (0x6061, 0): lambda fb: self.mode,
                 ERROR_CODE: lambda fb: fb.fault,
-                (0x1001, 0): lambda fb: error_register(fb.fault),
+                (0x1001, 0): lambda fb: self.register(fb.fault),
                 (0x6064, 0): lambda fb: wrap_i32(fb.encoder_counts / d.factor),
                 (0x606C, 0): lambda fb: saturate(fb.velocity_counts_s / d.factor, I32),
                 (0x6077, 0): current, (0x6078, 0): current,
@@ -185,6 +206,13 @@ class DriveNode:
         """The event-driven TPDOs due now (the lock is held)."""
         return self.tpdo.event_frames(self.dict.pdos.tpdos, self.pack, now_s)
 
+    # -- EMCY --------------------------------------------------------------------------------
+    def register(self, fault: int) -> int:
+        """1001h with the drive's error code ``fault``: its bits, and the communication
+        bits while an RPDO's length error stands (see the module docstring)."""
+        length = error_register(EMCY_PDO_LENGTH) if self.length_errors else 0
+        return error_register(fault) | length
+
     def emcy_due(self) -> tuple[int, int] | None:
         """(code, 1001h) of an EMCY to send now, if the error code changed (lock held)."""
         code = self.staged.fault
@@ -192,7 +220,33 @@ class DriveNode:
                                                                  "OPERATIONAL"):
             return None
         self.emcy_code = code
-        return code, error_register(code)
+        return code, self.register(code)
+
+    def send_emcy(self, code: int, register: int, data: bytes = b"") -> None:
+        """Send the EMCY ``code`` (0: error reset) with the error register and ``data``, its
+        manufacturer-specific bytes (3-7, zero-padded); one the bus cannot take is dropped
+        and counted in ``send_dropped``."""
+        try:
+            self.local.emcy.send(code, register, data)
+        except can.CanError:
+            self.owner.stats.send_dropped += 1
+
+    def _length_checked(self, pdo: PdoConfig, dlc: int) -> None:
+        """Keep whether ``pdo``'s frame of ``dlc`` bytes had the wrong length; the EMCY
+        8210h when the RPDO's error starts, the error reset when the node's last one ends
+        (the lock is held)."""
+        mapped = pdo.layout.frame.size
+        wrong = dlc != mapped
+        if wrong == (pdo.number in self.length_errors):
+            return
+        if wrong:
+            self.length_errors.add(pdo.number)
+            self.send_emcy(EMCY_PDO_LENGTH, self.register(self.emcy_code),
+                           bytes((pdo.number, dlc, mapped)))
+        else:
+            self.length_errors.discard(pdo.number)
+            if not self.length_errors:
+                self.send_emcy(0, self.register(self.emcy_code))
 
     # -- refusals ----------------------------------------------------------------------------
     def bounds(self) -> SetpointBounds:
@@ -234,8 +288,11 @@ class DriveNode:
     # -- the bus's side ----------------------------------------------------------------------
     def on_rpdo(self, data: bytearray, pdo: PdoConfig) -> bool:
         """Take one RPDO: its inputs into the image, the drive's objects mapped in it
-        written at once; False (malformed) on a DLC other than the mapping's."""
+        written at once; False (malformed) on a DLC other than the mapping's, which the
+        EMCY 8210h reports (see the module docstring)."""
         layout = pdo.layout
+        with self.lock:
+            self._length_checked(pdo, len(data))
         if len(data) != layout.frame.size:
             return False
         update = dict(zip(layout.objects, layout.frame.unpack(data)))
@@ -264,13 +321,21 @@ class DriveNode:
         return 0
 
     def on_sdo_request(self, can_id: int, data: bytearray, timestamp: float) -> None:
-        """An SDO request, served unless the node is STOPPED (CiA 301: no SDO there)."""
-        if self.local.nmt.state != "STOPPED":
+        """An SDO request, served unless the node is STOPPED (CiA 301: no SDO there); one of
+        another length than CiA 301's 8 bytes is counted ``malformed`` and dropped, as
+        CANopenNode does (no answer: its multiplexer may not even be there).  A response
+        the bus cannot take is counted in ``send_dropped``."""
+        if self.local.nmt.state == "STOPPED":
+            return
+        if len(data) != SDO_FRAME_BYTES:
+            self.owner.stats.malformed += 1
+            return
+        try:
             self.local.sdo.on_request(can_id, data, timestamp)
+        except can.CanError:
+            self.owner.stats.send_dropped += 1
 
     def on_sdo_read(self, index: int, subindex: int, od) -> int | None:
-        if subindex != od.subindex:
-            raise SdoAbortedError(SDO_ABORT_NO_SUBINDEX)
         key = (index, subindex)
         try:
             if key in self._getters or key in self.image:
@@ -281,8 +346,6 @@ class DriveNode:
             raise SdoAbortedError(e.abort_code) from e
 
     def on_sdo_write(self, index: int, subindex: int, od, data: bytes) -> None:
-        if subindex != od.subindex:
-            raise SdoAbortedError(SDO_ABORT_NO_SUBINDEX)
         key = (index, subindex)
         value = od.decode_raw(data)
         if key in self.image:
@@ -321,14 +384,14 @@ class DriveNode:
                 self.owner.stats.start_refused += 1
                 load = min(round(plan.load * 1000), 0xFFFF)
                 cycle = round(plan.cycle_s * 1e6)
-                self.local.emcy.send(EMCY_BUS_OVERLOAD, 0x11,
-                                     load.to_bytes(2, "little") + cycle.to_bytes(3, "little"))
+                self.send_emcy(EMCY_BUS_OVERLOAD, error_register(EMCY_BUS_OVERLOAD),
+                               load.to_bytes(2, "little") + cycle.to_bytes(3, "little"))
                 self.start_refused = True
                 return
             self.owner.stats.bus_plan_load = plan.load
             if self.start_refused:  # the EMCY's error is gone: error reset
                 self.start_refused = False
-                self.local.emcy.send(0, error_register(self.emcy_code))
+                self.send_emcy(0, self.register(self.emcy_code))
             self.tpdo.restart()
         self.local.nmt.on_command(0, data, timestamp)
         if command in (NMT_RESET_NODE, NMT_RESET_COMMUNICATION):
@@ -370,6 +433,7 @@ class DriveNode:
             self.image.update(dict.fromkeys(INPUTS, 0))
             self.latched = (0,) * len(INPUTS)
             self.tpdo.clear()
+            self.length_errors.clear()
         self.consume_heartbeat(self.dict.consumer_entry)
         self.local.data_store.clear()
         self.owner.pdos_changed()
