@@ -399,6 +399,7 @@ def build(cfg: MachineConfig) -> Built:
         p[L.P_NUT_S0] = sc.nut_offset_m
         p[L.P_SEG_LEN] = sc.length_m / sc.segments
         _screw_friction(sc, p)
+    p[L.P_BRAKE] = cfg.brake.holding_torque_nm or cfg.brake.holding_force_n
     if cfg.table is not None:
         p[L.P_TABLE_M] = cfg.table.mass_kg
         p[L.P_EXT_LOAD] = cfg.table.external_force_n

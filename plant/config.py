@@ -22,6 +22,7 @@ from plant.errors import ConfigError
 from plant.layout import N_DELAY_MAX, N_PITCH
 from plant.schema import describe, in_range, is_required, range_text
 from plant.sections import (
+    BrakeSection,
     FOREIGN_SECTIONS,
     OPTIONAL_SECTIONS,
     SECTIONS,
@@ -61,6 +62,7 @@ class MachineConfig:
     presliding: PreslidingSection
     sensors: SensorsSection
     simulation: SimulationSection
+    brake: BrakeSection
     foreign: dict
 
     def section(self, name: str) -> dict:
@@ -148,7 +150,7 @@ def parse_machine(raw: dict, where: str) -> MachineConfig:
     mech = _need(sections, "mechanics", where)
     context = {"kind": kind, "model": motor.model}
     for sec in ("machine", "motor", "cogging", "friction", "sensors", "mechanics",
-                "pitch_error"):
+                "pitch_error", "brake"):
         if sections[sec] is not None:
             check_applies(sections[sec], raw.get(sec, {}), context, where, sec)
     if sections["current_loop"] is not None:
@@ -364,12 +366,22 @@ def _check_physics(cfg: MachineConfig) -> None:
             raise ConfigError(f"{cfg.path}: [table] mass_kg must be > 0 kg for the screw model")
         _check_screw_diameters(cfg)
         _check_screw_friction(cfg)
+    _check_brake(cfg)
 
 
 #: [screw] friction keys the velocity projection of plant.effects.screw_friction carries,
 #: which needs the lumped solver's forces
 SCREW_FRICTION_KEYS = ("bearing_coulomb_nm", "nut_coulomb_nm", "nut_viscous_nms_per_rad",
                        "nut_load_friction")
+
+
+def _check_brake(cfg: MachineConfig) -> None:
+    """The brake's Coulomb projection (plant.effects.brake) needs the lumped solver's
+    forces, as the screw's friction does."""
+    level = cfg.brake.holding_torque_nm or cfg.brake.holding_force_n
+    if level and cfg.mechanics.solver == "tlm":
+        raise ConfigError(f"{cfg.path}: [brake] holding {level:g} needs [mechanics] solver = "
+                          "'lumped' (the TLM solver does not carry the brake)")
 
 
 def _check_screw_friction(cfg: MachineConfig) -> None:

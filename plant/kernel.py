@@ -37,6 +37,7 @@ bit of the results (``tests/test_kernel_speed.py``).
 
 from numba import njit
 
+from plant.effects.brake import holding_brake
 from plant.effects.chain import (
     chain_clear_forces,
     chain_internal_forces,
@@ -71,6 +72,7 @@ from plant.effects.screw_friction import screw_friction
 from plant.effects.sensors import measure_current
 from plant.effects.tlm import tlm_step
 from plant.layout import (
+    I_BRAKE,
     I_ENABLE,
     I_ID_REF,
     I_IQ_REF,
@@ -105,6 +107,7 @@ from plant.layout import (
     O_TORQUE,
     O_UD,
     O_UQ,
+    P_BRAKE,
     P_DELAY_N,
     P_DIVERGE_LIMIT,
     P_DT,
@@ -291,8 +294,9 @@ def nut_coupling(p, s, ro, nr, ao, na, j, w):
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def screw_mechanics(p, s, load, dt, lumped):
-    """One sub-step of motor - coupling - screw - nut - table (torque already in scratch)."""
+def screw_mechanics(p, s, load, dt, lumped, brake):
+    """One sub-step of motor - coupling - screw - nut - table (torque already in scratch);
+    ``brake``: the holding brake's torque on the motor while closed, N·m (0: open)."""
     ro = offset(p[P_SOFF_ROT])
     nr = offset(p[P_N_ROT])
     ao = offset(p[P_SOFF_AX])
@@ -315,6 +319,8 @@ def screw_mechanics(p, s, load, dt, lumped):
     if lumped:
         if p[P_SCREW_FRICTION] > 0.0:
             screw_friction(p, por, s, ro, nr, j, w, f_nut, dt)
+        if brake > 0.0:
+            holding_brake(p, por, s, ro, nr, brake, dt)
         chain_step(p, por, s, ro, nr, dt, -1)
         chain_step(p, poa, s, ao, na, dt, -1)
     else:
@@ -329,8 +335,9 @@ def screw_mechanics(p, s, load, dt, lumped):
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def lumped_mechanics(p, s, load, dt):
-    """One sub-step of the rigid or two-mass chain; the table moves with the last node.
+def lumped_mechanics(p, s, load, dt, brake):
+    """One sub-step of the rigid or two-mass chain; the table moves with the last node;
+    ``brake``: the holding brake's torque (force) on the motor while closed (0: open).
 
     With a pitch error the table stands at x = u + e(u), u = ratio * theta_last: forces on
     the table reach the node through the local ratio g = ratio (1 + e'(u)) (virtual work),
@@ -359,6 +366,8 @@ def lumped_mechanics(p, s, load, dt):
     s[S_FRICTION] = ff
     s[S_STUCK] = 1.0 if stuck else 0.0
     s[fr + last] += (ff + f_tab) * g
+    if brake > 0.0:  # after the table's forces: a rigid chain's one node carries them
+        holding_brake(p, por, s, ro, nr, brake, dt)
     chain_step(p, por, s, ro, nr, dt, last if stuck else -1)
     x_old = s[S_TABLE_X]
     u = ratio * s[ro + last]
@@ -399,10 +408,11 @@ def substep(p, s, inp):
         chain_clear_forces(s, offset(p[P_SOFF_AX]), offset(p[P_N_AX]))
     s[ro + 2 * nr] += torque
     load = inp[I_LOAD] + p[P_EXT_LOAD]
+    brake = p[P_BRAKE] if inp[I_BRAKE] > 0.0 else 0.0
     if screw:
-        screw_mechanics(p, s, load, dt, lumped)
+        screw_mechanics(p, s, load, dt, lumped, brake)
     else:
-        lumped_mechanics(p, s, load, dt)
+        lumped_mechanics(p, s, load, dt, brake)
     s[S_TIME] += dt
     if s[S_SUB_COUNT] == 0.0:
         # this sub-step closed a PWM period: the encoder is sampled (its fault terms drawn)

@@ -167,6 +167,8 @@ P_I_GAIN_ERR = next(_p)  # 1, relative gain error of the phase-a current sensor 
 P_RIPPLE_AMP = next(_p)  # 1, torque ripple as a fraction of the electromagnetic torque
 P_RIPPLE_ORDER = next(_p)  # ripple cycles per electrical revolution (may be fractional)
 P_RIPPLE_PHASE = next(_p)  # rad, phase of the torque ripple
+# holding brake (plant.effects.brake)
+P_BRAKE = next(_p)  # N·m (N for linear motors), holding torque on the motor's node; 0: none
 P_COUNT = next(_p)
 del _p
 
@@ -218,6 +220,7 @@ I_IQ_REF = next(_i)  # A
 I_UD = next(_i)  # V (voltage mode)
 I_UQ = next(_i)  # V
 I_LOAD = next(_i)  # N (N·m for direct rotary), external force on the table
+I_BRAKE = next(_i)  # 1: the holding brake holds (P_BRAKE); 0: open
 I_COUNT = next(_i)
 del _i
 

@@ -307,6 +307,20 @@ class SensorsSection:
 
 
 @dataclass(frozen=True, kw_only=True)
+class BrakeSection:
+    """The motor's holding brake: a friction brake on the rotor (on the mover of a linear
+    motor), closed by the drive (:mod:`hil.drive.core`) when the pulses are off."""
+    holding_torque_nm: float = key("N*m", "Holding (static and sliding) torque of the closed "
+                                   "brake; 0: no brake.", 0.0, ge=0.0, le=1e5,
+                                   only="kind=screw|rotary")
+    holding_force_n: float = key("N", "Holding force of a linear motor's closed brake; 0: no "
+                                 "brake.", 0.0, ge=0.0, le=1e6, only="kind=linear")
+    closing_time_s: float = key("s", "From the drive's command to the brake holding (its "
+                                "coil's decay and air gap); it opens at once.", 0.03, ge=0.0,
+                                le=2.0)
+
+
+@dataclass(frozen=True, kw_only=True)
 class SimulationSection:
     """Integration settings."""
     substep_s: float = key("s", "Integration sub-step; 0 picks the largest divisor of the "
@@ -322,10 +336,11 @@ SECTIONS = {
     "mechanics": MechanicsSection, "coupling": CouplingSection, "screw": ScrewSection,
     "table": TableSection, "pitch_error": PitchErrorSection, "friction": FrictionSection,
     "presliding": PreslidingSection, "sensors": SensorsSection, "simulation": SimulationSection,
+    "brake": BrakeSection,
 }
 # sections read by other packages (hil's controller, drive and fault injection): the plant
 # keeps them as raw tables
 FOREIGN_SECTIONS = ("controller", "drive", "inject")
 # sections that may be absent: they then take every default
 OPTIONAL_SECTIONS = {"field_weakening", "cogging", "friction", "presliding", "sensors",
-                     "simulation", "current_loop", "pitch_error"}
+                     "simulation", "current_loop", "pitch_error", "brake"}

@@ -9,7 +9,6 @@ against the machine file's values converted by hand.  The same paths through ``h
 in another process are in tests/test_drive_safety_processes.py.
 """
 
-import math
 import shutil
 import struct
 import subprocess
@@ -90,6 +89,13 @@ SDO_REFUSALS = [  # what, request, response (abort code, CiA 301)
     ("6072h: 2000 per mille of 28 A is above the peak", download(0x6072, 0, 2000, 2),
      abort(0x6072, 0, 0x06090031)),
     ("6085h: a zero deceleration", download(0x6085, 0, 0, 4), abort(0x6085, 0, 0x06090032)),
+    # a reaction ramp stops the axis from 1.1 x 6080h within 2 s (hil.drive.braking)
+    ("6085h: 1 increment/s^2 would never stop the axis", download(0x6085, 0, 1, 4),
+     abort(0x6085, 0, 0x06090032)),
+    ("6084h: 0.1 m/s^2 is below a stop from 660 mm/s in 2 s",
+     download(0x6084, 0, round(0.1 / 0.01 * 2**22), 4), abort(0x6084, 0, 0x06090032)),
+    ("6080h: 4.8 m/s would take 6084h's 2 m/s^2 longer than 2 s",
+     download(0x6080, 0, 2_000_000_000, 4), abort(0x6080, 0, 0x06090031)),
     ("607Dh:01 above the maximum", download(0x607D, 1, 2**31 - 2, 4, True),
      abort(0x607D, 1, 0x06090036)),
     ("60FDh is read-only", download(0x60FD, 0, 1, 4), abort(0x60FD, 0, 0x06010002)),
@@ -118,20 +124,18 @@ def test_parameter_objects_are_the_drives(rig):
     rpc, p = drive.rad_per_count, drive.params
     initial = (p.fe_window, p.quick_stop_option, p.limit_max)
     writes = [(0x6065, 0, 1000, 4), (0x6066, 0, 20, 2), (0x6072, 0, 500, 2),
-              (0x6085, 0, 2_000_000, 4), (0x605A, 0, 6, 2), (0x607D, 2, 100_000_000, 4)]
+              (0x6085, 0, 2_000_000_000, 4), (0x605A, 0, 6, 2), (0x607D, 2, 100_000_000, 4)]
     for index, sub, value, size in writes:
         assert sdo(bus, download(index, sub, value, size)) == f"60{index & 0xFF:02X}" \
             f"{index >> 8:02X}{sub:02X}00000000"
     assert p.fe_window == pytest.approx(1000 * rpc) and p.fe_time_s == pytest.approx(0.02)
     assert p.max_current_a == pytest.approx(14.0) and p.quick_stop_decel == pytest.approx(
-        2e6 * rpc)
+        2e9 * rpc)
     assert drive.sm.quick_stop_option == 6 and p.limit_max == pytest.approx(1e8 * rpc)
     for index, sub, value, size in writes:
         reply = bytes.fromhex(sdo(bus, upload(index, sub)))
         assert int.from_bytes(reply[4:4 + size], "little") == value, hex(index)
-    table = drive.plant.config.table  # 607Dh:02 halfway to the positive limit switch
-    limit = table.travel_m + 0.5 * table.limit_switch_overtravel_m
-    limit_counts = round(limit / (0.01 / (2 * math.pi)) / rpc)
+    limit_counts = round(initial[2] / rpc)  # 607Dh:02 as the machine file gave it
     bus.send(frame(0x000, f"81{NODE:02X}"))  # NMT reset node
     assert recv_id(bus, 0x700 + NODE).data == bytearray([0])  # boot-up
     wait_for(lambda: (p.fe_window, p.quick_stop_option, p.limit_max) == initial,

@@ -130,6 +130,8 @@ load_inertia_kgm2 = 0.0004
 [table]
 mass_kg = 350.0
 travel_m = 0.51
+limit_switch_overtravel_m = 0.035
+end_stop_overtravel_m = 0.07
 
 [sensors]
 encoder_counts_per_rev = 1073741824

@@ -44,8 +44,8 @@ CYCLE_S = 125e-6
 class Bench:
     """One drive of the Arrow 500 X and a master that enables it and sends setpoints."""
 
-    def __init__(self, x0: float = X0, **params):
-        cfg = load_machine(ARROW)
+    def __init__(self, x0: float = X0, overrides: dict | None = None, **params):
+        cfg = load_machine(ARROW, overrides)
         self.plant = Plant(cfg, table_pos=x0)
         base = load_drive(cfg, load_controller(cfg))
         self.drive = EmulatedDrive(self.plant, params=replace(base, **params))
@@ -337,7 +337,7 @@ def test_drive_keys_come_from_the_machine_file_in_table_units(tmp_path):
     path.write_text(ARROW.read_text() + "\n[drive]\nfollowing_error_window_m = 0.002\n"
                     "software_limit_min_m = 0.01\nsoftware_limit_max_m = 0.5\n"
                     "max_motor_speed_rpm = 3000.0\nmax_current_a = 20.0\n"
-                    "quick_stop_deceleration_m_s2 = 5.0\nfault_reaction_option = 0\n")
+                    "quick_stop_deceleration_m_s2 = 5.0\nfault_reaction_option = 3\n")
     cfg = load_machine(path)
     p = load_drive(cfg, load_controller(cfg))
     per_m = 2 * math.pi / 0.01
@@ -345,24 +345,30 @@ def test_drive_keys_come_from_the_machine_file_in_table_units(tmp_path):
     assert (p.limit_min, p.limit_max) == pytest.approx((0.01 * per_m, 0.5 * per_m))
     assert p.max_speed == pytest.approx(3000 * 2 * math.pi / 60)
     assert p.quick_stop_decel == pytest.approx(5.0 * per_m)
-    assert (p.max_current_a, p.fault_reaction_option) == (20.0, 0)
+    assert (p.max_current_a, p.fault_reaction_option) == (20.0, 3)
 
 
 def test_drive_defaults_are_derived_from_the_machine():
-    """Absent keys: the FE window 1.5 v_max / K_v, limits halfway from the travel's ends
-    to the limit switches, 6080h 1.2 v_max,
-    6072h the peak current, 6085h half the motor's acceleration at I_max."""
+    """Absent keys: the FE window 1.5 v_max / K_v, 6080h 1.2 v_max, 6072h the peak
+    current, 6085h half the motor's acceleration at I_max, the software limits halfway
+    between the travel's ends and the last point from which the quick stop (605Eh = 2)
+    stops the axis at 1.1 x 6080h before the limit switch, after the reaction time (3 ms
+    and three time constants L_q / K_p of the current loop), all by hand."""
     cfg = load_machine(ARROW)
     p = load_drive(cfg, load_controller(cfg))
     per_m = 2 * math.pi / 0.01
     v_max, kv = 0.5, 2.0 * 1000 / 60  # 30 m/min; K_v 2 (m/min)/mm in 1/s
     assert p.fe_window == pytest.approx(1.5 * v_max / kv * per_m)
-    margin = 0.5 * cfg.table.limit_switch_overtravel_m  # halfway to the limit switches
-    assert (p.limit_min, p.limit_max) == pytest.approx((-margin * per_m, (0.51 + margin) * per_m))
     assert p.max_speed == pytest.approx(1.2 * v_max * per_m)
     assert p.max_current_a == 28.0 and p.continuous_current_a == 14.0
     from plant.assemble import reflected_inertia
     assert p.quick_stop_decel == pytest.approx(0.5 * 28.0 * 1.35 / reflected_inertia(cfg))
+    top, a = 1.1 * 1.2 * v_max, p.quick_stop_decel / per_m  # m/s, m/s^2
+    need = top * (0.003 + 3 * 0.0045 / 12.0) + top ** 2 / (2 * a)
+    spare = cfg.table.limit_switch_overtravel_m - need
+    assert spare > 0.0
+    assert (p.limit_min, p.limit_max) == pytest.approx((-0.5 * spare * per_m,
+                                                        (0.51 + 0.5 * spare) * per_m))
 
 
 @pytest.mark.parametrize("text, match", [
@@ -372,6 +378,15 @@ def test_drive_defaults_are_derived_from_the_machine():
     ("following_error_window_deg = 1.0", "does not apply"),
     ("continuous_current_a = 30.0", "continuous_current_a"),
     ("max_motor_speed = 1.0", "unknown key"),
+    ("quick_stop_deceleration_m_s2 = 1e-6", "quick_stop_deceleration_m_s2 = 1e-06 m/s\\^2 is "
+     "below 0.33 m/s\\^2, the least that stops the axis from its top speed 0.66 m/s"),
+    ("profile_deceleration_m_s2 = 0.1", "profile_deceleration_m_s2 = 0.1 m/s\\^2 is below"),
+    ("software_limit_max_m = 0.53", "software_limit_max_m = 0.53 m leaves 0.015 m to the limit "
+     "switch, too little: from its top speed 0.66 m/s \\(1.1 x 6080h\\) the fault reaction "
+     "\\(605Eh = 2: the quick stop ramp 6085h, 9.422 m/s\\^2, after 4.12 ms\\) runs 0.02584 m"),
+    ("max_motor_speed_rpm = 6000", "limit_switch_overtravel_m = 0.035 m leaves no room beyond "
+     "the travel"),
+    ("fault_reaction_option = 0", "605Eh = 0: torque off, coasting on the friction"),
 ])
 def test_bad_drive_keys_are_refused_naming_file_key_and_unit(tmp_path, text, match):
     from plant.errors import ConfigError

@@ -38,8 +38,7 @@ from hypothesis import HealthCheck, Phase, event, example, given, settings
 from hypothesis import strategies as st
 
 from hil.cia402 import EnableSequencer, State, statusword_state
-from hil.drive.faults import OVERSPEED_FACTOR
-from hil.drive.reaction import TIMEOUT_EXTRA_S, TIMEOUT_FACTOR
+from hil.drive.braking import envelope, time_limit, top_speed
 from hil.runtime.emulator import Emulator, RuntimeConfig
 from io_adapters.messages import MODE_CSP, MODE_CST, MODE_CSV, Feedback, Setpoint
 from io_adapters.udp import UdpEndpoint
@@ -110,8 +109,9 @@ class Rig:
         # arriving no faster than a table may move out beyond a limit switch
         penetration = end_stop_reach(drive, self.moving_out)
         self.x_range = (stops.stop_neg - penetration, stops.stop_pos + penetration)
-        brake_s = TIMEOUT_FACTOR * OVERSPEED_FACTOR * p.max_speed / min(
-            p.quick_stop_decel, p.profile_decel) + TIMEOUT_EXTRA_S
+        still = drive.monitor.standstill()
+        brake_s = max(time_limit(*envelope(p, option, top_speed(p.max_speed), still), still)
+                      for option in (1, 2, 3))
         self.react_ticks = math.ceil(brake_s / plant.pwm_period) + WATCHDOG_TICKS
 
     def tick(self, send: bool = True, mode: int | None = None, **values) -> None:

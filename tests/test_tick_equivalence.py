@@ -28,6 +28,7 @@ from io_adapters.messages import (
     MODE_CSP,
     MODE_CST,
     MODE_CSV,
+    MODE_VOLTAGE,
     Feedback,
     axis_records,
     message_pair,
@@ -111,7 +112,8 @@ class Script:
     the CiA 402 enable sequence unless a segment gives it.
 
     kinds: "csp" (ramp, value in increments per tick), "jump" (one CSP step of value
-    increments, then hold), "csv" (increments/s), "cst" (A), "nan" (CSP with a NaN
+    increments, then hold), "csv" (increments/s), "cst" (A), "volt" (voltage mode, u_q
+    = value V, u_d = 0), "nan" (CSP with a NaN
     current feed-forward: refused), "cw" (this controlword, CSP hold), "limit" (607Dh max
     at the position plus ``value`` increments), "fe_window" (6065h to value rad),
     "settle" (the compiled drive's state handed back to its objects, as an SDO read does,
@@ -150,7 +152,7 @@ class Script:
                 sp.seq = k
                 for s, f in zip(axis_records(sp), fbs):
                     s.seq = k
-                    s.iq_ref_a = 0.0
+                    s.iq_ref_a = s.uq_v = 0.0
                     if kind in ("csp", "jump", "nan", "cw"):
                         if s.mode != MODE_CSP or statusword_state(
                                 f.statusword) != State.OPERATION_ENABLED:
@@ -162,6 +164,8 @@ class Script:
                             s.iq_ref_a = math.nan
                     elif kind == "csv":
                         s.mode, s.target_velocity_counts_s = MODE_CSV, value
+                    elif kind == "volt":
+                        s.mode, s.uq_v = MODE_VOLTAGE, value
                     else:
                         s.mode, s.iq_ref_a = MODE_CST, value
                 a.tick(k, sp)
@@ -220,6 +224,19 @@ def test_enable_motion_fault_reset_modes_limits_refusal_quick_stop():
         Cause.FOLLOWING_ERROR, Cause.SETPOINT_REFUSED]
 
 
+def test_voltage_mode_runs_compiled_and_trips_at_the_current_limit():
+    """Voltage mode runs compiled, the same bits as the Python drive, until the current
+    passes 6072h: both drives trip (2300h) and take the torque off in the same cycle."""
+    b = _compare([("csp", 300, 0.0), ("volt", 600, 2.0), ("volt", 400, -3.0),
+                  ("volt", 200, 100.0), ("cw", 5, 0), ("cw", 5, 0x80), ("csp", 300, 0.0)])
+    d = b.drives[0]
+    assert d.compiled.cycles > 900
+    assert d.compiled.exits[C.EXIT_CAUSE] >= 1
+    # 100 V trips it at every enable the script retries
+    assert {e.causes for e in d.faults.events if e.kind == "fault"} == {Cause.PEAK_CURRENT}
+    assert d.sm.state == State.OPERATION_ENABLED  # reset and enabled again
+
+
 def test_two_axes():
     """Two axes of one machine, one message: enable, CSP motion, CSV, a fault on both."""
     b = _compare([("csp", 300, 0.0), ("csp", 800, 25.0), ("csv", 500, -2.0e5),
@@ -233,6 +250,7 @@ _SEGMENT = st.one_of(
     st.tuples(st.just("jump"), st.integers(1, 100), st.sampled_from([1e3, -5e4, 3e7])),
     st.tuples(st.just("csv"), st.integers(1, 300), st.floats(-6e5, 6e5)),
     st.tuples(st.just("cst"), st.integers(1, 100), st.floats(-3.0, 3.0)),
+    st.tuples(st.just("volt"), st.integers(1, 100), st.floats(-120.0, 120.0)),
     st.tuples(st.just("nan"), st.integers(1, 5), st.just(0.0)),
     st.tuples(st.just("cw"), st.integers(1, 20),
               st.sampled_from([0x00, 0x06, 0x07, 0x0F, 0x80, 0x02, 0x1F, 0x8F])),

@@ -1,7 +1,7 @@
 """The drive cycle in steady state, compiled: one numba call from the speed actual value to
 the feedback.
 
-In OPERATION ENABLED in a cyclic mode (CSP, CSV, CST) with nothing to react to, a drive
+In OPERATION ENABLED in a cyclic mode (CSP, CSV, CST, voltage) with nothing to react to, a drive
 cycle of :class:`hil.drive.core.EmulatedDrive` is arithmetic on a few dozen numbers: the
 speed actual value, the mode's command and its interpolation (60C2h), the software-limit
 clamp, the monitor's checks and statusword flags, the position and speed loops, the
@@ -54,7 +54,7 @@ from hil.cia402 import (
     State,
 )
 from hil.drive.interpolation import EXTRAPOLATE
-from io_adapters.messages import MODE_CSP, MODE_CST, MODE_CSV
+from io_adapters.messages import MODE_CSP, MODE_CST, MODE_CSV, MODE_VOLTAGE
 from plant import layout as L
 from plant.kernel import axis_step_nb
 
@@ -90,7 +90,9 @@ I_SEQ, I_CW, I_MODE = range(3)
 #: home shift (increments), 2.0 (``pow``'s exponent); the adapter's bounds (wire units);
 #: the position loop (K_v 1/s, feed-forward weight, symmetrising PT1 factor, speed limit),
 #: the speed loop (K_d/T, K_p, K_i T, the PI's limit, 1/K_t, I_max, K_t, the anti-windup's
-#: :data:`ANTIWINDUP_CODES`) and its three biquads (b0, b1, b2, a1, a2 each): motor units, s, A
+#: :data:`ANTIWINDUP_CODES`) and its three biquads (b0, b1, b2, a1, a2 each); the voltage
+#: mode's peak-current trip (6072h squared, the trip level squared, the time allowed above
+#: 6072h), 1.0 when the drive takes voltage mode: motor units, s, A
 (R_RPC, R_SPEED_PERIOD, R_CYCLE, R_LIMIT_MIN, R_LIMIT_MAX, R_MAX_SPEED, R_MAX_CURRENT,
  R_FE_WINDOW, R_FE_TIME, R_POS_WINDOW, R_POS_WINDOW_TIME, R_I2T_TRIP, R_I2T_COOLED,
  R_I2T_WARNING, R_CONTINUOUS2, R_OVERSPEED, R_STANDSTILL, R_INTERP_PERIOD, R_SHIFT, R_TWO,
@@ -99,12 +101,13 @@ I_SEQ, I_CW, I_MODE = range(3)
  R_ANTIWINDUP,
  R_SET_B0, R_SET_B1, R_SET_B2, R_SET_A1, R_SET_A2,
  R_CUR_B0, R_CUR_B1, R_CUR_B2, R_CUR_A1, R_CUR_A2,
- R_NOTCH_B0, R_NOTCH_B1, R_NOTCH_B2, R_NOTCH_A1, R_NOTCH_A2, N_PRM) = range(52)
+ R_NOTCH_B0, R_NOTCH_B1, R_NOTCH_B2, R_NOTCH_A1, R_NOTCH_A2, R_MAX_CURRENT2, R_PEAK_TRIP2,
+ R_PEAK_TIME, R_VOLTAGE_OK, N_PRM) = range(56)
 #: ``fst``: the drive's, the monitor's, the modes' and interpolator's and the loops' floats
 (F_COUNTS_PREV, F_VELOCITY, F_I2T, F_FE_TIME, F_IN_WINDOW, F_SWITCH_NEG, F_SWITCH_POS,
  F_FOLLOWING_ERROR, F_DEMAND, F_SPEED, F_START_A, F_START_B, F_END_A, F_END_B,
  F_SYM_Y, F_POS_ERROR, F_INTEG, F_SET_Z1, F_SET_Z2, F_CUR_Z1, F_CUR_Z2, F_NOTCH_Z1,
- F_NOTCH_Z2, F_E_PREV, F_W_CMD, F_IQ, F_LAST_GOOD_X, N_FST) = range(28)
+ F_NOTCH_Z2, F_E_PREV, F_W_CMD, F_IQ, F_LAST_GOOD_X, F_PEAK_TIME, N_FST) = range(29)
 #: ``ist``: the drive cycle, statusword bits, the interpolator's segment, the cycle ratios,
 #: sub-steps per cycle, the steady state's mode and controlword, the ring's column
 (J_TICK, J_LIMITED, J_HOT, J_MONITOR_FLAGS, J_STATUSWORD, J_INTERP_SEQ, J_CYCLES, J_LENGTH,
@@ -153,7 +156,8 @@ def _refused(prm, spf, mode):
     if (spf[S_POS] * 0.0 + spf[S_VEL] * 0.0 + spf[S_VOFF] * 0.0 + spf[S_IQ] * 0.0
             + spf[S_ID] * 0.0 + spf[S_UD] * 0.0 + spf[S_UQ] * 0.0) != 0.0:
         return True
-    if mode != MODE_CSP and mode != MODE_CSV and mode != MODE_CST:
+    if mode != MODE_CSP and mode != MODE_CSV and mode != MODE_CST and (
+            mode != MODE_VOLTAGE or prm[R_VOLTAGE_OK] == 0.0):
         return True
     return (abs(spf[S_POS]) > prm[R_B_POSITION] or abs(spf[S_VEL]) > prm[R_B_VELOCITY]
             or abs(spf[S_VOFF]) > prm[R_B_VELOCITY] or abs(spf[S_IQ]) > prm[R_B_CURRENT]
@@ -196,7 +200,7 @@ def _command(prm, w, wi, spf, spi, theta):
     """ModeControl.command and the CSP target held inside 607Dh: (position target or
     NaN, speed command or feed-forward)."""
     mode, rpc = spi[I_MODE], prm[R_RPC]
-    if mode == MODE_CST:
+    if mode == MODE_CST or mode == MODE_VOLTAGE:
         w[F_DEMAND], w[F_SPEED] = theta, 0.0
         return math.nan, 0.0
     if mode == MODE_CSV:
@@ -211,9 +215,9 @@ def _command(prm, w, wi, spf, spi, theta):
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def _monitor(prm, w, wi, out, target, theta, w_act):
-    """Monitor.check in OPERATION ENABLED: its statusword flags, or -1 when a fault cause
-    is present (then the cycle is the Python path's)."""
+def _monitor(prm, w, wi, out, target, theta, w_act, voltage):
+    """Monitor.check in OPERATION ENABLED (``voltage``: in voltage mode): its statusword
+    flags, or -1 when a fault cause is present (then the cycle is the Python path's)."""
     currents_a2 = math.pow(out[L.O_IQ_MEAS], prm[R_TWO]) + math.pow(out[L.O_ID_MEAS],
                                                                      prm[R_TWO])
     heat = w[F_I2T] + (currents_a2 - prm[R_CONTINUOUS2]) * prm[R_CYCLE]
@@ -224,6 +228,13 @@ def _monitor(prm, w, wi, out, target, theta, w_act):
         wi[J_HOT] = 0
     if wi[J_HOT] or abs(w_act) > prm[R_OVERSPEED]:
         return -1
+    if voltage:  # Monitor._peak
+        if currents_a2 > prm[R_MAX_CURRENT2]:
+            w[F_PEAK_TIME] += prm[R_CYCLE]
+            if w[F_PEAK_TIME] > prm[R_PEAK_TIME] or currents_a2 > prm[R_PEAK_TRIP2]:
+                return -1
+        else:
+            w[F_PEAK_TIME] = 0.0
     flags = SW_WARNING if w[F_I2T] >= prm[R_I2T_WARNING] else 0
     neg, pos = out[L.O_LIMIT_NEG], out[L.O_LIMIT_POS]
     reached_neg = neg > 0.0 and w[F_SWITCH_NEG] <= 0.0
@@ -305,8 +316,9 @@ def _speed_loop(prm, w, wi, w_set, w_act, i_ff):
 @njit(cache=True, error_model="numpy", inline="always")
 def _current(prm, w, wi, spf, mode, target, w_cmd, theta, w_act):
     """EmulatedDrive._current in OPERATION ENABLED, before the current limit: the
-    q-current setpoint, A."""
-    if mode == MODE_CST:
+    q-current setpoint, A (voltage mode: the q-current field as the Python path passes it
+    on, unused by the plant)."""
+    if mode == MODE_CST or mode == MODE_VOLTAGE:
         return spf[S_IQ]
     if target == target:
         held = target != w[F_DEMAND]  # at a software limit: no speed feed-forward
@@ -326,9 +338,10 @@ def _current(prm, w, wi, spf, mode, target, w_cmd, theta, w_act):
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def _step_plant(p, s, inp, out, saved, n_sub, iq, i_d):
-    """The plant's PWM period on the q- and d-current setpoints ``iq``, ``i_d`` (A); a
-    status not OK is undone from ``saved`` (the arrays as they were), and returned."""
+def _step_plant(p, s, inp, out, saved, n_sub, iq, i_d, voltage, ud, uq):
+    """The plant's PWM period on the q- and d-current setpoints ``iq``, ``i_d`` (A), or
+    with ``voltage`` on the d- and q-voltages ``ud``, ``uq`` (V); a status not OK is undone
+    from ``saved`` (the arrays as they were), and returned."""
     n_s, n_i = s.size, inp.size
     for k in range(n_s):
         saved[k] = s[k]
@@ -337,11 +350,12 @@ def _step_plant(p, s, inp, out, saved, n_sub, iq, i_d):
     for k in range(out.size):
         saved[n_s + n_i + k] = out[k]
     inp[L.I_ENABLE] = 1.0
-    inp[L.I_MODE] = L.INPUT_CURRENT
+    inp[L.I_BRAKE] = 0.0  # open with the pulses (HoldingBrake.update)
+    inp[L.I_MODE] = L.INPUT_VOLTAGE if voltage else L.INPUT_CURRENT
     inp[L.I_IQ_REF] = iq
     inp[L.I_ID_REF] = i_d
-    inp[L.I_UD] = 0.0
-    inp[L.I_UQ] = 0.0
+    inp[L.I_UD] = ud
+    inp[L.I_UQ] = uq
     status = axis_step_nb(p, s, inp, out, n_sub)
     if status != L.STATUS_OK:
         for k in range(n_s):
@@ -389,14 +403,15 @@ def steady_cycle(prm, fst, ist, spf, spi, p, s, inp, out, saved, fbf, ring_f, ri
     theta = counts * prm[R_RPC]
     w_act = w[F_VELOCITY] * prm[R_RPC]
     target, w_cmd = _command(prm, w, wi, spf, spi, theta)
-    flags = _monitor(prm, w, wi, out, target, theta, w_act)
+    voltage = mode == MODE_VOLTAGE
+    flags = _monitor(prm, w, wi, out, target, theta, w_act, voltage)
     if flags < 0:
         return EXIT_CAUSE
     # EmulatedDrive._flags (in CSP, CSV and CST the mode's bits 10 and 13 are the
-    # monitor's, bit 12 is set; bit 11 of the last cycle's limits) and
-    # DriveStateMachine.update without a transition (the controlword is enable
+    # monitor's, bit 12 is set, in voltage mode not; bit 11 of the last cycle's limits)
+    # and DriveStateMachine.update without a transition (the controlword is enable
     # operation, no fault is latched)
-    word = flags | SW_FOLLOWS_COMMAND | wi[J_LIMITED]
+    word = flags | (0 if voltage else SW_FOLLOWS_COMMAND) | wi[J_LIMITED]
     wi[J_MONITOR_FLAGS] = flags
     wi[J_STATUSWORD] = SW_OPERATION_ENABLED_BASE | (word & SW_CALLER_BITS)
     wi[J_LIMITED] = 0
@@ -407,8 +422,10 @@ def steady_cycle(prm, fst, ist, spf, spi, p, s, inp, out, saved, fbf, ring_f, ri
     if abs(iq) > limit:
         wi[J_LIMITED] = SW_INTERNAL_LIMIT_ACTIVE
         iq = math.copysign(limit, iq)
-    i_d = _py_min(_py_max(spf[S_ID], -limit), limit)
-    if _step_plant(p, s, inp, out, saved, wi[J_N_SUB], iq, i_d) != L.STATUS_OK:
+    i_d = 0.0 if voltage else _py_min(_py_max(spf[S_ID], -limit), limit)
+    ud, uq = (spf[S_UD], spf[S_UQ]) if voltage else (0.0, 0.0)
+    if _step_plant(p, s, inp, out, saved, wi[J_N_SUB], iq, i_d, voltage, ud,
+                   uq) != L.STATUS_OK:
         return EXIT_PLANT
     w[F_LAST_GOOD_X] = out[L.O_TABLE_POS]
     wi[J_TICK] += 1

@@ -3,9 +3,9 @@ packed into the arrays of :mod:`hil.drive.compiled` and back.
 
 The Python objects of :class:`~hil.drive.core.EmulatedDrive` (its monitor, modes,
 interpolator, loops and state machine) own the drive's state.  On the first cycle of a
-steady state (:meth:`CompiledPath.run`: OPERATION ENABLED in CSP, CSV or CST with the
-drive's loops, the controlword and mode those of the cycle before, no link cause, no
-latched fault, no braking) their state is copied into flat arrays, and from then on
+steady state (:meth:`CompiledPath.run`: OPERATION ENABLED in CSP, CSV, CST or voltage
+mode with the drive's loops, the controlword and mode those of the cycle before, no link
+cause, no latched fault, no braking) their state is copied into flat arrays, and from then on
 each cycle is one call of :func:`hil.drive.compiled.steady_cycle`.  The first cycle it
 declines (or a link cause, a latched fault, a parameter written) copies the state back
 (:meth:`CompiledPath.leave`) and the Python path runs that cycle from the same state, so
@@ -21,11 +21,18 @@ import numpy as np
 from hil.cia402 import EnableSequencer, State
 from hil.drive import compiled as C
 from hil.drive.faults import OVERSPEED_FACTOR
-from hil.drive.monitor import I2T_COOLED, I2T_WARNING
-from io_adapters.messages import MODE_CSP, MODE_CST, MODE_CSV, axis_records, message_pair
+from hil.drive.monitor import I2T_COOLED, I2T_WARNING, PEAK_TIME_S, PEAK_TRIP_FACTOR
+from io_adapters.messages import (
+    MODE_CSP,
+    MODE_CST,
+    MODE_CSV,
+    MODE_VOLTAGE,
+    axis_records,
+    message_pair,
+)
 
 #: the modes the compiled path runs
-CYCLIC = frozenset((MODE_CSP, MODE_CSV, MODE_CST))
+CYCLIC = frozenset((MODE_CSP, MODE_CSV, MODE_CST, MODE_VOLTAGE))
 #: cycles of :func:`warm`: the drives enabled, holding, and on the compiled path long
 #: enough that every kernel of both paths has run
 WARM_CYCLES = 2000
@@ -162,6 +169,9 @@ class CompiledPath:
         for base, f in ((C.R_SET_B0, spd.set_filter), (C.R_CUR_B0, spd.cur_filter),
                         (C.R_NOTCH_B0, spd.notch)):
             prm[base:base + 5] = f.b0, f.b1, f.b2, f.a1, f.a2
+        prm[[C.R_MAX_CURRENT2, C.R_PEAK_TRIP2, C.R_PEAK_TIME, C.R_VOLTAGE_OK]] = (
+            p.max_current_a ** 2, (PEAK_TRIP_FACTOR * p.max_current_a) ** 2, PEAK_TIME_S,
+            float(MODE_VOLTAGE in bounds.modes))
         self._generation = p.generation
         fst = self.fst
         fst[[C.F_COUNTS_PREV, C.F_VELOCITY, C.F_LAST_GOOD_X]] = (
@@ -173,7 +183,7 @@ class CompiledPath:
         fst[[C.F_START_A, C.F_START_B, C.F_END_A, C.F_END_B]] = (*it._start, *it._end)
         fst[[C.F_SYM_Y, C.F_POS_ERROR, C.F_W_CMD, C.F_IQ]] = (pos.sym.y, pos.error, lp.w_cmd,
                                                                lp.iq)
-        fst[[C.F_INTEG, C.F_E_PREV]] = spd.pi.integ, spd.e_prev
+        fst[[C.F_INTEG, C.F_E_PREV, C.F_PEAK_TIME]] = spd.pi.integ, spd.e_prev, m._peak_s
         fst[[C.F_SET_Z1, C.F_SET_Z2, C.F_CUR_Z1, C.F_CUR_Z2, C.F_NOTCH_Z1, C.F_NOTCH_Z2]] = (
             spd.set_filter.z1, spd.set_filter.z2, spd.cur_filter.z1, spd.cur_filter.z2,
             spd.notch.z1, spd.notch.z2)
@@ -200,6 +210,7 @@ class CompiledPath:
         d.tick, d._limited = i[C.J_TICK], i[C.J_LIMITED]
         m.i2t_a2s, m._hot, m.flags = f[C.F_I2T], bool(i[C.J_HOT]), i[C.J_MONITOR_FLAGS]
         m._fe_time_s, m._in_window_s = f[C.F_FE_TIME], f[C.F_IN_WINDOW]
+        m._peak_s = f[C.F_PEAK_TIME]
         m._switches = (f[C.F_SWITCH_NEG], f[C.F_SWITCH_POS])
         m.following_error = f[C.F_FOLLOWING_ERROR]
         modes.demand, modes.speed = f[C.F_DEMAND], f[C.F_SPEED]

@@ -15,6 +15,15 @@ from dataclasses import dataclass
 
 from hil.cia402 import AbortConnectionOption, FaultReactionOption, QuickStopOption
 from hil.controller.config import ControllerSection, axis_limits, kv_si, motor_constant
+from hil.drive.braking import (
+    RAMP_TIME_LIMIT_S,
+    braking_room,
+    min_deceleration,
+    reaction_deceleration,
+    reaction_time,
+    stopping_distance,
+    top_speed,
+)
 from plant.assemble import reflected_inertia, transmission_ratio, voltage_limit
 from plant.config import MachineConfig, build_section, check_applies
 from plant.errors import ConfigError
@@ -137,6 +146,15 @@ class DriveParameters:
         homing_speed_switch, homing_speed_zero: 6099h:01 and :02, motor units/s.
         homing_acceleration: 609Ah, motor units/s².
         home_offset: 607Ch, motor units: the position actual value at the home position.
+        accel_per_amp: the motor's acceleration per ampere of q-current, motor units/s²/A
+            (K_t over the inertia it moves, the table's reflected): with 6072h, the
+            deceleration braking at the current limit reaches.
+        coast_decel: the deceleration the table's Coulomb friction alone gives, less any
+            constant external force, motor units/s² (>= 0): braking with torque off.
+        switch_min, switch_max: the limit switches, motor units (-inf/inf: none).
+        stop_min, stop_max: the mechanical end stops, motor units (-inf/inf: none).
+        reaction_time_s: from a fault's cause to full braking current, s
+            (:func:`hil.drive.braking.reaction_time` of the plant's current loop).
     """
     fe_window: float
     fe_time_s: float
@@ -164,6 +182,13 @@ class DriveParameters:
     homing_speed_zero: float
     homing_acceleration: float
     home_offset: float
+    accel_per_amp: float
+    coast_decel: float
+    switch_min: float
+    switch_max: float
+    stop_min: float
+    stop_max: float
+    reaction_time_s: float
 
     def __setattr__(self, name: str, value) -> None:
         # every write counts, so a copy of these values (the compiled path's) knows it is old
@@ -195,6 +220,36 @@ def _per_motor_unit(cfg: MachineConfig) -> tuple[float, float]:
 def _motor_acceleration(cfg: MachineConfig) -> float:
     """The motor's acceleration at [motor] current_max_a, motor units/s²."""
     return cfg.motor.current_max_a * motor_constant(cfg) / reflected_inertia(cfg)
+
+
+def _coast_deceleration(cfg: MachineConfig) -> float:
+    """The deceleration of the table's Coulomb friction less a constant external force,
+    with torque off, motor units/s² (>= 0)."""
+    fr = cfg.friction
+    if cfg.table is None:
+        force, push = fr.coulomb_nm, abs(cfg.mechanics.external_torque_nm)
+    else:
+        force, push = fr.coulomb_n, abs(cfg.table.external_force_n)
+    return max(force - push, 0.0) * transmission_ratio(cfg) / reflected_inertia(cfg)
+
+
+def _current_loop_time_constant(cfg: MachineConfig) -> float:
+    """The closed current loop's time constant, s: [current_loop] time_constant_s of a
+    first-order model; L_q / K_p of a PI loop whose zero cancels the winding's pole."""
+    cl = cfg.current_loop
+    if cfg.motor.model == "first_order":
+        return cl.time_constant_s
+    return cfg.motor.inductance_q_h / cl.kp_v_per_a
+
+
+def _barriers(cfg: MachineConfig, per: float) -> tuple[float, float, float, float]:
+    """(negative, positive limit switch, negative, positive end stop), motor units; none
+    (-inf/inf) without a table (a rotary table)."""
+    if cfg.table is None:
+        return -math.inf, math.inf, -math.inf, math.inf
+    t = cfg.table
+    switch, stop = t.limit_switch_overtravel_m, t.end_stop_overtravel_m
+    return -switch / per, (t.travel_m + switch) / per, -stop / per, (t.travel_m + stop) / per
 
 
 def _no_load_speed(cfg: MachineConfig) -> float:
@@ -233,14 +288,9 @@ def load_drive(cfg: MachineConfig, controller: ControllerSection | None) -> Driv
     else:
         fe_window = fe / per if fe > 0.0 else math.inf
     lo, hi = given("software_limit_min" + pos_sfx), given("software_limit_max" + pos_sfx)
-    if not rotary:  # outside the programmable travel, inside the limit switches
-        margin = 0.5 * cfg.table.limit_switch_overtravel_m
-        lo = -margin if lo is None else lo
-        hi = cfg.table.travel_m + margin if hi is None else hi
-    if lo > hi:
+    if lo is not None and hi is not None and lo > hi:
         raise ConfigError(f"{cfg.path}: [drive] software_limit_min{pos_sfx} = {lo:g} must be "
                           f"<= software_limit_max{pos_sfx} = {hi:g} ({pos_sfx[1:]})")
-    limit_min, limit_max = (lo / per, hi / per) if lo < hi else (-math.inf, math.inf)
     speed_key = "max_motor_speed_m_s" if linear else "max_motor_speed_rpm"
     speed = given(speed_key)
     if speed is None:
@@ -272,11 +322,12 @@ def load_drive(cfg: MachineConfig, controller: ControllerSection | None) -> Driv
                           f"whole number of PWM periods (1/{cfg.motor.pwm_frequency_hz:g} s)")
     profile_velocity = (v_max / table_si_per_motor if v_max
                         else max_speed if math.isfinite(max_speed) else 0.0)
-    return DriveParameters(
+    switch_min, switch_max, stop_min, stop_max = _barriers(cfg, per)
+    params = DriveParameters(
         fe_window=fe_window, fe_time_s=sec.following_error_time_s,
         position_window=given("position_window" + pos_sfx) / per,
         position_window_time_s=sec.position_window_time_s,
-        limit_min=limit_min, limit_max=limit_max, max_speed=max_speed,
+        limit_min=-math.inf, limit_max=math.inf, max_speed=max_speed,
         max_current_a=max_current, quick_stop_decel=quick_stop, profile_decel=profile,
         quick_stop_option=int(QuickStopOption(sec.quick_stop_option)),
         fault_reaction_option=int(FaultReactionOption(sec.fault_reaction_option)),
@@ -287,5 +338,96 @@ def load_drive(cfg: MachineConfig, controller: ControllerSection | None) -> Driv
         profile_acceleration=profile, homing_method=0,
         homing_speed_switch=HOMING_SWITCH_SHARE * profile_velocity,
         homing_speed_zero=HOMING_ZERO_SHARE * profile_velocity,
-        homing_acceleration=profile, home_offset=0.0)
+        homing_acceleration=profile, home_offset=0.0,
+        accel_per_amp=motor_constant(cfg) / reflected_inertia(cfg),
+        coast_decel=_coast_deceleration(cfg), switch_min=switch_min, switch_max=switch_max,
+        stop_min=stop_min, stop_max=stop_max,
+        reaction_time_s=reaction_time(_current_loop_time_constant(cfg)))
+    _check_ramps(cfg, params, {"quick_stop_deceleration": qs, "profile_deceleration": pd})
+    braking = controller is not None
+    params.limit_min, params.limit_max = _software_limits(cfg, params, lo, hi, braking)
+    short = braking_room(params, braking)
+    if short:
+        raise ConfigError(_room_text(cfg, params, short))
+    return params
+
+
+def _units(cfg: MachineConfig) -> tuple[float, str]:
+    """(the keys' table unit per motor unit, that unit's name: m or deg)."""
+    return _per_motor_unit(cfg)[0], "deg" if cfg.machine.kind == "rotary" else "m"
+
+
+def _check_ramps(cfg: MachineConfig, p: DriveParameters, given: dict) -> None:
+    """Refuse a slow down (6084h) or quick stop (6085h) ramp below
+    :func:`~hil.drive.braking.min_deceleration`, given or derived."""
+    per, unit = _units(cfg)
+    bound = min_deceleration(p.max_speed)
+    for name, value in (("quick_stop_deceleration", p.quick_stop_decel),
+                        ("profile_deceleration", p.profile_decel)):
+        if value < bound:
+            origin = ("" if given[name] is not None
+                      else " (derived: give it in the [drive] section)")
+            raise ConfigError(
+                f"{cfg.path}: [drive] {name}_{unit}_s2 = {value * per:.4g} {unit}/s^2{origin} "
+                f"is below {bound * per:.4g} {unit}/s^2, the least that stops the axis from "
+                f"its top speed {top_speed(p.max_speed) * per:.4g} {unit}/s (1.1 x 6080h) "
+                f"within {RAMP_TIME_LIMIT_S:g} s")
+
+
+def _software_limits(cfg: MachineConfig, p: DriveParameters, lo: float | None,
+                     hi: float | None, braking: bool) -> tuple[float, float]:
+    """607Dh in motor units, (-inf, inf) when off (min = max).  An absent limit of a table
+    with a stroke is derived (:mod:`hil.drive.braking`): halfway between the end of the
+    travel and the last point from which the fault reaction stops the axis at its top
+    speed before the limit switch (halfway to the switch when 6080h is off, or on a drive
+    that cannot brake: its controller owns the braking); refused when even the end of the
+    travel leaves no such room."""
+    per, unit = _units(cfg)
+    if cfg.table is not None and (lo is None or hi is None):
+        travel = cfg.table.travel_m / per
+        top = top_speed(p.max_speed)
+        need = (stopping_distance(p, top, p.fault_reaction_option)
+                if braking and math.isfinite(top) else 0.0)
+        farthest = (p.switch_min + need, p.switch_max - need)
+        if farthest[0] > 0.0 or farthest[1] < travel:
+            raise ConfigError(_room_text(cfg, p, [], derive=True))
+        lo = 0.5 * farthest[0] * per if lo is None else lo
+        hi = (travel + 0.5 * (farthest[1] - travel)) * per if hi is None else hi
+        if lo > hi:
+            raise ConfigError(f"{cfg.path}: [drive] software_limit_min_{unit} = {lo:g} must "
+                              f"be <= software_limit_max_{unit} = {hi:g} ({unit})")
+    return (lo / per, hi / per) if lo < hi else (-math.inf, math.inf)
+
+
+_REACTION = {0: "torque off, coasting on the friction", 1: "the slow down ramp 6084h",
+             2: "the quick stop ramp 6085h", 3: "the current limit", 4: "the current limit"}
+
+
+def _room_text(cfg: MachineConfig, p: DriveParameters, short: list,
+               derive: bool = False) -> str:
+    """Why an axis at its top speed would not stop before its limit switch (or end stop),
+    with the numbers in the keys' units and what would make room."""
+    per, unit = _units(cfg)
+    option = p.fault_reaction_option
+    top = top_speed(p.max_speed)
+    need = stopping_distance(p, top, option)
+    how = (f"from its top speed {top * per:.4g} {unit}/s (1.1 x 6080h) the fault reaction "
+           f"(605Eh = {p.fault_reaction_option}: {_REACTION[option]}, "
+           f"{reaction_deceleration(p, option) * per:.4g} {unit}/s^2, after "
+           f"{p.reaction_time_s * 1e3:.3g} ms) runs {need * per:.4g} {unit}")
+    fix = ("raise the reaction's deceleration, lower max_motor_speed"
+           f"{'_m_s' if cfg.machine.kind == 'linear' else '_rpm'}, or move the limit "
+           "switches out ([table] limit_switch_overtravel_m)")
+    if derive:
+        return (f"{cfg.path}: [drive] software_limit_min/max_{unit} cannot be derived: [table] "
+                f"limit_switch_overtravel_m = {cfg.table.limit_switch_overtravel_m:g} m leaves "
+                f"no room beyond the travel to stop before the limit switches: {how}; {fix}")
+    limits_on = math.isfinite(p.limit_min)
+    side, room, _ = short[0]
+    start = f"software_limit_{side}_{unit} = {getattr(p, 'limit_' + side) * per:.4g} {unit}"
+    barrier = "limit switch" if limits_on else "end stop"
+    if not limits_on:
+        start = f"the {side} limit switch (the software limits are off)"
+    return (f"{cfg.path}: [drive] {start} leaves {room * per:.4g} {unit} to the {barrier}, "
+            f"too little: {how}; {fix}")
 

@@ -20,8 +20,13 @@ What the power stage does in each CiA 402 state:
 * QUICK STOP ACTIVE: braking as 605Ah says (slow down ramp 6084h, quick stop ramp 6085h,
   or the current limit), then transition 12 (codes 1-4), or holding zero speed (5-8).
 * FAULT REACTION ACTIVE: braking as 605Eh says, then transition 14 to FAULT; torque off at
-  once for code 0 and for the causes of :data:`~hil.drive.faults.TORQUE_OFF`.
-* every other state: torque off (the plant's pulses blocked).
+  once for code 0 and for the causes of :data:`~hil.drive.faults.TORQUE_OFF`, also when
+  one of them comes while the drive brakes.
+* Braking is bounded (:mod:`hil.drive.braking`): a reaction whose speed does not fall
+  under its envelope, or does not reach standstill in time, is the cause REACTION_FAILED
+  (FF04h): pulses inhibited at once.
+* every other state: torque off (the plant's pulses blocked); a holding brake closes
+  after its closing time (:mod:`hil.drive.holding_brake`).
 
 Braking needs the drive's speed loop; a drive without ``[controller]`` machine data takes
 the torque off instead.  Positions and speeds on the wire are motor-encoder increments
@@ -61,13 +66,15 @@ from hil.cia402 import (
     State,
 )
 from hil.controller.config import ControllerSection, load_controller
+from hil.drive.braking import envelope
 from hil.drive.compiled_path import CompiledPath
 from hil.drive.config import DriveParameters, load_drive
 from hil.drive.faults import TORQUE_OFF, Cause, FaultLog
+from hil.drive.holding_brake import HoldingBrake
 from hil.drive.loops import DriveLoops
 from hil.drive.modes import MODE_PP, PROFILE_MODES, ModeControl
 from hil.drive.monitor import Monitor
-from hil.drive.reaction import BrakeRamp
+from hil.drive.reaction import DONE, FAILED, BrakeRamp
 from io_adapters.messages import (
     MODE_CSP,
     MODE_CST,
@@ -122,6 +129,8 @@ class EmulatedDrive:
         self.monitor = Monitor(self.params, plant.pwm_period,
                                self.rad_per_count / self.speed_period)
         self.brake = BrakeRamp(plant.pwm_period)
+        self.holding_brake = HoldingBrake(plant.params[L.P_BRAKE] > 0.0,
+                                          cfg.brake.closing_time_s, plant.pwm_period)
         self.modes = ModeControl(self.params, plant.pwm_period, self.rad_per_count,
                                  plant.counts_per_mark)
         bounds = self.setpoint_bounds()
@@ -197,11 +206,20 @@ class EmulatedDrive:
             self.modes.hold(sp, theta, w_act)
         present = self.monitor.check(operating, target, theta, w_act,
                                      out[L.O_IQ_MEAS] ** 2 + out[L.O_ID_MEAS] ** 2,
-                                     (out[L.O_LIMIT_NEG], out[L.O_LIMIT_POS]))
+                                     (out[L.O_LIMIT_NEG], out[L.O_LIMIT_POS]),
+                                     sp.mode == MODE_VOLTAGE)
         controlword = self._controlword(sp.controlword, present)
         standstill = self.monitor.standstill()
         braking = self.brake.active
-        braked = braking and self.brake.done(w_act, standstill)
+        if braking and self.faults.latched & TORQUE_OFF:
+            self.brake.stop()  # a cause that forbids braking came while it brakes
+            braking = False
+        verdict = self.brake.verdict(w_act, standstill) if braking else DONE
+        if verdict == FAILED:
+            self.faults.latch(Cause.REACTION_FAILED, self.tick)
+            self.brake.stop()
+            braking = False
+        braked = braking and verdict == DONE
         before = self.sm.state
         # a fault reaction is over once its braking is (at once when it does not brake)
         statusword = self.sm.update(
@@ -224,6 +242,7 @@ class EmulatedDrive:
         inp = plant.inp
         voltage = sp.mode == MODE_VOLTAGE and state == State.OPERATION_ENABLED
         inp[L.I_ENABLE] = 1.0 if on else 0.0
+        inp[L.I_BRAKE] = self.holding_brake.update(on)
         inp[L.I_MODE] = L.INPUT_VOLTAGE if voltage else L.INPUT_CURRENT
         inp[L.I_IQ_REF] = iq if on else 0.0
         limit = p.max_current_a
@@ -277,11 +296,13 @@ class EmulatedDrive:
             return FaultReactionOption.DISABLE_DRIVE
         return self.params.fault_reaction_option
 
-    def _deceleration(self, option: int) -> float:
-        """The braking deceleration of a slow down (1), quick stop (2) or current-limit (3,
-        4) reaction, motor units/s² (inf: at the current limit)."""
+    def _brake(self, option: int, w_act: float) -> None:
+        """Start braking from ``w_act`` as option code ``option`` says: 1 on the slow down
+        ramp 6084h, 2 on the quick stop ramp 6085h, 3 and 4 at the current limit; watched
+        as :mod:`hil.drive.braking` bounds it."""
         p = self.params
-        return {1: p.profile_decel, 2: p.quick_stop_decel}.get(option, math.inf)
+        ramp = {1: p.profile_decel, 2: p.quick_stop_decel}.get(option, math.inf)
+        self.brake.start(w_act, ramp, envelope(p, option, w_act, self.monitor.standstill()))
 
     def _entered(self, state: State, before: State, w_act: float) -> None:
         """Start or end braking on a change of state (a fault reaction brakes only a drive
@@ -289,11 +310,10 @@ class EmulatedDrive:
         if state == State.QUICK_STOP_ACTIVE and self.loops is not None:
             # 605Ah 1-4 and 5-8 brake alike: 1 and 5 on the slow down ramp, 2 and 6 on the
             # quick stop ramp, 3, 4, 7 and 8 at the current limit
-            option = (self.sm.quick_stop_option - 1) % 4 + 1
-            self.brake.start(w_act, self._deceleration(option))
+            self._brake((self.sm.quick_stop_option - 1) % 4 + 1, w_act)
         elif (state == State.FAULT_REACTION_ACTIVE and self._reaction()
               and before in (State.OPERATION_ENABLED, State.QUICK_STOP_ACTIVE)):
-            self.brake.start(w_act, self._deceleration(self._reaction()))
+            self._brake(self._reaction(), w_act)
         else:
             self.brake.stop()
         if state != State.OPERATION_ENABLED:
@@ -378,6 +398,12 @@ class EmulatedDrive:
         self.velocity_counts_s = 0.0
         if self.loops is not None:
             self.loops.reset(plant.out[L.O_ENCODER] * self.rad_per_count)
+
+    def inhibit_pulses(self) -> None:
+        """Take the torque off from the next cycle whatever the drive does (a reaction still
+        braking when the emulator must stop): the cause REACTION_FAILED (FF04h)."""
+        with self.lock:
+            self.faults.latch(Cause.REACTION_FAILED, self.tick)
 
     def set_quick_stop_option(self, code: int) -> None:
         """605Ah: ``code`` (1-8) from the next cycle on."""

@@ -18,6 +18,8 @@ code    cause                         when it is present
 8612h   limit switch                  a limit switch (60FDh) active, moving outward
 8400h   overspeed                     |606Ch| above 6080h by :data:`OVERSPEED_FACTOR`
 2310h   continuous over-current       the I²t model above its trip level (until it cools)
+2300h   peak current (voltage mode)   the sampled current above 6072h in voltage mode, where
+                                      no current loop of the drive limits it (its trip)
 8250h   setpoint timeout (watchdog)   no valid setpoint for the watchdog's cycles (RPDO timeout)
 8130h   heartbeat lost                a heartbeat consumed (CAN 1016h) did not come in time
 8100h   NMT stop or reset             the node was stopped or reset by NMT (CAN)
@@ -26,6 +28,9 @@ FF10h   setpoint refused              a setpoint with a non-finite value, a valu
 FF01h   plant state non-finite        the emulation's plant state became NaN or infinite
 FF02h   plant state diverged          a plant state beyond its runaway bound
 FF03h   drive loop non-finite         the drive's own speed/position loop gave a NaN
+FF04h   braking reaction failed       a quick stop or fault reaction did not slow the axis
+                                      down in time (:mod:`hil.drive.braking`): pulses
+                                      inhibited, the holding brake closed
 ======  ============================  =========================================================
 
 :class:`FaultLog` keeps a drive's latched causes, its 603Fh and the fault events.
@@ -54,6 +59,8 @@ class Cause(IntFlag):
     PLANT_NONFINITE = 1 << 9
     PLANT_DIVERGED = 1 << 10
     LOOP_NONFINITE = 1 << 11
+    PEAK_CURRENT = 1 << 12
+    REACTION_FAILED = 1 << 13
 
 
 #: 603Fh error code of each cause
@@ -62,6 +69,7 @@ ERROR_CODE = {
     Cause.OVERSPEED: 0x8400, Cause.OVERCURRENT: 0x2310, Cause.WATCHDOG: 0x8250,
     Cause.HEARTBEAT: 0x8130, Cause.NMT: 0x8100, Cause.SETPOINT_REFUSED: 0xFF10,
     Cause.PLANT_NONFINITE: 0xFF01, Cause.PLANT_DIVERGED: 0xFF02, Cause.LOOP_NONFINITE: 0xFF03,
+    Cause.PEAK_CURRENT: 0x2300, Cause.REACTION_FAILED: 0xFF04,
 }
 TEXT = {
     Cause.FOLLOWING_ERROR: "following error beyond 6065h for longer than 6066h",
@@ -76,10 +84,13 @@ TEXT = {
     Cause.PLANT_NONFINITE: "plant state non-finite (the emulation restarted at rest)",
     Cause.PLANT_DIVERGED: "plant state diverged (the emulation restarted at rest)",
     Cause.LOOP_NONFINITE: "drive speed/position loop non-finite (loops reset)",
+    Cause.PEAK_CURRENT: "current above 6072h in voltage mode (over-current trip)",
+    Cause.REACTION_FAILED: "braking reaction did not stop the axis in time (pulses inhibited, "
+                           "holding brake closed)",
 }
 #: causes whose reaction is always torque off, whatever 605Eh says
 TORQUE_OFF = (Cause.PLANT_NONFINITE | Cause.PLANT_DIVERGED | Cause.LOOP_NONFINITE
-              | Cause.OVERCURRENT)
+              | Cause.OVERCURRENT | Cause.PEAK_CURRENT | Cause.REACTION_FAILED)
 #: causes that come from the link to the master (their reaction is 6007h's)
 LINK = Cause.WATCHDOG | Cause.HEARTBEAT | Cause.NMT
 #: a speed above 6080h by this factor is an overspeed fault (the speed commands are limited

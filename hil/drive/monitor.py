@@ -18,6 +18,12 @@ be reset while the axis is still too fast or the motor still too hot.
 * **Limit switches** (60FDh bits 0 and 1, the plant's switch outputs): a switch active
   while moving further out, or reached.
 * **Overspeed**: |speed| above 6080h times :data:`~hil.drive.faults.OVERSPEED_FACTOR`.
+* **Peak current in voltage mode**: the sampled current's magnitude above 6072h for longer
+  than :data:`PEAK_TIME_S`, or above :data:`PEAK_TRIP_FACTOR` times it at once.  In the
+  other modes the drive's current setpoint is held inside 6072h and the current loop
+  follows it; in voltage mode the master's voltages drive the winding directly, so the
+  drive trips as an inverter's over-current protection does (torque off).  The time lets
+  a master's own current loop overshoot a step to the limit, as a loop does.
 * **I²t**: the integral of (i_q² + i_d² - continuous²) dt, never below 0, trips at
   (peak² - continuous²) times the overload time (the power stage's peak current from cold
   for ``overload_time_s``); the cause stays present until it has cooled to
@@ -45,6 +51,10 @@ I2T_WARNING = 0.8
 STANDSTILL_FRACTION = 0.005
 #: ... or this many encoder increments per speed cycle, whichever is larger
 STANDSTILL_COUNTS = 4
+#: voltage mode: the current may stay above 6072h this long, s ...
+PEAK_TIME_S = 0.001
+#: ... and never above this many times 6072h
+PEAK_TRIP_FACTOR = 1.5
 
 
 class Monitor:
@@ -71,6 +81,7 @@ class Monitor:
         self._fe_time_s = 0.0
         self._in_window_s = 0.0
         self._switches = (0.0, 0.0)
+        self._peak_s = 0.0
         self.following_error = 0.0
 
     def standstill(self) -> float:
@@ -81,11 +92,11 @@ class Monitor:
 
     def reset(self) -> None:
         """Clear the timers (the I²t integral keeps its heat)."""
-        self._fe_time_s = self._in_window_s = 0.0
+        self._fe_time_s = self._in_window_s = self._peak_s = 0.0
         self.following_error = 0.0
 
     def check(self, operating: bool, target: float, theta: float, w: float, currents_a2: float,
-              switches: tuple[float, float]) -> int:
+              switches: tuple[float, float], voltage: bool = False) -> int:
         """The causes present this cycle (a :class:`~hil.drive.faults.Cause` mask).
 
         Args:
@@ -95,6 +106,7 @@ class Monitor:
             w: the speed actual.
             currents_a2: i_q² + i_d² of the sampled currents, A².
             switches: the plant's (negative, positive) limit-switch outputs, 1.0 = active.
+            voltage: the drive runs in voltage mode (the peak-current trip).
         """
         p = self.params
         present = self._i2t(currents_a2)
@@ -110,6 +122,8 @@ class Monitor:
             self.reset()
             self.flags = flags
             return present
+        if voltage:
+            present |= self._peak(currents_a2)
         out = self.standstill()
         if (switches[0] > 0.0 and (reached_neg or w < -out)) or (
                 switches[1] > 0.0 and (reached_pos or w > out)):
@@ -123,6 +137,17 @@ class Monitor:
         self.flags = flags | (SW_FOLLOWING_ERROR if abs(self.following_error) > p.fe_window
                               else 0)
         return present
+
+    def _peak(self, currents_a2: float) -> int:
+        p = self.params
+        if currents_a2 > p.max_current_a ** 2:
+            self._peak_s += self.period_s
+            if (self._peak_s > PEAK_TIME_S
+                    or currents_a2 > (PEAK_TRIP_FACTOR * p.max_current_a) ** 2):
+                return Cause.PEAK_CURRENT
+        else:
+            self._peak_s = 0.0
+        return 0
 
     def _following_error(self, error: float) -> int:
         p = self.params

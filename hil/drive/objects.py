@@ -26,11 +26,16 @@ object   meaning                      unit here                       refused (a
 607Dh    software position limits     increments (sub 1 min,          min > max (0609 0036)
                                       sub 2 max; -2^31 and 2^31-1:
                                       that side off)
-6080h    max motor speed              increments/s, 0: off
+6080h    max motor speed              increments/s, 0: off            so high that 6084h or
+                                                                      6085h would stop it
+                                                                      in more than 2 s
+                                                                      (0609 0031)
 6081h    profile velocity             increments/s
 6083h    profile acceleration         increments/s²                   0 (0609 0032)
-6084h    profile deceleration         increments/s²                   0 (0609 0032)
-6085h    quick stop deceleration      increments/s²                   0 (0609 0032)
+6084h    profile deceleration         increments/s²                   below a stop from
+                                                                      1.1 x 6080h in 2 s
+                                                                      (0609 0032)
+6085h    quick stop deceleration      increments/s²                   as 6084h (0609 0032)
 608Fh    encoder increments per       :01 increments, :02 1 (read
          motor revolution             only; a linear motor's
                                       revolution: 2 pole pitches)
@@ -69,6 +74,7 @@ import math
 from dataclasses import fields, replace
 
 from hil.cia402 import AbortConnectionOption, FaultReactionOption, QuickStopOption
+from hil.drive.braking import RAMP_TIME_LIMIT_S, min_deceleration
 from hil.drive.core import EmulatedDrive
 from hil.drive.homing import METHODS
 from hil.inject.catalog import BY_SUBINDEX
@@ -211,6 +217,8 @@ class DriveObjects:
             setattr(p, TIMES[index], value * 1e-3)
         elif key in POSITIVE:
             _positive(index, value)
+            if index in (0x6084, 0x6085):
+                _ramp_bound(index, value * rpc, p.max_speed, rpc)
             setattr(p, POSITIVE[key], value * rpc)
         elif key in CODES:
             setattr(p, CODES[key], int(value))
@@ -226,7 +234,12 @@ class DriveObjects:
         elif index == 0x607D:
             self._limit(p, subindex, value, rpc, d.modes.shift_counts)
         elif index == 0x6080:
-            p.max_speed = math.inf if value == 0 else value * rpc
+            speed = math.inf if value == 0 else value * rpc
+            if min(p.profile_decel, p.quick_stop_decel) < min_deceleration(speed):
+                raise ObjectAccessError(SDO_ABORT_VALUE_HIGH, f"6080h = {value:g} increments/s: "
+                                        "6084h or 6085h would take longer than "
+                                        f"{RAMP_TIME_LIMIT_S:g} s to stop the axis from it")
+            p.max_speed = speed
         elif index == 0x6081:
             p.profile_velocity = value * rpc
         elif index == 0x6098:
@@ -294,6 +307,17 @@ class DriveObjects:
                 setattr(d.params, f.name, getattr(initial, f.name))
             d.set_quick_stop_option(initial.quick_stop_option)
             d.modes.homing.reset()
+
+
+def _ramp_bound(index: int, decel: float, max_speed: float, rpc: float) -> None:
+    """A reaction ramp (6084h, 6085h) must stop the axis from its top speed within
+    :data:`~hil.drive.braking.RAMP_TIME_LIMIT_S` (motor units/s², rad per increment)."""
+    bound = min_deceleration(max_speed)
+    if decel < bound:
+        raise ObjectAccessError(SDO_ABORT_VALUE_LOW, f"{index:04X}h = {decel / rpc:.0f} "
+                                f"increments/s^2: below {bound / rpc:.0f}, the least that "
+                                f"stops the axis from 1.1 x 6080h within "
+                                f"{RAMP_TIME_LIMIT_S:g} s")
 
 
 def _positive(index: int, value: float) -> None:

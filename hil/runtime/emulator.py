@@ -160,8 +160,11 @@ __all__ = ["Emulator", "RuntimeConfig", "Timing", "add_arguments",
 
 #: drive cycles run on the plant before the clock starts (compiled code and caches warm)
 WARMUP_CYCLES = WARM_CYCLES
-#: the longest a fault reaction may still brake in the safe state at shutdown, s of drive time
+#: the longest a fault reaction may still brake in the safe state at shutdown, s of drive
+#: time; after it the drives inhibit their pulses (FF04h) ...
 SAFE_STATE_MAX_S = 5.0
+#: ... which takes the torque off within this many cycles (the state machine's transitions)
+FORCED_OFF_CYCLES = 3
 #: without --duration, the run folder must have room for at least this long a recording, s
 MIN_RECORD_S = 60.0
 #: the interpreter's thread switch interval while the loop runs, s: a loop waking up while
@@ -384,13 +387,19 @@ class Emulator:
         """Drive cycles with controlword 0 (disable voltage: transitions 7, 9, 10, 12 to
         SWITCH ON DISABLED; a drive in FAULT stays there) until every power stage is off:
         one cycle, or as many as a fault reaction still braking needs (at most
-        :data:`SAFE_STATE_MAX_S` of drive time, run back to back as the loop has stopped);
-        the last feedback sent to a controller still listening; returns the state reached
+        :data:`SAFE_STATE_MAX_S` of drive time, run back to back as the loop has stopped,
+        then the pulses inhibited: every power stage ends off); the last feedback sent to
+        a controller still listening; returns the state reached
         (per axis letter on a machine of several axes), with the drive cycle it was
         reached in."""
         sp, fb = self.sp, self.fb
         sp.controlword = DISABLE_VOLTAGE.value
-        for _ in range(max(1, round(SAFE_STATE_MAX_S / self.plant.pwm_period))):
+        cycles = max(1, round(SAFE_STATE_MAX_S / self.plant.pwm_period))
+        for k in range(cycles + FORCED_OFF_CYCLES):
+            if k == cycles:  # a reaction still braking: the pulses go off all the same
+                for d in self.drives.drives:
+                    if d.plant.inp[L.I_ENABLE] != 0.0:
+                        d.inhibit_pulses()
             self.drives.cycle(sp, fb)
             if all(d.plant.inp[L.I_ENABLE] == 0.0 for d in self.drives.drives):
                 break
@@ -418,8 +427,10 @@ class Emulator:
             with scheduling(rc.realtime, cpu, rc.priority) as granted:
                 if granted is not None and granted.fifo.granted:
                     self.helper_threads = helper_threads_realtime(cpu, max(1, rc.priority - 1))
-                stats = self.loop.run()
-                safe = self.safe_state()
+                try:
+                    stats = self.loop.run()
+                finally:  # an exception leaves the axes in their safe state too
+                    safe = self.safe_state()
         finally:
             sys.setswitchinterval(switch_interval)
         self.endpoint.close()
