@@ -26,8 +26,9 @@
 
 Exit status: 0 on success (``hil validate``: it ran, whatever rows disagree), 1 when
 ``hil validate --strict`` finds a failing verification row or the NC of ``hil sim`` raised
-an alarm, 2 on bad input (a machine file that does not load, a part program that does
-not parse, an unknown experiment).
+an alarm, or ``hil report``/``hil export`` stopped at a corrupt batch of the recording
+(what precedes it reported or exported), 2 on bad input (a machine file that does not
+load, a part program that does not parse, an unknown experiment).
 """
 
 import argparse
@@ -97,9 +98,12 @@ def cmd_bench_loop(args) -> int:
 def cmd_report(args) -> int:
     from hil.report.latency import REPORT_MD, report_run
 
-    report_run(Path(args.run), args.cyclictest_seconds if args.cyclictest else None,
-               note=_eprint, controller=args.controller)
+    report = report_run(Path(args.run), args.cyclictest_seconds if args.cyclictest else None,
+                        note=_eprint, controller=args.controller)
     print((Path(args.run) / REPORT_MD).read_text())
+    if report["corrupt"] is not None:  # the report stops at the batch: not the whole run
+        _eprint(f"hil report: {report['corrupt']}")
+        return 1
     return 0
 
 

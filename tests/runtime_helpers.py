@@ -102,6 +102,38 @@ def terminate(proc: subprocess.Popen) -> int:
     return proc.wait(timeout=EXIT_S)
 
 
+def reserve_held(pid: int) -> int:
+    """Bytes allocated to the run-folder reserves process ``pid`` holds open: unlinked
+    files once named ``.hil-run-reserve`` (hil.runtime.run_folder), found through
+    ``/proc/PID/fd``; 0 when it holds none (or has ended)."""
+    held = 0
+    try:
+        fds = list(Path(f"/proc/{pid}/fd").iterdir())
+    except FileNotFoundError:
+        return 0
+    for fd in fds:
+        try:
+            if os.readlink(fd).endswith("/.hil-run-reserve (deleted)"):
+                held += os.stat(fd).st_blocks * 512
+        except FileNotFoundError:  # closed meanwhile
+            continue
+    return held
+
+
+def batch_messages(path: Path) -> list[tuple[int, int, int]]:
+    """(first byte, first byte of the body, end) of each record batch's message in the
+    Arrow IPC stream ``path``, in order, as pyarrow's message reader finds them (the
+    schema's message left out)."""
+    from hil.runtime.arrow import pa
+    source = pa.OSFile(str(path))
+    messages, start = [], 0
+    for message in pa.ipc.MessageReader.open_stream(source):
+        end = source.tell()
+        messages.append((start, end - message.body.size, end))
+        start = end
+    return messages[1:]
+
+
 def read_run(run_dir: Path) -> tuple[dict, dict]:
     """``hil run``'s report.json and its recording's columns (name -> array)."""
     report = json.loads((run_dir / "report.json").read_text())

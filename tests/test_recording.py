@@ -1,12 +1,14 @@
 """The recording's parts in one process: the ring, the streams and their reader, the events
-found in the rows, the percentile histogram, the run folder and the streaming loop.
+found in the rows, the percentile histogram, the run folder and the streaming loop, and
+the checksums of the batches and the schema.
 
 References: the values handed to the ring (read back exactly), brute-force runs of late
 ticks, numpy's exact nearest-rank percentiles, the file system itself (a symlink's
-target left untouched).  The processes (SIGKILL, a full disk, the exports of a real run)
+target left untouched), pyarrow's message reader (where each batch lies in the file).  The processes (SIGKILL, a full disk, the exports of a real run)
 are in ``test_recording_processes.py``.
 """
 
+import argparse
 import math
 import os
 from pathlib import Path
@@ -20,9 +22,10 @@ from hypothesis import strategies as st
 from hil.drive import DriveSet, EmulatedDrive
 from hil.rt.loop import Percentiles
 from hil.runtime.emulator import Emulator, RuntimeConfig
+from hil.runtime import export
 from hil.runtime.export import export_csv
 from hil.runtime.log_histogram import EXACT_NS, LogHistogram
-from hil.runtime.record_reader import Recording, RecordingError
+from hil.runtime.record_reader import CorruptBatchError, Recording, RecordingError
 from hil.runtime.record_trace import AxisTrace
 from hil.runtime.record_writer import RING_S, RecordingWriter
 from hil.runtime.recording import PLANT_DOCUMENTED, Recorder, column_specs, row_bytes
@@ -35,13 +38,14 @@ from hil.runtime.run_folder import (
     RunFolder,
     RunFolderError,
 )
-from hil.runtime.stream_file import END_OF_STREAM
+from hil.runtime.stream_file import CRC_KEY, END_OF_STREAM, META_KEY, UNCHECKED_FORMAT
 from hil.runtime.streaming_loop import StreamingLoop
 from hil.runtime.watchdog import Watchdog
 from hil.trace_file import read_trace
 from io_adapters.messages import message_pair
 from plant import OUTPUTS, Plant, load_machine
 from tests.conftest import CONFIGS
+from tests.runtime_helpers import batch_messages, reserve_held
 
 ARROW = CONFIGS / "arrow500_x.toml"
 PERIOD_NS = 125_000
@@ -181,6 +185,112 @@ def test_a_cut_recording_reads_up_to_its_last_complete_batch(written, tmp_path_f
     assert rec.closed_cleanly() == (cut == len(data))
 
 
+def _damaged(path: Path, folder: Path, edit) -> Path:
+    """``path``'s run folder copied to ``folder``, its recording's bytes passed through
+    ``edit`` (a bytearray changed in place)."""
+    folder.mkdir()
+    (folder / EVENTS).write_bytes((path.parent / EVENTS).read_bytes())
+    data = bytearray(path.read_bytes())
+    edit(data)
+    (folder / RECORDING).write_bytes(bytes(data))
+    return folder
+
+
+def _flip(data: bytearray, first: int, n: int = 64) -> None:
+    for i in range(first, first + n):
+        data[i] ^= 0xFF
+
+
+def test_every_batch_carries_a_crc_and_a_flipped_body_is_named_and_stopped_at(written,
+                                                                              tmp_path):
+    """The clean recording reads whole, every batch with its CRC-32.  64 bytes flipped in
+    the middle of one batch's body (its values, compressed), for each batch in turn: the
+    read stops there with the batch's index and first byte (reference: pyarrow's message
+    reader) and the rows before it; asked to stop quietly, it gives exactly those rows
+    and names the batch."""
+    path, ends, _ = written
+    messages = batch_messages(path)
+    assert len(messages) == len(ends) + 1  # the empty batch after the schema, one per flush
+    reader = pa.ipc.open_stream(pa.OSFile(str(path)))
+    for _ in messages:
+        assert CRC_KEY in reader.read_next_batch_with_custom_metadata().custom_metadata
+    clean = Recording(path.parent)
+    assert clean.checksums and clean.read(["tick"])["tick"].size == ends[-1]
+    for index, (start, body, end) in enumerate(messages[1:], 1):
+        folder = _damaged(path, tmp_path / f"batch{index}",
+                          lambda data: _flip(data, (body + end) // 2 - 32))
+        before = ends[index - 2] if index > 1 else 0
+        with pytest.raises(CorruptBatchError, match=rf"{RECORDING}: batch {index} \(at byte "
+                           rf"{start}\) is corrupt: .*; the {before} rows before it"):
+            Recording(folder).read()
+        rec = Recording(folder)
+        assert rec.read(["tick"], stop_at_corrupt=True)["tick"].tolist() == list(range(before))
+        error = rec.corrupt[RECORDING]
+        assert (error.index, error.offset, error.rows_before) == (index, start, before)
+        assert not rec.truncated
+
+
+def test_a_corrupt_batch_is_told_from_a_cut_off_end(written, tmp_path):
+    """A batch whose metadata length was raised past the end of a file closed with its end
+    marker is corrupt, not cut off; in a file cut inside its last batch (no end marker) a
+    batch before it with a flipped body is corrupt too, while the partial last batch
+    alone reads as the cut-off end."""
+    path, ends, _ = written
+    messages = batch_messages(path)
+    start, body, end = messages[3]
+
+    def long_metadata(data: bytearray) -> None:
+        data[start + 4:start + 8] = (2**31 - 8).to_bytes(4, "little")
+
+    with pytest.raises(CorruptBatchError, match="batch 3 "):
+        Recording(_damaged(path, tmp_path / "long", long_metadata)).read()
+    last = messages[-1]
+    cut = (last[1] + last[2]) // 2
+
+    def flipped_and_cut(data: bytearray) -> None:
+        _flip(data, (body + end) // 2 - 32)
+        del data[cut:]
+
+    with pytest.raises(CorruptBatchError, match="batch 3 "):
+        Recording(_damaged(path, tmp_path / "flipped", flipped_and_cut)).read()
+    rec = Recording(_damaged(path, tmp_path / "cut", lambda data: data.__delitem__(
+        slice(cut, None))))
+    assert rec.read(["tick"])["tick"].size == ends[-2] and rec.truncated
+
+
+def test_a_changed_byte_in_the_schema_is_refused(written, tmp_path):
+    """The run's metadata edited in place (its period, still valid JSON): refused as a
+    corrupt schema, not read with the wrong period."""
+    path, _, _ = written
+
+    def edit(data: bytearray) -> None:
+        at = data.index(b'"period_ns": 125000') + len(b'"period_ns": 12500')
+        data[at] = ord("1")
+
+    with pytest.raises(RecordingError, match=r"the schema .* is corrupt: CRC-32 [0-9a-f]{8} "
+                                             r"stored, [0-9a-f]{8} computed"):
+        Recording(_damaged(path, tmp_path / "schema", edit))
+
+
+def test_a_recording_of_the_format_before_the_checksums_reads_unchecked(tmp_path, capsys):
+    """A recording of format 'hil-recording 1' (no CRC anywhere, pyarrow's plain writer)
+    reads whole, says it has no checksums, and hil export says so on stderr."""
+    meta = b'{"format": "%s", "period_ns": 125000, "axes": []}' % UNCHECKED_FORMAT.encode()
+    table = pa.table({"tick": np.arange(50), "x_m": np.linspace(0, 1, 50)})
+    for name in (RECORDING, EVENTS):
+        columns = table if name == RECORDING else pa.table({"tick": pa.array([], pa.int64())})
+        schema = columns.schema.with_metadata({META_KEY: meta})
+        with pa.ipc.new_stream(str(tmp_path / name), schema) as w:
+            for batch in columns.cast(schema).to_batches(max_chunksize=20):
+                w.write_batch(batch)
+    rec = Recording(tmp_path)
+    assert not rec.checksums and rec.read(["tick"])["tick"].tolist() == list(range(50))
+    args = argparse.Namespace(run=str(tmp_path), to="mdf4", axis=None,
+                              out=str(tmp_path / "r.mf4"), force=False)
+    assert export.run_from_args(args) == 0
+    assert "carries no checksums" in capsys.readouterr().err
+
+
 def _late_runs(excess: np.ndarray) -> list[tuple[int, int]]:
     """(first row, count) of each run of consecutive rows with excess > 0, by a loop."""
     runs, start = [], None
@@ -279,18 +389,21 @@ def test_a_previous_run_is_kept_unless_forced_and_then_its_links_not_their_targe
 def test_the_run_folder_refuses_a_file_and_says_the_space_it_lacks(tmp_path):
     """A file where the folder should be, and a recording larger than the free space:
     each refused with the path and, for the space, both figures; the reserve is taken on
-    the disk and given back at close."""
+    the disk, held by its descriptor under no name (a reserve an older version left is
+    removed), and given back at close."""
     (tmp_path / "file").write_text("x")
     with pytest.raises(RunFolderError, match="exists and is not a folder"):
         RunFolder.open(tmp_path / "file")
+    reserve = tmp_path / "run" / ".hil-run-reserve"
     with RunFolder.open(tmp_path / "run") as folder:
         free = folder.free_bytes()
         with pytest.raises(RunFolderError, match=r"free, the recording needs about .* \(why\)"):
             folder.check_space(2 * free + 1e9, "why")
+        reserve.write_bytes(b"left by a killed run of an older version")
         folder.hold_reserve()
-        reserve = tmp_path / "run" / ".hil-run-reserve"
-        assert reserve.stat().st_blocks * 512 >= RESERVE_BYTES  # allocated, not sparse
-    assert not reserve.exists()
+        assert not os.path.lexists(reserve)
+        assert reserve_held(os.getpid()) >= RESERVE_BYTES  # allocated, not sparse
+    assert reserve_held(os.getpid()) == 0 and not os.path.lexists(reserve)
 
 
 # --- the streaming loop -------------------------------------------------------------------

@@ -1,11 +1,14 @@
 """``hil run``'s recording with real processes: SIGKILL, a full disk, the run folder's
-checks, the events of a run, and what reads the recording (``hil report``, ``hil
-identify``, ``hil export`` to MDF4 and CSV).
+checks and its reserve, the events of a run, and what reads the recording (``hil
+report``, also of a run cut short, ``hil identify``, ``hil export`` to MDF4 and CSV), and
+a corrupt batch met by ``hil export`` and ``hil report``.
 
 References: the feedback the test itself received (SIGKILL), the per-tick rows of the same
 recording and report.json (events), the soak master's sine (identify), asammdf opening
 the MDF4 file and the servo-trace reader opening the CSV, the recording's own values
-(exports).  No wall-clock duration is asserted; every wait is bounded; children reaped.
+(exports, the report of a run cut short), /proc (the reserve), pyarrow's message reader
+(a corrupt batch's place).  No wall-clock duration is asserted; every wait is bounded;
+children reaped.
 """
 
 import json
@@ -23,9 +26,10 @@ import pytest
 from hil.cia402 import EnableSequencer, State, statusword_state
 from hil.identify.record import load_record
 from hil.report.latency import load_run
+from hil.runtime.arrow import pa
 from hil.runtime.record_reader import Recording
 from hil.runtime.record_writer import RING_S
-from hil.runtime.run_folder import EVENTS, RECORDING, REPORT
+from hil.runtime.run_folder import EVENTS, RECORDING, REPORT, RESERVE_BYTES
 from hil.runtime.soak_master import AMPLITUDE_M
 from hil.runtime.watchdog import FAULT_WATCHDOG
 from hil.trace_file import read_trace
@@ -38,8 +42,10 @@ from tests.runtime_helpers import (
     READY_S,
     SLOW_2KHZ,
     Children,
+    batch_messages,
     machine_variant,
     python_module,
+    reserve_held,
     terminate,
 )
 
@@ -231,23 +237,31 @@ def test_the_csv_export_is_a_servo_trace(run_dir, tmp_path):
 
 # --- SIGKILL, a full disk ----------------------------------------------------------------
 
-def _killed_mid_run(slow_config, tmp_path, group: bool) -> tuple[Path, int]:
+def _killed_mid_run(slow_config, tmp_path, group: bool) -> tuple[Path, int, int]:
     """A run killed by SIGKILL while a controller exchanges with the drive: the emulator
     alone, or its whole process group (the emulator and its writer process, as the OOM
-    killer or ``kill -9 -PGID`` would); returns the run folder and the drive's stamp of
-    the last feedback the controller received."""
+    killer or ``kill -9 -PGID`` would); returns the run folder, the drive's stamp of the
+    last feedback the controller received, and the bytes of the run folder's reserve the
+    emulator held just before (tests.runtime_helpers.reserve_held)."""
     run = tmp_path / "run"
     sp, fb = Setpoint(), Feedback()
     with Children(tmp_path) as children:
         proc, url = children.emulator(slow_config, "udp://127.0.0.1:0", run, group=group)
         with open_endpoint(url, "controller") as ep:
             _answer(ep, sp, fb, 4000)  # about 2 s at 2 kHz
+            held = reserve_held(proc.pid)
             if group:
                 os.killpg(proc.pid, signal.SIGKILL)
             else:
                 proc.send_signal(signal.SIGKILL)
             assert proc.wait(timeout=EXIT_S) == -signal.SIGKILL
-    return run, fb.t_ns
+    return run, fb.t_ns, held
+
+
+@pytest.fixture(scope="module")
+def killed_group(slow_config, tmp_path_factory) -> tuple[Path, int, int]:
+    """The emulator and its writer process killed by SIGKILL mid-run (_killed_mid_run)."""
+    return _killed_mid_run(slow_config, tmp_path_factory.mktemp("killed"), group=True)
 
 
 def test_sigkill_of_the_emulator_loses_nothing_its_writer_held(slow_config, tmp_path):
@@ -256,7 +270,7 @@ def test_sigkill_of_the_emulator_loses_nothing_its_writer_held(slow_config, tmp_
     and holds every tick up to the one before the last feedback the controller received
     (the drive's stamps; the killed tick may have sent its feedback and not finished its
     row); no report.json (the emulator did not finish)."""
-    run, last_fb_ns = _killed_mid_run(slow_config, tmp_path, group=False)
+    run, last_fb_ns, _ = _killed_mid_run(slow_config, tmp_path, group=False)
     deadline = time.monotonic() + EXIT_S
     while not Recording(run).closed_cleanly() and time.monotonic() < deadline:
         time.sleep(0.05)
@@ -267,18 +281,98 @@ def test_sigkill_of_the_emulator_loses_nothing_its_writer_held(slow_config, tmp_
     assert rows["tick_start_ns"].max() >= last_fb_ns - 500_000  # one period at 2 kHz
 
 
-def test_sigkill_of_the_process_group_leaves_the_recording_up_to_its_last_flush(slow_config,
-                                                                                tmp_path):
+def test_sigkill_of_the_process_group_leaves_the_recording_up_to_its_last_flush(killed_group):
     """SIGKILL of the emulator and its writer at once: the recording opens (no end
     marker) and holds the ticks up to at least the last feedback the controller received
     minus the flush bound RING_S (both stamps of the drive's clock); the events read."""
-    run, last_fb_ns = _killed_mid_run(slow_config, tmp_path, group=True)
+    run, last_fb_ns, _ = killed_group
     rec = Recording(run)
     rows = rec.read(["tick", "tick_start_ns"])
     assert not rec.closed_cleanly() and not (run / REPORT).exists()
     assert rows["tick"].tolist() == list(range(rows["tick"].size))
     assert rows["tick_start_ns"].max() >= last_fb_ns - RING_S * 1e9
     rec.events()  # the events stream, cut anywhere, still reads (RecordingError if not)
+
+
+def test_the_reserve_is_held_under_no_name_and_goes_with_a_killed_run(killed_group):
+    """While the run went on, the emulator held the run folder's 1 MB reserve allocated
+    (its blocks counted through /proc/PID/fd) under no name; once the process group was
+    killed by SIGKILL, nothing of it is left in the folder (the kernel closed its
+    descriptor and gave its blocks back)."""
+    run, _, held = killed_group
+    assert held >= RESERVE_BYTES
+    assert not os.path.lexists(run / ".hil-run-reserve")
+
+
+def test_hil_report_reports_a_run_cut_short(killed_group):
+    """hil report on the killed run (no report.json, no end marker): exit 0, the page
+    says it was cut short (and, where the kill fell inside a write, that the stream was
+    cut off), and its figures are those of the recording's rows (reference: the rows
+    read back, numpy's nearest-rank percentile, the loop's overrun definition lateness +
+    compute > period after the first 0.1 s)."""
+    run, _, _ = killed_group
+    done = subprocess.run(python_module("hil.cli", "report", run), env=ENV,
+                          capture_output=True, text=True, timeout=READY_S)
+    assert done.returncode == 0, done.stderr
+    assert "> Cut short: no report.json (the emulator did not end normally)" in done.stdout
+    report = json.loads((run / "report_latency.json").read_text())
+    rec = Recording(run)
+    rows = rec.read(["tick", "lateness_ns", "compute_ns"])
+    assert ("the stream was cut off" in done.stdout) == rec.truncated
+    assert report["ticks"] == rows["tick"].size > 0
+    assert report["lateness_us"]["p50"] == pytest.approx(
+        np.percentile(rows["lateness_ns"], 50, method="inverted_cdf") / 1e3)
+    late = (rows["lateness_ns"] + rows["compute_ns"] > 500_000) & (rows["tick"] >= 200)
+    assert report["overruns"] == np.count_nonzero(late)
+    assert report["corrupt"] is None and report["scheduling"] == {}
+
+
+@pytest.fixture
+def corrupt_run(run_dir, tmp_path) -> tuple[Path, int, int, int]:
+    """A copy of the events run with 64 bytes flipped in the middle of the body of its
+    recording's middle batch; returns the folder, that batch's index and first byte, and
+    the rows before it (references: pyarrow's message reader, the clean recording)."""
+    copy = tmp_path / "run"
+    copy.mkdir()
+    for name in (RECORDING, EVENTS, REPORT):
+        (copy / name).write_bytes((run_dir / name).read_bytes())
+    messages = batch_messages(run_dir / RECORDING)
+    index = len(messages) // 2
+    start, body, end = messages[index]
+    data = bytearray((copy / RECORDING).read_bytes())
+    for i in range((body + end) // 2 - 32, (body + end) // 2 + 32):
+        data[i] ^= 0xFF
+    (copy / RECORDING).write_bytes(bytes(data))
+    reader = pa.ipc.open_stream(pa.OSFile(str(run_dir / RECORDING)))
+    return copy, index, start, sum(reader.read_next_batch().num_rows for _ in range(index))
+
+
+def test_hil_export_stops_at_a_corrupt_batch_and_names_it(corrupt_run, tmp_path):
+    """hil export --to csv of the recording with a corrupt batch: exit 1, stderr names
+    the file, the batch and its first byte; the trace holds exactly the rows before it."""
+    run, index, start, before = corrupt_run
+    done = subprocess.run(python_module("hil.cli", "export", run, "--to", "csv", "--out",
+                                        tmp_path / "csv"), env=ENV, capture_output=True,
+                          text=True, timeout=EXIT_S)
+    assert done.returncode == 1, done.stderr
+    assert (f"{run / RECORDING}: batch {index} (at byte {start}) is corrupt: " in done.stderr
+            and f"the {before} rows before it (ticks up to {before - 1}," in done.stderr)
+    assert "exported what precedes it" in done.stderr and "Traceback" not in done.stderr
+    trace = read_trace(tmp_path / "csv" / "trace.csv", require=("pos_mm",))
+    assert trace.data["pos_mm"].size == before
+
+
+def test_hil_report_stops_at_a_corrupt_batch_and_names_it(corrupt_run):
+    """hil report of the recording with a corrupt batch: exit 1, stderr names the batch;
+    the page says so, and its figures are of the ticks before it."""
+    run, index, start, before = corrupt_run
+    done = subprocess.run(python_module("hil.cli", "report", run), env=ENV,
+                          capture_output=True, text=True, timeout=READY_S)
+    assert done.returncode == 1, done.stderr
+    assert f"batch {index} (at byte {start}) is corrupt: " in done.stderr
+    assert "> Corrupt: " in done.stdout and "Traceback" not in done.stderr
+    report = json.loads((run / "report_latency.json").read_text())
+    assert report["ticks"] == before and f"batch {index} " in report["corrupt"]
 
 
 def test_a_ring_that_cannot_be_made_is_refused_before_ready(tmp_path, warm_cache):

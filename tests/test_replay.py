@@ -28,6 +28,7 @@ from hil.cia402 import State
 from hil.replay import ReplayError, replay_run
 from hil.runtime.arrow import pa
 from hil.runtime.record_reader import Recording, RecordingError
+from hil.runtime.stream_file import ArrowStream
 from tests.conftest import ROOT
 from tests.runtime_helpers import (
     ENV,
@@ -141,7 +142,8 @@ def test_the_controller_exits_1_and_says_the_watchdog_faulted_the_drive(tripped)
 
 def rewrite_recording(src: Path, dst: Path, column: str, row: int, factor: float) -> float:
     """``src``'s run folder copied to ``dst`` with ``column[row]`` multiplied by
-    ``factor``; returns the value written."""
+    ``factor`` (written as hil run writes, each batch with its CRC-32: a changed value,
+    not a corrupt file); returns the value written."""
     shutil.copytree(src, dst)
     path = dst / "recording.arrows"
     reader = pa.ipc.open_stream(pa.OSFile(str(src / "recording.arrows")))
@@ -150,8 +152,10 @@ def rewrite_recording(src: Path, dst: Path, column: str, row: int, factor: float
     values[row] *= factor
     i = table.schema.get_field_index(column)
     table = table.set_column(i, table.schema.field(i), pa.array(values))
-    with pa.OSFile(str(path), "wb") as sink, pa.ipc.new_stream(sink, table.schema) as w:
-        w.write_table(table)
+    stream = ArrowStream(os.open(path, os.O_WRONLY | os.O_TRUNC), str(path), table.schema)
+    for batch in table.to_batches():
+        stream.write(batch)
+    stream.close()
     return float(values[row])
 
 

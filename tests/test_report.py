@@ -32,7 +32,7 @@ from hil.report.latency import (
     write_report,
 )
 from hil.report.render import markdown
-from hil.runtime.stream_file import FORMAT, META_KEY
+from hil.runtime.stream_file import FORMAT, ArrowStream, schema_of
 
 PERIOD_NS = 100_000
 N_RAN = 1000
@@ -112,21 +112,28 @@ def synthetic_run(**changes) -> RunData:
     return RunData(**{**fields, **changes})
 
 
-def write_recording(folder, columns: dict) -> None:
-    """recording.arrows as the daemon writes it (hil.runtime.record_writer): an Arrow IPC
-    stream of ``columns`` in a few batches, the run's metadata in its schema."""
-    table = pa.table(columns)
-    meta = json.dumps({"format": FORMAT, "period_ns": PERIOD_NS}).encode()
-    schema = table.schema.with_metadata({META_KEY: meta})
-    with pa.ipc.new_stream(str(folder / "recording.arrows"), schema) as w:
-        for batch in table.cast(schema).to_batches(max_chunksize=300):
-            w.write_batch(batch)
+def write_recording(folder, columns: dict, meta: dict | None = None) -> None:
+    """recording.arrows as the daemon writes it (hil.runtime.stream_file.ArrowStream): an
+    Arrow IPC stream of ``columns`` in a few batches, each with its CRC-32, the run's
+    metadata (and ``meta``) and the schema's CRC-32 in its schema."""
+    meta = json.dumps({"format": FORMAT, "period_ns": PERIOD_NS, **(meta or {})}).encode()
+    schema = schema_of([(name, values.dtype.name, "", "") for name, values in columns.items()],
+                       meta)
+    path = folder / "recording.arrows"
+    stream = ArrowStream(os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC), str(path), schema)
+    n = len(next(iter(columns.values())))
+    for start in range(0, n, 300):
+        stream.write(pa.RecordBatch.from_arrays(
+            [pa.array(values[start:start + 300]) for values in columns.values()], schema=schema))
+    stream.close()
 
 
-def write_run_folder(folder, with_stamps=True, recorded=None, **meta_changes):
+def write_run_folder(folder, with_stamps=True, recorded=None, recording_meta=None,
+                     **meta_changes):
     """A run folder as the daemon writes it (the documented keys only): one row per tick
     that ran, the stamps of ``stamps()`` but the controller's fb_rx_ns (``recorded``:
-    which of them, default all four)."""
+    which of them, default all four), ``recording_meta`` added to the recording's
+    metadata."""
     lateness, compute = loop_arrays()
     ran = np.flatnonzero(lateness != NO_VALUE)
     columns = {"tick": ran, "lateness_ns": lateness[ran], "compute_ns": compute[ran]}
@@ -134,7 +141,7 @@ def write_run_folder(folder, with_stamps=True, recorded=None, **meta_changes):
         all_stamps = stamps(lateness, compute)
         for key in recorded or ("tick_start_ns", "sp_t_ns", "sp_rx_ns", "fb_t_ns"):
             columns[key] = all_stamps[key][ran]
-    write_recording(folder, columns)
+    write_recording(folder, columns, recording_meta)
     meta = {"loop": {"period_ns": PERIOD_NS, "ticks": N_RAN, "overruns": 1, "skipped": 1,
                      "stopped_by": "completed"},
             "scheduling": SCHEDULING,
@@ -376,6 +383,28 @@ def test_a_bad_run_folder_is_refused_naming_file_and_key(tmp_path, damage, match
     damage(tmp_path)
     with pytest.raises(ReportError, match=match):
         load_run(tmp_path)
+
+
+def test_a_run_cut_short_is_reported_from_its_recording(tmp_path):
+    """No report.json (the emulator was killed): the report is made of the recording --
+    its 1000 ticks, the one overrun its rows show (the last tick: 10 µs late + 95 µs of
+    compute > the 100 µs period, past the first 0.1 s = 1000 ticks), the dropped slot
+    counted as skipped only under the skip policy -- and says it was cut short; what only
+    report.json holds (scheduling, the adapter's counters) is said to be unknown."""
+    write_run_folder(tmp_path, recording_meta={"adapter": "udp://127.0.0.1:5005"})
+    (tmp_path / "report.json").unlink()
+    run = load_run(tmp_path)
+    assert (run.overruns, run.skipped, run.scheduling, run.adapter_stats) == (1, 0, {}, None)
+    report = build_report(run)
+    assert report["ticks"] == N_RAN and report["corrupt"] is None
+    assert report["notes"][0].startswith("Cut short: no report.json (the emulator did not "
+                                         "end normally).")
+    page = markdown(report, title="run", histogram_png="h.png")
+    assert page.count("Not known: the run wrote no report.json.") == 2
+    assert page.index("> Cut short") < page.index("Period 100.000 µs")
+    write_run_folder(tmp_path, recording_meta={"runtime": {"overrun": "skip"}})
+    (tmp_path / "report.json").unlink()
+    assert load_run(tmp_path).skipped == 1
 
 
 def test_report_run_writes_the_files_and_says_why_there_is_no_baseline(tmp_path, monkeypatch):

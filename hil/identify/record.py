@@ -184,6 +184,7 @@ def _load_run(folder: Path) -> Record:
         rec = Recording(folder)
         trace = axis_trace(rec)
         rows = rec.read([*trace.sources(), trace.prefix + "drive_state"])
+        meta = trace.metadata(rec)
     except RecordingError as e:
         raise TraceFormatError(str(e)) from e
     ok = ((rows[trace.prefix + "sp_mode"] == MODE_CSP)
@@ -204,7 +205,7 @@ def _load_run(folder: Path) -> Record:
                   pos_set=si(f"pos_set_{u}"), pos=si(f"pos_{u}"), effort=columns["iq_a"],
                   effort_kind="iq", motor_pos=si(f"motor_pos_{u}"),
                   vel_set=si(f"vel_set_{u}_min"), vel=si(f"vel_{u}_min"),
-                  meta={**trace.metadata(rec), "position_unit": "rad" if trace.rotary else "m",
+                  meta={**meta, "position_unit": "rad" if trace.rotary else "m",
                         "ticks": f"{rows['tick'][span.start]}..{rows['tick'][span.stop - 1]}"})
 
 

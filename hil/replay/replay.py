@@ -244,6 +244,7 @@ def replay_run(folder: Path | str, tolerance: float = TOLERANCE) -> ReplayResult
     try:
         rec = Recording(folder)
         cols = rec.read()
+        requests = injection_requests(rec)
     except RecordingError as e:
         raise ReplayError(str(e)) from e
     where, meta = str(rec.path), rec.meta
@@ -269,7 +270,7 @@ def replay_run(folder: Path | str, tolerance: float = TOLERANCE) -> ReplayResult
     if emu.timing.period_ns != rec.period_ns:
         raise ReplayError(f"{where}: period {emu.timing.period_ns} ns rebuilt, "
                           f"{rec.period_ns} ns recorded")
-    endpoint = RecordedSetpoints(cols, prefixes, injection_requests(rec))
+    endpoint = RecordedSetpoints(cols, prefixes, requests)
     emu.endpoint = endpoint
     recorder, cmp = emu.recorder, _Comparison(cols, compared)
     n = ticks.size

@@ -53,6 +53,10 @@ the controller's: 0 (unknown) until the pairing below fills it.
 ``loop.ticks + loop.skipped`` must equal the slots (the last row's tick + 1), and the
 empty slots ``loop.skipped + recording.ticks_not_recorded``.
 
+A run folder without ``report.json`` is a run cut short (the emulator killed, or
+crashed): the report is made of what the recording holds, and says so (:func:`load_run`);
+so is one whose recording is corrupt at a batch, up to that batch.
+
 The controller's folder
 -----------------------
 ``controller.npz`` of ``hil controller --out DIR``
@@ -117,8 +121,10 @@ from hil.report.wakeup import wakeup_report
 from hil.rt.cyclictest import CyclictestError
 from hil.rt.loop import SKIPPED, Percentiles
 from hil.rt.scheduling import last_cpu
+from hil.runtime.emulator_config import GRACE_S
 from hil.runtime.record_reader import Recording, RecordingError
 from hil.runtime.run_folder import RECORDING, REPORT
+from hil.runtime.stream_file import FORMAT
 
 CONTROLLER_NPZ = "controller.npz"
 #: the controller.npz columns the pairing reads
@@ -188,13 +194,19 @@ class RunData:
         lateness_ns, compute_ns: per tick, ``NO_VALUE`` where the tick was dropped.
         overruns: overruns after the grace period.
         skipped: ticks dropped by the ``"skip"`` overrun policy (missed ticks).
-        scheduling: ``SchedulingReport.as_dict()``.
+        scheduling: ``SchedulingReport.as_dict()``; empty when not known (a run cut
+            short).
         adapter: the adapter's name, or None for a run without one.
-        adapter_stats: its ``AdapterStats`` as a dict, or None.
+        adapter_stats: its ``AdapterStats`` as a dict, or None (no adapter, or a run
+            cut short).
         round_trip: the per-tick round trip, or None when the run recorded no stamps.
         host: the host fingerprint taken during the run, or None.
         pairing: how the round trips were paired with a controller's folder, or None
             when they were not.
+        notes: what the report cannot vouch for, in words: a run cut short, a corrupt
+            batch, a recording without checksums (:func:`load_run`).
+        corrupt: the recording's corrupt batch the figures stop at (the error's
+            message), or None.
     """
     period_ns: int
     lateness_ns: np.ndarray
@@ -207,6 +219,8 @@ class RunData:
     round_trip: RoundTrip | None = None
     host: dict | None = None
     pairing: Pairing | None = None
+    notes: tuple[str, ...] = ()
+    corrupt: str | None = None
 
 
 # -- reading a run folder ------------------------------------------------------------------
@@ -303,8 +317,10 @@ def _slots(columns: dict[str, np.ndarray], keys, n: int) -> dict[str, np.ndarray
     return out
 
 
-def _read_recording(folder: Path) -> tuple[dict[str, np.ndarray], bool]:
-    """The loop's columns and the stamps (when recorded) of ``folder``'s recording."""
+def _read_recording(folder: Path) -> tuple[Recording, dict[str, np.ndarray], bool]:
+    """``folder``'s recording, its loop's columns and the stamps (when recorded), up to a
+    corrupt batch (:attr:`Recording.corrupt <hil.runtime.record_reader.Recording>` then
+    says which), and whether it has the stamps."""
     try:
         rec = Recording(folder)
         present = [k for k in RECORDED_STAMPS if k in rec.names]
@@ -312,13 +328,57 @@ def _read_recording(folder: Path) -> tuple[dict[str, np.ndarray], bool]:
             raise ReportError(f"{rec.path}: round-trip stamps need all of "
                               f"{list(RECORDED_STAMPS)}, found only {present}")
         stamped = bool(present)
-        columns = rec.read(["tick", "lateness_ns", "compute_ns", *present])
+        columns = rec.read(["tick", "lateness_ns", "compute_ns", *present],
+                           stop_at_corrupt=True)
     except RecordingError as e:
         raise ReportError(str(e)) from e
     tick = columns["tick"]
     if tick.size and (tick.min() < 0 or np.any(np.diff(tick) <= 0)):
         raise ReportError(f"{folder / RECORDING}: 'tick' must increase from 0")
-    return columns, stamped
+    return rec, columns, stamped
+
+
+def _counts_from_recording(rec: Recording, columns: dict[str, np.ndarray],
+                           n: int) -> tuple[int, int]:
+    """(overruns, skipped) as the loop would have counted them, from the rows of
+    ``columns`` over ``n`` deadlines, for a run without report.json or whose recording
+    stops at a corrupt batch: a tick overran when its lateness plus compute time passed the
+    period (:mod:`hil.rt.loop`), counted after the first GRACE_S; under the ``skip``
+    policy the deadlines without a row are skipped ones, less the ticks the events say
+    were not recorded."""
+    period = rec.period_ns
+    late = columns["lateness_ns"] + columns["compute_ns"] > period
+    grace = round(GRACE_S * 1e9 / period)
+    overruns = int(np.count_nonzero(late & (columns["tick"] >= grace)))
+    if (rec.meta.get("runtime") or {}).get("overrun") != "skip":
+        return overruns, 0
+    try:
+        ev = rec.events(stop_at_corrupt=True)
+    except RecordingError:  # no events stream: every gap counts as skipped
+        ev = {"source": np.empty(0), "kind": np.empty(0), "count": np.empty(0)}
+    lost = int(ev["count"][(ev["source"] == "recording")
+                           & (ev["kind"] == "ticks not recorded")].sum())
+    return overruns, max(0, n - columns["tick"].size - lost)
+
+
+def _notes(rec: Recording, cut_short: bool) -> list[str]:
+    """What the report cannot vouch for, one sentence or two each."""
+    notes = []
+    rows = f"the ticks {RECORDING} holds" + (
+        " (up to its last complete batch: the stream was cut off)" if rec.truncated else "")
+    if cut_short:
+        notes.append(f"Cut short: no {REPORT} (the emulator did not end normally).  The "
+                     f"figures are of {rows}; the overruns are counted from its rows "
+                     f"(lateness + compute time > period, after the first {GRACE_S:g} s); "
+                     f"the scheduling granted and the adapter's counters are not known.")
+    for name, error in rec.corrupt.items():
+        notes.append(f"Corrupt: {error}." + ("  The figures are of the ticks before it; the "
+                                             "overruns are counted from their rows."
+                                             if name == RECORDING else ""))
+    if not rec.checksums:
+        notes.append(f"{RECORDING} carries no checksums (written before the format "
+                     f"{FORMAT!r}): a corrupt batch could not be told.")
+    return notes
 
 
 def load_run(folder: Path | str, controller: Path | str | None = None) -> RunData:
@@ -326,44 +386,41 @@ def load_run(folder: Path | str, controller: Path | str | None = None) -> RunDat
     docstring), and pair its round trips with ``controller.npz`` in ``controller`` when
     given.
 
+    A run cut short (no ``report.json``: the emulator was killed, or crashed) is read
+    from its recording alone: the period from its metadata, the overruns and skipped
+    ticks counted from its rows (:func:`_counts_from_recording`), no scheduling, adapter
+    counters or host, and :attr:`RunData.notes` says so.  A recording corrupt at a batch
+    is read up to it, its counts likewise, :attr:`RunData.corrupt` naming the batch.
+
     Raises:
-        ReportError: a file is missing or unreadable, a key is missing or of the wrong
-            type, the files disagree on the number of ticks, or ``controller`` is given
-            for a run without round-trip stamps.
+        ReportError: a file is unreadable, a key is missing or of the wrong type, the
+            files disagree on the number of ticks, or ``controller`` is given for a run
+            without round-trip stamps.
     """
     folder = Path(folder)
     rec_path, json_path = folder / RECORDING, folder / REPORT
     try:
         meta = json.loads(json_path.read_text())
+    except FileNotFoundError:
+        meta = None  # cut short
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
         raise ReportError(f"{json_path}: cannot read the run's report: {e}") from e
-    if not isinstance(meta, dict):
+    if meta is not None and not isinstance(meta, dict):
         raise ReportError(f"{json_path}: expected a JSON object")
-    columns, stamped = _read_recording(folder)
-    loop, scheduling = meta.get("loop"), meta.get("scheduling")
-    if not isinstance(loop, dict) or not isinstance(scheduling, dict):
-        raise ReportError(f"{json_path}: needs the objects 'loop' (LoopStats.as_dict()) and "
-                          f"'scheduling' (SchedulingReport.as_dict())")
-    where = f"{json_path} 'loop'"
-    period_ns = _count(loop, "period_ns", where, minimum=1)
-    ticks, skipped = _count(loop, "ticks", where), _count(loop, "skipped", where)
-    recording = meta.get("recording") or {}
-    lost = _count(recording, "ticks_not_recorded", f"{json_path} 'recording'") \
-        if "ticks_not_recorded" in recording else 0
+    rec, columns, stamped = _read_recording(folder)
+    corrupt = rec.corrupt.get(RECORDING)
     tick = columns["tick"]
     n = int(tick[-1]) + 1 if tick.size else 0
-    if ticks + skipped != n or n - tick.size != skipped + lost:
-        raise ReportError(f"{rec_path}: rows for {tick.size} of {n} deadlines, but {where} "
-                          f"says {ticks} ticks + {skipped} skipped and {json_path} "
-                          f"{lost} ticks not recorded")
-    adapter = meta.get("adapter")
-    if adapter is not None and not (isinstance(adapter, dict) and isinstance(
-            adapter.get("name"), str) and isinstance(adapter.get("stats"), dict)):
-        raise ReportError(f"{json_path}: 'adapter' must be null or "
-                          f"{{'name': str, 'stats': {{...}}}}, got {adapter!r:.200}")
-    host = meta.get("host")
-    if host is not None and not isinstance(host, dict):
-        raise ReportError(f"{json_path}: 'host' must be an object, got {host!r:.200}")
+    if meta is None:
+        period_ns, scheduling, host = rec.period_ns, {}, None
+        adapter = None if rec.meta.get("adapter") is None else {"name": rec.meta["adapter"],
+                                                                 "stats": None}
+    else:
+        period_ns, scheduling, adapter, host = _report_json(meta, json_path)
+    if meta is None or corrupt is not None:
+        overruns, skipped = _counts_from_recording(rec, columns, n)
+    else:
+        overruns, skipped = _check_counts(meta, json_path, rec_path, tick)
     if controller is not None and not stamped:
         raise ReportError(f"{rec_path}: no round-trip stamps to pair with {controller}")
     slots = _slots(columns, ("lateness_ns", "compute_ns",
@@ -377,11 +434,49 @@ def load_run(folder: Path | str, controller: Path | str | None = None) -> RunDat
                 stamps, compute, load_controller_stamps(controller), str(controller))
         round_trip = round_trip_from_stamps(stamps, compute)
     return RunData(period_ns=period_ns, lateness_ns=lateness, compute_ns=compute,
-                   overruns=_count(loop, "overruns", where), skipped=skipped,
-                   scheduling=scheduling,
+                   overruns=overruns, skipped=skipped, scheduling=scheduling,
                    adapter=None if adapter is None else adapter["name"],
                    adapter_stats=None if adapter is None else adapter["stats"],
-                   round_trip=round_trip, host=host, pairing=pairing)
+                   round_trip=round_trip, host=host, pairing=pairing,
+                   notes=tuple(_notes(rec, meta is None)),
+                   corrupt=None if corrupt is None else str(corrupt))
+
+
+def _report_json(meta: dict, json_path: Path) -> tuple[int, dict, dict | None, dict | None]:
+    """(period_ns, scheduling, adapter, host) of ``report.json``, checked."""
+    loop, scheduling = meta.get("loop"), meta.get("scheduling")
+    if not isinstance(loop, dict) or not isinstance(scheduling, dict):
+        raise ReportError(f"{json_path}: needs the objects 'loop' (LoopStats.as_dict()) and "
+                          f"'scheduling' (SchedulingReport.as_dict())")
+    period_ns = _count(loop, "period_ns", f"{json_path} 'loop'", minimum=1)
+    adapter = meta.get("adapter")
+    if adapter is not None and not (isinstance(adapter, dict) and isinstance(
+            adapter.get("name"), str) and isinstance(adapter.get("stats"), dict)):
+        raise ReportError(f"{json_path}: 'adapter' must be null or "
+                          f"{{'name': str, 'stats': {{...}}}}, got {adapter!r:.200}")
+    host = meta.get("host")
+    if host is not None and not isinstance(host, dict):
+        raise ReportError(f"{json_path}: 'host' must be an object, got {host!r:.200}")
+    return period_ns, scheduling, adapter, host
+
+
+def _check_counts(meta: dict, json_path: Path, rec_path: Path,
+                  tick: np.ndarray) -> tuple[int, int]:
+    """(overruns, skipped) of ``report.json``'s loop, once checked against the rows'
+    ``tick``: ``ticks + skipped`` deadlines, ``skipped + ticks_not_recorded`` of them
+    without a row."""
+    loop = meta["loop"]
+    where = f"{json_path} 'loop'"
+    ticks, skipped = _count(loop, "ticks", where), _count(loop, "skipped", where)
+    recording = meta.get("recording") or {}
+    lost = _count(recording, "ticks_not_recorded", f"{json_path} 'recording'") \
+        if "ticks_not_recorded" in recording else 0
+    n = int(tick[-1]) + 1 if tick.size else 0
+    if ticks + skipped != n or n - tick.size != skipped + lost:
+        raise ReportError(f"{rec_path}: rows for {tick.size} of {n} deadlines, but {where} "
+                          f"says {ticks} ticks + {skipped} skipped and {json_path} "
+                          f"{lost} ticks not recorded")
+    return _count(loop, "overruns", where), skipped
 
 
 # -- the report ------------------------------------------------------------------------------
@@ -440,13 +535,14 @@ def build_report(run: RunData, cyclictest: CyclictestBaseline | None = None) -> 
          "cyclictest": {"interval_us", "samples", "overflows", "latency_us"} or null,
          "wakeup": hil.report.wakeup.wakeup_report(...),
          "histogram": {"edges_us", "lateness_counts", "cyclictest_counts"},
-         "percentiles"}
+         "percentiles", "notes": [str, ...], "corrupt": str or null}
 
     Slack is ``period - compute - lateness`` per tick: the time from the end of the step to
     the next deadline (negative: an overrun), so its worst case is its ``min``.  ``host`` is
     the run's fingerprint when it recorded one, otherwise this machine's (``host_source``
     says which).  ``negative_waits`` counts the round trips whose wait is below 0 (module
-    docstring).  A summary over no samples is null.
+    docstring).  A summary over no samples is null.  ``notes`` and ``corrupt`` are the
+    run's (:class:`RunData`).
     """
     ran = run.lateness_ns != NO_VALUE
     lateness, compute = run.lateness_ns[ran], run.compute_ns[ran]
@@ -471,6 +567,7 @@ def build_report(run: RunData, cyclictest: CyclictestBaseline | None = None) -> 
         "wakeup": wakeup_report(lateness, run.period_ns, cyclictest),
         "histogram": _histogram(lateness, cyclictest),
         "percentiles": PERCENTILE_DEFINITION,
+        "notes": list(run.notes), "corrupt": run.corrupt,
     }
 
 

@@ -125,12 +125,17 @@ def _adapter(report: dict) -> list[str]:
     adapter = report["adapter"]
     if adapter is None:
         return []
+    if adapter["stats"] is None:
+        return [f"## Adapter `{adapter['name']}` counters", "",
+                "Not known: the run wrote no report.json.", ""]
     lines = [f"## Adapter `{adapter['name']}` counters", "", "| counter | count |", "|---|--:|"]
     lines += [f"| {key} | {value} |" for key, value in adapter["stats"].items()]
     return lines + [""]
 
 
 def _scheduling(report: dict) -> list[str]:
+    if not report["scheduling"]:
+        return ["## Scheduling granted", "", "Not known: the run wrote no report.json.", ""]
     lines = ["## Scheduling granted", "", "| request | granted | detail |", "|---|---|---|"]
     for name, grant in report["scheduling"].items():
         lines.append(f"| {_cell(name)} | {'yes' if grant.get('granted') else 'no'} | "
@@ -164,13 +169,15 @@ def _host(report: dict) -> list[str]:
 def markdown(report: dict, title: str, histogram_png: str,
              timeline_png: str | None = None) -> str:
     """The report as Markdown, linking the histogram image ``histogram_png`` and the plot
-    over time ``timeline_png`` (None: none)."""
+    over time ``timeline_png`` (None: none); the run's notes (cut short, corrupt) first."""
     period_us = report["period_us"]
     summary = (f"Period {period_us:.3f} µs ({1e6 / period_us:.0f} Hz); {report['ticks']} ticks "
                f"run; {report['overruns']} overruns; {report['missed_ticks']} missed ticks "
                f"(dropped by the skip policy).  Percentiles: {report['percentiles']}, over the "
                f"ticks that ran.")
-    lines = [f"# Latency report: {title}", "", summary, ""]
+    lines = [f"# Latency report: {title}", ""]
+    lines += [line for note in report["notes"] for line in (f"> {note}", "")]
+    lines += [summary, ""]
     lines += _timing(report) + _round_trip(report) + _adapter(report)
     lines += _scheduling(report) + _host(report)
     lines += [f"![tick lateness histogram]({histogram_png})", ""]

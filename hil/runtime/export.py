@@ -18,7 +18,11 @@
 
 Both are written batch by batch as the recording was (bounded memory, whatever its
 length).  An existing output file is refused unless ``--force``; a run folder whose
-recording was cut short (SIGKILL) exports what it holds, with a warning.
+recording was cut short (SIGKILL) exports what it holds, with a warning.  Every batch's
+CRC-32 is checked as it is read (:mod:`hil.runtime.record_reader`): at a corrupt batch of
+either stream the export stops, writes what precedes it, names the batch on stderr and
+exits 1.  A recording of the format before the checksums exports with a warning that
+nothing could be checked.
 """
 
 import argparse
@@ -28,9 +32,10 @@ from pathlib import Path
 
 import numpy as np
 
-from hil.runtime.common import EXIT_BAD_INPUT, EXIT_OK, eprint
+from hil.runtime.common import EXIT_BAD_INPUT, EXIT_FAILED, EXIT_OK, eprint
 from hil.runtime.record_reader import Recording, RecordingError
 from hil.runtime.record_trace import AxisTrace, axis_trace
+from hil.runtime.stream_file import FORMAT
 
 MDF_NAME = "recording.mf4"
 
@@ -46,8 +51,9 @@ def _fresh(path: Path, force: bool) -> Path:
 
 
 def _event_lines(rec: Recording) -> list[str]:
-    """One comment line per event: time (or 'after the loop'), axis, what and why."""
-    ev = rec.events()
+    """One comment line per event: time (or 'after the loop'), axis, what and why (up to a
+    corrupt batch)."""
+    ev = rec.events(stop_at_corrupt=True)
     lines = []
     for i in range(ev["tick"].size):
         when = (f"t = {ev['t_s'][i]:.6f} s (tick {ev['tick'][i]})" if ev["tick"][i] >= 0
@@ -64,13 +70,13 @@ def export_csv(rec: Recording, out: Path, trace: AxisTrace, force: bool = False)
     """``out``: the servo trace of one axis (see the module docstring)."""
     names = trace.names()
     with open(_fresh(out, force), "w", encoding="utf-8") as f:
-        for key, value in trace.metadata(rec).items():
+        for key, value in trace.metadata(rec, stop_at_corrupt=True).items():
             f.write(f"# {key}: {value}\n")
         for line in _event_lines(rec):
             f.write(line.replace("\n", " ") + "\n")
         f.write(",".join(names) + "\n")
         next_tick = 0
-        for rows in rec.batches(trace.sources()):
+        for rows in rec.batches(trace.sources(), stop_at_corrupt=True):
             columns = _every_tick(trace.convert(rows), rows["tick"], next_tick, trace)
             np.savetxt(f, np.column_stack([columns[n] for n in names]), fmt="%.17g",
                        delimiter=",")
@@ -95,7 +101,8 @@ def _every_tick(columns: dict[str, np.ndarray], tick: np.ndarray, first: int,
 
 
 def export_mdf4(rec: Recording, out: Path, force: bool = False) -> Path:
-    """``out``: the whole recording and its events as MDF4 (see the module docstring)."""
+    """``out``: the whole recording and its events as MDF4, up to a corrupt batch (see the
+    module docstring)."""
     from asammdf import MDF, Signal  # only this export needs asammdf
 
     period_s = rec.period_ns * 1e-9
@@ -106,7 +113,7 @@ def export_mdf4(rec: Recording, out: Path, force: bool = False) -> Path:
         mdf.attach(text.encode(), file_name=Path(path).name, comment=f"machine file {path}",
                    embedded=True)
     group = None
-    for rows in rec.batches():
+    for rows in rec.batches(stop_at_corrupt=True):
         t = rows["tick"] * period_s
         if group is None:
             group = mdf.append([Signal(rows[n], t, unit=rec.units[n], name=n,
@@ -114,7 +121,7 @@ def export_mdf4(rec: Recording, out: Path, force: bool = False) -> Path:
                                acq_name="recording", comment="hil run, one row per tick")
         else:
             mdf.extend(group, [(t, None), *((rows[n], None) for n in rec.names)])
-    ev = rec.events()
+    ev = rec.events(stop_at_corrupt=True)
     if ev["tick"].size:
         end = (rows["tick"][-1] + 1) * period_s if group is not None else 0.0
         t = np.where(ev["tick"] >= 0, ev["t_s"], end)
@@ -168,6 +175,11 @@ def run_from_args(args: argparse.Namespace) -> int:
     if rec.truncated:
         eprint(f"hil export: {rec.path} was cut short (the run did not end cleanly); "
                "exported what it holds")
+    if not rec.checksums:
+        eprint(f"hil export: {rec.path} carries no checksums (written before the format "
+               f"{FORMAT!r}): a corrupt batch could not be told")
     for path in outputs:
         print(f"hil export: {path} ({math.ceil(path.stat().st_size / 1e3)} kB)")
-    return EXIT_OK
+    for error in rec.corrupt.values():
+        eprint(f"hil export: {error}; exported what precedes it")
+    return EXIT_FAILED if rec.corrupt else EXIT_OK

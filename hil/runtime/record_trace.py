@@ -97,10 +97,12 @@ class AxisTrace:
                   rows[p + "plant_iq_meas_a"], encoder * k)
         return {name: np.asarray(v, dtype=np.float64) for name, v in zip(self.names(), values)}
 
-    def metadata(self, rec: Recording) -> dict[str, str]:
+    def metadata(self, rec: Recording, stop_at_corrupt: bool = False) -> dict[str, str]:
         """The trace header's ``# key: value`` lines; each fault injected into this axis
-        (the recording's ``inject`` events) as ``injected_N: T s: what``."""
-        ev = rec.events()
+        (the recording's ``inject`` events) as ``injected_N: T s: what``
+        (``stop_at_corrupt``: see :meth:`Recording.batches
+        <hil.runtime.record_reader.Recording.batches>`)."""
+        ev = rec.events(stop_at_corrupt)
         injected = [f"{t:.6g} s: {why}" for t, src, kind, axis, why in zip(
             ev["t_s"], ev["source"], ev["kind"], ev["axis"], ev["reason"])
             if src == "inject" and kind == "injected" and axis == self.name]

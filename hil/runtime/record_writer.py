@@ -228,7 +228,8 @@ class RecordingWriter:
     def as_dict(self) -> dict:
         """What the writer did, JSON-ready."""
         s = self.summary or {}
-        return {"files": [RECORDING, EVENTS], "format": f"Arrow IPC stream, {COMPRESSION}",
+        return {"files": [RECORDING, EVENTS],
+                "format": f"{FORMAT}: Arrow IPC stream, {COMPRESSION}, CRC-32 per batch",
                 "writer": "separate process", "rows": s.get("rows"),
                 "events": s.get("events"), "bytes": s.get("bytes"),
                 "ring_rows": self.recorder.slots, "flush_s": self.flush_s,

@@ -12,6 +12,13 @@ through it.  :meth:`RunFolder.check_space` refuses a folder without room for the
 recording the run asks for, saying the figure; :meth:`RunFolder.hold_reserve` then takes
 :data:`RESERVE_BYTES` that a full disk gives back to the run's last writes.
 
+The reserve is a file allocated and unlinked at once, held by its open descriptor only:
+its blocks stay taken while the descriptor is open and go back to the file system when
+it closes -- :meth:`RunFolder.release_reserve`, or the kernel when the process ends in
+whatever way, SIGKILL included.  So no exit path leaves it behind (a named file would
+outlive a killed process).  The descriptor is close-on-exec: the recording's writer
+process does not hold it.
+
 Every refusal is a :class:`RunFolderError` naming the folder, the file and the reason;
 ``hil run`` prints it and exits 2 before it prints ``ready:``.
 """
@@ -19,6 +26,7 @@ Every refusal is a :class:`RunFolderError` naming the folder, the file and the r
 import errno
 import json
 import os
+import threading
 from pathlib import Path
 
 from hil.runtime.common import RuntimeInputError, _finite
@@ -64,7 +72,8 @@ class RunFolder:
     def __init__(self, path: Path, fd: int):
         self.path = path
         self.fd = fd
-        self._reserved = False
+        self._reserve_fd = -1
+        self._reserve_lock = threading.Lock()
 
     @classmethod
     def open(cls, path: Path | str, force: bool = False) -> "RunFolder":
@@ -90,24 +99,30 @@ class RunFolder:
 
     def hold_reserve(self) -> None:
         """Take :data:`RESERVE_BYTES` on the disk now (allocated, not sparse), so that the
-        run's last writes fit once the disk is full (:meth:`release_reserve`)."""
+        run's last writes fit once the disk is full (:meth:`release_reserve`); the file is
+        unlinked at once and held open (module docstring).  A reserve a killed run of an
+        older version left under the name is removed."""
+        self.release_reserve()
         self.unlink(_RESERVE)
         fd = self.create(_RESERVE)
-        self._reserved = True
         try:
+            self.unlink(_RESERVE)
             os.posix_fallocate(fd, 0, RESERVE_BYTES)
         except OSError as e:
+            os.close(fd)
             raise RunFolderError(f"--record {self.path}: cannot hold back "
                                  f"{human_bytes(RESERVE_BYTES)} for the run's last writes: "
                                  f"{_strerror(e)}") from e
-        finally:
-            os.close(fd)
+        with self._reserve_lock:
+            self._reserve_fd = fd
 
     def release_reserve(self) -> None:
-        """Give the reserve back (idempotent; safe from the recording's answer thread)."""
-        if self._reserved:
-            self._reserved = False
-            self.unlink(_RESERVE)
+        """Give the reserve back: its descriptor closed, its blocks free (idempotent; safe
+        from the recording's answer thread: one caller gets the descriptor to close)."""
+        with self._reserve_lock:
+            fd, self._reserve_fd = self._reserve_fd, -1
+        if fd >= 0:
+            os.close(fd)
 
     def _check_writable(self) -> None:
         try:
