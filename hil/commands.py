@@ -94,7 +94,7 @@ def run_sim(config: Path, program: Path, out: Path, start: float, axis: str | No
     profile = plan(prog, axis_limits(cfg, sec))
     ls = LockStep(cfg, x0, axis=prog.axis, inject=inject)
     ls.enable()
-    ls.ctrl.run_profile(profile)
+    profile = ls.ctrl.run_profile(profile)  # ended before a block beyond the soft limits
     with Progress("simulating", total=_PARTS) as p:
         res = ls.run(profile.duration_s + SETTLE_S, _progress(p))
     out.mkdir(parents=True, exist_ok=True)

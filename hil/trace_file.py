@@ -10,7 +10,9 @@
 header row; comma separated, ``.`` decimal point, no quoting.  Values stay in the file's
 units (mm, mm/min, A, deg ...) in :class:`ServoTrace`; :meth:`ServoTrace.si` converts one
 column to SI through :data:`UNITS`.  Every format error is a :class:`TraceFormatError`
-naming the file, the line and the column or value at fault.
+naming the file, the line and the column or value at fault; the file itself is read
+through :func:`plant.files.read_text` (a directory, a FIFO or a device refused unread, at
+most :data:`MAX_TRACE_BYTES`, UTF-8 with an optional byte order mark).
 """
 
 import math
@@ -22,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from hil.measure.trace import Recording
+from plant.files import read_text
 
 TIME = "t_s"
 #: The columns ``hil identify`` needs.
@@ -48,6 +51,13 @@ UNITS: tuple[tuple[str, float, str], ...] = (
 METADATA = re.compile(r"#\s*([A-Za-z_][A-Za-z0-9_.\-]*)\s*:\s*(.*?)\s*$")
 #: Default tolerance on every time step, as a fraction of the sample time.
 TIME_TOLERANCE = 1e-3
+#: a trace file larger than this is refused unread, bytes: about two million rows of
+#: eight columns, half an hour at 1 kHz (the rows become Python floats first)
+MAX_TRACE_BYTES = 200_000_000
+#: a value a fit accepts is below this in magnitude, in its column's unit (1000 km in mm,
+#: 17 km/s in mm/min, 1e9 A or N: beyond anything measured, and far enough from the
+#: float range that squares and sums in a fit stay finite)
+MAX_VALUE = 1e9
 
 
 class TraceFormatError(ValueError):
@@ -110,20 +120,25 @@ class ServoTrace:
 
 
 def read_trace(path: str | Path, *, require: Iterable[str] = (),
-               time_tolerance: float = TIME_TOLERANCE) -> ServoTrace:
+               time_tolerance: float = TIME_TOLERANCE, bounded: bool = False) -> ServoTrace:
     """Read a servo-trace CSV file.
 
     ``t_s`` is always required, plus every column in ``require`` (an alternative from
     :data:`ALTERNATIVES` counts; pass :data:`IDENTIFICATION` for ``hil identify``).  The
     time axis must start at 0 and step by the sample time -- the ``sample_time_s``
-    metadata when given, else the median step -- within ``time_tolerance`` of it.
+    metadata when given, else the median step -- within ``time_tolerance`` of it.  With
+    ``bounded``, a value in any column that is NaN, infinite or not below
+    :data:`MAX_VALUE` in magnitude is refused, naming its line and column (a simulation
+    that diverged may write them; a fit cannot use them).
     """
     path = Path(path)
-    lines = path.read_text(encoding="utf-8-sig").splitlines()
+    lines = read_text(path, "servo trace", MAX_TRACE_BYTES, TraceFormatError).splitlines()
     header_index, metadata, comments = _preamble(path, lines)
     names = _header(path, lines[header_index], header_index + 1)
     _check_required(path, header_index + 1, names, (TIME, *require))
     values, line_numbers = _rows(path, lines, header_index + 1, names)
+    if bounded:
+        _check_bounded(path, values, line_numbers, names)
     data = {name: np.ascontiguousarray(values[:, i]) for i, name in enumerate(names)}
     dt = _sample_time(path, data[TIME], line_numbers, metadata, time_tolerance)
     return ServoTrace(path=path, names=names, data=data, metadata=metadata,
@@ -202,6 +217,19 @@ def _floats(path: Path, number: int, names: Sequence[str], fields: list[str]) ->
             raise TraceFormatError(f"{path}:{number}: column {name!r}: bad value {field!r} "
                                    "(decimal point '.', no quotes)") from None
     return values
+
+
+def _check_bounded(path: Path, values: np.ndarray, numbers: list[int],
+                   names: tuple[str, ...]) -> None:
+    """Refuse the first value of ``values`` (rows, columns) that is not finite and below
+    MAX_VALUE in magnitude, naming its line and column."""
+    bad = np.argwhere(~(np.abs(values) < MAX_VALUE))
+    if bad.size:
+        row, col = bad[0]
+        raise TraceFormatError(f"{path}:{numbers[row]}: column {names[col]!r} is "
+                               f"{float(values[row, col])!r} (data row {row + 1}); every "
+                               f"value must be finite and below {MAX_VALUE:.0e} in magnitude "
+                               "(in the column's unit)")
 
 
 def _sample_time(path: Path, t: np.ndarray, numbers: list[int], metadata: dict[str, str],

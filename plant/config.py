@@ -10,8 +10,7 @@ prints the whole schema from these declarations.
 
 import difflib
 import math
-import os
-import stat
+import re
 from dataclasses import dataclass, fields
 from pathlib import Path
 
@@ -19,6 +18,7 @@ import tomllib
 
 from plant.cogging_orders import slot_orders
 from plant.errors import ConfigError
+from plant.files import read_text
 from plant.layout import N_DELAY_MAX, N_PITCH
 from plant.schema import describe, in_range, is_required, range_text
 from plant.sections import (
@@ -87,46 +87,75 @@ def load_machine(path: str | Path, overrides: dict | None = None) -> MachineConf
     return parse_machine(raw, str(path))
 
 
-#: a machine file or manifest larger than this is refused unread, bytes
+#: a machine file, manifest or study file larger than this is refused unread, bytes
 MAX_FILE_BYTES = 1_000_000
+#: tables and arrays nested deeper than this are refused (a table of a table is 2, each
+#: ``[`` or ``{`` and each part of a dotted key one more): tomllib recurses once per
+#: bracket level and Python's stack ends a few hundred levels down; the deepest shipped
+#: files nest 4 (a manifest's ``[axis.overrides.SECTION]``, a study's ``[vary.X.table]
+#: key = { uniform = [a, b] }``)
+MAX_NESTING = 16
+
+#: what the bracket count skips, strings and comments, and the brackets themselves
+_TOML_TOKENS = re.compile(
+    r'"""(?:[^\\]|\\.)*?"""(?!")'  # multi-line basic string (may end in 2 more quotes)
+    r"|'''.*?'''(?!')"  # multi-line literal string
+    r'|"(?:[^"\\\n]|\\.)*"?'  # basic string
+    r"|'[^'\n]*'?"  # literal string
+    r"|#[^\n]*"  # comment
+    r"|[\[\]{}]", re.DOTALL)
 
 
 def read_toml(path: Path, what: str = "machine file") -> dict:
     """The TOML table of ``path``, or a :class:`ConfigError` of one line naming the file
-    and why: missing, not a regular file (a directory, a FIFO or a device is never read,
-    so nothing can block here), unreadable, larger than :data:`MAX_FILE_BYTES`, not UTF-8
-    (with the line of the first bad byte), or not TOML (with tomllib's line and column).
-    ``what`` names the file's role in the messages."""
+    and why: what :func:`plant.files.read_text` refuses (missing, not a regular file --
+    a directory, a FIFO or a device is never read, so nothing can block here --,
+    larger than :data:`MAX_FILE_BYTES`, not UTF-8, each with the line), tables and arrays
+    nested deeper than :data:`MAX_NESTING` (checked before parsing, so the parser's
+    recursion stays bounded), or not TOML (with tomllib's line and column).  ``what``
+    names the file's role in the messages."""
+    text = read_text(path, what, MAX_FILE_BYTES)
+    _check_brackets(path, text, what)
     try:
-        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | os.O_CLOEXEC)
-    except FileNotFoundError as exc:
-        raise ConfigError(f"{path}: no such {what}") from exc
-    except OSError as exc:
-        raise ConfigError(f"{path}: cannot open the {what}: {exc.strerror or exc}") from exc
-    try:
-        st = os.fstat(fd)
-        if stat.S_ISDIR(st.st_mode):
-            raise ConfigError(f"{path}: is a directory, not a {what} (give the .toml file)")
-        if not stat.S_ISREG(st.st_mode):
-            raise ConfigError(f"{path}: not a regular file; a {what} is a .toml file")
-        if st.st_size > MAX_FILE_BYTES:
-            raise ConfigError(f"{path}: {st.st_size} bytes, more than a {what} can be "
-                              f"({MAX_FILE_BYTES} bytes)")
-        data = os.read(fd, MAX_FILE_BYTES + 1)
-    except OSError as exc:
-        raise ConfigError(f"{path}: cannot read the {what}: {exc.strerror or exc}") from exc
-    finally:
-        os.close(fd)
-    try:
-        text = data.decode("utf-8")
-    except UnicodeDecodeError as exc:
-        line = data.count(b"\n", 0, exc.start) + 1
-        raise ConfigError(f"{path}: not UTF-8 text (byte 0x{data[exc.start]:02x} at line "
-                          f"{line}); TOML files are UTF-8") from exc
-    try:
-        return tomllib.loads(text)
+        raw = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{path}: not valid TOML: {exc}") from exc
+    _check_nesting(path, raw, what)
+    return raw
+
+
+def _too_deep(path: Path, what: str, where: str) -> ConfigError:
+    return ConfigError(f"{path}: tables and arrays nested more than {MAX_NESTING} deep"
+                       f"{where}; a {what} needs a few levels (a table of tables is 2)")
+
+
+def _check_brackets(path: Path, text: str, what: str) -> None:
+    """Refuse ``[`` and ``{`` nested deeper than MAX_NESTING outside strings and comments,
+    naming the line; a loop over tokens, so any depth is counted without recursion.
+    The tokens follow TOML's string rules as tomllib does, so up to the first syntax
+    error (where tomllib stops) the count is tomllib's own nesting."""
+    depth = 0
+    for token in _TOML_TOKENS.finditer(text):
+        c = token.group()
+        if c in "[{":
+            depth += 1
+            if depth > MAX_NESTING:
+                line = text.count("\n", 0, token.start()) + 1
+                raise _too_deep(path, what, f" (line {line})")
+        elif c in "]}":
+            depth = max(depth - 1, 0)
+
+
+def _check_nesting(path: Path, raw: dict, what: str) -> None:
+    """Refuse a parsed document nested deeper than MAX_NESTING (dotted keys nest
+    without brackets); walked with a stack, not recursion."""
+    stack = [(raw, 0)]
+    while stack:
+        node, depth = stack.pop()
+        if depth > MAX_NESTING:
+            raise _too_deep(path, what, " (dotted keys count, one level a part)")
+        children = node.values() if isinstance(node, dict) else node
+        stack.extend((c, depth + 1) for c in children if isinstance(c, (dict, list)))
 
 
 def parse_machine(raw: dict, where: str) -> MachineConfig:
@@ -136,7 +165,8 @@ def parse_machine(raw: dict, where: str) -> MachineConfig:
     for sec in raw:
         if sec not in SECTIONS:
             known = list(SECTIONS) + list(FOREIGN_SECTIONS)
-            raise ConfigError(f"{where}: unknown section [{sec}]{_suggest(sec, known)}")
+            raise ConfigError(f"{where}: unknown section [{shown_name(sec)}]"
+                              f"{_suggest(sec, known)}")
     sections = {}
     for sec, cls in SECTIONS.items():
         # the model's parts are built once the model says they belong: a [table] on a
@@ -191,6 +221,18 @@ def _need(sections, sec, where):
     return sections[sec]
 
 
+#: a name from a file longer than this is shown cut short in a message
+_NAME_SHOWN = 40
+
+
+def shown_name(name: str) -> str:
+    """A section or key name from a file as a message shows it: as written when it is
+    printable (a quoted TOML key may hold a newline, which would break the message's one
+    line), else as a Python string literal; cut short when longer than a name can be."""
+    cut = name if len(name) <= _NAME_SHOWN else name[:_NAME_SHOWN] + "…"
+    return cut if cut.isprintable() else repr(cut)
+
+
 def _suggest(name, known) -> str:
     close = difflib.get_close_matches(name, list(known), n=1, cutoff=0.5)
     return f"; did you mean '{close[0]}'?" if close else ""
@@ -205,7 +247,7 @@ def build_section(cls, values: dict, where: str, sec: str):
             if hint:
                 f = known[hint.split("'")[1]]
                 hint += f" (unit {f.metadata['unit']})"
-            raise ConfigError(f"{where}: unknown key [{sec}] {name}{hint}")
+            raise ConfigError(f"{where}: unknown key [{sec}] {shown_name(name)}{hint}")
     kwargs = {}
     for name, f in known.items():
         if name not in values:

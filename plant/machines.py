@@ -36,8 +36,9 @@ on it unchanged.  Manifests live in ``configs/machines/`` so that the tools that
 from dataclasses import dataclass
 from pathlib import Path
 
-from plant.config import MachineConfig, load_machine, read_toml
+from plant.config import MachineConfig, load_machine, read_toml, shown_name
 from plant.errors import ConfigError
+from plant.files import checked_name
 
 LINEAR_LETTERS = "XYZUVW"
 ROTARY_LETTERS = "ABC"
@@ -133,7 +134,8 @@ def _text(where: str, table: dict, key: str) -> str:
 def _unknown(where: str, table: dict, allowed) -> None:
     for key in table:
         if key not in allowed:
-            raise ConfigError(f"{where}: unknown key '{key}' (allowed: {', '.join(allowed)})")
+            raise ConfigError(f"{where}: unknown key '{shown_name(key)}' (allowed: "
+                              f"{', '.join(allowed)})")
 
 
 def _axis(manifest: Path, index: int, entry, seen: set[str]) -> Axis:
@@ -154,8 +156,9 @@ def _axis(manifest: Path, index: int, entry, seen: set[str]) -> Axis:
                                                   for v in overrides.values()):
         raise ConfigError(f"{where}: overrides must be tables of keys, "
                           "[axis.overrides.SECTION] key = value")
-    file = (manifest.parent / _text(where, entry, "file")).resolve()
+    given = manifest.parent / _text(where, entry, "file")
     try:
+        file = checked_name(given, "machine file").resolve()
         cfg = load_machine(file, {sec: dict(v) for sec, v in overrides.items()})
     except ConfigError as e:
         raise ConfigError(f"{where}: {e}") from e

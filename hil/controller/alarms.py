@@ -2,8 +2,10 @@
 
 An axis raises an alarm with its number, the axis name, the alarm text (SINUMERIK's
 ``Axis %1 ...`` with the axis name for %1), what was measured (``detail``, in the CNC's
-units: mm or deg) and the tick and time it was raised.  Every alarm stops the axes
-(:mod:`hil.controller.nc`: rapid stop, then the drives disabled, follow-up).
+units: mm or deg) and the tick and time it was raised.  Every alarm but the software limit
+switch's stops the axes (:mod:`hil.controller.nc`: rapid stop, then the drives disabled,
+follow-up); 10720 and 10620 keep the axis inside its software limits instead
+(:mod:`hil.controller.limits`: the program ends before the block, the speed is limited).
 
 =======  ===========================================  ========================================
 number   text                                         raised when
@@ -16,6 +18,11 @@ number   text                                         raised when
 25201    Axis %1 drive fault                          the enabled drive left OPERATION
                                                       ENABLED (CiA 402 FAULT: its 603Fh code)
 26000    Axis %1 clamping monitoring                  a clamped axis moved beyond MD36050
+10720    Axis %1 software limit switch                a block's end point (or a setpoint)
+                                                      beyond MD36100/MD36110, found before
+                                                      it moves: the program ends before it
+10620    Axis %1 reaches software limit switch        a test mode's speed limited so the
+                                                      axis stops on the limit
 1000     System error                                 the NC's own loop state became NaN or
                                                       infinite (an internal error)
 =======  ===========================================  ========================================
@@ -35,6 +42,8 @@ from hil.cia402 import Cia402Error, statusword_state
 class AlarmNumber(IntEnum):
     """The alarms this NC raises (SINUMERIK alarm numbers)."""
     SYSTEM_ERROR = 1000
+    SOFTWARE_LIMIT_REACHED = 10620
+    SOFTWARE_LIMIT = 10720
     ENCODER_HW_FAULT = 25000
     STANDSTILL = 25040
     CONTOUR = 25050
@@ -48,6 +57,8 @@ FEEDBACK_VALUES = ("encoder_counts", "scale_counts", "velocity_counts_s", "iq_a"
 #: SINUMERIK's alarm text, %1 the axis name
 TEXT = {
     AlarmNumber.SYSTEM_ERROR: "System error",
+    AlarmNumber.SOFTWARE_LIMIT_REACHED: "Axis %1 reaches software limit switch",
+    AlarmNumber.SOFTWARE_LIMIT: "Axis %1 software limit switch",
     AlarmNumber.ENCODER_HW_FAULT: "Axis %1 hardware fault active encoder",
     AlarmNumber.STANDSTILL: "Axis %1 standstill monitoring",
     AlarmNumber.CONTOUR: "Axis %1 contour monitoring",

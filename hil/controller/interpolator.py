@@ -27,11 +27,16 @@ from typing import NamedTuple
 import numpy as np
 
 from hil.controller.config import AxisLimits
-from hil.controller.program import BlockKind, Program
+from hil.controller.program import Block, BlockKind, Program, ProgramError, _scales
 
 #: seconds run after the profile's end so the axis settles (``hil sim``'s lock-step and
 #: ``hil controller``'s loop alike)
 SETTLE_S = 0.2
+#: the longest program the interpolator plans, s: the NC samples the whole profile at
+#: every IPO cycle before the axis moves (and ``hil sim`` records every PWM period of
+#: it), so a block of years -- a feed of 1e-6 mm/min -- would ask for terabytes; an hour
+#: is 900 000 IPO cycles of 4 ms
+MAX_PROGRAM_S = 3600.0
 
 _Phase = tuple[float, float, float]
 """(duration s, acceleration at the phase start, jerk) of one phase, for a positive move."""
@@ -41,6 +46,14 @@ class ClampEvent(NamedTuple):
     """A clamp (``clamped`` True) or unclamp block at ``t_s`` (s) of the profile."""
     t_s: float
     clamped: bool
+
+
+class MoveBlock(NamedTuple):
+    """A move block of the profile: its start ``t_s`` (s), its ``line`` in the program
+    text and its programmed end point ``target`` (m or rad)."""
+    t_s: float
+    line: int
+    target: float
 
 
 class Setpoint(NamedTuple):
@@ -132,7 +145,8 @@ class Profile:
     ``pos0[i]`` (m or rad), velocity ``vel0[i]``, acceleration ``acc0[i]`` and constant
     jerk ``jerk[i]`` (SI, per second); every array has shape (n,).  The last segment starts
     at ``duration_s`` and holds the end position at rest; times before 0 read as 0.
-    ``clamps`` are the program's clamp and unclamp blocks in time order.
+    ``clamps`` are the program's clamp and unclamp blocks in time order, ``moves`` its
+    move blocks (the software limits' block preparation checks their end points).
     """
     knots_s: np.ndarray
     pos0: np.ndarray
@@ -141,6 +155,22 @@ class Profile:
     jerk: np.ndarray
     duration_s: float
     clamps: tuple[ClampEvent, ...] = ()
+    moves: tuple[MoveBlock, ...] = ()
+
+    def until(self, t_s: float) -> "Profile":
+        """The profile ended at ``t_s`` (s), the start of a block, where the axis is at rest
+        on the end point of the block before: the segments before it, then rest there; the
+        clamp events up to it and the move blocks before it."""
+        k = int(np.searchsorted(self.knots_s, t_s, side="left"))
+        keep = slice(0, k)
+
+        def cut(column: np.ndarray, last: float) -> np.ndarray:
+            return np.append(column[keep], last)
+
+        return Profile(cut(self.knots_s, t_s), cut(self.pos0, self.pos0[k]),
+                       cut(self.vel0, 0.0), cut(self.acc0, 0.0), cut(self.jerk, 0.0),
+                       duration_s=t_s, clamps=tuple(c for c in self.clamps if c.t_s <= t_s),
+                       moves=tuple(m for m in self.moves if m.t_s < t_s))
 
     def sample(self, t_s: float) -> Setpoint:
         """Position, velocity and acceleration at time ``t_s`` (s)."""
@@ -179,6 +209,7 @@ def plan(program: Program, limits: AxisLimits) -> Profile:
     _check_limits(limits)
     rows: list[tuple[float, float, float, float, float]] = []
     clamps = []
+    moves = []
     t = 0.0
     for block in program.blocks:
         if block.kind in (BlockKind.CLAMP, BlockKind.UNCLAMP):
@@ -187,6 +218,7 @@ def plan(program: Program, limits: AxisLimits) -> Profile:
         if block.kind is BlockKind.DWELL:
             phases = [(block.dwell_s, 0.0, 0.0)] if block.dwell_s > 0.0 else []
         else:
+            moves.append(MoveBlock(t, block.line, block.target))
             phases = _move_phases(block.target - block.start, block.feed, limits)
         p, v = block.start, 0.0
         for dur, a, j in phases:
@@ -194,9 +226,33 @@ def plan(program: Program, limits: AxisLimits) -> Profile:
             p += dur * (v + dur * (0.5 * a + dur * j / 6.0))
             v += dur * (a + 0.5 * dur * j)
             t += dur
+        check_duration(program.source, block, abs(block.target - block.start),
+                       program.rotary, t)
     rows.append((t, program.end, 0.0, 0.0, 0.0))
     columns = [np.ascontiguousarray(c) for c in np.array(rows, dtype=float).T]
-    return Profile(*columns, duration_s=t, clamps=tuple(clamps))
+    return Profile(*columns, duration_s=t, clamps=tuple(clamps), moves=tuple(moves))
+
+
+def check_duration(source: str, block: Block, length: float, rotary: bool,
+                   t_end: float) -> None:
+    """Refuse a program whose move or dwell ``block`` ends ``t_end`` s into it, beyond
+    :data:`MAX_PROGRAM_S`: a :class:`ProgramError` naming the block's line and its words
+    in program units.  ``length``: the block's path length, m (rad when ``rotary``);
+    ``block`` is a :class:`~hil.controller.program.Block` or a path block."""
+    if t_end <= MAX_PROGRAM_S:
+        return
+    pos_scale, feed_scale = _scales(rotary)
+    unit = "deg" if rotary else "mm"
+    move = f"move of {length / pos_scale:g} {unit}"
+    if block.kind is BlockKind.DWELL:
+        what, fix = f"dwell 'G4 F{block.dwell_s:g}' ({block.dwell_s:g} s)", "shorten it"
+    elif block.rapid:
+        what, fix = f"rapid (G0) {move}", "shorten it"
+    else:
+        what, fix = f"{move} at 'F{block.feed / feed_scale:g}' ({unit}/min)", "raise F"
+    raise ProgramError(source, block.line, f"the {what} ends {t_end:.3g} s into the program; "
+                       f"a program runs at most {MAX_PROGRAM_S:g} s (the NC samples all of "
+                       f"it at every interpolation cycle before the axis moves): {fix}")
 
 
 class FineInterpolator:

@@ -12,9 +12,11 @@ multi-axis program runs as one profile per axis on common knots
 
 An alarm on one axis stops every axis (as an alarm stops a SINUMERIK channel): from the
 next tick the other axes brake too and their drives are disabled, without alarms of their
-own.
+own.  A block beyond an axis's software limits (alarm 10720, :mod:`hil.controller.limits`)
+ends the program on every axis before that block.
 """
 
+import math
 from collections.abc import Sequence
 
 from hil.controller.alarms import Alarm
@@ -109,10 +111,14 @@ class MachineController:
             raise ValueError(f"program for axes {program.axes}, machine has {self.names}")
         return plan_path(program, self.limits)
 
-    def run_profiles(self, profiles: Sequence[Profile]) -> None:
-        """Start every axis's profile on the next tick."""
-        for c, p in zip(self.ctrls, profiles, strict=True):
-            c.run_profile(p)
+    def run_profiles(self, profiles: Sequence[Profile]) -> tuple[Profile, ...]:
+        """Start every axis's profile on the next tick, up to the first block beyond some
+        axis's software limits (alarm 10720 on each axis that block takes beyond them).
+        Returns the profiles run."""
+        found = [c.limit_violation(p) for c, p in zip(self.ctrls, profiles, strict=True)]
+        stop = min((v.t_s for v in found if v is not None), default=math.inf)
+        return tuple(c.start_program(p, stop, v if v is not None and v.t_s == stop else None)
+                     for c, p, v in zip(self.ctrls, profiles, found))
 
     def tick(self, fb, sp) -> None:
         """One basic-clock cycle of every axis: read ``fb``, write ``sp`` (plain records on

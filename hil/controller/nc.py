@@ -20,6 +20,11 @@ Per tick, in the order a SINUMERIK 840D with SINAMICS runs them:
 * the NC's own state checked: a NaN or infinite loop state is alarm 1000, the loops are
   cleared; it never raises.
 
+The software limit switches (:mod:`hil.controller.limits`) are checked before a program
+or a setpoint sequence moves (alarm 10720: the program ends before the first block beyond
+them, a setpoint sequence does not start); in the test modes, which no end point bounds,
+the speed is limited so that the axis stops on them (alarm 10620).
+
 An alarm (:mod:`hil.controller.alarms`, the list in :attr:`Controller.alarms`) stops the
 axis as an NC does (:mod:`hil.controller.stop`): the program is abandoned, the position
 loop opened and the speed setpoint set to zero, so the speed controller brakes at its
@@ -59,6 +64,7 @@ from hil.controller.interpolator import (
     Profile,
     ProfileSamples,
 )
+from hil.controller.limits import LimitViolation, software_limits
 from hil.controller.loops import CurrentLoop, PositionLoop, SpeedLoop
 from hil.controller.monitoring import AxisMonitor
 from hil.controller.stop import Braking, Phase
@@ -91,7 +97,9 @@ class Controller:
     NC's own, and held between cycles) and ``contour_deviation`` (actual minus the
     contour model's position, at the position-control cycle).  ``alarms`` is the axis's
     :class:`~hil.controller.alarms.AlarmList`, ``phase`` its :class:`Phase`, ``monitored``
-    whether position control runs with the axis monitoring (:meth:`run_points`).
+    whether position control runs with the axis monitoring (:meth:`run_points`),
+    ``soft_limits`` its :class:`~hil.controller.limits.SoftwareLimits` and ``at_limit``
+    whether a test mode's speed is being limited by them.
     """
 
     def __init__(self, cfg: MachineConfig, period_s: float, x0: float = 0.0,
@@ -126,6 +134,8 @@ class Controller:
         self.polarity = -1.0 if sec.encoder_feedback_polarity < 0 else 1.0
         self.axis = axis or ("C" if kind == "rotary" else "X")
         self.alarms = AlarmList(self.axis)
+        self.soft_limits = software_limits(cfg, sec)
+        self.at_limit = False
         self.monitor = AxisMonitor(cfg, sec, period_s)
         self.monitored = True
         self.braking = Braking(self.monitor.limits, period_s, sec.speed_cycle_ratio,
@@ -172,20 +182,57 @@ class Controller:
         """The interpolation cycle in s."""
         return self.period * self.sec.ipo_cycle_ratio
 
-    def run_profile(self, profile: Profile) -> None:
+    def run_profile(self, profile: Profile) -> Profile:
         """Follow an interpolator profile: its IPO points, fine-interpolated to the
         position cycle, and its clamp and unclamp blocks, starting at the next enabled
-        tick (unclamped), with the axis monitoring."""
-        self.run_points(profile.ipo_points(self.ipo_period_s), monitored=True)
-        self.clamps = profile.clamps
+        tick (unclamped), with the axis monitoring; up to the first block beyond the
+        software limits (alarm 10720, :meth:`limit_violation`).  Returns the profile run."""
+        violation = self.limit_violation(profile)
+        if violation is None:
+            return self.start_program(profile)
+        return self.start_program(profile, violation.t_s, violation)
+
+    def limit_violation(self, profile: Profile) -> LimitViolation | None:
+        """Block preparation: the first move block of ``profile`` beyond the software
+        limits; while alarm 10720 is pending (until :meth:`reset_alarms`) NC start is
+        refused: a violation at the program's start."""
+        if self.alarms.count(AlarmNumber.SOFTWARE_LIMIT):
+            return LimitViolation(0.0, "NC start refused: alarm 10720 is pending (RESET)")
+        return self.soft_limits.first_violation(profile, self.axis)
+
+    def start_program(self, profile: Profile, stop_s: float = math.inf,
+                      violation: LimitViolation | None = None) -> Profile:
+        """Follow ``profile`` as :meth:`run_profile` does, ended at ``stop_s`` (s, the start
+        of a block: nothing of it moves), raising alarm 10720 for ``violation``.  Returns
+        the profile run."""
+        runs = profile.until(stop_s) if stop_s < profile.duration_s else profile
+        self._follow(runs.ipo_points(self.ipo_period_s), monitored=True)
+        self.clamps = runs.clamps
+        if violation is not None:
+            self.alarms.raise_alarm(AlarmNumber.SOFTWARE_LIMIT, violation.detail,
+                                    self.tick_count, self.t)
+        return runs
 
     def run_points(self, ipo: ProfileSamples, monitored: bool = False) -> None:
         """Follow IPO points (at the IPO period) in position mode.  Points that no
         interpolator planned (a measuring function's setpoint step, a recorded trace) run
         without contour and standstill monitoring unless ``monitored``: the contour model
-        holds for motion within the axis's dynamics only."""
+        holds for motion within the axis's dynamics only.  A point beyond the software
+        limits, or NC start refused, raises alarm 10720 and none of them runs."""
+        beyond = (self.soft_limits.first_setpoint_beyond(ipo, self.axis)
+                  if not self.alarms.count(AlarmNumber.SOFTWARE_LIMIT)
+                  else "NC start refused: alarm 10720 is pending (RESET)")
+        if beyond is None:
+            self._follow(ipo, monitored)
+            return
+        self._follow(None, monitored)
+        self.alarms.raise_alarm(AlarmNumber.SOFTWARE_LIMIT, beyond, self.tick_count, self.t)
+
+    def _follow(self, ipo: ProfileSamples | None, monitored: bool) -> None:
+        """Position mode on the IPO points ``ipo`` (None: the setpoint stays)."""
         self.mode = "position"
-        self.fine = FineInterpolator(ipo, self.sec.ipo_cycle_ratio // self.sec.position_cycle_ratio)
+        ratio = self.sec.ipo_cycle_ratio // self.sec.position_cycle_ratio
+        self.fine = None if ipo is None else FineInterpolator(ipo, ratio)
         self.clamps = ()
         self._fine_cycles = 0
         self.monitored = monitored
@@ -204,6 +251,7 @@ class Controller:
         self.source = source
         self.excitation = excitation
         self.monitor.active = False
+        self.at_limit = False
         self.t = 0.0
 
     def stop(self) -> None:
@@ -322,9 +370,42 @@ class Controller:
             self.v_cmd = self.pos_loop.step(self.x_set, self.v_set, self.x_act)
             self.w_set = self.v_cmd / self.ratio
         elif self.mode == "speed":
-            self.w_set = self.source(self.t)
+            w = self.source(self.t)
             if self.excitation is not None:
-                self.w_set += self.excitation(self.t)
+                w += self.excitation(self.t)
+            self.w_set = self._within_limits(w)
+
+    def _within_limits(self, w: float) -> float:
+        """The speed setpoint ``w`` (motor rad/s; m/s on linear motors) held within the
+        speeds from which the axis can stop on its software limits at its maximum
+        acceleration (:meth:`~hil.controller.limits.SoftwareLimits.speed_range`); alarm
+        10620 each time that bound starts to act."""
+        lo, hi = self.soft_limits.speed_range(self.x_act, self.limits.acceleration)
+        v = self.polarity * w * self.ratio  # in the frame of x_act
+        limited = not lo <= v <= hi
+        if limited and not self.at_limit:
+            side = "+" if v > hi else "-"
+            self.alarms.raise_alarm(
+                AlarmNumber.SOFTWARE_LIMIT_REACHED,
+                f"speed toward the {self.soft_limits.limit(side)} limited at "
+                f"{self.axis}{self.x_act * self.soft_limits.per_si:.3f} "
+                f"{self.soft_limits.unit}", self.tick_count - 1, self.t)
+        self.at_limit = limited
+        return self.polarity * min(max(v, lo), hi) / self.ratio if limited else w
+
+    def _guard_current_mode(self) -> None:
+        """Current mode has no speed loop to limit the speed: once the axis is faster toward
+        a software limit than it can stop from, the NC takes it over in speed mode at the
+        speed it has, which :meth:`_within_limits` then brakes onto the limit."""
+        lo, hi = self.soft_limits.speed_range(self.x_act, self.limits.acceleration)
+        v = self.polarity * self.v_act
+        if lo <= v <= hi:
+            return
+        w_now = self.w_act
+        self.mode = "speed"
+        self.source = lambda t: w_now
+        self.excitation = None
+        self.speed_loop.reset()
 
     def _clamp_events(self) -> None:
         """Clamp or unclamp on the blocks the fine interpolator's setpoint has reached."""
@@ -340,6 +421,8 @@ class Controller:
     def _run(self, k: int) -> None:
         """The program or test mode's cycles due at tick ``k``."""
         sec = self.sec
+        if self.mode == "current" and k % sec.speed_cycle_ratio == 0:
+            self._guard_current_mode()
         if (self.ff_linear and self.mode == "position" and k % sec.position_cycle_ratio
                 and k % sec.speed_cycle_ratio == 0):
             self._interpolate_feed_forward(k)

@@ -38,7 +38,14 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from hil.controller.config import AxisLimits
-from hil.controller.interpolator import ClampEvent, Profile, _check_limits, _move_phases
+from hil.controller.interpolator import (
+    ClampEvent,
+    MoveBlock,
+    Profile,
+    _check_limits,
+    _move_phases,
+    check_duration,
+)
 from hil.controller.program import (
     LINEAR_AXES,
     ROTARY_AXES,
@@ -49,6 +56,7 @@ from hil.controller.program import (
     _scales,
     clamped_error,
     program_lines,
+    read_program_text,
 )
 
 
@@ -75,12 +83,13 @@ class PathBlock:
 
 @dataclass(frozen=True)
 class PathProgram:
-    """A parsed multi-axis program: axis letters, which are rotary, start positions (SI)
-    and blocks."""
+    """A parsed multi-axis program: axis letters, which are rotary, start positions (SI),
+    blocks and the source that names it in messages (a file name)."""
     axes: tuple[str, ...]
     rotary: tuple[bool, ...]
     start: tuple[float, ...]
     blocks: tuple[PathBlock, ...]
+    source: str = "<program>"
 
     @property
     def end(self) -> tuple[float, ...]:
@@ -196,14 +205,15 @@ def parse_path_program(text: str, axes: Sequence[str], start: Sequence[float] | 
         block = _block(sw.g, moves, f, st, letters, rotary, line, err)
         if block is not None:
             blocks.append(block)
-    return PathProgram(axes, rotary, start, tuple(blocks))
+    return PathProgram(axes, rotary, start, tuple(blocks), source)
 
 
 def read_path_program(path, axes: Sequence[str], start: Sequence[float] | None = None,
                       clamp: Sequence[ClampCodes] | None = None) -> PathProgram:
-    """Read and parse a program file (see :func:`parse_path_program`)."""
-    with open(path) as f:
-        return parse_path_program(f.read(), axes, start, source=str(path), clamp=clamp)
+    """Read and parse a program file (see :func:`parse_path_program`); ProgramError also
+    when the file cannot be read as text (:func:`~hil.controller.program.read_program_text`)."""
+    return parse_path_program(read_program_text(path), axes, start, source=str(path),
+                              clamp=clamp)
 
 
 def path_limits(direction: np.ndarray, limits: Sequence[AxisLimits]) -> AxisLimits:
@@ -243,6 +253,7 @@ def plan_path(program: PathProgram, limits: Sequence[AxisLimits]) -> tuple[Profi
     n = len(program.axes)
     rows: list[list[tuple]] = [[] for _ in range(n)]
     clamps: list[list[ClampEvent]] = [[] for _ in range(n)]
+    moves: list[list[MoveBlock]] = [[] for _ in range(n)]
     t = 0.0
     for block in program.blocks:
         if block.kind in (BlockKind.CLAMP, BlockKind.UNCLAMP):
@@ -257,10 +268,16 @@ def plan_path(program: PathProgram, limits: Sequence[AxisLimits]) -> tuple[Profi
         else:
             u = np.subtract(block.target, block.start) / length
             phases = _move_phases(length, block.feed, path_limits(u, limits))
+        if block.kind is BlockKind.MOVE:
+            for i in range(n):
+                moves[i].append(MoveBlock(t, block.line, block.target[i]))
         knots = []
         for dur, _, _ in phases:
             knots.append(t)
             t += dur
+        moving_linear = any(e != s and not r
+                            for s, e, r in zip(block.start, block.target, program.rotary))
+        check_duration(program.source, block, length, not moving_linear, t)
         for i in range(n):
             p, v, ui = block.start[i], 0.0, (0.0 if u is None else float(u[i]))
             for tk, (dur, acc, jerk) in zip(knots, phases):
@@ -272,5 +289,6 @@ def plan_path(program: PathProgram, limits: Sequence[AxisLimits]) -> tuple[Profi
     for i in range(n):
         rows[i].append((t, program.end[i], 0.0, 0.0, 0.0))
         cols = [np.ascontiguousarray(c) for c in np.array(rows[i], dtype=float).T]
-        profiles.append(Profile(*cols, duration_s=t, clamps=tuple(clamps[i])))
+        profiles.append(Profile(*cols, duration_s=t, clamps=tuple(clamps[i]),
+                                moves=tuple(moves[i])))
     return tuple(profiles)

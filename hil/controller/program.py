@@ -24,6 +24,11 @@ axes (X Y Z U V W) take mm, rotary axes (A B C) take degrees.  A program is writ
 one axis letter; a word for another axis is refused (:mod:`hil.controller.path` reads
 programs of several axes).
 
+Numbers are plain decimals (no exponent) below :data:`MAX_NUMBER` in magnitude: nine
+digits before the point.  A program file is read through :func:`plant.files.read_text`
+(a directory, a FIFO or a device is refused unread; at most :data:`MAX_PROGRAM_BYTES`;
+UTF-8).
+
 Every error is a :class:`ProgramError` naming the source, the line and the word.
 """
 
@@ -35,19 +40,35 @@ from dataclasses import dataclass
 from enum import Enum
 from pathlib import Path
 
+from plant.files import read_text
+
 LINEAR_AXES = "XYZUVW"
 ROTARY_AXES = "ABC"
 _NUMBER = re.compile(r"[+-]?(\d+\.?\d*|\.\d+)")
 _END_CODES = (2, 30)
+#: a number word's magnitude stays below this (nine digits before the decimal point:
+#: 1000 km in mm, more than any machine travels); more is a typing error, and from 310
+#: digits on not even a float (it reads as infinity)
+MAX_NUMBER = 1e9
+#: a program file larger than this is refused unread, bytes (a part program of this subset
+#: is a few hundred blocks; ten megabytes are a quarter of a million)
+MAX_PROGRAM_BYTES = 10_000_000
+#: a word longer than this is shown cut short in a message
+_SHOWN = 24
 
 
 class ProgramError(ValueError):
-    """A part program cannot be read; the message names the source, line and word."""
+    """A part program cannot be read; the message names the source, line and word.
+
+    ``line`` 0 is the file as a whole (missing, not a regular file, not UTF-8): the
+    message then names the file itself, as :mod:`plant.files` words it.  ``reason`` is
+    the message without the source and line."""
 
     def __init__(self, source: str, line: int, message: str):
         self.source = source
         self.line = line
-        super().__init__(f"{source} line {line}: {message}")
+        self.reason = message
+        super().__init__(f"{source} line {line}: {message}" if line else message)
 
 
 class BlockKind(str, Enum):
@@ -95,11 +116,13 @@ class Block:
 @dataclass(frozen=True)
 class Program:
     """A parsed program: its axis letter, whether that axis is rotary (rad) or linear (m),
-    the axis position it starts from (m or rad) and its blocks in order."""
+    the axis position it starts from (m or rad), its blocks in order and the source that
+    names it in messages (a file name)."""
     axis: str
     rotary: bool
     start: float
     blocks: tuple[Block, ...]
+    source: str = "<program>"
 
     @property
     def end(self) -> float:
@@ -166,11 +189,21 @@ def _tokens(code: str, err: ErrorFactory) -> list[tuple[str, str, float]]:
         word = m.group(0).upper()
         letter, digits = word[0], word[1:]
         if not letter.isalpha():
-            raise err(f"unexpected '{word}' (a word is a letter followed by a number)")
+            raise err(f"unexpected '{shown(word)}' (a word is a letter followed by a number)")
         if not _NUMBER.fullmatch(digits):
-            raise err(f"bad number in word '{word}'")
-        out.append((word, letter, float(digits)))
+            raise err(f"bad number in word '{shown(word)}'")
+        value = float(digits)
+        if not abs(value) < MAX_NUMBER:
+            raise err(f"number in word '{shown(word)}' is too large: at most nine digits "
+                      f"before the decimal point (below {MAX_NUMBER:.0e} of the word's unit: "
+                      "mm, deg, mm/min, deg/min or s)")
+        out.append((word, letter, value))
     return out
+
+
+def shown(word: str) -> str:
+    """``word`` for a message, cut short when it is longer than a real word can be."""
+    return word if len(word) <= _SHOWN else f"{word[:_SHOWN]}… ({len(word)} characters)"
 
 
 @dataclass(frozen=True)
@@ -220,7 +253,7 @@ def sort_words(code: str, axes: str, err: ErrorFactory, foreign: Callable[[str],
         elif letter in LINEAR_AXES + ROTARY_AXES:
             raise err(foreign(word))
         else:
-            raise err(f"unknown word '{word}'")
+            raise err(f"unknown word '{shown(word)}'")
     return SortedWords(tuple(g), values, written, end, tuple(m))
 
 
@@ -338,14 +371,21 @@ def parse_program(text: str, axis: str = "X", start: float = 0.0,
         block = _block(w, st, rotary, line, err)
         if block is not None:
             blocks.append(block)
-    return Program(axis, rotary, start, tuple(blocks))
+    return Program(axis, rotary, start, tuple(blocks), source)
 
 
 def read_program(path: str | Path, axis: str = "X", start: float = 0.0,
                  clamp: ClampCodes = ClampCodes()) -> Program:
-    """Read and parse a part program file (see :func:`parse_program`)."""
-    path = Path(path)
-    return parse_program(path.read_text(), axis, start, source=str(path), clamp=clamp)
+    """Read and parse a part program file (see :func:`parse_program`); ProgramError
+    also when the file cannot be read as text (:func:`read_program_text`)."""
+    return parse_program(read_program_text(path), axis, start, source=str(path), clamp=clamp)
+
+
+def read_program_text(path: str | Path) -> str:
+    """The text of a program file, or a :class:`ProgramError` (line 0) naming the file:
+    missing, not a regular file, larger than :data:`MAX_PROGRAM_BYTES`, not UTF-8."""
+    return read_text(path, "part program", MAX_PROGRAM_BYTES,
+                     functools.partial(ProgramError, str(path), 0))
 
 
 def _number(x: float) -> str:

@@ -21,6 +21,7 @@ wrong with it.
 """
 
 import dataclasses
+import io
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -32,12 +33,15 @@ from hil.runtime.record_trace import axis_trace
 from hil.runtime.run_folder import RECORDING
 from hil.trace_file import (
     IDENTIFICATION,
+    MAX_TRACE_BYTES,
+    MAX_VALUE,
     TIME_TOLERANCE,
     TraceFormatError,
     read_trace,
     si_factor,
 )
 from io_adapters.messages import MODE_CSP
+from plant.files import read_bytes
 
 #: variables an EMPS ``.mat`` file must hold (``pulses_N`` is optional)
 EMPS_VARIABLES = ("t", "qm", "qg", "vir", "gtau", "kp", "kv")
@@ -210,8 +214,12 @@ def _load_run(folder: Path) -> Record:
 
 
 def _load_csv(path: Path) -> Record:
-    """A servo-trace CSV; columns resolved to their rotary or force alternatives."""
-    trace = read_trace(path, require=IDENTIFICATION)
+    """A servo-trace CSV; columns resolved to their rotary or force alternatives; every
+    value finite and bounded (:data:`~hil.trace_file.MAX_VALUE`), two rows at least."""
+    trace = read_trace(path, require=IDENTIFICATION, bounded=True)
+    if trace.n_samples < 2:
+        raise TraceFormatError(f"{path}: {trace.n_samples} data row; a record needs two "
+                               "samples at least")
     pos_set, pos = trace.resolve("pos_set_mm"), trace.resolve("pos_mm")
     rotary = pos.endswith("_deg")
     if pos_set.endswith("_deg") != rotary:
@@ -241,12 +249,15 @@ def _load_csv(path: Path) -> Record:
 def _load_mat(path: Path) -> Record:
     """An EMPS benchmark file: qm -> pos and motor_pos, qg -> pos_set, gtau vir -> force."""
     from scipy.io import loadmat  # only .mat records need scipy.io
-    from scipy.io.matlab import MatReadError
 
+    raw = read_bytes(path, "MATLAB .mat record", MAX_TRACE_BYTES, TraceFormatError)
     try:
-        data = loadmat(path)
-    except (OSError, ValueError, TypeError, MatReadError) as exc:
-        raise TraceFormatError(f"{path}: not a readable MATLAB .mat file ({exc})") from None
+        data = loadmat(io.BytesIO(raw))
+    # a corrupt file makes scipy's reader raise nearly anything (MatReadError, zlib.error,
+    # IndexError, NotImplementedError, OSError ...): each means the same to the user
+    except Exception as exc:  # noqa: BLE001
+        why = " ".join(str(exc).split())  # one line, whatever the reader said
+        raise TraceFormatError(f"{path}: not a readable MATLAB .mat file ({why})") from None
     names = sorted(k for k in data if not k.startswith("__"))
     missing = [v for v in EMPS_VARIABLES if v not in data]
     if missing:
@@ -269,26 +280,42 @@ def _load_mat(path: Path) -> Record:
                         "position_unit": "m"})
 
 
+def _numbers(path: Path, data: dict, name: str) -> np.ndarray:
+    """Variable ``name`` as a float array; refused when it holds no real numbers (text, a
+    struct, a cell array, complex values)."""
+    value = data[name]
+    try:
+        if np.iscomplexobj(value):
+            raise TypeError("complex")
+        return np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise TraceFormatError(f"{path}: variable {name!r} is not real numbers (MATLAB "
+                               f"class {getattr(value, 'dtype', type(value).__name__)})") from None
+
+
 def _column(path: Path, data: dict, name: str, n: int | None = None) -> np.ndarray:
-    """Variable ``name`` as a finite float vector (of length ``n`` when given)."""
-    value = np.asarray(data[name], dtype=np.float64)
+    """Variable ``name`` as a float vector (of length ``n`` when given) of finite values
+    below MAX_VALUE in magnitude."""
+    value = _numbers(path, data, name)
     if value.ndim != 2 or min(value.shape) != 1 or (n is not None and value.size != n):
         want = "a vector" if n is None else f"a vector of {n} values like t"
         raise TraceFormatError(f"{path}: variable {name!r} has shape {value.shape}, "
                                f"needs {want}")
     value = np.ascontiguousarray(value.ravel())
-    if not np.all(np.isfinite(value)):
-        raise TraceFormatError(f"{path}: variable {name!r} holds a non-finite value at "
-                               f"index {int(np.flatnonzero(~np.isfinite(value))[0])}")
+    bad = np.flatnonzero(~(np.abs(value) < MAX_VALUE))
+    if bad.size:
+        raise TraceFormatError(f"{path}: variable {name!r} holds {float(value[bad[0]])!r} at "
+                               f"index {int(bad[0])}; every value must be finite and below "
+                               f"{MAX_VALUE:.0e} in magnitude")
     return value
 
 
 def _scalar(path: Path, data: dict, name: str) -> float:
-    """Variable ``name`` as one positive float."""
-    value = np.asarray(data[name], dtype=np.float64)
-    if value.size != 1 or not float(value.ravel()[0]) > 0.0:
-        raise TraceFormatError(f"{path}: variable {name!r} must be one positive number, "
-                               f"got shape {value.shape}")
+    """Variable ``name`` as one positive float below MAX_VALUE."""
+    value = _numbers(path, data, name)
+    if value.size != 1 or not 0.0 < float(value.ravel()[0]) < MAX_VALUE:
+        raise TraceFormatError(f"{path}: variable {name!r} must be one positive number "
+                               f"below {MAX_VALUE:.0e}, got shape {value.shape}")
     return float(value.ravel()[0])
 
 

@@ -20,10 +20,19 @@ from pathlib import Path
 import numpy as np
 
 from hil.controller.config import AxisLimits
-from hil.controller.interpolator import ProfileSamples, plan
-from hil.controller.program import Block, BlockKind, Program
+from hil.controller.interpolator import Profile, ProfileSamples, plan
+from hil.controller.program import Block, BlockKind, Program, ProgramError
 from hil.sim import MachineLockStep
-from hil.study.experiments import MM, MM_MIN, Curve, Experiment, Measurement, check_axis
+from hil.study.experiments import (
+    MM,
+    MM_MIN,
+    Curve,
+    Experiment,
+    Measurement,
+    axis_config,
+    check_axis,
+    check_travel,
+)
 from hil.study.keys import StudySpecError
 from hil.study.machine import MachineSource
 from hil.study.outputs import circle_figures, following_error_um
@@ -68,7 +77,9 @@ class CircularityExperiment(Experiment):
         if len(o.center_mm) != 2:
             raise StudySpecError(f"{label}: center_mm = {list(o.center_mm)} needs two "
                                  "positions (mm)")
-        ctrl = MachineLockStep(machine.build()).ctrl
+        built = machine.build()
+        self.check_machine(built)
+        ctrl = MachineLockStep(built).ctrl
         limits = [ctrl.limits[ctrl.names.index(a)] for a in o.axes]
         self.limits = AxisLimits(min(lim.velocity for lim in limits),
                                  min(lim.acceleration for lim in limits),
@@ -80,6 +91,30 @@ class CircularityExperiment(Experiment):
                 f"needs {v * v / r:g} m/s^2 centripetal; the axes allow "
                 f"{self.limits.velocity / MM_MIN:g} mm/min and "
                 f"{self.limits.acceleration:g} m/s^2")
+        try:
+            self._plan()
+        except ProgramError as exc:
+            raise StudySpecError(f"{label}: feed_mm_min = {o.feed_mm_min:g}: "
+                                 f"{exc.reason}") from exc
+
+    def check_machine(self, machine: MachineSet) -> None:
+        o = self.opts
+        for letter, centre in zip(o.axes, o.center_mm):
+            cfg = axis_config(machine, letter)
+            for sign, side in ((-1.0, "-"), (1.0, "+")):
+                check_travel(self, cfg, f"center_mm {side} radius_mm on axis {letter}",
+                             centre + sign * o.radius_mm)
+
+    def _plan(self) -> Profile:
+        """The path length s(t) over a full turn and the ramps (SI), one rest-to-rest
+        move; ProgramError when it would run longer than a program may."""
+        o = self.opts
+        r, v = o.radius_mm * MM, o.feed_mm_min * MM_MIN
+        lim = self.limits
+        ramp = v * v / lim.acceleration + (v * lim.acceleration / lim.jerk if lim.jerk else 0.0)
+        length = 2.0 * math.pi * r + 2.0 * ramp
+        return plan(Program("X", False, 0.0, (Block(BlockKind.MOVE, 1, 0.0, length, feed=v),)),
+                    lim)
 
     @property
     def curve(self) -> Curve:
@@ -89,12 +124,8 @@ class CircularityExperiment(Experiment):
     def _path(self, ipo_period_s: float) -> tuple[ProfileSamples, ProfileSamples]:
         """The two axes' IPO points (SI)."""
         o = self.opts
-        r, v = o.radius_mm * MM, o.feed_mm_min * MM_MIN
-        lim = self.limits
-        ramp = v * v / lim.acceleration + (v * lim.acceleration / lim.jerk if lim.jerk else 0.0)
-        length = 2.0 * math.pi * r + 2.0 * ramp
-        s = plan(Program("X", False, 0.0, (Block(BlockKind.MOVE, 1, 0.0, length, feed=v),)),
-                 lim).ipo_points(ipo_period_s)
+        r = o.radius_mm * MM
+        s = self._plan().ipo_points(ipo_period_s)
         sign = 1.0 if o.direction == "ccw" else -1.0
         phi = s.pos / r
         c, sn = np.cos(phi), np.sin(phi)

@@ -13,7 +13,9 @@ cores) or on the cluster of ``--scheduler``; results stream to ``DIR/results/`` 
 end ``DIR`` holds ``summary.json``, ``report.md`` and the figures; the report's tables
 are printed (``--json``: the summary).  Exit status 0; 1 when a sample failed (its
 reason is in the results and the report) or the cluster did (what finished is kept);
-2 for a bad study file; 130 when stopped by SIGINT or SIGTERM (the cluster is shut down,
+2 for a bad study file, and when every sample failed (one line on stderr with the first
+reason: the study as written gives nothing to report; the report is written all the
+same); 130 when stopped by SIGINT or SIGTERM (the cluster is shut down,
 what finished is kept).  Progress goes to stderr.
 """
 
@@ -82,6 +84,12 @@ def run_from_args(args: argparse.Namespace) -> int:
               f"results so far are in {out}: run the same command again to resume",
               file=sys.stderr)
         return 1
+    if result["samples"] and result["failed"] == result["samples"]:
+        first = result["failures"][0]
+        why = " ".join(first["status"].split())  # one line, whatever the exception said
+        print(f"hil study: every one of the {result['samples']} samples failed, sample "
+              f"{first['sample_id']}: {why}; report in {out / 'report.md'}", file=sys.stderr)
+        return 2
     if args.json:
         print(json.dumps(result, indent=1))
     else:

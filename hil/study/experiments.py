@@ -24,13 +24,16 @@ from hil.controller.blocks import lowpass2
 from hil.controller.config import load_controller
 from hil.controller.loops import PT2_DAMPING
 from hil.controller.path import parse_path_program
+from hil.controller.program import ProgramError, read_program_text
 from hil.measure.runs import bode, position_step, speed_step
 from hil.sim import MachineLockStep
 from hil.study.keys import StudySpecError, checked_section
 from hil.study.machine import MachineSource
 from hil.study.outputs import following_error_um, response_figures, step_metrics
 from plant.assemble import transmission_ratio
-from plant.config import MachineConfig
+from plant.config import MachineConfig, shown_name
+from plant.errors import ConfigError
+from plant.files import checked_name, shown_path
 from plant.machines import MachineSet
 from plant.schema import key
 
@@ -85,6 +88,12 @@ class Experiment(ABC):
     def check(self, study_dir: Path, machine: MachineSource | None) -> None:
         """Refuse options this machine cannot run (StudySpecError naming the key)."""
 
+    def check_machine(self, machine: MachineSet) -> None:
+        """Refuse options that leave every sample of this built machine empty (a table
+        position beyond its travel: StudySpecError naming the key, the value and the
+        travel); run on the nominal machine and on every corner of the parameters'
+        ranges before the study starts."""
+
     @property
     def curve(self) -> Curve | None:
         """The curve kept per sample (None: none)."""
@@ -112,7 +121,8 @@ def parse_experiment(cls: type, table: dict, where: str, study_dir: Path,
     for name in selected:
         if name not in cls.outputs:
             raise StudySpecError(f"{where}: [experiment] kind = '{cls.kind}' has no output "
-                                 f"'{name}' (its outputs: {', '.join(cls.outputs)})")
+                                 f"'{shown_name(name)}' (its outputs: "
+                                 f"{', '.join(cls.outputs)})")
     if cls.needs_machine and machine is None:
         raise StudySpecError(f"{where}: [experiment] kind = '{cls.kind}' needs [study] "
                              "machine (a machine file or manifest)")
@@ -138,6 +148,20 @@ def check_axis(exp: Experiment, machine: MachineSource, letter: str) -> None:
         raise StudySpecError(f"{exp.where}: [experiment] kind = '{exp.kind}' runs on screw "
                              "and linear axes (its options are in mm); "
                              f"{cfg.path} is a rotary table")
+
+
+def check_travel(exp: Experiment, cfg: MachineConfig, key: str, position_mm: float) -> None:
+    """Refuse a table position (mm, named ``key`` in the study file) outside the axis's
+    usable travel 0 .. [table] travel_m: the limit switches and the end stops sit just
+    beyond it, so the drive would fault on every sample.  A rotary table has no travel."""
+    if cfg.table is None:
+        return
+    travel_mm = cfg.table.travel_m / MM
+    if not 0.0 <= position_mm <= travel_mm:
+        raise StudySpecError(f"{exp.where}: [experiment] {key} = {position_mm:g} mm lies "
+                             f"outside the travel of {cfg.path}, 0 .. {travel_mm:g} mm "
+                             f"([table] travel_m = {cfg.table.travel_m:g} m): the axis would "
+                             "stand on its limit switches and every sample fail")
 
 
 def on_grid(t: np.ndarray, y: np.ndarray, grid: np.ndarray) -> np.ndarray:
@@ -169,6 +193,14 @@ class StepExperiment(Experiment):
 
     def check(self, study_dir: Path, machine: MachineSource | None) -> None:
         check_axis(self, machine, self.opts.axis)
+        self.check_machine(machine.build())
+
+    def check_machine(self, machine: MachineSet) -> None:
+        o = self.opts
+        cfg = axis_config(machine, o.axis)
+        check_travel(self, cfg, "at_mm", o.at_mm)
+        if o.loop == "position":
+            check_travel(self, cfg, "at_mm + amplitude_mm", o.at_mm + o.amplitude_mm)
 
     @property
     def curve(self) -> Curve:
@@ -223,6 +255,10 @@ class FrequencyResponseExperiment(Experiment):
         check_axis(self, machine, self.opts.axis)
         cfg = machine.configs().get(self.opts.axis) or next(iter(machine.configs().values()))
         self._dt = (1.0 / cfg.motor.pwm_frequency_hz) * load_controller(cfg).speed_cycle_ratio
+        self.check_machine(machine.build())
+
+    def check_machine(self, machine: MachineSet) -> None:
+        check_travel(self, axis_config(machine, self.opts.axis), "at_mm", self.opts.at_mm)
 
     @property
     def curve(self) -> Curve:
@@ -281,12 +317,12 @@ class ProgramExperiment(Experiment):
     def check(self, study_dir: Path, machine: MachineSource | None) -> None:
         for letter in machine.letters:
             check_axis(self, machine, letter if machine.manifest else "")
-        path = (study_dir / self.opts.program).resolve()
         try:
-            self.text = path.read_text()
-        except OSError as exc:
+            path = checked_name(study_dir / self.opts.program, "part program").resolve()
+            self.text = read_program_text(path)
+        except (ConfigError, ProgramError) as exc:
             raise StudySpecError(f"{self.where}: [experiment] program = "
-                                 f"'{self.opts.program}': cannot read {path}: {exc}") from exc
+                                 f"'{shown_path(self.opts.program)}': {exc}") from exc
         self.source = str(path)
         n = len(machine.letters)
         if self.opts.start_mm and len(self.opts.start_mm) != n:
@@ -294,13 +330,19 @@ class ProgramExperiment(Experiment):
                                  f"{list(self.opts.start_mm)}: one position (mm) per axis, "
                                  f"{n} axes")
         self.start = tuple(x * MM for x in self.opts.start_mm) or (0.0,) * n
-        ctrl = MachineLockStep(machine.build(), self.start).ctrl
+        built = machine.build()
+        self.check_machine(built)
+        ctrl = MachineLockStep(built, self.start).ctrl
         try:
             program = parse_path_program(self.text, ctrl.names, self.start, self.source,
                                          ctrl.clamp_codes)
+            self.profile_s = max(p.duration_s for p in ctrl.plan(program))
         except ValueError as exc:  # ProgramError is a ValueError
             raise StudySpecError(f"{self.where}: [experiment] program: {exc}") from exc
-        self.profile_s = max(p.duration_s for p in ctrl.plan(program))
+
+    def check_machine(self, machine: MachineSet) -> None:
+        for axis, x in zip(machine.axes, self.start):
+            check_travel(self, axis.config, f"start_mm of axis {axis.name}", x / MM)
 
     @property
     def curve(self) -> Curve:

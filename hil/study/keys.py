@@ -13,7 +13,7 @@ from dataclasses import dataclass, fields
 
 from hil.controller.config import ControllerSection, load_controller
 from hil.drive.config import DriveSection
-from plant.config import MachineConfig, build_section
+from plant.config import MachineConfig, build_section, shown_name
 from plant.errors import ConfigError
 from plant.sections import SECTIONS
 
@@ -84,12 +84,12 @@ def declared_field(section: str, key: str, where: str):
     """The dataclass field declaring ``[section] key``; StudySpecError when there is none."""
     cls = KEY_SECTIONS.get(section)
     if cls is None:
-        raise StudySpecError(f"{where}: no machine-file section [{section}] (sections: "
-                             f"{', '.join(KEY_SECTIONS)})")
+        raise StudySpecError(f"{where}: no machine-file section [{shown_name(section)}] "
+                             f"(sections: {', '.join(KEY_SECTIONS)})")
     declared = {f.name: f for f in fields(cls)}
     if key not in declared:
-        raise StudySpecError(f"{where}: unknown key [{section}] {key} (keys of [{section}]: "
-                             f"{', '.join(declared)})")
+        raise StudySpecError(f"{where}: unknown key [{section}] {shown_name(key)} (keys of "
+                             f"[{section}]: {', '.join(declared)})")
     return declared[key]
 
 
@@ -120,15 +120,16 @@ def key_ref(name: str, configs: dict[str, MachineConfig], where: str) -> KeyRef:
     parts = name.split(".")
     if "" in configs:
         if len(parts) != 2:
-            raise StudySpecError(f"{where}: parameter '{name}': a machine file's keys are "
-                                 "named section.key (e.g. table.mass_kg)")
+            raise StudySpecError(f"{where}: parameter '{shown_name(name)}': a machine file's "
+                                 "keys are named section.key (e.g. table.mass_kg)")
         axis, (section, key) = "", parts
     else:
         if len(parts) != 3 or parts[0] not in configs:
-            raise StudySpecError(f"{where}: parameter '{name}': a manifest's keys are named "
-                                 f"AXIS.section.key with AXIS one of {', '.join(configs)}")
+            raise StudySpecError(f"{where}: parameter '{shown_name(name)}': a manifest's keys "
+                                 f"are named AXIS.section.key with AXIS one of "
+                                 f"{', '.join(configs)}")
         axis, section, key = parts
-    label = f"{where}: parameter '{name}'"
+    label = f"{where}: parameter '{shown_name(name)}'"
     f = declared_field(section, key, label)
     kind = f.type if isinstance(f.type, str) else f.type.__name__
     if kind not in ("float", "int"):

@@ -16,7 +16,8 @@ from pathlib import Path
 
 import tomllib
 
-from plant.config import MachineConfig, parse_machine
+from plant.config import MAX_FILE_BYTES, MachineConfig, parse_machine, read_toml
+from plant.files import read_text
 from plant.machines import Axis, MachineSet, load_machine_set
 
 
@@ -78,6 +79,11 @@ class MachineSource:
         return {a.name: a.config for a in machine.axes}
 
 
+def _text(path: Path) -> str:
+    """A machine file's text, read as its loader reads it (:func:`plant.files.read_text`)."""
+    return read_text(path, "machine file", MAX_FILE_BYTES)
+
+
 def read_machine(path: Path) -> MachineSource:
     """Check ``path`` (machine file or manifest) with the project's loader and read its
     text; ConfigError as the loader words it."""
@@ -85,12 +91,12 @@ def read_machine(path: Path) -> MachineSource:
     if not machine.manifest:
         axis = machine.axes[0]
         return MachineSource(str(path), machine.name, machine.source, False,
-                             (AxisSource(axis.name, str(path), path.read_text(), {}),))
-    entries = tomllib.loads(path.read_text())["axis"]
+                             (AxisSource(axis.name, str(path), _text(path), {}),))
+    entries = read_toml(path)["axis"]
     axes = []
     for entry, axis in zip(entries, machine.axes, strict=True):
         file = (path.parent / entry["file"]).resolve()
-        axes.append(AxisSource(axis.name, str(file), file.read_text(),
+        axes.append(AxisSource(axis.name, str(file), _text(file),
                                copy.deepcopy(entry.get("overrides", {}))))
     return MachineSource(str(path), machine.name, machine.source, True, tuple(axes))
 

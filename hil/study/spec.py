@@ -62,8 +62,9 @@ from hil.study.keys import (
 )
 from hil.study.machine import MachineSource, read_machine
 from plant.assemble import build
-from plant.config import read_toml
+from plant.config import read_toml, shown_name
 from plant.errors import ConfigError
+from plant.files import checked_name, shown_path
 from plant.schema import key
 
 EXPERIMENTS = {cls.kind: cls for cls in (StepExperiment, FrequencyResponseExperiment,
@@ -195,8 +196,9 @@ def _flatten(table: dict, depth: int, where: str, section: str) -> list[tuple[st
     rows = []
     for name, sub in table.items():
         if not isinstance(sub, dict):
-            raise StudySpecError(f"{where}: [{section}] {name} = {sub!r}: expected a table "
-                                 f"[{section}.{name}.…] (parameters are named "
+            shown = shown_name(name)
+            raise StudySpecError(f"{where}: [{section}] {shown} = {sub!r}: expected a table "
+                                 f"[{section}.{shown}.…] (parameters are named "
                                  f"{'AXIS.section.key' if depth == 3 else 'section.key'})")
         rows += [(f"{name}.{k}", v) for k, v in _flatten(sub, depth - 1, where,
                                                         f"{section}.{name}")]
@@ -222,7 +224,7 @@ def _experiments(raw: dict, where: str, study_dir: Path, machine) -> tuple[Exper
     out = []
     for table in tables:
         kind = table.get("kind") if isinstance(table, dict) else None
-        if kind not in EXPERIMENTS:
+        if not isinstance(kind, str) or kind not in EXPERIMENTS:
             raise StudySpecError(f"{where}: [experiment] kind = {kind!r}: one of "
                                  f"{', '.join(EXPERIMENTS)}")
         out.append(parse_experiment(EXPERIMENTS[kind], table, where, study_dir, machine))
@@ -254,9 +256,10 @@ def _tuning(raw: dict, where: str, outputs: tuple[str, ...]) -> Tuning:
                 or set(limits) - {"min", "max"} or any(
                     isinstance(v, bool) or not isinstance(v, (int, float))
                     for v in limits.values())):
-            raise StudySpecError(f"{where}: [tuning.constraints] {name} = {limits!r}: an "
-                                 f"output of this study ({', '.join(outputs)}) = {{ min = "
-                                 "..., max = ... }, numbers in the output's unit")
+            raise StudySpecError(f"{where}: [tuning.constraints] {shown_name(name)} = "
+                                 f"{limits!r}: an output of this study "
+                                 f"({', '.join(outputs)}) = {{ min = ..., max = ... }}, "
+                                 "numbers in the output's unit")
         constraints.append(Constraint(name, limits.get("min"), limits.get("max")))
     settings = checked_section(TuningSection, table, where, "tuning")
     return Tuning(settings, tuple(goals), tuple(constraints))
@@ -264,7 +267,8 @@ def _tuning(raw: dict, where: str, outputs: tuple[str, ...]) -> Tuning:
 
 def _check_corners(spec: Study) -> None:
     """Build the machine with every parameter at each end of its range (the others as
-    written), as a worker will: a value the machine-file rules refuse is refused now."""
+    written), as a worker will: a value the machine-file rules refuse is refused now, and
+    so is one that leaves an experiment nothing to run (a position beyond the travel)."""
     if spec.machine is None:
         return
     refs = spec.parameters
@@ -276,6 +280,11 @@ def _check_corners(spec: Study) -> None:
                 for axis in machine.axes:
                     load_controller(axis.config)
                     build(axis.config)
+                for exp in spec.experiments:
+                    exp.check_machine(machine)
+            except StudySpecError as exc:  # an experiment this machine cannot run
+                raise StudySpecError(f"{exc} (with parameter '{ref.name}' = {value:g} "
+                                     f"{ref.unit}, an end of its range)") from exc
             except ConfigError as exc:
                 raise StudySpecError(f"{spec.path}: parameter '{ref.name}' = {value:g} "
                                      f"{ref.unit} (an end of its range) makes the machine "
@@ -306,7 +315,7 @@ def load_study(path: str | Path) -> Study:
         raise StudySpecError(str(exc)) from exc
     for name in raw:
         if name not in SECTIONS:
-            raise StudySpecError(f"{where}: unknown section [{name}] (sections: "
+            raise StudySpecError(f"{where}: unknown section [{shown_name(name)}] (sections: "
                                  f"{', '.join(SECTIONS)})")
     study = checked_section(StudySection, _table(raw, "study", where), where, "study")
     allowed = DESIGNS[study.method]
@@ -321,9 +330,11 @@ def load_study(path: str | Path) -> Study:
     machine = None
     if study.machine:
         try:
-            machine = read_machine((path.parent / study.machine).resolve())
+            machine = read_machine(checked_name(path.parent / study.machine,
+                                                "machine file").resolve())
         except ConfigError as exc:
-            raise StudySpecError(f"{where}: [study] machine = '{study.machine}': {exc}") from exc
+            raise StudySpecError(f"{where}: [study] machine = '{shown_path(study.machine)}': "
+                                 f"{exc}") from exc
     experiments = _experiments(raw, where, path.parent, machine)
     analytic = next((e for e in experiments if isinstance(e, AnalyticExperiment)), None)
     if analytic is not None and len(experiments) > 1:

@@ -205,6 +205,8 @@ def build(out: Path, study: Study, results: Results, tuning, run: dict) -> dict:
             figures.append(report.histograms(study, results, rows & results.ok,
                                              out / "histograms.png"))
             for i, values in results.curves.items():
+                if not np.isfinite(values[rows]).any():  # every sample failed: no band
+                    continue
                 info = manifest["curves"][f"curve_{i}"]
                 figures.append(report.curve_bands(study, info, values[rows], out /
                                                   f"curve_{i}.png"))
