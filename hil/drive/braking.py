@@ -72,13 +72,12 @@ def min_deceleration(max_speed: float) -> float:
     return top / RAMP_TIME_LIMIT_S if math.isfinite(top) else 0.0
 
 
-def reaction_deceleration(params, option: int, braking: bool = True) -> float:
+def reaction_deceleration(params, option: int) -> float:
     """The deceleration a braking reaction reaches at least, motor units/s²: the ramp of
     option code ``option`` (605Ah reduced to 1-4, or 605Eh: 1 slow down ramp 6084h, 2 quick
     stop ramp 6085h, 3 and 4 the current limit), no more than the current limit 6072h
-    gives; coasting on the friction alone for code 0 or a drive that cannot brake
-    (``braking`` False: no speed loop)."""
-    if not braking or option == 0:
+    gives; coasting on the friction alone for code 0."""
+    if option == 0:
         return params.coast_decel
     ramp = {1: params.profile_decel, 2: params.quick_stop_decel}.get(option, math.inf)
     return min(ramp, params.max_current_a * params.accel_per_amp)
@@ -102,19 +101,19 @@ def time_limit(ceiling: float, slope: float, delay_s: float, standstill: float) 
     return delay_s + (ceiling - standstill) / slope if slope > 0.0 else math.inf
 
 
-def stopping_distance(params, speed: float, option: int, braking: bool = True) -> float:
+def stopping_distance(params, speed: float, option: int) -> float:
     """The distance the axis runs from ``speed`` (motor units/s) until it stands, on
     option code ``option`` (:func:`reaction_deceleration`): ``speed`` for the drive's
     ``reaction_time_s``, then the braking distance; motor units (inf: it does not
     stop)."""
-    a = reaction_deceleration(params, option, braking)
+    a = reaction_deceleration(params, option)
     speed = abs(speed)
     if a <= 0.0:
         return math.inf if speed > 0.0 else 0.0
     return speed * params.reaction_time_s + speed * speed / (2.0 * a)
 
 
-def braking_room(params, braking: bool = True) -> list[tuple[str, float, float]]:
+def braking_room(params, braking: bool) -> list[tuple[str, float, float]]:
     """The sides where an axis at :func:`top_speed` would not stop on 605Eh before its
     next barrier: (side "min" or "max", room, distance needed), motor units; empty when
     every side has room, or the axis has no barriers, no top speed, or a drive that cannot
