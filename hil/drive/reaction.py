@@ -7,11 +7,11 @@ limit" (and at the voltage limit, which this drive treats the same) asks for zer
 once, so the speed controller brakes as hard as its current limit lets it.
 
 Every cycle :meth:`BrakeRamp.verdict` judges the speed actual against the envelope of
-:mod:`hil.drive.braking` (:func:`~hil.drive.braking.envelope`): the reaction is done when the reference has reached zero and the
-axis stands still; it has *failed* when the speed is above the envelope (the axis does not
-slow down: a load pushing it, a current limit too low for the ramp, a drive loop that does
-not answer), which includes not standing still once the envelope has fallen to the
-standstill speed.  The drive then inhibits the pulses (:mod:`hil.drive.core`).
+:mod:`hil.drive.braking` (:func:`~hil.drive.braking.envelope`): the reaction is done when
+the reference has reached zero and the axis stands still; it has *failed* when the speed
+is above the envelope (the axis does not slow down: a load pushing it, a current limit too
+low for the ramp, a drive loop that does not answer), which includes not standing still
+once the envelope has fallen to the standstill speed.  The drive then inhibits the pulses (:mod:`hil.drive.core`).
 """
 
 import math
