@@ -50,6 +50,10 @@ LINK_HEARTBEAT_LOST = 1  # the controller's heartbeat is overdue
 LINK_STOPPED = 2         # the controller stopped the node's communication
 LINK_RESET = 4           # the controller reset the node (an event, reported once)
 
+#: notices an endpoint keeps for its caller (:attr:`Endpoint.notices`); later ones are
+#: dropped until the caller takes them (the counters keep the count)
+MAX_NOTICES = 64
+
 _REFUSAL_COUNTERS = {REFUSED_NONFINITE: "refused_nonfinite", REFUSED_MODE: "refused_mode",
                      REFUSED_RANGE: "refused_range"}
 
@@ -110,8 +114,12 @@ class AdapterStats:
             (:attr:`Endpoint.setpoint_bounds`).
         refused_range: setpoints dropped for a value beyond the drive's bound.
         duplicates: frames dropped because they repeated the last sequence number.
-        out_of_order: frames dropped because they were older than the last accepted one.
+        out_of_order: frames dropped because they were older than the last accepted one,
+            or jumped far from it (msgpack transports: the sequence rule of
+            :mod:`io_adapters.msgpack_endpoint`).
         lost: frames missing between accepted sequence numbers.
+        resyncs: times the sequence check followed the peer's frame numbers after a jump
+            (msgpack transports; not a frame counter).
         peer_restarts: times the peer's session changed (the device: a handshake took the
             link over for a new session; the controller: the device was reopened).
         foreign: frames dropped because they came from someone other than the peer (a
@@ -125,6 +133,11 @@ class AdapterStats:
             :attr:`Endpoint.injections`).
         send_dropped: messages not sent because the transport had no room (a full socket
             buffer, a serial peer that does not read): the loop never waits for a peer.
+        rx_limited: receive calls that stopped at the endpoint's receive budget with
+            datagrams still queued (UDP: :attr:`io_adapters.udp.UdpEndpoint.rx_budget`).
+        rx_dropped: datagrams the kernel dropped at the socket before the endpoint read
+            them: the flood filter's, and those a full receive buffer had no room for (UDP
+            device, read during a flood and when it closes; not in ``frames``).
         bytes_sent, bytes_received: encoded message bytes, transport framing excluded.
         bytes_skipped: stream bytes discarded while looking for a start of frame.
     """
@@ -140,12 +153,15 @@ class AdapterStats:
     duplicates: int = 0
     out_of_order: int = 0
     lost: int = 0
+    resyncs: int = 0
     peer_restarts: int = 0
     foreign: int = 0
     stale_session: int = 0
     handshakes: int = 0
     injections: int = 0
     send_dropped: int = 0
+    rx_limited: int = 0
+    rx_dropped: int = 0
     bytes_sent: int = 0
     bytes_received: int = 0
     bytes_skipped: int = 0
@@ -167,6 +183,9 @@ class Endpoint(ABC):
         injections: device side, the fault-injection requests received
             (:class:`~io_adapters.messages.InjectRequest`), in order; the caller takes
             them and clears the list.
+        notices: what the link noticed that its counters alone do not tell (a flood
+            held off, frame numbers resynchronised), as (kind, text) pairs in order,
+            each kind at most a few a second; the caller takes them and clears the list.
     """
 
     def __init__(self, role: Role | str, *, drain: bool = False):
@@ -175,6 +194,7 @@ class Endpoint(ABC):
         self.stats = AdapterStats()
         self.refused_axes = 0
         self.injections: list[InjectRequest] = []
+        self.notices: list[tuple[str, str]] = []
         self._setpoint_bounds = (SetpointBounds(),)
         self._closed = False
         self._sp_t_ns = 0   # device side: t_ns and arrival time of the latest setpoint
@@ -320,6 +340,11 @@ class Endpoint(ABC):
             raise AdapterError(f"{self!r}: receive failed: {e}") from e
         into.rx_ns = time.monotonic_ns()
         return True
+
+    def _notice(self, kind: str, text: str) -> None:
+        """Add a notice (:attr:`notices`), unless :data:`MAX_NOTICES` are waiting."""
+        if len(self.notices) < MAX_NOTICES:
+            self.notices.append((kind, text))
 
     def _refuse(self, axes: int, reason: int) -> None:
         """Count one refused message in its reason's counter (``REFUSED_*``) and add

@@ -105,8 +105,9 @@ kind, element types and integer ranges raises :class:`FrameError`.  NaN and infi
 floats decode (they are well-formed); the receiving endpoint refuses them, and setpoints
 beyond the drive's bounds, as values: counted apart from malformed frames
 (``stats.refused_*``), dropped whole (:class:`~io_adapters.messages.SetpointBounds`).  The
-receiver uses session and frame to drop duplicates and older frames and to count lost
-ones.
+receiver uses session and frame to drop duplicates, late frames and jumps and to count
+lost ones, and follows a jump that the next frame continues (the sequence rule of
+:mod:`io_adapters.msgpack_endpoint`, after RFC 3550's).
 """
 
 import math

@@ -17,7 +17,8 @@ in exactly one of the counters below, checked in this order:
    it is ``stale_session``, with a NaN or infinite number ``refused_nonfinite``.
 4. ``stale_session`` (device): another session than the pinned one.  A controller takes a
    new session of its device as the device reopened (``peer_restarts``).
-5. ``duplicates``, ``out_of_order``: the frame number repeats or goes back.
+5. ``duplicates``, ``out_of_order``: the frame number repeats, goes back, or jumps (the
+   sequence rule below).
 6. ``refused_nonfinite``, ``refused_mode``, ``refused_range``: a NaN or infinite float
    (setpoints and feedback), or a setpoint its axis's
    :attr:`~io_adapters.base.Endpoint.setpoint_bounds` does not take.  The message is
@@ -30,6 +31,26 @@ in exactly one of the counters below, checked in this order:
 The device pins the first peer whose well-formed setpoint or HELLO it receives; a frame
 of that peer that passes 5 (taken or refused) or an accepted HELLO counts as hearing from
 it, for ``takeover_ms``.
+
+**The sequence rule** (RFC 3550's, appendix A.1, with windows of our own), on the frame
+number of the peer's session against the last one that passed 5:
+
+* 1 to :data:`MAX_DROPOUT` ahead: in sequence; the frames in between count as ``lost``;
+* the same number: ``duplicates``; 1 to :data:`MAX_MISORDER` behind: a late frame,
+  ``out_of_order``;
+* anything else is a *jump* (far ahead, or far behind), dropped as ``out_of_order`` and
+  remembered: if the very next frame of the session continues it (its number is the
+  jump's plus one), the check resynchronises to that frame (``resyncs``, a notice), which
+  passes 5 as if in sequence (nothing counted lost).  Two frames in sequence are needed
+  because one is not enough to tell a peer that restarted its count from a stray or
+  forged frame: a single frame far ahead, repeated from an old run or forged, costs the
+  peer nothing, and its following frames are taken; a peer whose count did jump (frames
+  lost beyond the window) loses one frame.  A frame taken in sequence forgets the jump.
+
+A frame forged from the peer's address and session J frames ahead (J up to
+``MAX_DROPOUT``) is taken; the peer's own next frames are then late, or a jump: J of them
+are dropped for J up to ``MAX_MISORDER`` + 1, one otherwise (the check follows the peer
+back at the frame after it).  A HELLO that pins a new peer starts the check afresh.
 """
 
 import math
@@ -70,6 +91,18 @@ from io_adapters.messages import (
 #: how long a pinned controller must have been silent before a HELLO of another one
 #: takes the device over, ms (URL option ``takeover_ms``)
 DEFAULT_TAKEOVER_MS = 500.0
+#: the sequence rule's windows (module docstring), frames: the most a frame may be ahead
+#: of the last one and be in sequence (frames lost in between: 4 s of an 8 kHz
+#: controller's), and the most it may be behind and be a late frame rather than a jump
+#: (a forged frame just ahead costs the peer at most this many frames plus one: 33 ms of
+#: a 1 kHz controller's, a third of the emulator's default watchdog)
+MAX_DROPOUT = 2**15
+MAX_MISORDER = 32
+#: the first bytes a HELLO can start with: a msgpack array of 4 (fixarray, array 16 or
+#: array 32); a stranger's datagram starting otherwise is foreign without decoding it
+HELLO_LEADS = frozenset((0x94, 0xDC, 0xDD))
+#: resynchronisations noticed at most once in this long (the counter has every one), ns
+NOTICE_GAP_NS = 1_000_000_000
 
 
 class MsgpackEndpoint(Endpoint):
@@ -92,8 +125,8 @@ class MsgpackEndpoint(Endpoint):
     ``_recv_bytes(timeout_s) -> bytes | None`` (one message, or None if none came in
     ``timeout_s``; returning None early is allowed; it sets ``self._origin`` to where the
     message came from, if the transport has addresses), ``_close()`` and optionally
-    ``_fileno()`` and ``_admissible(origin)``; a controller calls :meth:`_greet` once
-    its transport is open.
+    ``_fileno()``, ``_admissible(origin)`` and ``_exhausted()``; a controller calls
+    :meth:`_greet` once its transport is open.
     """
 
     def __init__(self, role: Role | str, *, drain: bool = False,
@@ -111,6 +144,8 @@ class MsgpackEndpoint(Endpoint):
         self._peer_origin = None   # the peer's (device: pinned; controller: the device's)
         self._peer_session = None  # the peer's session (device: pinned; None: no peer yet)
         self._peer_frame = 0       # the peer's latest frame number
+        self._after_jump = None    # the frame number that would continue a jump dropped
+        self._resync_noticed_ns = None  # when a resynchronisation was last noticed
         self._heard_ns = 0         # device: when the pinned peer last sent something valid
         self._hello_ns = None      # controller: when the latest HELLO went out
 
@@ -161,6 +196,8 @@ class MsgpackEndpoint(Endpoint):
             data = self._recv_bytes(wait)
             if data is not None and self._accept(data, into):
                 return True
+            if data is None and self._exhausted():
+                return False
             if deadline is not None:
                 if data is None and wait <= 0.0:
                     return False
@@ -203,7 +240,8 @@ class MsgpackEndpoint(Endpoint):
     def _from_stranger(self, data: bytes | memoryview, origin) -> None:
         """A message from someone other than the peer: foreign, unless it is a HELLO
         to a device from an admissible origin."""
-        if self._device and self._admissible(origin):
+        if self._device and len(data) and data[0] in HELLO_LEADS \
+                and self._admissible(origin):
             try:
                 values = decode_hello(data)
             except FrameError:
@@ -251,6 +289,7 @@ class MsgpackEndpoint(Endpoint):
                 self._peer_session, self._peer_origin = session, origin
                 # a HELLO does not advance its sender's counter: the next frame has its number
                 self._peer_frame = (values[3] - 1) & U32
+                self._after_jump = None
             self._heard_ns = now
             self.stats.handshakes += 1
             accepted = True
@@ -275,14 +314,36 @@ class MsgpackEndpoint(Endpoint):
             if ahead == 0:
                 stats.duplicates += 1
                 return False
-            if ahead > U32 // 2:
+            if ahead <= MAX_DROPOUT:
+                stats.lost += ahead - 1
+            elif ahead >= U32 + 1 - MAX_MISORDER:  # a late frame
                 stats.out_of_order += 1
                 return False
-            stats.lost += ahead - 1
+            elif frame != self._after_jump:  # a jump: taken only if the next frame follows
+                self._after_jump = (frame + 1) & U32
+                stats.out_of_order += 1
+                return False
+            else:
+                self._resynchronised(frame)
+        self._after_jump = None
         self._peer_frame = frame
         if self._device:
             self._heard_ns = time.monotonic_ns()
         return True
+
+    def _resynchronised(self, frame: int) -> None:
+        """Count a resynchronisation to ``frame`` and notice it (at most once in
+        :data:`NOTICE_GAP_NS`)."""
+        self.stats.resyncs += 1
+        now = time.monotonic_ns()
+        if self._resync_noticed_ns is None or now - self._resync_noticed_ns >= NOTICE_GAP_NS:
+            self._resync_noticed_ns = now
+            self._notice(
+                "frames resynchronised",
+                f"the peer's frame numbers jumped from {self._peer_frame} to "
+                f"{(frame - 1) & U32} and went on from there: the sequence check follows "
+                f"them ({self.stats.resyncs} resynchronisation(s) so far; at most one "
+                f"notice a second)")
 
     def _refused(self, values: tuple, into: Setpoint | SetpointGroup) -> bool:
         """Device: True (and counted) if the setpoint's bounds refuse any axis of it."""
@@ -314,6 +375,11 @@ class MsgpackEndpoint(Endpoint):
         """Whether a message from ``origin`` may be considered at all (UDP: loopback or
         ``allow_remote``)."""
         return True
+
+    def _exhausted(self) -> bool:
+        """The receive call may read no more messages (UDP: its budget is spent), so a
+        wait would be for nothing."""
+        return False
 
     @abstractmethod
     def _send_bytes(self, payload: bytes, to) -> bool:

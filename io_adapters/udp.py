@@ -26,6 +26,17 @@ Options:
   how long the pinned controller must have been silent before another one's HELLO is
   accepted, default 500 ms.
 
+A receive call (``recv_setpoint``, ``recv_feedback``) reads at most
+:attr:`UdpEndpoint.rx_budget` datagrams from the socket (None, the default: no bound; ``hil
+run`` sets it from its ``--rx-share`` of the period) and leaves the rest queued there for
+the next call: a call that stops at the budget with datagrams left is counted in
+``stats.rx_limited`` and, on a device, starts a flood episode
+(:mod:`io_adapters.udp_flood`: while strangers flood a pinned controller that is still
+talking, the kernel drops all but its datagrams).  A receive call decodes at most one
+stranger's datagram, the first that may be a HELLO (its first byte a msgpack array's of
+4): every other one is counted foreign on its address alone (a further HELLO in the same
+call is neither taken nor answered; its sender repeats it).
+
 The socket is non-blocking; waits use ``select``, which keeps microsecond timeouts
 (``poll`` rounds up to milliseconds); a send that finds the socket buffer full
 (``BlockingIOError``, ``ENOBUFS``) drops the datagram, counts ``stats.send_dropped`` and
@@ -70,7 +81,8 @@ from io_adapters.base import (
     positive_float,
     positive_int,
 )
-from io_adapters.msgpack_endpoint import DEFAULT_TAKEOVER_MS, MsgpackEndpoint
+from io_adapters.msgpack_endpoint import DEFAULT_TAKEOVER_MS, HELLO_LEADS, MsgpackEndpoint
+from io_adapters.udp_flood import FloodGuard
 
 #: receive buffer, bytes: far above any message (about 100 bytes)
 MAX_DATAGRAM = 2048
@@ -85,6 +97,13 @@ TIMESPEC = struct.Struct("@ll")
 OFFSET_REFRESH_NS = 1_000_000_000
 #: readings per offset measurement; the narrowest bracket is kept
 OFFSET_TRIES = 5
+#: what reading one stranger's datagram that is not decoded costs a receive call, CPU
+#: ns: 2.8 µs in the Python path, 2.5 µs in the compiled tick's read (with the poll
+#: that looks for more), on the 2-vCPU VM of docs/platform-notes.md (2026-11); the unit
+#: of :func:`rx_budget_for`
+DATAGRAM_COST_NS = 3000
+#: the smallest receive budget :func:`rx_budget_for` gives: a setpoint and one more
+MIN_RX_BUDGET = 2
 
 
 def host_port(text: str) -> tuple[str, int]:
@@ -93,6 +112,15 @@ def host_port(text: str) -> tuple[str, int]:
     if not sep or not host or not port.isdigit() or int(port) > 65535:
         raise ValueError(f"{text!r} is not HOST:PORT")
     return host.strip("[]"), int(port)
+
+
+def rx_budget_for(share: float, period_ns: int) -> int:
+    """The receive budget (:attr:`UdpEndpoint.rx_budget`) that lets a flood of strangers'
+    datagrams take at most ``share`` of a period of ``period_ns``: that time in
+    :data:`DATAGRAM_COST_NS`, at least :data:`MIN_RX_BUDGET` (10 at 8 kHz with a quarter
+    of the period).  The call also decodes at most one stranger's datagram (a HELLO and
+    its answer: about 10 µs) and the peer's own (about 6 µs each in the Python path)."""
+    return max(MIN_RX_BUDGET, int(share * period_ns) // DATAGRAM_COST_NS)
 
 
 def _sockaddr(host: str, port: int) -> tuple[int, tuple]:
@@ -157,6 +185,10 @@ class UdpEndpoint(MsgpackEndpoint):
         drain: see :class:`~io_adapters.base.Endpoint`.
         rcvbuf: SO_RCVBUF in bytes (None: the system default).
         takeover_ms: see :class:`~io_adapters.msgpack_endpoint.MsgpackEndpoint`.
+
+    Attributes:
+        rx_budget: the most datagrams one receive call reads from the socket (None: no
+            bound; see the module docstring); set it before the first receive.
     """
 
     def __init__(self, role: Role | str, address: tuple[str, int], *,
@@ -194,6 +226,12 @@ class UdpEndpoint(MsgpackEndpoint):
         # read and handed back (io_adapters.udp_steady), oldest first: the next receives
         # return them first
         self._stash: list[tuple | OSError] = []
+        self.rx_budget: int | None = None
+        # datagrams the current receive call may still read from the socket (< 0: it
+        # stopped at the budget), its start's foreign count, and whether the compiled
+        # tick's read (io_adapters.udp_steady) began the call the next receive continues
+        self._left, self._foreign_at, self._continued = sys.maxsize, 0, False
+        self._hello_looked = False  # the call decoded a stranger's datagram already
         self._buf = bytearray(MAX_DATAGRAM)
         self._bufs = (self._buf,)
         self._view = memoryview(self._buf)
@@ -208,6 +246,7 @@ class UdpEndpoint(MsgpackEndpoint):
             raise AdapterError(f"cannot bind UDP {local[0]}:{local[1]}: {e}") from e
         self._clock = self._kernel_stamps_on()
         self._ancillary = socket.CMSG_SPACE(TIMESPEC.size) if self._clock else 0
+        self._flood = FloodGuard(self._sock, self.stats, self._notice) if device else None
         self._greet()
 
     def _kernel_stamps_on(self) -> RealtimeToMonotonic | None:
@@ -283,15 +322,75 @@ class UdpEndpoint(MsgpackEndpoint):
             return False
         return True
 
+    def _begin_receive(self) -> None:
+        """A receive call starts: its budget, and the flood episode's watch; unless it
+        continues the compiled tick's read, which began it."""
+        if self._continued:
+            self._continued = False
+            return
+        self._left = self.rx_budget if self.rx_budget is not None else sys.maxsize
+        self._foreign_at, self._hello_looked = self.stats.foreign, False
+        flood = self._flood
+        if flood is not None and flood.active:
+            now = time.monotonic_ns()
+            flood.watch(now, self._peer_origin, self._peer_fresh(now))
+
+    def _peer_fresh(self, now_ns: int) -> bool:
+        """A device's pinned peer has been heard within ``takeover_ms``."""
+        return self._peer_session is not None and now_ns - self._heard_ns < self._takeover_ns
+
+    def _at_budget(self) -> None:
+        """The call has read its budget: if datagrams are still queued, count it and
+        tell the flood episode (once per call)."""
+        self._left = -1
+        if not select.select((self._sock,), (), (), 0.0)[0]:
+            return
+        self.stats.rx_limited += 1
+        if self._flood is not None:
+            now = time.monotonic_ns()
+            self._flood.limited(now, self.rx_budget, self._peer_origin, self._peer_fresh(now),
+                                self.stats.foreign > self._foreign_at)
+
+    def _exhausted(self) -> bool:
+        return self._left <= 0 and not self._stash
+
+    def _from_stranger(self, data, origin) -> None:
+        """The base class's judgement of the call's first stranger's datagram that may be
+        a HELLO; any other one is foreign at once (module docstring)."""
+        if self._hello_looked:
+            self.stats.foreign += 1
+            return
+        self._hello_looked = self._may_be_hello(data)
+        super()._from_stranger(data, origin)
+
+    def _may_be_hello(self, data) -> bool:
+        """A stranger's datagram this call would decode as a possible HELLO."""
+        return (not self._hello_looked and len(data) > 0
+                and data[0] in HELLO_LEADS)
+
+    def _foreign_datagram(self, n: int) -> None:
+        """Count a stranger's datagram of ``n`` bytes that this call does not decode, as
+        :meth:`_accept` counts it (for the compiled tick's read)."""
+        st = self.stats
+        st.frames += 1
+        st.bytes_received += n
+        st.foreign += 1
+
     def _recv_bytes(self, timeout_s: float | None) -> memoryview | None:
         if self._stash:
             return self._unstash()
+        if self._left <= 0:
+            if self._left == 0:
+                self._at_budget()
+            return None
         sock = self._sock
         if timeout_s != 0.0 and not select.select((sock,), (), (), timeout_s)[0]:
             return None
+        self._left -= 1
         try:
             n, ancillary, _, addr = sock.recvmsg_into(self._bufs, self._ancillary)
         except BlockingIOError:
+            self._left += 1
             return None
         self._origin = addr
         self._from_ns = self._kernel_ns(ancillary)
@@ -324,8 +423,9 @@ class UdpEndpoint(MsgpackEndpoint):
         return ok
 
     def _receive(self, into, timeout_s: float | None) -> bool:
-        """The base class's receive, then ``into.rx_ns`` = the kernel's stamp of the
-        record kept (the newest, when draining) if it had one."""
+        """The base class's receive within the call's budget, then ``into.rx_ns`` = the
+        kernel's stamp of the record kept (the newest, when draining) if it had one."""
+        self._begin_receive()
         if not super()._receive(into, timeout_s):
             return False
         if self._arrival_ns:
@@ -333,6 +433,8 @@ class UdpEndpoint(MsgpackEndpoint):
         return True
 
     def _close(self) -> None:
+        if self._flood is not None:
+            self._flood.close()
         self._sock.close()
 
     def _fileno(self) -> int:

@@ -4,13 +4,18 @@
 keeps them.
 
 :meth:`SteadyLink.receive` reads every datagram queued for the tick (up to
-:data:`MAX_QUEUED`) into buffers of its own and offers them to the compiled tick only in
-the common cases: a device whose peer is pinned, and the datagrams all from that peer
-(the newest is applied, the older ones are taken and superseded, as the endpoint's drain
-does), or none (a silent tick).  Anything else -- more than :data:`MAX_QUEUED`, a
-stranger's datagram, a receive error -- and any datagrams the compiled tick then declines
-(:meth:`SteadyLink.decline`) are handed back to the endpoint, whose next receives return
-them first, so the Python path counts, judges and takes them exactly as if the compiled
+:data:`MAX_QUEUED`, and within the endpoint's receive budget,
+:attr:`~io_adapters.udp.UdpEndpoint.rx_budget`) into buffers of its own and offers them
+to the compiled tick only in the common cases: a device whose peer is pinned, and the
+datagrams all from that peer (the newest is applied, the older ones are taken and
+superseded, as the endpoint's drain does), or none (a silent tick).  A stranger's datagram
+that the endpoint would not decode (:meth:`~io_adapters.udp.UdpEndpoint._may_be_hello`)
+is counted foreign there and then, as the endpoint counts it, and its buffer reused.
+Anything else -- more than :data:`MAX_QUEUED`, the budget spent with datagrams still
+queued, a stranger's datagram that may be a HELLO, a receive error -- and any datagrams
+the compiled tick then declines (:meth:`SteadyLink.decline`) are handed back to the
+endpoint, whose next receives return them first and go on within what is left of the
+same budget, so the Python path counts, judges and takes them exactly as if the compiled
 tick had never looked.  After a tick that took them, :meth:`SteadyLink.take` counts them
 as :meth:`~io_adapters.msgpack_endpoint.MsgpackEndpoint._accept` and the drain would
 (frames, bytes, lost, received, drained; the peer's frame and last-heard time) and
@@ -97,23 +102,40 @@ class SteadyLink:
         ep = self.endpoint
         if ep._peer_session is None or ep._stash:
             return -1
-        link, got = self.link, self._datagrams
-        sock, ancillary, peer = ep._sock, ep._ancillary, ep._peer_origin
-        for slot in self._slots:
+        ep._begin_receive()
+        link, got, slots = self.link, self._datagrams, self._slots
+        sock, ancillary, peer, poll = ep._sock, ep._ancillary, ep._peer_origin, self._poll
+        left = ep._left  # the call's budget, written back before anything else reads it
+        while left > 0:
+            i = len(got)
+            if i == MAX_QUEUED:
+                ep._left = left
+                self.decline()
+                return -1
             try:
-                n, anc, _, origin = sock.recvmsg_into(slot, ancillary)
+                n, anc, _, origin = sock.recvmsg_into(slots[i], ancillary)
             except BlockingIOError:
                 break
             except OSError as e:
+                left -= 1
                 got.append(e)
                 break
-            link[L_LENGTHS + len(got)] = n
-            got.append((n, origin, ep._kernel_ns(anc)))
-            if origin != peer or not self._poll.poll(0):
+            left -= 1
+            if origin != peer and not ep._may_be_hello(slots[i][0][:n]):
+                ep._foreign_datagram(n)
+            else:
+                link[L_LENGTHS + i] = n
+                got.append((n, origin, ep._kernel_ns(anc)))
+                if origin != peer:
+                    break
+            if not poll.poll(0):
                 break
-        else:  # more than MAX_QUEUED
-            self.decline()
-            return -1
+        else:  # the budget spent: the endpoint's receive stops there and counts it
+            if poll.poll(0):
+                ep._left = left
+                self.decline()
+                return -1
+        ep._left = left
         if got:
             if isinstance(got[-1], OSError) or got[-1][1] != peer:
                 self.decline()
@@ -126,7 +148,9 @@ class SteadyLink:
         return len(got)
 
     def decline(self) -> None:
-        """Hand the datagrams :meth:`receive` read back to the endpoint."""
+        """Hand the datagrams :meth:`receive` read back to the endpoint, whose next
+        receive goes on within the same budget."""
+        self.endpoint._continued = True
         self.endpoint._stash.extend(
             d if isinstance(d, OSError) else (*d, self.bufs[i, :d[0]].tobytes())
             for i, d in enumerate(self._datagrams))

@@ -48,6 +48,7 @@ from io_adapters import (
     registry,
     udp,
 )
+from io_adapters.msgpack_endpoint import MAX_DROPOUT, MAX_MISORDER
 from io_adapters.serial_link import frame
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -222,6 +223,54 @@ def test_frame_counter_wraps(make_link):
     assert link.device.recv_setpoint(sp, WAIT_S) and sp.seq == 1
     assert link.device.recv_setpoint(sp, WAIT_S) and sp.seq == 2
     assert (link.device.stats.lost, link.device.stats.out_of_order) == (0, 0)
+
+
+def _taken(link, frames_values) -> list[float]:
+    """Inject setpoints (frame number, iq_ref_a) from the peer as the controller; the
+    values the device took, in order."""
+    link.inject([setpoint_msg(link.session, f & codec.U32, iq_ref_a=v)
+                 for f, v in frames_values])
+    got, sp = [], Setpoint()
+    while link.device.recv_setpoint(sp, WAIT_S if not got else QUIET_S):
+        got.append(sp.iq_ref_a)
+    return got
+
+
+def test_one_frame_far_ahead_costs_the_peer_nothing(link):
+    """A frame of the peer's session 100 000 ahead (forged from its address, or a stray
+    of an old run) is dropped, and the peer's own next frames are taken: one frame is
+    no reason to follow a jump (issue 27 item 8)."""
+    got = _taken(link, [(0, 1.0), (100_000, 9.0), (1, 2.0), (2, 3.0), (3, 4.0)])
+    s = link.device.stats
+    assert got == [1.0, 2.0, 3.0, 4.0]
+    assert (s.out_of_order, s.resyncs, s.lost, s.received) == (1, 0, 0, 4)
+    assert link.device.notices == []
+    assert_counts_add_up(s, frames=6)
+
+
+def test_two_frames_in_sequence_after_a_jump_resynchronise(link):
+    """A peer whose count jumped (frames lost beyond MAX_DROPOUT, or forward or back)
+    loses the first frame after the jump; the second continues it, and the check
+    follows: the frames after it are taken, a notice says so.  The peer's own count
+    coming back is a jump too, followed the same way."""
+    far = MAX_DROPOUT + 1
+    got = _taken(link, [(0, 1.0), (far, 9.0), (far + 1, 2.0), (far + 2, 3.0),
+                        (1, 8.0), (2, 4.0), (3, 5.0), (-50, 7.0), (-49, 6.0)])
+    s = link.device.stats
+    assert got == [1.0, 2.0, 3.0, 4.0, 5.0, 6.0]
+    assert (s.out_of_order, s.resyncs, s.lost, s.received) == (3, 3, 0, 6)
+    assert [kind for kind, _ in link.device.notices] == ["frames resynchronised"]  # 1/s
+    assert_counts_add_up(s, frames=10)
+
+
+def test_late_frames_within_the_window_stay_dropped(link):
+    """Frames up to MAX_MISORDER behind are late, dropped without resynchronising even
+    when two follow each other; a gap up to MAX_DROPOUT ahead is frames lost."""
+    got = _taken(link, [(0, 1.0), (-MAX_MISORDER, 9.0), (1 - MAX_MISORDER, 9.0),
+                        (1, 2.0), (1 + MAX_DROPOUT, 3.0)])
+    s = link.device.stats
+    assert got == [1.0, 2.0, 3.0]
+    assert (s.out_of_order, s.resyncs, s.lost) == (2, 0, MAX_DROPOUT - 1)
 
 
 def _replace(message: bytes, index: int, value) -> bytes:

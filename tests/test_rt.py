@@ -19,7 +19,7 @@ from hil.bench import loop as bench_loop
 from hil.rt import scheduling
 from hil.rt.clock import MAX_SPIN_FRACTION, MonotonicClock, SimulatedClock
 from hil.rt.cyclictest import CyclictestError, parse_histogram, run_cyclictest
-from hil.rt.loop import SKIPPED, OverrunPolicy, Percentiles, RealTimeLoop
+from hil.rt.loop import SKIPPED, OverrunPolicy, Percentiles, RealTimeLoop, Stall
 from hil.rt.scheduling import SchedulingRequest, last_cpu, realtime_scheduling
 
 P = 100_000  # simulated period, ns
@@ -105,6 +105,21 @@ def test_skip_policy_at_the_end_counts_only_deadlines_within_the_run():
     assert (stats.skipped, stats.ticks, stats.stopped_by) == (1, 9, "completed")
 
 
+@pytest.mark.parametrize("action", ["count", "stop"])
+def test_a_stall_resumes_at_the_present_deadline_whatever_the_policy(action):
+    """A step of 10.5 periods at tick 3 misses 10 deadlines, at least resume_after = 5:
+    a stall, logged; the loop goes on at tick 14 without running 4..13.  A step of 3.5
+    periods at tick 20 misses 3, fewer: the count policy works them off late as before."""
+    policy = OverrunPolicy(action, stop_after=10, resume_after=5)
+    loop, _, called = simulated_loop(40, {3: 21 * P // 2, 20: 7 * P // 2}, policy)
+    stats = loop.run()
+    assert called == [0, 1, 2, 3] + list(range(14, 40))
+    assert (stats.stalls, stats.skipped, stats.overruns) == (1, 10, 4)
+    assert loop.stall_log == [Stall(3, 10, 19 * P // 2)]
+    assert stats.lateness_ns[4] == SKIPPED and stats.lateness_ns[14] == 0
+    assert stats.lateness_ns[21:25].tolist() == [5 * P // 2, 3 * P // 2, P // 2, 0]
+
+
 def test_stop_policy_stops_after_n_overruns_outside_the_grace_period():
     """Overruns at ticks 1 and 3 fall in the grace period (5 ticks) and do not count
     towards stop_after=2 although there are two; those at 8 and 12 do."""
@@ -142,7 +157,7 @@ def test_record_buffers_are_preallocated_and_reused():
 
 
 @pytest.mark.parametrize("kwargs", [{"action": "drop"}, {"stop_after": 0},
-                                    {"grace_ticks": -1}])
+                                    {"grace_ticks": -1}, {"resume_after": 0}])
 def test_bad_overrun_policy_is_refused(kwargs):
     with pytest.raises(ValueError):
         OverrunPolicy(**kwargs)

@@ -55,7 +55,12 @@ XY_PATH = CONFIGS / "machines" / "arrow500_xy.toml"
 STAMPS = ("t_ns", "sp_t_ns", "sp_rx_ns", "tick_ns", "rx_ns")
 #: the traffic of several datagrams in one tick
 MULTIPLE = ("garbage", "stranger", "hello", "inject", "queued", "queued3", "flood",
-            "then_garbage", "then_repeat", "range_then_good")
+            "then_garbage", "then_repeat", "range_then_good", "junk_flood", "junk_more",
+            "hellos", "forged_jump", "forged_pair")
+#: a stranger's junk: not a msgpack array of 4, so foreign on its first byte
+JUNK = b"\x01" + bytes(59)
+#: how far ahead a forged frame of the controller's own session is (issue 27 item 8)
+FORGED_AHEAD = 100_000
 #: the recording's clock columns
 CLOCK_COLUMNS = ("tick_start_ns", "sp_t_ns", "sp_rx_ns", "fb_t_ns")
 
@@ -125,6 +130,18 @@ class WireTwin:
         elif kind in ("queued", "queued3", "flood"):  # older targets first, newest taken
             for i in range({"queued": 1, "queued3": 2, "flood": MAX_QUEUED}[kind]):
                 self._send_shifted(sp, 1000.0 * (i + 1))
+        elif kind in ("junk_flood", "junk_more"):  # 3 budgets' worth, then more
+            for _ in range(3 * self.emulator.endpoint.rx_budget):
+                self.stranger.sendto(JUNK, ("127.0.0.1", self.port))
+        elif kind == "hellos":  # a stranger's HELLO twice in one tick: one is decoded
+            for _ in range(2):
+                self.stranger.sendto(encode_hello(7, 0), ("127.0.0.1", self.port))
+        elif kind in ("forged_jump", "forged_pair"):  # from the controller's own socket
+            shifted = axis_records(sp)[-1]
+            shifted.target_position_counts += 500.0
+            for i in range(1 if kind == "forged_jump" else 2):
+                self._raw(encode(sp, self.ctl.session, self.ctl._frame + FORGED_AHEAD + i))
+            shifted.target_position_counts -= 500.0
         if kind in ("repeat", "older"):  # instead of this tick's setpoint
             self._raw(encode(sp, self.ctl.session, last if kind == "repeat" else last - 1))
         elif kind in ("range", "range_then_good"):  # last axis's target beyond its bound
@@ -146,7 +163,9 @@ class WireTwin:
             select.select((em.endpoint.fileno(),), (), (), 1.0)
             if kind in MULTIPLE:
                 time.sleep(0.002)
+        frames = em.endpoint.stats.frames
         em.step(k)
+        assert em.endpoint.stats.frames - frames <= em.endpoint.rx_budget, f"tick {k}"
         em.recorder.end_tick(k, 0, 0)
         if em.watchdog.answering:
             assert self.ctl.recv_feedback(self.fb, 1.0), f"tick {k}: no answer"
@@ -187,6 +206,8 @@ def _compare(segments, extra: dict, config: Path = ARROW_PATH, rate_hz: float | 
         sent = rows_b["fb_t_ns"][rows_b["fb_t_ns"] != 0]
         assert set(sent.tolist()) <= set(b.fb_t_ns)
         assert (rows_b["sp_rx_ns"] <= rows_b["fb_t_ns"]).all()
+        for em in (ea, eb):  # a flood's episode ends: the kernel's last drops counted
+            em.endpoint.close()
         assert ea.endpoint.stats == eb.endpoint.stats
         assert eb.endpoint.stats.lost == sum(kind == "skip" for kind in extra.values())
         assert ea.setpoints_heard == eb.setpoints_heard
@@ -276,7 +297,8 @@ def test_two_axes():
     steady = b.emulator.steady
     assert steady.ticks > 1000
     assert min(steady.declined.values()) >= 1
-    assert steady.silent == 3 and steady.queued == 1
+    # the "queued" tick and the last of the flood's: its 65 setpoints take 7 ticks' budgets
+    assert steady.silent == 3 and steady.queued == 2
 
 
 @pytest.mark.parametrize("config", [ARROW_PATH, XY_PATH])
@@ -291,6 +313,30 @@ def test_several_drive_cycles_a_tick(config):
     assert steady.cycles == 4
     assert steady.ticks > 500
     assert min(steady.declined.values()) >= 1
+
+
+def test_a_flood_and_forged_frames_take_the_same_course_on_both_paths():
+    """Issue 27 items 6 and 8 over the wire, compiled tick against Python tick: three
+    budgets of a stranger's junk ahead of a setpoint (a tick reads one budget, never
+    more, every tick of the run: see WireTwin.tick; the filter then keeps what the
+    stranger sends next out of the socket), two strangers' HELLOs in one tick (one
+    decoded), one frame of the controller's own session 100 000 ahead (dropped, its next
+    frames taken), two such frames in sequence (followed, and the controller's own count
+    followed back one frame later).  Both paths count, drop and take alike."""
+    extra = {300: "forged_jump", 400: "forged_pair", 500: "hellos", 900: "junk_flood",
+             905: "junk_more", 906: "junk_more"}
+    b = _compare([("csp", 200, 0.0), ("csp", 1000, 30.0)], extra)
+    em, steady = b.emulator, b.emulator.steady
+    s = em.endpoint.stats
+    budget = em.endpoint.rx_budget
+    assert budget == 10  # 8 kHz, a quarter of the period (hil run's default)
+    # the forged frame, then the forged pair's first and the controller's own frame
+    # after it; followed twice: to the pair, back to the controller
+    assert (s.out_of_order, s.resyncs, s.lost) == (3, 2, 0)
+    assert s.foreign == 2 + 3 * budget  # the HELLOs and the junk read before the filter
+    assert s.rx_dropped == 2 * 3 * budget  # the junk sent once the filter was on
+    assert s.rx_limited == 3  # the three budgets of junk, a tick each
+    assert steady.declined[S.DECLINED_SEQUENCE] >= 3 and steady.ticks > 1000
 
 
 def test_silence_up_to_the_watchdog():

@@ -200,9 +200,11 @@ def _runtime(meta: dict, machine_file: Path, where: str) -> RuntimeConfig:
                           f"{e}") from e
 
 
-def _check_ticks(ticks: np.ndarray, policy: str, where: str) -> None:
-    gaps = np.flatnonzero(np.diff(ticks) != 1)
-    if gaps.size and policy != "skip":
+def _check_ticks(ticks: np.ndarray, policy: str, where: str, stalls: set[int]) -> None:
+    """Refuse a gap in the ticks that was not a deadline dropped (the ``skip`` policy, or
+    after a stall: the ``stalls`` events' ticks)."""
+    gaps = [g for g in np.flatnonzero(np.diff(ticks) != 1) if int(ticks[g]) not in stalls]
+    if gaps and policy != "skip":
         k = int(ticks[gaps[0]])
         raise ReplayError(f"{where}: ticks {k + 1}..{int(ticks[gaps[0] + 1]) - 1} ran but were "
                           f"not recorded (the recording's ring was full); the setpoints they "
@@ -237,6 +239,14 @@ class _Comparison:
         return max(self.worst.values(), key=lambda d: d.rel_diff)
 
 
+def stall_ticks(rec: Recording) -> set[int]:
+    """The ticks of ``rec``'s loop stalls (``loop`` events of kind ``stall``), after each
+    of which the loop dropped the deadlines it had missed."""
+    ev = rec.events()
+    return {int(t) for t, src, kind in zip(ev["tick"], ev["source"], ev["kind"])
+            if src == "loop" and kind == "stall"}
+
+
 def replay_run(folder: Path | str, tolerance: float = TOLERANCE) -> ReplayResult:
     """Replay the run in ``folder`` and compare it with its recording (see the module
     docstring); raises :class:`ReplayError` for a run that cannot be replayed."""
@@ -260,7 +270,7 @@ def replay_run(folder: Path | str, tolerance: float = TOLERANCE) -> ReplayResult
         n for n in rec.names if any(n.startswith(p + "plant_") for p in prefixes)]
     with machine_files(meta, where) as machine_file:
         rc = _runtime(meta, machine_file, where)
-        _check_ticks(ticks, rc.overrun, where)
+        _check_ticks(ticks, rc.overrun, where, stall_ticks(rec))
         try:
             with Progress("replay: building the plant (a cold cache compiles it)",
                           ticking=True):

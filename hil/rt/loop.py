@@ -24,6 +24,15 @@ timestamps are freed as they go, and traced memory does not grow over a run.  A 
   dropped ticks are counted and their slots hold :data:`SKIPPED`;
 * ``"stop"``: like ``"count"``, but stop once ``stop_after`` overruns have happened.
 
+A *stall* -- a tick that ends ``resume_after`` or more deadlines late: the process was
+stopped (SIGSTOP, a debugger) or the machine paused -- is no backlog to work off: whatever
+the action, the loop resumes at the present deadline as ``"skip"`` does (the missed ticks
+are counted in ``skipped``), counts it in ``stalls`` and logs it in the loop's
+``stall_log`` (:class:`Stall`; the first :data:`MAX_STALLS_LOGGED`).  Replaying the missed
+ticks back to back would run them on inputs that stopped arriving with the stall: a
+drive's setpoint watchdog would count them as the controller's silence.  It is an overrun
+too.
+
 Overruns in the first ``grace_ticks`` ticks (start-up: caches, first page touches) are
 counted apart and never stop the loop.  :meth:`RealTimeLoop.request_stop` only sets a
 flag, checked before every tick: it is what a signal handler should call.
@@ -40,6 +49,8 @@ from hil.rt.clock import Clock, MonotonicClock
 
 #: the value of a dropped tick's slot in ``lateness_ns`` and ``compute_ns``
 SKIPPED = np.iinfo(np.int64).min
+#: stalls kept in a loop's ``stall_log``; later ones are counted only
+MAX_STALLS_LOGGED = 1000
 
 StopReason = Literal["completed", "overruns", "stop_flag"]
 
@@ -52,10 +63,13 @@ class OverrunPolicy:
         action: ``"count"``, ``"skip"`` or ``"stop"``.
         stop_after: with ``"stop"``, the overrun (after the grace period) that stops the loop.
         grace_ticks: the first ticks, whose overruns are counted apart and never stop it.
+        resume_after: deadlines missed by one tick that make it a stall, after which the
+            loop resumes at the present deadline (None: never; ``"skip"`` always does).
     """
     action: Literal["count", "skip", "stop"] = "count"
     stop_after: int = 1
     grace_ticks: int = 0
+    resume_after: int | None = None
 
     def __post_init__(self):
         if self.action not in ("count", "skip", "stop"):
@@ -64,6 +78,22 @@ class OverrunPolicy:
             raise ValueError(f"stop_after must be >= 1, got {self.stop_after}")
         if self.grace_ticks < 0:
             raise ValueError(f"grace_ticks must be >= 0, got {self.grace_ticks}")
+        if self.resume_after is not None and self.resume_after < 1:
+            raise ValueError(f"resume_after must be >= 1, got {self.resume_after}")
+
+
+@dataclass(frozen=True)
+class Stall:
+    """A tick that ended ``missed`` deadlines late (module docstring).
+
+    Attributes:
+        tick: its deadline index.
+        missed: the deadlines after it that had passed when it ended, dropped.
+        behind_ns: how long after the next deadline it ended, ns.
+    """
+    tick: int
+    missed: int
+    behind_ns: int
 
 
 def nearest_rank(permille: int, n: int) -> int:
@@ -107,7 +137,8 @@ class LoopStats:
         ticks: steps run.
         overruns: overruns after the grace period.
         grace_overruns: overruns within the grace period.
-        skipped: ticks dropped by the ``"skip"`` policy.
+        skipped: ticks dropped by the ``"skip"`` policy or after a stall.
+        stalls: ticks that ended ``resume_after`` or more deadlines late.
         stopped_by: ``"completed"``, ``"overruns"`` (the ``"stop"`` policy) or ``"stop_flag"``.
         wall_s, cpu_s: elapsed real time and the process's CPU time over the run (s).
         lateness_us, compute_us: percentiles over the ticks run.
@@ -119,6 +150,7 @@ class LoopStats:
     overruns: int
     grace_overruns: int
     skipped: int
+    stalls: int
     stopped_by: StopReason
     wall_s: float
     cpu_s: float
@@ -134,8 +166,9 @@ class LoopStats:
         """The scalar figures (no arrays), JSON-ready."""
         return {"period_ns": self.period_ns, "ticks": self.ticks, "overruns": self.overruns,
                 "grace_overruns": self.grace_overruns, "skipped": self.skipped,
-                "stopped_by": self.stopped_by, "wall_s": self.wall_s, "cpu_s": self.cpu_s,
-                "cpu_fraction": self.cpu_fraction, "lateness_us": self.lateness_us.as_dict(),
+                "stalls": self.stalls, "stopped_by": self.stopped_by, "wall_s": self.wall_s,
+                "cpu_s": self.cpu_s, "cpu_fraction": self.cpu_fraction,
+                "lateness_us": self.lateness_us.as_dict(),
                 "compute_us": self.compute_us.as_dict()}
 
 
@@ -146,6 +179,7 @@ class TickCounts:
     overruns: int
     grace_overruns: int
     skipped: int
+    stalls: int
     stopped_by: StopReason
     wall_s: float
     cpu_s: float
@@ -156,13 +190,16 @@ def run_ticks(loop, end_tick: Callable[[int, int, int], None], n: int) -> TickCo
     :class:`hil.runtime.streaming_loop.StreamingLoop` (module docstring): ``loop.step(k)``
     at ``t0 + k * loop.period_ns`` for k < ``n``, ``end_tick(k, lateness_ns,
     compute_ns)`` after each, ``loop.policy`` on an overrun, ``loop.stop_requested``
-    checked before every tick, waits on ``loop.clock``."""
+    checked before every tick, waits on ``loop.clock``, logs stalls in
+    ``loop.stall_log``."""
     step, now_ns, sleep_until = loop.step, loop.clock.now_ns, loop.clock.sleep_until
     period = loop.period_ns
     skip = loop.policy.action == "skip"
     stop_after = loop.policy.stop_after if loop.policy.action == "stop" else 0
     grace = loop.policy.grace_ticks
-    ticks = overruns = grace_overruns = skipped = 0
+    resume_after = loop.policy.resume_after or n + 1
+    stall_log = loop.stall_log
+    ticks = overruns = grace_overruns = skipped = stalls = 0
     stopped_by: StopReason = "completed"
 
     wall0, cpu0 = time.monotonic_ns(), time.process_time_ns()
@@ -188,10 +225,15 @@ def run_ticks(loop, end_tick: Callable[[int, int, int], None], n: int) -> TickCo
             if overruns == stop_after:
                 stopped_by = "overruns"
                 break
-        k_next = min((end - t0) // period + 1, n) if skip else k + 1
+        missed = (end - t0) // period - k
+        if missed >= resume_after:
+            stalls += 1
+            if len(stall_log) < MAX_STALLS_LOGGED:
+                stall_log.append(Stall(k, missed, end - deadline - period))
+        k_next = min(k + missed + 1, n) if skip or missed >= resume_after else k + 1
         skipped += k_next - k - 1
         k = k_next
-    return TickCounts(ticks, overruns, grace_overruns, skipped, stopped_by,
+    return TickCounts(ticks, overruns, grace_overruns, skipped, stalls, stopped_by,
                       (time.monotonic_ns() - wall0) * 1e-9,
                       (time.process_time_ns() - cpu0) * 1e-9)
 
@@ -228,6 +270,7 @@ class RealTimeLoop:
         self.lateness_ns = np.full(self.n_ticks, SKIPPED, dtype=np.int64)
         self.compute_ns = np.full(self.n_ticks, SKIPPED, dtype=np.int64)
         self.stop_requested = False
+        self.stall_log: list[Stall] = []
 
     def request_stop(self) -> None:
         """Stop before the next tick (safe to call from a signal handler).  The request

@@ -35,8 +35,16 @@ signal handlers that only set a flag, a fixed shutdown order):
    locked; ``--no-rt`` leaves the process as it is).  Each tick (:meth:`Emulator.step`):
    poll the newest setpoint (timeout 0), the :class:`~hil.runtime.watchdog.Watchdog`,
    ``cycles_per_tick`` drive cycles (one PWM period each), send the feedback, record.
-   Nothing raises there: adapter errors are counted and logged once.  On an adapter
-   whose cycle follows the master's SYNC (``can://``: the endpoint has
+   Nothing raises there: adapter errors are counted and logged once.  A ``udp://``
+   adapter reads at most ``--rx-share`` of a period's worth of datagrams a tick and
+   leaves the rest queued (:func:`io_adapters.udp.rx_budget_for`; a flood of strangers'
+   datagrams is then held off by the kernel, :mod:`io_adapters.udp_flood`); what the
+   adapter notices (:attr:`~io_adapters.base.Endpoint.notices`) becomes a ``link`` event
+   of the tick.  A stall of the process of the watchdog's length or more (SIGSTOP, a
+   paused VM) is not replayed: the loop resumes at the present deadline, whatever
+   ``--overrun`` says, and records a ``stall`` event (:mod:`hil.rt.loop`), so the
+   watchdog never counts the emulator's own missed ticks as the controller's silence.
+   On an adapter whose cycle follows the master's SYNC (``can://``: the endpoint has
    ``last_sync_ns``) the loop's ticks are moved to a fixed phase after SYNC
    (:class:`hil.runtime.sync.SyncLock`), as a CiA 402 drive locks its cycle to SYNC,
    and a tick whose SYNC is late waits a little for it; lateness is then measured
@@ -131,7 +139,7 @@ from hil.runtime.emulator_config import (
 from hil.runtime.emulator_report import final_events, metadata, run_report
 from hil.runtime.record_writer import ESTIMATED_SHARE, RING_S, RecordingWriter
 from hil.runtime.recording import Recorder, row_bytes
-from hil.runtime.run_events import EventCollector
+from hil.runtime.run_events import EventCollector, RunEvent
 from hil.runtime.run_folder import REPORT, RESERVE_BYTES, RunFolder, human_bytes
 from hil.runtime.steady_tick import SteadyTick
 from hil.runtime.streaming_loop import StreamingLoop
@@ -147,6 +155,7 @@ from io_adapters.messages import (
     axis_records,
     message_pair,
 )
+from io_adapters.udp import rx_budget_for
 from plant import Plant
 from plant import layout as L
 from plant.assemble import check_substep_count
@@ -213,16 +222,17 @@ class Emulator:
         self.recorder.attach(self.drives)
         self.loop = StreamingLoop(t.period_ns, self.step, self.recorder, n_ticks=t.n_ticks,
                                   policy=OverrunPolicy(rc.overrun, rc.stop_after,
-                                                       t.grace_ticks))
+                                                       t.grace_ticks, t.watchdog_cycles))
         self.stop.attach(self.loop)
         self.events = EventCollector(m.names, self.drives, self.watchdog, self.recorder,
-                                     self.injectors)
+                                     self.injectors, self.loop.stall_log)
         self.endpoint: Endpoint | None = None
         self.sync_lock: SyncLock | None = None
         self.helper_threads: dict[str, str] = {}
         self.url = rc.adapter_url
         self.errors = AdapterErrors()
         self.setpoints_heard = 0
+        self._notices: list[tuple[str, str]] = []  # the adapter's (open() takes them)
         self.folder: RunFolder | None = None
         self.writer: RecordingWriter | None = None
         self.recording_failure: str | None = None
@@ -305,6 +315,9 @@ class Emulator:
                else check_link(self.rc.adapter_url, len(self.machine.axes)))
         self.endpoint = endpoint or open_endpoint(url, "device")
         self.endpoint.drain = True
+        if hasattr(self.endpoint, "rx_budget"):  # udp://: the share of a period to read
+            self.endpoint.rx_budget = rx_budget_for(self.rc.rx_share, self.timing.period_ns)
+        self._notices = self.endpoint.notices
         self.endpoint.setpoint_bounds = tuple(d.setpoint_bounds() for d in self.drives.drives)
         if hasattr(self.endpoint, "objects"):  # a CANopen node: its parameter objects
             self.endpoint.objects = DriveObjects(self.drives.drives,
@@ -328,6 +341,8 @@ class Emulator:
             heard = steady.tick(k, t_ns)
             if heard is not None:
                 self.setpoints_heard += heard
+                if self._notices:
+                    self._link_notices(k)
                 return
             steady.settle()
         sp, fb, drives = self._sp, self._fb, self.drives
@@ -362,6 +377,16 @@ class Emulator:
                 self._adapter_error("send", e)
         self.setpoints_heard += heard
         self.recorder.record(k, heard, t_ns, sp, fb, drives, refused)
+        if self._notices:
+            self._link_notices(k)
+
+    def _link_notices(self, k: int) -> None:
+        """The adapter's notices of tick ``k`` (a flood held off, frame numbers
+        resynchronised) into the run's events and the log."""
+        for kind, text in self._notices:
+            self.events.note(RunEvent(k, "", "link", kind, text))
+            self._log(f"link: {kind}: {text}")
+        self._notices.clear()
 
     def _injections(self, requests: list) -> None:
         """Hand the adapter's injection requests (:class:`~io_adapters.messages.

@@ -19,6 +19,9 @@ from plant.config import MachineConfig
 DEFAULT_WATCHDOG_S = 0.1
 #: overruns in the first this-many seconds (start-up) never stop the loop
 GRACE_S = 0.1
+#: the share of a period a tick may spend reading datagrams (--rx-share; the adapter's
+#: receive budget, io_adapters.udp.rx_budget_for)
+DEFAULT_RX_SHARE = 0.25
 DEFAULT_RUN_DIR = "hil-run"
 
 
@@ -45,6 +48,9 @@ class RuntimeConfig:
         steady_tick: run steady ticks in one compiled call where that applies
             (:mod:`hil.runtime.steady_tick`); False: every tick in Python (the reference
             the compiled tick is tested against).
+        rx_share: the share of a period a tick may spend reading datagrams, (0, 1]: a
+            ``udp://`` adapter reads at most that many datagrams' worth a tick and leaves
+            the rest queued (:func:`io_adapters.udp.rx_budget_for`).
     """
     machine_file: Path
     adapter_url: str
@@ -61,6 +67,7 @@ class RuntimeConfig:
     start_cnc: float | dict = 0.0
     inject: tuple[str, ...] = ()
     steady_tick: bool = True
+    rx_share: float = DEFAULT_RX_SHARE
 
     def __post_init__(self):
         positive = {"--duration (s)": self.duration_s, "--rate (Hz)": self.rate_hz}
@@ -70,6 +77,9 @@ class RuntimeConfig:
         if self.watchdog_cycles is not None and self.watchdog_cycles < 1:
             raise RuntimeInputError(f"--watchdog-cycles must be >= 1 cycle, got "
                                     f"{self.watchdog_cycles}")
+        if not 0.0 < self.rx_share <= 1.0:
+            raise RuntimeInputError(f"--rx-share must be > 0 and <= 1 (a share of the "
+                                    f"period), got {self.rx_share}")
         if not 1 <= self.priority <= 99:
             raise RuntimeInputError(f"--priority must be 1..99 (SCHED_FIFO), got {self.priority}")
         try:
@@ -87,7 +97,7 @@ class RuntimeConfig:
                    watchdog_cycles=args.watchdog_cycles, overrun=args.overrun,
                    stop_after=args.stop_after, realtime=not args.no_rt, cpu=args.cpu,
                    priority=args.priority, start_cnc=args.start,
-                   inject=tuple(args.inject or ()))
+                   inject=tuple(args.inject or ()), rx_share=args.rx_share)
 
 
 @dataclass(frozen=True)
@@ -137,7 +147,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--watchdog-cycles", type=int, metavar="N",
                    help="ticks without a setpoint that fault the drive (default: 0.1 s)")
     p.add_argument("--overrun", choices=("count", "skip", "stop"), default="count",
-                   help="what a late tick does (default %(default)s)")
+                   help="what a late tick does (default %(default)s); after a stall of "
+                        "the watchdog's length or more the loop resumes at the present "
+                        "deadline whatever this says")
+    p.add_argument("--rx-share", type=float, default=DEFAULT_RX_SHARE, metavar="F",
+                   help="share of a period a tick may spend reading datagrams (udp://): "
+                        "the rest waits in the socket (default %(default)s)")
     p.add_argument("--stop-after", type=int, default=10, metavar="N",
                    help="with --overrun stop: stop at the Nth overrun (default %(default)s)")
     p.add_argument("--no-rt", action="store_true",

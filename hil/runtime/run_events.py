@@ -5,7 +5,9 @@ The real-time path only appends what it already kept: a drive's
 :class:`~hil.drive.faults.FaultLog` its events (with the drive cycle), the
 :class:`~hil.runtime.watchdog.Watchdog` its events (with the tick), the
 :class:`~hil.runtime.recording.Recorder` a mark per tick a fault log grew and its count of
-ticks it could not record.  :class:`EventCollector`, called each flush by the recording's
+ticks it could not record, the loop its stalls (:class:`~hil.rt.loop.Stall`), the
+emulator the adapter's notices (:meth:`EventCollector.note`: a flood held off, frame
+numbers resynchronised).  :class:`EventCollector`, called each flush by the recording's
 event thread in the emulator's process, turns those into :class:`RunEvent` rows, sent to
 the writer process; overruns the writer process finds in the rows themselves
 (:class:`Overruns`: a tick whose lateness plus compute time passes the period ended after
@@ -17,6 +19,7 @@ outside the loop (the safe state after it).  A fault logged in the safe state ha
 drive cycle (PWM periods since the drive was built) and tick -1.
 """
 
+from collections import deque
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -25,6 +28,7 @@ import numpy as np
 if TYPE_CHECKING:  # the writer process imports this module without the drives
     from hil.drive import DriveSet
     from hil.drive.faults import FaultLog
+    from hil.rt.loop import Stall
     from hil.runtime.recording import Recorder
     from hil.runtime.watchdog import Watchdog
 
@@ -39,7 +43,7 @@ EVENT_COLUMNS = {
     "kind": ("string", "-", "what happened"),
     "code": ("int32", "603Fh", "the drive's error code where there is one, else 0"),
     "cycle": ("int64", "1", "drive cycle (PWM periods since the drive was built; -1: none)"),
-    "count": ("int64", "1", "how many (ticks of an overrun run, ticks not recorded)"),
+    "count": ("int64", "1", "how many (overrun ticks, ticks not recorded or missed)"),
     "reason": ("string", "-", "why, in words"),
 }
 
@@ -123,17 +127,28 @@ class EventCollector:
         recorder: the ring (fault marks, ticks not recorded).
         injectors: every axis's fault injector (:class:`~hil.inject.Injector`): what it
             injected, reached or refused.
+        stall_log: the loop's stalls (:attr:`hil.runtime.streaming_loop.StreamingLoop.
+            stall_log`), appended by the loop.
     """
 
     def __init__(self, names: tuple[str, ...], drives: "DriveSet", watchdog: "Watchdog",
-                 recorder: "Recorder", injectors: tuple = ()):
+                 recorder: "Recorder", injectors: tuple = (),
+                 stall_log: "list[Stall] | tuple" = ()):
         self.names, self.drives = names, drives
         self.watchdog, self.recorder = watchdog, recorder
         self.injectors = injectors
+        self.stall_log = stall_log
         self._injected_done = [0] * len(injectors)
         self._faults_done = [0] * len(names)
         self._watchdog_done = 0
+        self._stalls_done = 0
         self._lost_done = 0
+        self._noted: deque[RunEvent] = deque()
+
+    def note(self, event: RunEvent) -> None:
+        """An event the emulator's loop met (the adapter's notices), for the next
+        :meth:`collect` (safe from the loop's thread while another collects)."""
+        self._noted.append(event)
 
     def collect(self) -> list[RunEvent]:
         """The events logged since the last call."""
@@ -150,9 +165,26 @@ class EventCollector:
             out.append(RunEvent(e.tick, self.names[e.axis] if e.axis >= 0 else "",
                                 "link" if link else "watchdog", e.kind,
                                 e.message(self.watchdog.period_s)))
+        self._stalls(out)
+        noted = self._noted
+        while noted:
+            out.append(noted.popleft())
         self._lost(out)
         self._injected(out)
         return out
+
+    def _stalls(self, out: list[RunEvent]) -> None:
+        log, period_s = self.stall_log, self.watchdog.period_s
+        while self._stalls_done < len(log):
+            s = log[self._stalls_done]
+            self._stalls_done += 1
+            out.append(RunEvent(
+                s.tick, "", "loop", "stall",
+                f"the tick ended {s.behind_ns * 1e-6:.1f} ms after the next deadline: "
+                f"{s.missed} ticks ({s.missed * period_s * 1e3:.1f} ms) missed, at least the "
+                f"watchdog's {self.watchdog.limit}: the loop resumed at the present deadline "
+                f"without running them (neither the drives' time nor the watchdog counts "
+                f"them)", count=s.missed))
 
     def _injected(self, out: list[RunEvent]) -> None:
         period_s = self.watchdog.period_s

@@ -4,9 +4,10 @@
 In steady state -- a UDP link whose controller is pinned, every drive's compiled path
 holding its state (:mod:`hil.drive.compiled_path`: OPERATION ENABLED in CSP, CSV or CST,
 nothing to react to), the watchdog content, no injection under way -- a tick is: read
-the datagrams queued for it (Python: the socket; usually one, none in a silent tick,
-several after a late tick), then one call of :func:`steady_tick` (one axis) or
-:func:`steady_tick_group` (a machine of up to
+the datagrams queued for it, within the endpoint's receive budget (Python: the socket;
+usually one, none in a silent tick, several after a late tick; a stranger's datagram
+that cannot be a HELLO is counted foreign there and then), then one call of
+:func:`steady_tick` (one axis) or :func:`steady_tick_group` (a machine of up to
 :data:`~io_adapters.codec_compiled.MAX_AXES` axes) that decodes each setpoint
 (:func:`io_adapters.codec_compiled.decode_setpoint`) and checks its session and frame
 number (an older one also against the drives' bounds, as the endpoint's drain takes it
@@ -45,6 +46,7 @@ from io_adapters import codec_compiled as K
 from io_adapters.base import AdapterError
 from io_adapters.codec import U32
 from io_adapters.messages import FeedbackGroup, axis_records
+from io_adapters.msgpack_endpoint import MAX_DROPOUT
 from io_adapters.udp import UdpEndpoint
 from io_adapters.udp_steady import (
     L_CALL_NS,
@@ -104,15 +106,16 @@ def _axis_state(snap_f, snap_i, fst, fbf, s, inp, out, ist, back):
 
 @njit(cache=True, inline="always")
 def _take(buf, n, sp_ints, axis_ints, sp_floats, session, after_frame):
-    """Decode the setpoint ``buf[:n]`` and check it is the peer's (``session``) and newer
-    than frame ``after_frame``; 0, or the ``DECLINED_*`` code (a repeat or an older frame
-    is counted in Python)."""
+    """Decode the setpoint ``buf[:n]`` and check it is the peer's (``session``) and in
+    sequence after frame ``after_frame`` (1 to ``MAX_DROPOUT`` ahead); 0, or the
+    ``DECLINED_*`` code (a repeat, an older frame or a jump is judged and counted in
+    Python: io_adapters.msgpack_endpoint's sequence rule)."""
     if not K.decode_setpoint(buf, n, sp_ints, axis_ints, sp_floats):
         return DECLINED_FRAME
     if sp_ints[K.I_SESSION] != session:
         return DECLINED_SEQUENCE
     ahead = (sp_ints[K.I_FRAME] - after_frame) & U32
-    if ahead == 0 or ahead > U32 // 2:
+    if ahead == 0 or ahead > MAX_DROPOUT:
         return DECLINED_SEQUENCE
     return 0
 
@@ -326,7 +329,10 @@ class SteadyTick:
             return self._python()
         link = self.link
         n = link.receive()
-        if n < 0 or (n == 0 and not watchdog.may_stay_silent()):
+        if n < 0:
+            return self._python()
+        if n == 0 and not watchdog.may_stay_silent():
+            link.decline()  # the Python path's receive goes on within the same budget
             return self._python()
         if not self._holding:  # the answer echoes the setpoint the Python path took last
             f, ep = link.fb_ints, em.endpoint

@@ -4,8 +4,8 @@
 int64 arrays sized for the whole run, allocated up front: 11 GB for 24 h at 8 kHz.
 :class:`StreamingLoop` has the same tick discipline -- tick k due at ``t0 + k *
 period_ns``, ``t0`` one period after :meth:`StreamingLoop.run` starts, the same
-:class:`~hil.rt.loop.OverrunPolicy` and grace period, :meth:`StreamingLoop.request_stop`
-a flag checked before every tick -- but hands each tick's measurements to a *sink*
+:class:`~hil.rt.loop.OverrunPolicy`, grace period and stalls (``stall_log``),
+:meth:`StreamingLoop.request_stop` a flag checked before every tick -- but hands each tick's measurements to a *sink*
 (``sink.end_tick(k, lateness_ns, compute_ns)``: the emulator's
 :class:`~hil.runtime.recording.Recorder`, whose writer keeps the run's percentiles) and
 may run until stopped (``n_ticks`` None).
@@ -22,7 +22,7 @@ from typing import Protocol
 import numpy as np
 
 from hil.rt.clock import Clock, MonotonicClock
-from hil.rt.loop import LoopStats, OverrunPolicy, Percentiles, run_ticks
+from hil.rt.loop import LoopStats, OverrunPolicy, Percentiles, Stall, run_ticks
 
 
 class TickSink(Protocol):
@@ -60,6 +60,7 @@ class StreamingLoop:
         self.policy = policy
         self.clock = clock if clock is not None else MonotonicClock.for_period(self.period_ns)
         self.stop_requested = False
+        self.stall_log: list[Stall] = []  # appended by the loop's thread, read by others
 
     def request_stop(self) -> None:
         """Stop before the next tick (safe from a signal handler or another thread)."""
