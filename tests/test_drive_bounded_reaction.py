@@ -261,3 +261,25 @@ def test_the_safe_state_inhibits_the_pulses_of_a_reaction_still_braking(stepped,
     safe = emu.safe_state()
     assert (safe["state"], safe["plant_enable"]) == ("FAULT", 0.0)
     assert emu.drive.faults.latched & Cause.REACTION_FAILED
+
+
+def test_hil_run_refuses_a_ramp_without_bound_before_the_kernels_compile(tmp_path):
+    """The attack's file, 6085h at 1e-6 m/s²: one line, exit 2, before `hil run` loads
+    the plant's kernels (nothing compiles, nothing opens)."""
+    import subprocess
+    import sys
+
+    from tests.conftest import ROOT
+    from tests.runtime_helpers import ENV
+    path = tmp_path / "slow.toml"
+    path.write_text((ROOT / "configs" / "arrow500_x.toml").read_text()
+                    + "\n[drive]\nquick_stop_deceleration_m_s2 = 1e-6\n")
+    run = subprocess.run([sys.executable, "-m", "hil.runtime.emulator", str(path),
+                          "--adapter", "udp://127.0.0.1:0", "--record", str(tmp_path / "run")],
+                         capture_output=True, text=True, timeout=60, env=ENV, check=False)
+    assert run.returncode == 2
+    assert run.stderr.splitlines() == [
+        f"hil run: {path}: [drive] quick_stop_deceleration_m_s2 = 1e-06 m/s^2 is below 0.33 "
+        "m/s^2, the least that stops the axis from its top speed 0.66 m/s (1.1 x 6080h) "
+        "within 2 s"]
+    assert not (tmp_path / "run").exists()

@@ -111,7 +111,8 @@ from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
 
 from hil.cia402 import DISABLE_VOLTAGE
-from hil.drive import DriveSet, EmulatedDrive
+from hil.controller.config import load_controller
+from hil.drive import DriveSet, EmulatedDrive, load_drive
 from hil.drive.compiled_path import WARM_CYCLES, warm
 from hil.drive.objects import DriveObjects
 from hil.inject.schedule import InjectEvent, injectors_for
@@ -497,6 +498,9 @@ def run_from_args(args: argparse.Namespace) -> int:
         for cfg in machine.configs:
             check_substep_count(cfg, realtime_limit(cfg.motor.pwm_frequency_hz),
                                 realtime_limit_text(cfg))
+            # the [controller] and [drive] sections (the braking room among them) are
+            # refused here, before the kernels compile, not when the drives are built
+            load_drive(cfg, load_controller(cfg) if cfg.section("controller") else None)
         eprint("hil run: loading the plant's compiled kernels (a cold cache compiles them, "
                "about 10 s; SIGTERM/SIGINT end the process meanwhile)")
         with signals_end_process():
