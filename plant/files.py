@@ -1,13 +1,15 @@
 """Files a person names: read whole, never blocked on, refused in one line when wrong.
 
 Every loader of a file given on the command line (machine files and manifests, study
-files, part programs, servo traces, EMPS records) reads it through :func:`read_bytes` or
-:func:`read_text`.  The path is checked with ``os.stat`` before it is opened, so a
-directory, a FIFO, a socket or a device is refused unread (a FIFO nobody writes blocks a
-read forever, ``/dev/zero`` never ends, and opening some devices acts on them); it is then
-opened non-blocking and checked again with ``fstat`` (the path may have changed in
-between), and a regular file larger than the loader's bound is refused before a byte is
-read.  Text is UTF-8; a byte that is not is named with its line and offset.
+files, part programs, servo traces, EMPS records, a run's report) reads it through
+:func:`read_bytes` or :func:`read_text`; a reader of its own (a run's recording) calls
+:func:`refuse_special` before it opens the file.  The path is checked with ``os.stat``
+before it is opened, so a directory, a FIFO, a socket or a device is refused unread (a
+FIFO nobody writes blocks a read forever, ``/dev/zero`` never ends, and opening some
+devices acts on them); it is then opened non-blocking and checked again with ``fstat``
+(the path may have changed in between), and a regular file larger than the loader's bound
+is refused before a byte is read.  Text is UTF-8; a byte that is not is named with its
+line and offset.
 
 Every refusal is one line that starts with the path and says why, raised as the caller's
 own error class (``error``: any callable taking the message), so each loader keeps the
@@ -54,6 +56,20 @@ def checked_name(path: str | Path, what: str, error: ErrorFactory = ConfigError)
         raise error(f"{shown_path(path)}: a {what}'s name with a character that is not "
                     "printable (a newline, a control character) is refused")
     return Path(path)
+
+
+def refuse_special(path: str | Path, what: str, error: ErrorFactory = ConfigError) -> None:
+    """Refuse (``error``) a ``path`` that exists and is not a regular file, before a reader
+    of its own (pyarrow's, for a recording too large to read whole) opens it; a missing
+    path is left to that reader."""
+    path = checked_name(path, what, error)
+    try:
+        mode = os.stat(path).st_mode
+    except FileNotFoundError:
+        return
+    except OSError as exc:
+        raise error(f"{path}: cannot look at the {what}: {exc.strerror or exc}") from exc
+    _refuse_non_regular(path, mode, what, error)
 
 
 def read_bytes(path: str | Path, what: str, max_bytes: int,

@@ -634,3 +634,21 @@ def test_fuzz_identify_mat_record(tmp_path, variables, cut):
         one_line(str(exc), path)
         return
     assert rec.n >= 2 and np.all(np.isfinite(rec.pos)) and np.all(np.isfinite(rec.effort))
+
+
+@pytest.mark.parametrize("name", ["report.json", "recording.arrows"])
+def test_a_run_folder_file_that_is_a_fifo_is_refused_not_waited_on(tmp_path, name):
+    """`hil report` on a run folder whose report.json or recording.arrows is a FIFO nobody
+    writes: one line naming it, exit 2 or 1, in a process of its own that must end (a
+    read would block forever)."""
+    import subprocess
+    import sys
+
+    from tests.runtime_helpers import ENV
+    (tmp_path / "run").mkdir()
+    os.mkfifo(tmp_path / "run" / name)
+    run = subprocess.run([sys.executable, "-m", "hil.cli", "report", str(tmp_path / "run")],
+                         capture_output=True, text=True, timeout=60, env=ENV, check=False)
+    assert run.returncode != 0
+    assert "not a regular file (a FIFO)" in run.stderr
+    assert "Traceback" not in run.stderr

@@ -125,6 +125,7 @@ from hil.runtime.emulator_config import GRACE_S
 from hil.runtime.record_reader import Recording, RecordingError
 from hil.runtime.run_folder import RECORDING, REPORT
 from hil.runtime.stream_file import FORMAT
+from plant.files import read_text
 
 CONTROLLER_NPZ = "controller.npz"
 #: the controller.npz columns the pairing reads
@@ -142,6 +143,8 @@ RECORDED_STAMPS = STAMP_KEYS[:4]
 PERCENTILE_DEFINITION = "nearest rank: the ceil(p/100 * n)-th smallest of n samples"
 #: lateness histogram: log-spaced bins from HIST_LOW_US up, HIST_BINS_PER_DECADE per decade
 HIST_LOW_US = 0.1
+#: a run's report.json is a few kilobytes; larger is refused unread, bytes
+MAX_REPORT_BYTES = 10_000_000
 HIST_BINS_PER_DECADE = 20
 
 
@@ -399,12 +402,13 @@ def load_run(folder: Path | str, controller: Path | str | None = None) -> RunDat
     """
     folder = Path(folder)
     rec_path, json_path = folder / RECORDING, folder / REPORT
-    try:
-        meta = json.loads(json_path.read_text())
-    except FileNotFoundError:
-        meta = None  # cut short
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
-        raise ReportError(f"{json_path}: cannot read the run's report: {e}") from e
+    meta = None  # cut short: no report.json
+    if json_path.exists() or json_path.is_symlink():
+        text = read_text(json_path, "run's report", MAX_REPORT_BYTES, ReportError)
+        try:
+            meta = json.loads(text)
+        except json.JSONDecodeError as e:
+            raise ReportError(f"{json_path}: cannot read the run's report: {e}") from e
     if meta is not None and not isinstance(meta, dict):
         raise ReportError(f"{json_path}: expected a JSON object")
     rec, columns, stamped = _read_recording(folder)

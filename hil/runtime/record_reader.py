@@ -50,6 +50,7 @@ from hil.runtime.stream_file import (
     crc_text,
     schema_crc32,
 )
+from plant.files import refuse_special
 
 #: an Arrow IPC message starts with this continuation token, then its metadata's length
 _CONTINUATION = 0xFFFFFFFF
@@ -175,6 +176,7 @@ class Recording:
         """The file, its stream reader past the schema, and whether its batches carry
         CRC-32s; the run's metadata and (format :data:`FORMAT`) the schema's CRC-32 are
         checked."""
+        refuse_special(path, "recording", RecordingError)  # a FIFO would block the open
         try:
             source = pa.OSFile(str(path))
             reader = pa.ipc.open_stream(source)
