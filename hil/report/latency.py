@@ -348,19 +348,23 @@ def _counts_from_recording(rec: Recording, columns: dict[str, np.ndarray],
     stops at a corrupt batch: a tick overran when its lateness plus compute time passed the
     period (:mod:`hil.rt.loop`), counted after the first GRACE_S; under the ``skip``
     policy the deadlines without a row are skipped ones, less the ticks the events say
-    were not recorded."""
+    were not recorded; under the others the ticks the ``loop``/``stall`` events say were
+    dropped after a stall."""
     period = rec.period_ns
     late = columns["lateness_ns"] + columns["compute_ns"] > period
     grace = round(GRACE_S * 1e9 / period)
     overruns = int(np.count_nonzero(late & (columns["tick"] >= grace)))
-    if (rec.meta.get("runtime") or {}).get("overrun") != "skip":
-        return overruns, 0
     try:
         ev = rec.events(stop_at_corrupt=True)
     except RecordingError:  # no events stream: every gap counts as skipped
         ev = {"source": np.empty(0), "kind": np.empty(0), "count": np.empty(0)}
-    lost = int(ev["count"][(ev["source"] == "recording")
-                           & (ev["kind"] == "ticks not recorded")].sum())
+
+    def count(source: str, kind: str) -> int:
+        return int(ev["count"][(ev["source"] == source) & (ev["kind"] == kind)].sum())
+
+    if (rec.meta.get("runtime") or {}).get("overrun") != "skip":
+        return overruns, count("loop", "stall")
+    lost = count("recording", "ticks not recorded")
     return overruns, max(0, n - columns["tick"].size - lost)
 
 

@@ -173,8 +173,8 @@ def markdown(report: dict, title: str, histogram_png: str,
     period_us = report["period_us"]
     summary = (f"Period {period_us:.3f} µs ({1e6 / period_us:.0f} Hz); {report['ticks']} ticks "
                f"run; {report['overruns']} overruns; {report['missed_ticks']} missed ticks "
-               f"(dropped by the skip policy).  Percentiles: {report['percentiles']}, over the "
-               f"ticks that ran.")
+               f"(dropped by the skip policy, or after a stall).  Percentiles: "
+               f"{report['percentiles']}, over the ticks that ran.")
     lines = [f"# Latency report: {title}", ""]
     lines += [line for note in report["notes"] for line in (f"> {note}", "")]
     lines += [summary, ""]
