@@ -371,6 +371,26 @@ def test_drive_defaults_are_derived_from_the_machine():
                                                         (0.51 + 0.5 * spare) * per_m))
 
 
+def test_a_heavier_table_raises_the_derived_quick_stop_to_keep_its_room():
+    """A 700 kg table halves the motor's acceleration: half of it (6085h's default) would
+    need 44 mm from 660 mm/s, more than the 35 mm to the limit switch.  The derived 6085h
+    is raised until the quick stop needs 80 % of that room (28 mm: v t_r + v²/2a by hand),
+    within what 6072h gives; 607Dh then lies beyond the travel.  A table so heavy that
+    even 6072h's deceleration cannot stop it there is refused, naming the numbers."""
+    from plant.errors import ConfigError
+    cfg = load_machine(ARROW, {"table": {"mass_kg": 700.0}})
+    p = load_drive(cfg, load_controller(cfg))
+    ratio = 0.01 / (2 * math.pi)
+    top, t_r = 0.66, p.reaction_time_s
+    a = top ** 2 / (2 * (0.8 * 0.035 - top * t_r))  # m/s^2
+    assert p.quick_stop_decel * ratio == pytest.approx(a)
+    assert a < p.max_current_a * p.accel_per_amp * ratio
+    assert p.limit_max * ratio > 0.51
+    heavy = load_machine(ARROW, {"table": {"mass_kg": 5000.0}})
+    with pytest.raises(ConfigError, match="the quick stop ramp 6085h, .* runs"):
+        load_drive(heavy, load_controller(heavy))
+
+
 @pytest.mark.parametrize("text, match", [
     ("max_current_a = 40.0", "max_current_a = 40 A must be <= \\[motor\\] current_max_a"),
     ("software_limit_min_m = 0.4\nsoftware_limit_max_m = 0.1", "software_limit_min_m"),

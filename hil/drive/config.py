@@ -31,6 +31,9 @@ from plant.schema import key
 
 DERIVED = None
 LINEAR_KINDS = "kind=screw|linear"
+#: the share of the room between the travel's ends and the limit switches the derived
+#: quick stop deceleration may need (the rest stays for 607Dh's margin beyond the travel)
+ROOM_SHARE = 0.8
 #: default homing speeds (6099h) as shares of the profile velocity 6081h
 HOMING_SWITCH_SHARE = 0.1
 HOMING_ZERO_SHARE = 0.01
@@ -82,7 +85,9 @@ class DriveSection:
         le=5000.0)
     quick_stop_deceleration_m_s2: float = key(
         "m/s^2", "6085h quick stop deceleration. Absent: half the acceleration the motor gives "
-        "the axis at [motor] current_max_a.", DERIVED, gt=0.0, le=1e4, only=LINEAR_KINDS)
+        "the axis at [motor] current_max_a, or more (up to what max_current_a gives) where "
+        "the fault reaction from 1.1 x 6080h would need more than 80 % of the room from the "
+        "travel's ends to the limit switches.", DERIVED, gt=0.0, le=1e4, only=LINEAR_KINDS)
     quick_stop_deceleration_deg_s2: float = key(
         "deg/s^2", "6085h quick stop deceleration of a rotary table.", DERIVED, gt=0.0,
         le=1e7, only="kind=rotary")
@@ -343,13 +348,32 @@ def load_drive(cfg: MachineConfig, controller: ControllerSection | None) -> Driv
         coast_decel=_coast_deceleration(cfg), switch_min=switch_min, switch_max=switch_max,
         stop_min=stop_min, stop_max=stop_max,
         reaction_time_s=reaction_time(_current_loop_time_constant(cfg)))
-    _check_ramps(cfg, params, {"quick_stop_deceleration": qs, "profile_deceleration": pd})
     braking = controller is not None
+    if qs is None and lo is None and hi is None and braking:
+        params.quick_stop_decel = _quick_stop_for_room(cfg, params)
+    _check_ramps(cfg, params, {"quick_stop_deceleration": qs, "profile_deceleration": pd})
     params.limit_min, params.limit_max = _software_limits(cfg, params, lo, hi, braking)
     short = braking_room(params, braking)
     if short:
         raise ConfigError(_room_text(cfg, params, short))
     return params
+
+
+def _quick_stop_for_room(cfg: MachineConfig, p: DriveParameters) -> float:
+    """6085h when the file gives none (nor 607Dh): half the motor's acceleration at
+    [motor] current_max_a, raised where the quick stop reaction (605Eh = 2) from 1.1 x
+    6080h would need more than :data:`ROOM_SHARE` of the room between the travel's ends
+    and the limit switches, up to the deceleration 6072h gives (a heavier table, a weaker
+    motor: what a commissioning engineer sets); motor units/s²."""
+    top = top_speed(p.max_speed)
+    if cfg.table is None or p.fault_reaction_option != 2 or not math.isfinite(top):
+        return p.quick_stop_decel
+    room = min(p.switch_max - cfg.table.travel_m / _units(cfg)[0], -p.switch_min)
+    budget = ROOM_SHARE * room - top * p.reaction_time_s
+    if budget <= 0.0:
+        return p.quick_stop_decel  # no deceleration fits: the room check refuses the file
+    needed = top * top / (2.0 * budget)
+    return max(p.quick_stop_decel, min(needed, p.max_current_a * p.accel_per_amp))
 
 
 def _units(cfg: MachineConfig) -> tuple[float, str]:
