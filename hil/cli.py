@@ -1,6 +1,7 @@
 """The ``hil`` command line.
 
     hil demo [--config FILE] [--program FILE] [--out DIR] [--no-rt]
+    hil linuxcnc INI [--program FILE.ngc] [--out DIR] [--inject [AXIS/]FAULT:KEY=VALUE,...]
     hil run CONFIG --adapter URL [--duration S] [--record DIR] [--watchdog-cycles N] ...
     hil controller CONFIG --adapter URL --program FILE [--out DIR] ...
     hil validate [--json] [--out DIR | --no-plots] [--only NAME ...] [--strict]
@@ -316,6 +317,11 @@ def build_parser() -> argparse.ArgumentParser:
                          "with the lock-step simulation")
     demo.add_arguments(dem)
     dem.set_defaults(func=demo.run_from_args)
+    from hil.linuxcnc import command as linuxcnc_command
+    lcn = sub.add_parser("linuxcnc", help="LinuxCNC drives the emulated machine, headless: "
+                         "home, run a G-code program, a verdict")
+    linuxcnc_command.add_arguments(lcn)
+    lcn.set_defaults(func=linuxcnc_command.run_from_args)
 
     from hil.identify import command as identify_command
     idf = sub.add_parser("identify", help="find, fit and add the effects a machine file lacks "

@@ -38,8 +38,6 @@ NO_MODE = 0
 #: 6502h bit of each mode
 MODE_BITS = {MODE_PP: 1 << 0, MODE_PV: 1 << 2, MODE_HM: 1 << 5, 8: 1 << 7, 9: 1 << 8,
              10: 1 << 9}
-#: 60FDh bits: negative and positive limit switch, home switch (CiA 402)
-DI_NEGATIVE_LIMIT, DI_POSITIVE_LIMIT, DI_HOME_SWITCH = 1 << 0, 1 << 1, 1 << 2
 
 SDO_ABORT_COMMAND = 0x0504_0001
 SDO_ABORT_NOT_WRITABLE = 0x0601_0002

@@ -28,6 +28,10 @@ MODE_CST = 10  # cyclic synchronous torque: here the q-current setpoint in A
 #: d-q voltage setpoints, for controllers that close the current loop themselves
 MODE_VOLTAGE = -1
 
+#: 60FDh digital inputs (:attr:`Feedback.digital_inputs`): negative and positive limit
+#: switch, home switch (CiA 402)
+DI_NEGATIVE_LIMIT, DI_POSITIVE_LIMIT, DI_HOME_SWITCH = 1 << 0, 1 << 1, 1 << 2
+
 #: why an adapter refused a setpoint (:meth:`SetpointBounds.refusal`; 0: taken)
 REFUSED_NONFINITE = 1  # a NaN or infinite value in any float field
 REFUSED_MODE = 2       # a mode (6060h) the drive does not take
@@ -81,6 +85,13 @@ class Feedback:
             encoder difference over the drive's speed cycle.
         iq_a, id_a: sampled currents in A.
         fault: the drive's error code, CiA 402 603Fh (0 = none; hil.drive.faults).
+        digital_inputs: CiA 402 60FDh: bit 0 negative and bit 1 positive limit switch,
+            bit 2 home switch (:data:`DI_NEGATIVE_LIMIT` ...).
+        index_marks: the encoder's index marks below its position, a whole number: it
+            changes by one each time the axis passes a mark.
+        index_counts: where the mark last passed lies, in the units of ``encoder_counts``
+            (its position actual value; 0.0 until one is passed): what a drive's
+            reference-mark latch gives.
         sp_t_ns: ``t_ns`` of the latest setpoint the drive's adapter received
             (controller clock, ns; set by ``send_feedback``).
         sp_rx_ns: drive clock when that setpoint arrived, ns (set by ``send_feedback``).
@@ -100,6 +111,9 @@ class Feedback:
     iq_a: float = 0.0
     id_a: float = 0.0
     fault: int = 0
+    digital_inputs: int = 0
+    index_marks: int = 0
+    index_counts: float = 0.0
     sp_t_ns: int = 0
     sp_rx_ns: int = 0
     t_ns: int = 0

@@ -87,6 +87,7 @@ from io_adapters.messages import (
     SetpointGroup,
     axis_records,
 )
+from io_adapters.wire import Wire
 
 #: how long a pinned controller must have been silent before a HELLO of another one
 #: takes the device over, ms (URL option ``takeover_ms``)
@@ -105,6 +106,15 @@ HELLO_LEADS = frozenset((0x94, 0xDC, 0xDD))
 NOTICE_GAP_NS = 1_000_000_000
 
 
+def _finite(values: tuple, record_type: type) -> bool:
+    return (GROUP_SCHEMAS.get(record_type) or SCHEMAS[record_type]).finite(values)
+
+
+#: the msgpack wire (:mod:`io_adapters.codec`), every endpoint's default
+MSGPACK_WIRE = Wire("msgpack", encode, decode, fill, _finite, encode_hello, decode_hello,
+                    encode_welcome, encode_inject, HELLO_LEADS)
+
+
 class MsgpackEndpoint(Endpoint):
     """An :class:`~io_adapters.base.Endpoint` over a transport that moves whole messages
     (datagrams, serial frames); see the module docstring for what it checks.
@@ -114,6 +124,8 @@ class MsgpackEndpoint(Endpoint):
         drain: see :class:`~io_adapters.base.Endpoint`.
         takeover_ms: device side: how long the pinned controller must have sent nothing
             valid before another one's HELLO is accepted, ms (> 0).
+        wire: how messages are laid out in bytes (:mod:`io_adapters.wire`; default
+            msgpack).
 
     Attributes:
         session: this endpoint's session, u32, drawn at random when it opens.
@@ -130,8 +142,9 @@ class MsgpackEndpoint(Endpoint):
     """
 
     def __init__(self, role: Role | str, *, drain: bool = False,
-                 takeover_ms: float = DEFAULT_TAKEOVER_MS):
+                 takeover_ms: float = DEFAULT_TAKEOVER_MS, wire: Wire = MSGPACK_WIRE):
         super().__init__(role, drain=drain)
+        self.wire = wire
         if not 0.0 < takeover_ms < float("inf"):
             raise AdapterConfigError(f"takeover_ms={takeover_ms}: expected a positive, "
                                      f"finite time in ms")
@@ -151,7 +164,7 @@ class MsgpackEndpoint(Endpoint):
 
     # -- sending -----------------------------------------------------------------------
     def _write(self, record: Setpoint | Feedback) -> bool:
-        payload = encode(record, self.session, self._frame)
+        payload = self.wire.encode(record, self.session, self._frame)
         if not (self._device or self.welcomed):
             self._hello_if_due()
         return self._send_record(payload)
@@ -179,7 +192,7 @@ class MsgpackEndpoint(Endpoint):
     def _hello_if_due(self) -> None:
         now = time.monotonic_ns()
         if self._hello_ns is None or now - self._hello_ns >= HELLO_INTERVAL_NS:
-            if self._send_message(encode_hello(self.session, self._frame), None):
+            if self._send_message(self.wire.encode_hello(self.session, self._frame), None):
                 self._hello_ns = now
 
     def _send_message(self, payload: bytes, to) -> bool:
@@ -215,7 +228,7 @@ class MsgpackEndpoint(Endpoint):
             self._from_stranger(data, origin)
             return False
         try:
-            values = decode(data, type(into), len(axis_records(into)))
+            values = self.wire.decode(data, type(into), len(axis_records(into)))
         except FrameError:
             stats.malformed += 1
             return False
@@ -230,20 +243,20 @@ class MsgpackEndpoint(Endpoint):
         if self._device:
             if self._refused(values, into):
                 return False
-        elif not (GROUP_SCHEMAS.get(type(into)) or SCHEMAS[type(into)]).finite(values):
+        elif not self.wire.finite(values, type(into)):
             self._refuse(0, REFUSED_NONFINITE)
             return False
-        fill(into, values)
+        self.wire.fill(into, values)
         stats.received += 1
         return True
 
     def _from_stranger(self, data: bytes | memoryview, origin) -> None:
         """A message from someone other than the peer: foreign, unless it is a HELLO
         to a device from an admissible origin."""
-        if self._device and len(data) and data[0] in HELLO_LEADS \
+        if self._device and len(data) and data[0] in self.wire.hello_leads \
                 and self._admissible(origin):
             try:
-                values = decode_hello(data)
+                values = self.wire.decode_hello(data)
             except FrameError:
                 pass
             else:
@@ -268,7 +281,8 @@ class MsgpackEndpoint(Endpoint):
         self.injections.append(request)
 
     def _write_injection(self, request: InjectRequest) -> bool:
-        return self._send_message(encode_inject(self.session, self._frame, request), None)
+        return self._send_message(self.wire.encode_inject(self.session, self._frame, request),
+                                  None)
 
     def _handshake(self, values: tuple, origin) -> None:
         if values[1] == KIND_WELCOME:
@@ -296,7 +310,8 @@ class MsgpackEndpoint(Endpoint):
         else:
             self.stats.foreign += 1
             accepted = False
-        self._send_message(encode_welcome(self.session, self._frame, accepted), origin)
+        self._send_message(self.wire.encode_welcome(self.session, self._frame, accepted),
+                           origin)
 
     def _in_sequence(self, session: int, frame: int, origin) -> bool:
         """Check a record's session and frame number, counting what is dropped; pin the

@@ -1,4 +1,5 @@
-"""UDP transport: one msgpack message (:mod:`io_adapters.codec`) per datagram.
+"""UDP transport: one message per datagram (msgpack, :mod:`io_adapters.codec`, or the
+fixed layout with ``wire=fixed``, :mod:`io_adapters.codec_fixed`).
 
 URL: ``udp://HOST:PORT[?option=value&...]``.  HOST:PORT is the device's address
 on both sides, so both can be given the same URL:
@@ -25,6 +26,8 @@ Options:
 * ``takeover_ms=MS`` — device side (a controller ignores it, so both can share a URL):
   how long the pinned controller must have been silent before another one's HELLO is
   accepted, default 500 ms.
+* ``wire=msgpack|fixed`` — how messages are laid out (:mod:`io_adapters.wire`): msgpack
+  (the default) or the fixed little-endian C structs of :mod:`io_adapters.codec_fixed`.
 
 A receive call (``recv_setpoint``, ``recv_feedback``) reads at most
 :attr:`UdpEndpoint.rx_budget` datagrams from the socket (None, the default: no bound; ``hil
@@ -34,7 +37,7 @@ the next call: a call that stops at the budget with datagrams left is counted in
 (:mod:`io_adapters.udp_flood`: while strangers flood a pinned controller that is still
 talking, the kernel drops all but its datagrams).  A receive call decodes at most one
 stranger's datagram, the first that may be a HELLO (its first byte a msgpack array's of
-4): every other one is counted foreign on its address alone (a further HELLO in the same
+4, or the fixed wire's magic): every other one is counted foreign on its address alone (a further HELLO in the same
 call is neither taken nor answered; its sender repeats it).
 
 The socket is non-blocking; waits use ``select``, which keeps microsecond timeouts
@@ -81,8 +84,13 @@ from io_adapters.base import (
     positive_float,
     positive_int,
 )
-from io_adapters.msgpack_endpoint import DEFAULT_TAKEOVER_MS, HELLO_LEADS, MsgpackEndpoint
+from io_adapters.msgpack_endpoint import (
+    DEFAULT_TAKEOVER_MS,
+    MSGPACK_WIRE,
+    MsgpackEndpoint,
+)
 from io_adapters.udp_flood import FloodGuard
+from io_adapters.wire import Wire, wire_named
 
 #: receive buffer, bytes: far above any message (about 100 bytes)
 MAX_DATAGRAM = 2048
@@ -184,7 +192,7 @@ class UdpEndpoint(MsgpackEndpoint):
         allow_remote: allow non-loopback addresses.
         drain: see :class:`~io_adapters.base.Endpoint`.
         rcvbuf: SO_RCVBUF in bytes (None: the system default).
-        takeover_ms: see :class:`~io_adapters.msgpack_endpoint.MsgpackEndpoint`.
+        takeover_ms, wire: see :class:`~io_adapters.msgpack_endpoint.MsgpackEndpoint`.
 
     Attributes:
         rx_budget: the most datagrams one receive call reads from the socket (None: no
@@ -194,8 +202,8 @@ class UdpEndpoint(MsgpackEndpoint):
     def __init__(self, role: Role | str, address: tuple[str, int], *,
                  bind: tuple[str, int] | None = None, peer: tuple[str, int] | None = None,
                  allow_remote: bool = False, drain: bool = False, rcvbuf: int | None = None,
-                 takeover_ms: float = DEFAULT_TAKEOVER_MS):
-        super().__init__(role, drain=drain, takeover_ms=takeover_ms)
+                 takeover_ms: float = DEFAULT_TAKEOVER_MS, wire: Wire = MSGPACK_WIRE):
+        super().__init__(role, drain=drain, takeover_ms=takeover_ms, wire=wire)
         device = self.role is Role.DEVICE
         if device and bind is not None:
             raise AdapterConfigError("bind= is for the controller side; the device binds "
@@ -270,7 +278,7 @@ class UdpEndpoint(MsgpackEndpoint):
             raise AdapterConfigError(f"{url!r}: expected udp://HOST:PORT ({e})") from e
         options = parse_options(url, query, {
             "bind": host_port, "peer": host_port, "allow_remote": flag, "drain": flag,
-            "rcvbuf": positive_int, "takeover_ms": positive_float})
+            "rcvbuf": positive_int, "takeover_ms": positive_float, "wire": wire_named})
         return cls(role, address, **options)
 
     @property
@@ -366,7 +374,7 @@ class UdpEndpoint(MsgpackEndpoint):
     def _may_be_hello(self, data) -> bool:
         """A stranger's datagram this call would decode as a possible HELLO."""
         return (not self._hello_looked and len(data) > 0
-                and data[0] in HELLO_LEADS)
+                and data[0] in self.wire.hello_leads)
 
     def _foreign_datagram(self, n: int) -> None:
         """Count a stranger's datagram of ``n`` bytes that this call does not decode, as

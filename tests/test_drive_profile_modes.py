@@ -283,6 +283,33 @@ def test_csp_targets_are_interpolated_linearly_over_60c2h():
     assert axis.drive.modes.demand == start * axis.rpc
 
 
+def test_a_silent_master_leaves_the_axis_at_its_last_target():
+    """CSP at 60C2h = 1 ms with the speed feed-forward (60B1h) of its ramp: when the targets
+    stop, the demand runs one period past the last one and holds there, and from then on
+    the feed-forward is 0, so the axis stops near that point (a held demand with the last
+    feed-forward kept would drive it on at that speed, held back only by the position
+    loop: v / K_v, 1.5 mm here)."""
+    axis = Axis()
+    axis.p.interpolation_value, axis.p.interpolation_index = 1, -3
+    axis.sp.mode = MODE_CSP
+    start = axis.fb.encoder_counts
+    per_ms = 0.05e-3 / (axis.rpc * 1.5915494309189536e-3)  # 50 mm/s in counts per ms
+    axis.sp.velocity_offset_counts_s = per_ms * 1e3
+    for k in range(1, 201):  # 200 ms ramp at 50 mm/s
+        axis.sp.seq, axis.sp.target_position_counts = k, start + per_ms * k
+        axis.cycle(0, 8)
+    last = axis.sp.target_position_counts
+    speeds, demands = [], []
+    for _ in range(40):  # 5 ms without a new target
+        axis.cycle()
+        speeds.append(axis.drive.modes.speed)
+        demands.append(axis.drive.modes.demand)
+    assert speeds[7] > 0.0 and speeds[8:] == [0.0] * 32  # extrapolated 1 ms, then held
+    assert demands[-1] == pytest.approx((last + per_ms) * axis.rpc, rel=1e-12)
+    axis.cycle(0, 400)  # 50 ms more: at rest within a period's travel of the held demand
+    assert abs(axis.fb.encoder_counts - (last + per_ms)) < per_ms
+
+
 @pytest.mark.parametrize("cycle_s, match", [
     (0.0003, "communication_cycle_s = 0.0003 s must be a whole number of PWM periods"),
     (0.02, "communication_cycle_s"),

@@ -192,7 +192,8 @@ def _interpolated(prm, w, wi, seq, a, b):
     wi[J_CYCLES] += 1
     f = _py_min(wi[J_CYCLES] / wi[J_LENGTH], EXTRAPOLATE)
     a0, b0 = w[F_START_A], w[F_START_B]
-    return a0 + (w[F_END_A] - a0) * f, b0 + (w[F_END_B] - b0) * f
+    held = wi[J_CYCLES] > EXTRAPOLATE * wi[J_LENGTH]
+    return a0 + (w[F_END_A] - a0) * f, 0.0 if held else b0 + (w[F_END_B] - b0) * f
 
 
 @njit(cache=True, error_model="numpy", inline="always")

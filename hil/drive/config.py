@@ -115,6 +115,12 @@ class DriveSection:
         "s", "1006h communication cycle period on CANopen: the SYNC period the drive takes its "
         "setpoints at and interpolates them over (60C2h), in whole PWM periods.", 0.001,
         ge=0.00025, le=0.01)
+    interpolation_time_period_s: float = key(
+        "s", "60C2h interpolation time period: the drive moves each cyclic target (CSP, CSV) "
+        "to the next one linearly over this time, in whole PWM periods; set it to the "
+        "controller's cycle when that is longer than a PWM period (a LinuxCNC servo period "
+        "over UDP). 0: each target taken as it comes. On CANopen the master writes 60C2h.",
+        0.0, ge=0.0, le=0.255)
 
 
 @dataclass
@@ -321,10 +327,14 @@ def load_drive(cfg: MachineConfig, controller: ControllerSection | None) -> Driv
     else:
         profile = quick_stop
     cycle = sec.communication_cycle_s
-    pwm_periods = cycle * cfg.motor.pwm_frequency_hz
-    if abs(pwm_periods - round(pwm_periods)) > 1e-6:
-        raise ConfigError(f"{cfg.path}: [drive] communication_cycle_s = {cycle:g} s must be a "
-                          f"whole number of PWM periods (1/{cfg.motor.pwm_frequency_hz:g} s)")
+    for name, period in (("communication_cycle_s", cycle),
+                         ("interpolation_time_period_s", sec.interpolation_time_period_s)):
+        pwm_periods = period * cfg.motor.pwm_frequency_hz
+        if abs(pwm_periods - round(pwm_periods)) > 1e-6:
+            raise ConfigError(f"{cfg.path}: [drive] {name} = {period:g} s must be a whole "
+                              f"number of PWM periods (1/{cfg.motor.pwm_frequency_hz:g} s)")
+    interpolation_value, interpolation_index = interpolation_time_period(
+        cfg, sec.interpolation_time_period_s)
     profile_velocity = (v_max / table_si_per_motor if v_max
                         else max_speed if math.isfinite(max_speed) else 0.0)
     switch_min, switch_max, stop_min, stop_max = _barriers(cfg, per)
@@ -338,8 +348,9 @@ def load_drive(cfg: MachineConfig, controller: ControllerSection | None) -> Driv
         fault_reaction_option=int(FaultReactionOption(sec.fault_reaction_option)),
         abort_connection_option=int(AbortConnectionOption(sec.abort_connection_option)),
         continuous_current_a=continuous, overload_time_s=sec.overload_time_s,
-        current_max_a=i_peak, communication_cycle_s=cycle, interpolation_value=0,
-        interpolation_index=-3, profile_velocity=profile_velocity,
+        current_max_a=i_peak, communication_cycle_s=cycle,
+        interpolation_value=interpolation_value, interpolation_index=interpolation_index,
+        profile_velocity=profile_velocity,
         profile_acceleration=profile, homing_method=0,
         homing_speed_switch=HOMING_SWITCH_SHARE * profile_velocity,
         homing_speed_zero=HOMING_ZERO_SHARE * profile_velocity,
@@ -357,6 +368,17 @@ def load_drive(cfg: MachineConfig, controller: ControllerSection | None) -> Driv
     if short:
         raise ConfigError(_room_text(cfg, params, short))
     return params
+
+
+def interpolation_time_period(cfg: MachineConfig, period_s: float) -> tuple[int, int]:
+    """60C2h (:01 value, u8; :02 index, the power of ten of the unit) for ``period_s``:
+    the coarsest unit from 1 ms to 1 µs that gives a whole value; (0, -3) for 0."""
+    for index in (-3, -4, -5, -6):
+        value = period_s * 10.0 ** -index
+        if abs(value - round(value)) < 1e-6 and round(value) <= 0xFF:
+            return round(value), index
+    raise ConfigError(f"{cfg.path}: [drive] interpolation_time_period_s = {period_s:g} s is "
+                      f"not a value of 60C2h (a whole 1-255 ms, 100 µs, 10 µs or µs)")
 
 
 def _quick_stop_for_room(cfg: MachineConfig, p: DriveParameters) -> float:

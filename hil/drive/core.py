@@ -4,7 +4,8 @@ Every cycle (one PWM period of the plant) it takes a
 :class:`~io_adapters.messages.Setpoint`, monitors the axis (:mod:`hil.drive.monitor`),
 latches the fault causes found (:mod:`hil.drive.faults`), runs the CiA 402 state machine on
 the controlword, drives the plant as its state says, steps the plant and fills a
-:class:`~io_adapters.messages.Feedback` (statusword 6041h, error code 603Fh in ``fault``).
+:class:`~io_adapters.messages.Feedback` (statusword 6041h, error code 603Fh in ``fault``,
+digital inputs 60FDh, the index mark last passed).
 
 What the power stage does in each CiA 402 state:
 
@@ -76,6 +77,9 @@ from hil.drive.modes import MODE_PP, PROFILE_MODES, ModeControl
 from hil.drive.monitor import Monitor
 from hil.drive.reaction import DONE, FAILED, BrakeRamp
 from io_adapters.messages import (
+    DI_HOME_SWITCH,
+    DI_NEGATIVE_LIMIT,
+    DI_POSITIVE_LIMIT,
     MODE_CSP,
     MODE_CST,
     MODE_CSV,
@@ -148,6 +152,9 @@ class EmulatedDrive:
         self._previous_cw = 0
         self._limited = 0           # statusword bit 11 when a command met a limit
         self._last_good_x = float(plant.out[L.O_TABLE_POS])
+        self._counts_per_mark = plant.counts_per_mark
+        self._marks = math.nan        # the index marks below the encoder, last cycle
+        self._mark_counts = 0.0       # the encoder count of the mark last passed
         self.compiled = CompiledPath(self) if compiled else None
 
     def setpoint_bounds(self) -> SetpointBounds:
@@ -188,8 +195,33 @@ class EmulatedDrive:
         if self.compiled is not None:
             self.compiled.leave()
 
+    def digital_inputs(self) -> int:
+        """60FDh now: the plant's limit switches (bits 0, 1) and home switch (bit 2)."""
+        out = self.plant.out
+        return ((DI_NEGATIVE_LIMIT if out[L.O_LIMIT_NEG] > 0.0 else 0)
+                | (DI_POSITIVE_LIMIT if out[L.O_LIMIT_POS] > 0.0 else 0)
+                | (DI_HOME_SWITCH if out[L.O_HOME_SWITCH] > 0.0 else 0))
+
+    def _reference_inputs(self, fb: Feedback) -> None:
+        """The feedback's 60FDh and index mark latch (:class:`~io_adapters.messages.Feedback`).
+
+        The plant gives the number of marks below the encoder position, so a change from
+        k to k' tells exactly which mark was passed: k' moving up, k' + 1 moving down
+        (the mark at ``max(k, k')`` for one mark; the last of several passed in one cycle).
+        """
+        fb.digital_inputs = self.digital_inputs()
+        marks, last = self.plant.out[L.O_INDEX], self._marks
+        if marks == marks and marks != last:  # NaN while the plant restarts: kept
+            if last == last:
+                self._mark_counts = (marks if marks > last else marks + 1) \
+                    * self._counts_per_mark
+            self._marks = marks
+        fb.index_marks = int(self._marks) if self._marks == self._marks else 0
+        fb.index_counts = self._mark_counts + self.modes.shift_counts
+
     def _cycle(self, sp: Setpoint, fb: Feedback) -> None:
         if self.compiled is not None and self.compiled.run(sp, fb):
+            self._reference_inputs(fb)
             return
         plant, out, p, rpc = self.plant, self.plant.out, self.params, self.rad_per_count
         counts = out[L.O_ENCODER]
@@ -261,6 +293,7 @@ class EmulatedDrive:
         fb.iq_a = out[L.O_IQ_MEAS]
         fb.id_a = out[L.O_ID_MEAS]
         fb.fault = self.fault
+        self._reference_inputs(fb)
 
     # -- faults and the controlword -------------------------------------------------------
     def _controlword(self, controlword: int, present: int) -> int:

@@ -9,9 +9,11 @@ starts runs from the previous target (not from where the interpolation had got t
 the new one in ``round(60C2h / drive cycle)`` cycles, reaching the new target on the
 cycle before the next is due.  A target that comes late is extrapolated along the last
 segment for at most one more period (then held), so one SYNC lost or delayed by the bus
-does not stop the axis.  With 60C2h = 0, or shorter than a drive cycle, each target is
-taken as it comes (a link that delivers one every drive cycle: UDP, serial, the lock-step
-simulation).
+does not stop the axis.  A held target stands still, so from then on the second quantity
+(CSP's speed feed-forward 60B1h) is 0: a master that falls silent for longer leaves the
+axis at its last target instead of running on at the last feed-forward speed.  With
+60C2h = 0, or shorter than a drive cycle, each target is taken as it comes (a link that
+delivers one every drive cycle: UDP, serial, the lock-step simulation).
 """
 
 #: how far past its end a segment is extrapolated, in segment lengths (1: to the end)
@@ -55,4 +57,5 @@ class Interpolator:
         self._cycles += 1
         f = min(self._cycles / self._length, EXTRAPOLATE)
         (a0, b0), (a1, b1) = self._start, self._end
-        return a0 + (a1 - a0) * f, b0 + (b1 - b0) * f
+        held = self._cycles > EXTRAPOLATE * self._length
+        return a0 + (a1 - a0) * f, 0.0 if held else b0 + (b1 - b0) * f

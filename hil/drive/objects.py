@@ -80,9 +80,6 @@ from hil.drive.homing import METHODS
 from hil.inject.catalog import BY_SUBINDEX
 from hil.inject.schedule import Injector, check
 from io_adapters.can_catalog import (
-    DI_HOME_SWITCH,
-    DI_NEGATIVE_LIMIT,
-    DI_POSITIVE_LIMIT,
     FAULT_INJECTION,
     INJECT_RAMP_SUB,
     SDO_ABORT_MAX_BELOW_MIN,
@@ -92,7 +89,6 @@ from io_adapters.can_catalog import (
     SDO_ABORT_VALUE_RANGE,
 )
 from io_adapters.cia402_objects import ObjectAccessError
-from plant import layout as L
 from plant.errors import ConfigError
 
 U32_OFF = 0xFFFFFFFF
@@ -183,10 +179,7 @@ class DriveObjects:
         if index == 0x60F4:
             return _i32(d.monitor.following_error / rpc)
         if index == 0x60FD:
-            out = d.plant.out
-            return ((DI_NEGATIVE_LIMIT if out[L.O_LIMIT_NEG] > 0.0 else 0)
-                    | (DI_POSITIVE_LIMIT if out[L.O_LIMIT_POS] > 0.0 else 0)
-                    | (DI_HOME_SWITCH if out[L.O_HOME_SWITCH] > 0.0 else 0))
+            return d.digital_inputs()
         raise ObjectAccessError(SDO_ABORT_NO_OBJECT, f"{index:04X}h is not a drive parameter")
 
     def write(self, axis: int, index: int, subindex: int, value: float) -> None:

@@ -305,11 +305,13 @@ class SteadyTick:
     @classmethod
     def for_emulator(cls, emulator) -> "SteadyTick | None":
         """The compiled tick of an emulator that can take one: at most
-        :data:`~io_adapters.codec_compiled.MAX_AXES` axes, a UDP device endpoint refusing
-        what its drives refuse, no SYNC, every drive's compiled path; else None."""
+        :data:`~io_adapters.codec_compiled.MAX_AXES` axes, a UDP device endpoint on the
+        msgpack wire refusing what its drives refuse, no SYNC, every drive's compiled path;
+        else None."""
         ep = emulator.endpoint
         drives = emulator.drives.drives
         if (len(drives) > K.MAX_AXES or type(ep) is not UdpEndpoint
+                or ep.wire.name != "msgpack"
                 or emulator.sync_lock is not None or any(d.compiled is None for d in drives)
                 or ep.setpoint_bounds != tuple(d.setpoint_bounds() for d in drives)):
             return None

@@ -1,0 +1,99 @@
+"""LinuxCNC drives the emulated machine (``hil linuxcnc``): LinuxCNC 2.9, headless, in
+POSIX non-real-time mode, with the feeddrive HAL component in its servo thread, against
+``hil run`` on configs/machines/arrow500_xyz_2khz.toml over the fixed binary wire.
+
+Two sessions, each a separate ``hil linuxcnc`` process: one homes and runs a program (the
+module's fixture, checked several ways), one with a fault injected on X.  Where LinuxCNC
+cannot be run (not unpacked by .ci/test-deps nor installed, not root, no mount namespace)
+they skip saying why.
+"""
+
+import json
+import subprocess
+import sys
+
+import pytest
+
+from hil.linuxcnc import install
+from hil.linuxcnc.command import COMPONENT_CACHE
+from tests.conftest import CONFIGS, ROOT
+from tests.runtime_helpers import ENV
+
+INI = CONFIGS / "linuxcnc" / "arrow500_xyz.ini"
+PROGRAM = ROOT / "programs" / "linuxcnc_square.ngc"
+#: the longest a whole session may take (a cold numba cache compiles the plant and the
+#: replay's kernels; LinuxCNC starts, homes, runs 8 s of program and stops)
+SESSION_S = 600
+#: the fault: the motor loses 90 % of its magnet flux on an axis whose guides' friction
+#: grew eleven-fold: it cannot follow LinuxCNC's accelerations any more
+FAULT = ["--inject", "X/torque_constant_loss:loss_pct=90",
+         "--inject", "X/friction_growth:growth_pct=1000"]
+
+
+def _linuxcnc_or_skip() -> None:
+    try:
+        install.build_component(install.find(), COMPONENT_CACHE)
+    except install.LinuxCNCUnavailable as e:
+        pytest.skip(f"LinuxCNC cannot be run here: {e}")
+
+
+def _session(out, *extra) -> tuple[subprocess.CompletedProcess, dict]:
+    # the emulator's loop on the first CPU: other test processes' hil run loops (SCHED_FIFO
+    # on the last CPU by default) would hold it off theirs
+    done = subprocess.run([sys.executable, "-m", "hil.linuxcnc.command", str(INI),
+                           "--program", str(PROGRAM), "--out", str(out), "--cpu", "0", *extra],
+                          cwd=ROOT, env=ENV, capture_output=True, text=True, timeout=SESSION_S)
+    summary = out / "linuxcnc.json"
+    assert summary.exists(), f"no linuxcnc.json:\n{done.stdout}\n{done.stderr}"
+    return done, json.loads(summary.read_text())
+
+
+@pytest.fixture(scope="module")
+def session(tmp_path_factory):
+    _linuxcnc_or_skip()
+    return _session(tmp_path_factory.mktemp("linuxcnc"))
+
+
+def test_the_program_completes_and_the_verdict_passes(session):
+    done, summary = session
+    lines = done.stdout.strip().splitlines()
+    assert done.returncode == 0 and lines[-1] == "PASS", done.stdout + done.stderr
+    assert summary["verdict"] == "PASS" and summary["linuxcnc_errors"] == []
+    assert {"on", "homed", "program"} <= set(summary["phases"])
+    assert summary["replay"]["matches"]
+
+
+def test_homing_finds_the_emulated_switch_and_index(session):
+    """LinuxCNC's own homing (search the switch, latch its edge, on to the index) reset
+    every joint's feedback at the emulated encoder's first index mark above the switch,
+    to the count: not at the switch's edge, half a mark lower."""
+    _, summary = session
+    assert len(summary["homing"]) == 3
+    for h in summary["homing"]:
+        assert h["homed"], h
+        assert abs(h["index_counts"] - h["expected_counts"]) <= 1.0, h
+
+
+def test_linuxcnc_following_error_is_reported_beside_the_drives(session):
+    """LinuxCNC's following error, every servo period, stays inside its FERROR/MIN_FERROR
+    limit with margin; it is not zero (the feedback is at least a PWM period, 0.5 ms, older
+    than the command: 12.5 µm at the homing search's 25 mm/s); the drive's own is recorded
+    beside it."""
+    _, summary = session
+    for name, e in summary["following_error"].items():
+        assert 0.0125 < e["linuxcnc_max"] < 0.8 * e["linuxcnc_limit"], (name, e)
+        assert e["drive_max"] > 0.0125 and e["unit"] == "mm", (name, e)
+
+
+def test_an_injected_fault_trips_linuxcncs_following_error_protection(tmp_path):
+    """With X's motor weakened and its guides seizing, X cannot follow LinuxCNC's
+    acceleration: LinuxCNC's own following-error check trips on joint 0, and the verdict
+    says so in LinuxCNC's words; the other joints stay inside their limits."""
+    _linuxcnc_or_skip()
+    done, summary = _session(tmp_path, *FAULT)
+    assert done.returncode == 1, done.stdout + done.stderr
+    assert done.stdout.strip().splitlines()[-1].startswith("FAIL: LinuxCNC: joint 0 following "
+                                                           "error")
+    e = summary["following_error"]
+    assert e["X"]["linuxcnc_max"] >= e["X"]["linuxcnc_limit"]
+    assert all(e[n]["linuxcnc_max"] < e[n]["linuxcnc_limit"] for n in ("Y", "Z"))
