@@ -12,6 +12,7 @@
     hil bench tick [--config FILE ...] [--seconds S] [--json]
     hil bench can [--config FILE] [--program FILE] [--sync-hz HZ] [--group G] [--json]
     hil bench study [--samples N] [--seconds S] [--json]
+    hil bench controller [--config FILE --program FILE ...] [--no-rt] [--json]
     hil bench identify [--ci] [--cases NAME ...] [--out DIR] [--workers N] [--json]
     hil eds CONFIG --adapter can://... [--out DIR]
     hil study SPEC.toml [--out DIR] [--workers N | --scheduler tcp://HOST:8786] [--fresh]
@@ -274,6 +275,11 @@ def build_parser() -> argparse.ArgumentParser:
                           "per-task overhead against a bare simulation")
     bench_study.add_arguments(bst)
     bst.set_defaults(func=bench_study.run_from_args)
+    from hil.bench import controller as bench_controller
+    bco = bsub.add_parser("controller", help="hil controller's tick against hil run over "
+                          "UDP, one axis and five: p50, p99.9, the NC's part")
+    bench_controller.add_arguments(bco)
+    bco.set_defaults(func=bench_controller.run_from_args)
 
     r = sub.add_parser("report", help="latency and jitter report of a run folder")
     r.add_argument("run", help="run folder of hil run (recording.arrows + report.json)")

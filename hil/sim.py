@@ -3,9 +3,10 @@
 Each basic-clock tick the controller reads the last feedback and writes a
 setpoint, then the drive applies it and advances the plant one PWM period.
 The same Controller and EmulatedDrive objects run in real time over an
-adapter; here they are only called back to back, faster than real time.  The drives take
-their compiled steady-state path as the emulator's do (:mod:`hil.drive.compiled_path`:
-the same results bit for bit, about half the lock-step's time).
+adapter; here they are only called back to back, faster than real time.  The NC and the
+drives take their compiled steady-state paths (:mod:`hil.controller.compiled_path`,
+:mod:`hil.drive.compiled_path`: the same results bit for bit), and the ticks on which
+both do run in blocks of one compiled call (:mod:`hil.sim_block`).
 :class:`MachineLockStep` does the same for every axis of a machine at once.  An alarm of
 the NC (:mod:`hil.controller.alarms`) does not end a run: the axes brake and are disabled
 as the NC does it, the run goes on to its end, and the alarms are in the result.
@@ -24,10 +25,13 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from hil.controller.alarms import Alarm
+from hil.controller.compiled_path import warm as warm_nc
 from hil.controller.machine import MachineController
 from hil.controller.nc import Controller
 from hil.drive import DriveSet, EmulatedDrive
-from hil.inject.schedule import injectors_for
+from hil.drive.compiled_path import warm as warm_drives
+from hil.inject.schedule import Injector, injectors_for
+from hil.sim_block import COLUMNS, DRIVE_DECLINED, RAN, Blocks
 from hil.trace_file import si_factor
 from io_adapters.messages import Feedback, Setpoint, axis_records, message_pair
 from plant import Plant
@@ -35,13 +39,15 @@ from plant.config import MachineConfig
 from plant.layout import S_TIME
 from plant.machines import MachineSet
 
-#: recorded signals: name -> unit (SI, table units; w_* are motor-side)
-SIGNALS = {
+_UNITS = {
     "t_s": "s", "x_set": "m", "v_set": "m/s", "a_set": "m/s^2", "x_act": "m",
     "v_act": "m/s", "v_cmd": "m/s", "w_set": "rad/s", "w_act": "rad/s", "iq_set": "A",
     "iq_meas": "A", "iq_true": "A", "table_pos": "m", "motor_pos": "rad", "motor_pos_meas": "rad",
-    "following_error": "m", "contour_deviation": "m", "tick": "1",
+    "following_error": "m", "contour_deviation": "m", "tick": "1", "table_vel": "m/s",
 }
+#: recorded signals: name -> unit (SI, table units; w_* are motor-side), in the order of
+#: the compiled blocks' recording (:data:`hil.sim_block.COLUMNS`)
+SIGNALS = {name: _UNITS[name] for name in COLUMNS}
 
 
 @dataclass(frozen=True)
@@ -71,14 +77,18 @@ class SimResult:
 
 class _Stepper(ABC):
     """What both lock-step runners share: the feedback in flight, one tick, the wait for
-    enable.  Subclasses set ``ctrl``, ``sp`` and ``_cycle`` (the drive side's step) and
-    call :meth:`_line_of`."""
+    enable, the run in compiled blocks.  Subclasses set ``ctrl``, ``sp``, ``_cycle`` (the
+    drive side's step), ``ctrls``, ``drive_list`` and ``plants`` (per axis), ``compiled``
+    and ``feedback_delay_ticks``, and call :meth:`_line_of`."""
 
     def _line_of(self, feedbacks: list) -> None:
         #: the feedback in flight: the controller reads slot i, the drive then rewrites it
         self._line = feedbacks
         self._slot = 0
         self.fb = self._line[0]
+        #: each axis's setpoint and (with no feedback delay) feedback record
+        self.sps = tuple(axis_records(self.sp))
+        self.fbs = tuple(axis_records(self._line[0]))
 
     @abstractmethod
     def _enable_reason(self) -> str:
@@ -94,8 +104,10 @@ class _Stepper(ABC):
 
     def _inject(self, plants, configs, names, flags) -> None:
         """The fault injectors of the plants (their machine files' ``[inject]`` tables and
-        the ``--inject`` flags, :mod:`hil.inject`); ConfigError before anything runs."""
-        self.injectors = injectors_for(plants, configs, names, flags)
+        the ``--inject`` flags, :mod:`hil.inject`; ``flags`` None: none at all);
+        ConfigError before anything runs."""
+        self.injectors = (tuple(Injector(p.params, c) for p, c in zip(plants, configs))
+                          if flags is None else injectors_for(plants, configs, names, flags))
         self._injected = tuple(zip(self.injectors, (p.state for p in plants)))
 
     def tick(self) -> None:
@@ -108,6 +120,74 @@ class _Stepper(ABC):
         self._cycle(self.sp, fb)
         self.fb = fb
         self._slot = (self._slot + 1) % len(self._line)
+
+    def finish_tick(self, axis: int) -> None:
+        """The rest of a tick whose NC and drives before ``axis`` ran in a block (the
+        drive of ``axis`` declined its compiled cycle)."""
+        if axis == 0:
+            self._cycle(self.sp, self.fb)
+            return
+        for drive, s, f in zip(self.drive_list[axis:], self.sps[axis:], self.fbs[axis:]):
+            drive.cycle(s, f)
+        self.fb.seq = self.sp.seq
+        self.fb.time_s = self.fbs[0].time_s
+
+    def record(self, recs: list, rows: int, first: int | None = None, every: int = 1,
+               progress=None, stop=None) -> int:
+        """Run until each axis's recording in ``recs`` (:class:`AxisRecording`) has ``rows``
+        rows: row r is taken after the tick whose number (the controller's
+        ``tick_count`` before it) is ``first + r * every`` (default ``first``: the next
+        tick).  In compiled blocks where every axis's NC and drive are on their compiled
+        paths, else tick by tick; ``progress(fraction of the rows)`` about 20 times;
+        ``stop()``, asked after each tick the Python path runs (no compiled tick needs
+        it: they decline whatever would), ends the run before that tick's row.  Returns
+        the rows taken.  :attr:`blocks` is then the run's :class:`~hil.sim_block.Blocks`
+        (None when not compiled)."""
+        ctrl = self.ctrls[0]
+        first = ctrl.tick_count if first is None else first
+        blocks = self.blocks = (Blocks(self, [r.array for r in recs], first, every)
+                                if self.compiled else None)
+        step = max(1, rows // 20)
+        report = row = 0
+        while row < rows:
+            if progress is not None and row >= report:
+                progress(report / rows)
+                report += step
+            declined = -1
+            if blocks is not None and blocks.ready():
+                blocks.run(2 ** 62, row, min(rows, report) if progress is not None else rows)
+                row = blocks.row
+                if blocks.stop == RAN:
+                    continue
+                declined = blocks.axis if blocks.stop == DRIVE_DECLINED else -1
+            k = ctrl.tick_count
+            if declined >= 0:
+                k -= 1  # the NC's part of the tick ran in the block
+                self.finish_tick(declined)
+            else:
+                self.tick()
+            if stop is not None and stop():
+                return row
+            if k >= first and (k - first) % every == 0:
+                for rec, fb in zip(recs, axis_records(self.fb)):
+                    rec.take(row, fb)
+                row += 1
+        return row
+
+    def run_ticks(self, n: int) -> None:
+        """``n`` ticks, nothing recorded (compiled blocks where they can run)."""
+        blocks = (Blocks(self, [np.empty((len(SIGNALS), 1)) for _ in self.ctrls], 2 ** 62, 1)
+                  if self.compiled else None)
+        end = self.ctrls[0].tick_count + n
+        while self.ctrls[0].tick_count < end:
+            if blocks is not None and blocks.ready():
+                blocks.run(end - self.ctrls[0].tick_count, 0, 1)
+                if blocks.stop == RAN:
+                    continue
+                if blocks.stop == DRIVE_DECLINED:
+                    self.finish_tick(blocks.axis)
+                    continue
+            self.tick()
 
 
 def _check_delay(feedback_delay_ticks: int) -> None:
@@ -125,22 +205,30 @@ class LockStep(_Stepper):
             (see the module docstring); ``fb`` is always the drive's newest feedback.
         axis: the axis name in the NC's alarms (default X, or C on a rotary table).
         inject: ``--inject`` flags (:mod:`hil.inject`), besides the machine file's
-            ``[inject]`` tables.
-        compiled: the drive's compiled steady-state path (False: every drive cycle in
-            Python, the reference it equals).
+            ``[inject]`` tables; None: no fault injected, those tables' neither.
+        compiled: the NC's and the drive's compiled steady-state paths and the compiled
+            blocks (False: every tick in Python, the reference they equal).
+        plant, ctrl: the axis's plant and controller, when the caller builds them (``hil
+            identify``'s replay: its trace-fed controller); by default built here from
+            ``cfg``, ``x0`` and ``axis``.
     """
 
     def __init__(self, cfg: MachineConfig, x0: float = 0.0, feedback_delay_ticks: int = 0,
-                 axis: str | None = None, inject: Sequence[str] = (), compiled: bool = True):
+                 axis: str | None = None, inject: Sequence[str] | None = (),
+                 compiled: bool = True, plant: Plant | None = None,
+                 ctrl: Controller | None = None):
         _check_delay(feedback_delay_ticks)
         self.cfg = cfg
-        self.plant = Plant(cfg, table_pos=x0)
+        self.plant = plant or Plant(cfg, table_pos=x0)
         self._inject((self.plant,), (cfg,), ("",), inject)
         self.drive = EmulatedDrive(self.plant, compiled=compiled)
         self._cycle = self.drive.cycle
-        self.ctrl = Controller(cfg, self.plant.pwm_period, x0, axis=axis)
+        self.ctrl = ctrl or Controller(cfg, self.plant.pwm_period, x0, axis=axis,
+                                       compiled=compiled)
         self.sp = Setpoint()
         self.feedback_delay_ticks = feedback_delay_ticks
+        self.compiled = compiled
+        self.ctrls, self.drive_list, self.plants = (self.ctrl,), (self.drive,), (self.plant,)
         self._line_of([Feedback() for _ in range(feedback_delay_ticks + 1)])
 
     def _enable_reason(self) -> str:
@@ -148,22 +236,19 @@ class LockStep(_Stepper):
 
     def run(self, duration_s: float, progress=None) -> SimResult:
         """Run ``duration_s`` of simulated time, recording every tick."""
-        n = int(math.ceil(duration_s / self.plant.pwm_period))
-        rec = _Recording(n, self.ctrl, self.plant)
-        step_report = max(1, n // 20)
-        for k in range(n):
-            self.tick()
-            rec.take(k, self.fb)
-            if progress is not None and k % step_report == 0:
-                progress(k / n)
+        n = math.ceil(duration_s / self.plant.pwm_period)
+        rec = AxisRecording(n, self.ctrl, self.plant)
+        self.record([rec], n, progress=progress)
         return rec.result(self.cfg)
 
 
-class _Recording:
+class AxisRecording:
     """The :data:`SIGNALS` of one axis, one row per tick."""
 
     def __init__(self, n: int, ctrl: Controller, plant: Plant):
-        self.rec = {name: np.empty(n) for name in SIGNALS}
+        #: one row per signal, in :data:`SIGNALS` order (NaN until taken)
+        self.array = np.full((len(SIGNALS), n), math.nan)
+        self.rec = dict(zip(SIGNALS, self.array))
         self.ctrl, self.plant = ctrl, plant
 
     def take(self, k: int, fb: Feedback) -> None:
@@ -186,6 +271,7 @@ class _Recording:
         rec["following_error"][k] = ctrl.following_error
         rec["contour_deviation"][k] = ctrl.contour_deviation
         rec["tick"][k] = ctrl.tick_count - 1
+        rec["table_vel"][k] = out.output("table_vel")
 
     def result(self, cfg: MachineConfig) -> SimResult:
         return SimResult(self.rec, cfg.machine.kind, self.ctrl.ratio, self.plant.pwm_period,
@@ -216,10 +302,13 @@ class MachineLockStep(_Stepper):
         self._inject(self.plants, machine.configs, machine.names, inject)
         self.drives = DriveSet([EmulatedDrive(p, compiled=compiled) for p in self.plants])
         self.period = self.plants[0].pwm_period
-        self.ctrl = MachineController(machine, self.period, x0)
+        self.ctrl = MachineController(machine, self.period, x0, compiled=compiled)
         n = len(machine.axes)
         self.sp = message_pair(n)[0]
         self._cycle = self.drives.cycle
+        self.feedback_delay_ticks = feedback_delay_ticks
+        self.compiled = compiled
+        self.ctrls, self.drive_list = self.ctrl.ctrls, tuple(self.drives.drives)
         self._line_of([message_pair(n)[1] for _ in range(feedback_delay_ticks + 1)])
 
     def _enable_reason(self) -> str:
@@ -228,12 +317,31 @@ class MachineLockStep(_Stepper):
     def run(self, duration_s: float) -> dict[str, SimResult]:
         """Run ``duration_s`` of simulated time; axis letter -> its recording."""
         n = math.ceil(duration_s / self.period)
-        recs = [_Recording(n, c, p) for c, p in zip(self.ctrl.ctrls, self.plants)]
-        for k in range(n):
-            self.tick()
-            for rec, fb in zip(recs, axis_records(self.fb)):
-                rec.take(k, fb)
+        recs = [AxisRecording(n, c, p) for c, p in zip(self.ctrl.ctrls, self.plants)]
+        self.record(recs, n)
         return {a.name: rec.result(a.config) for a, rec in zip(self.machine.axes, recs)}
+
+
+#: simulated time of :func:`warm`'s lock-step, s
+WARM_S = 0.02
+
+
+def warm(machine: MachineSet) -> None:
+    """Compile, or load from numba's cache, every kernel a lock-step of ``machine`` runs,
+    before the first run that is timed: the drives' paths
+    (:func:`hil.drive.compiled_path.warm`), the NC's compiled tick
+    (:func:`hil.controller.compiled_path.warm`) and the compiled blocks for its number
+    of axes and for one (a study's experiment may step one of its axes): short
+    lock-steps holding at rest, on machines built afresh."""
+    warm_drives(DriveSet([EmulatedDrive(Plant(a.config), compiled=True)
+                          for a in machine.axes]))
+    warm_nc()
+    steppers = [MachineLockStep(machine)]
+    if len(machine.axes) > 1:
+        steppers.append(LockStep(machine.configs[0]))
+    for ls in steppers:
+        ls.enable()
+        ls.run(WARM_S)
 
 
 #: servo-trace column (trace-format.md, linear-axis names) -> SimResult signal

@@ -76,6 +76,7 @@ def run_program(cfg: MachineConfig, program: str = MOVES) -> dict:
         ls.tick()
         for name in SIGNALS:
             rec[name][i] = getattr(ctrl, name)
+        ctrl.settle()  # the loops' state, out of the compiled path's arrays
         rec["pos_error"][i] = ctrl.pos_loop.error
         rec["speed_error"][i] = ctrl.speed_loop.e_prev
         rec["iq_ref"][i] = ls.sp.iq_ref_a
@@ -162,6 +163,7 @@ def ld386_step(mode: str) -> Step:
     v_peak = integ_peak = 0.0
     for _ in range(int(moves.MOVE_DURATION_S / ls.plant.pwm_period)):
         ls.tick()
+        ctrl.settle()  # the integrator, out of the compiled path's arrays
         v_peak = max(v_peak, ctrl.v_act)
         integ_peak = max(integ_peak, abs(pi.integ))
     return Step(v_peak, ctrl.limits.velocity, integ_peak, pi.limit,

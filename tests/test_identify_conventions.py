@@ -124,15 +124,16 @@ def _open_loop(sec_over: dict, ticks: int = 400):
         while not ctrl.enabled:  # a real drive enables; the feedback is synthetic after
             ctrl.tick(fb, sp)
             drive.cycle(sp, fb)
+        if name == "mine":  # 0.01 m/s times the number of the position cycle under way
+            n_pos = sec.position_cycle_ratio
+            first = -(-ctrl.tick_count // n_pos)
+            ctrl.follow_feed_forward(0.01 * (np.arange(ticks // n_pos + 2) + first - 1))
         ctrl.run_points(ipo)
         rows = []
         for k in range(ticks):
             theta = 30.0 * np.sin(2 * np.pi * 7 * k * pwm)
             fb.encoder_counts = float(np.floor(theta * counts_per_rad))
             fb.scale_counts = float(np.floor(theta * 0.01 / (2 * np.pi) / 5e-8))
-            if name == "mine" and ctrl.tick_count % sec.position_cycle_ratio == 0:
-                j = (ctrl.tick_count // sec.position_cycle_ratio) % 10_000
-                ctrl.set_next_feed_forward(0.01 * j)
             ctrl.tick(fb, sp)
             rows.append((ctrl.w_act, ctrl.w_set, sp.iq_ref_a, ctrl.tick_count - 1))
         out[name] = np.array(rows)
@@ -160,7 +161,7 @@ def test_current_delay_shifts_the_current_setpoint_by_whole_pwm_periods():
 
 def test_linear_feed_forward_interpolates_between_position_cycles():
     """Between position cycles the speed setpoint moves linearly from this cycle's
-    feed-forward towards the next one's (given by set_next_feed_forward); the P part is
+    feed-forward towards the next one's (given by follow_feed_forward); the P part is
     held: w_set - w_ff is constant within a position cycle."""
     out, sec, _ = _open_loop({"feedforward_interpolation": "linear"})
     mine, base = out["mine"], out["base"]

@@ -304,17 +304,19 @@ def test_load_record_errors_name_what_is_wrong(tmp_path):
 
 @pytest.mark.parametrize("antiwindup", ["clamp", "none", "torque_setpoint"])
 def test_compiled_replay_is_the_python_loop_sample_for_sample(tmp_path, antiwindup):
-    """hil.identify.replay_kernel.nc_loop against the Python TraceController and
-    EmulatedDrive it replaces (replay(..., compiled=False)), on a trace whose header sets
-    every convention the loop honours: a 2 ms position cycle against the 1 ms trace, the
-    feed-forward finely interpolated, the actual-speed filter, the anti-windup, one PWM
-    period of current delay and a pre-roll; the machine file has a PT2 speed setpoint
-    filter and a current-setpoint filter and notch.  The two must agree to the last bit
+    """The replay on the NC's and the drive's compiled paths in compiled blocks (hil.sim)
+    against the Python TraceController and EmulatedDrive (replay(..., compiled=False)),
+    on a trace whose header sets every convention the loop honours: a 2 ms position
+    cycle against the 1 ms trace, the feed-forward finely interpolated, the actual-speed
+    filter, the anti-windup, one PWM period of current delay and a pre-roll; the machine
+    file has a PT2 speed setpoint filter and a current-setpoint filter and notch, and its
+    speed feed-forward on (which the linear fine interpolation needs).  The two must agree to the last bit
     (same operations in the same order), and a wrong machine file must replay the same
     way too (the identification compares wrong ones)."""
     over = {"controller": {"speed_setpoint_lowpass_hz": 800.0,
                            "current_setpoint_lowpass_hz": 1500.0, "notch_hz": 600.0,
-                           "notch_bandwidth_hz": 200.0, "notch_depth_db": -20.0}}
+                           "notch_bandwidth_hz": 200.0, "notch_depth_db": -20.0,
+                           "speed_ff": True, "speedctrl_equiv_time_s": 0.001}}
     cfg = load_machine(CONFIGS / "ld386_linear.toml", over)
     sec = load_controller(cfg)
     pwm = 1.0 / cfg.motor.pwm_frequency_hz

@@ -365,6 +365,7 @@ def test_clamping_monitoring_replaces_standstill_monitoring_while_clamped(force,
 
 def assert_nothing_non_finite(ls: LockStep) -> None:
     c, sp = ls.ctrl, ls.sp
+    c.settle()
     assert c.pos_loop.finite() and c.speed_loop.finite() and c.monitor.model.finite()
     for name in ("x_set", "x_act", "v_act", "w_act", "v_cmd", "w_set", "iq_set",
                  "following_error", "contour_deviation"):

@@ -352,10 +352,16 @@ def test_bench_study_reports_both_cluster_sizes():
                for x in one["rounds"])
     assert all((x["samples"], x["failed"], x["distinct_workers"]) == (8, 0, 2)
                for x in two["rounds"])
-    # hil study's size on one worker: about four tasks, here two samples each
-    assert r["study_task_size"] == 2
-    assert all((x["samples"], x["failed"], x["task_size"], x["tasks"]) == (8, 0, 2, 4)
+    # hil study's size on one worker: samples of 0.1 s (a few ms each) so many that Dask's
+    # 10 ms per task stays within 5 % of theirs, but no fewer tasks than workers: one task
+    assert r["study_task_size"] == 8
+    assert all((x["samples"], x["failed"], x["task_size"], x["tasks"]) == (8, 0, 8, 1)
                for x in one["study_task_size_rounds"])
+    assert r["bare_over_plant"] == pytest.approx(r["bare_s_per_sample"]
+                                                 / r["plant_kernel_s_per_sample"])
+    assert 0.0 < r["plant_kernel_s_per_sample"] < r["bare_s_per_sample"]
+    assert r["task_vs_bare_pct"] == pytest.approx(
+        100 * (r["bare_in_task_s_per_sample"] / r["bare_s_per_sample"] - 1))
     assert one["wall_s"] == sorted(x["wall_s"] for x in one["rounds"])[1]
     assert r["scaling_ratio"] == pytest.approx(two["samples_per_s"] / (2 * one["samples_per_s"]))
     # the first bare run, then one after each round; each round against its neighbours

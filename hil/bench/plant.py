@@ -84,7 +84,7 @@ class PlantBench:
 
 
 @njit(cache=True, error_model="numpy", _nrt=False)
-def _kernel_calls(p, s, inp, out, n_sub, calls):
+def kernel_calls(p, s, inp, out, n_sub, calls):
     """``calls`` kernel calls of ``n_sub`` sub-steps from compiled code (no Python)."""
     for _ in range(calls):
         axis_step_nb(p, s, inp, out, n_sub)
@@ -111,7 +111,7 @@ def time_compiled_loops(plant, cstep: CStep, seconds: float) -> CompiledLoopTime
     t_end = time.perf_counter() + seconds
     for batch in itertools.count():
         t0 = time.perf_counter_ns()
-        _kernel_calls(*k_arrays, n, _BATCH)
+        kernel_calls(*k_arrays, n, _BATCH)
         k_ns = time.perf_counter_ns() - t0
         c_ns = cstep.time_calls(*c_arrays, n, _BATCH)
         if batch > 0:  # the first batch warms caches and branch predictors

@@ -262,7 +262,9 @@ class FineInterpolator:
     position-control cycles per IPO cycle.  Each :meth:`step` sets ``pos``, ``vel`` and
     ``acc`` (SI) for the current cycle, k T_ipo + m T_ipo / ratio, and advances a cursor;
     nothing is allocated per call.  After the last IPO point the setpoint holds it and
-    ``done`` is True.  The setpoint follows the IPO points without the one-IPO-cycle
+    ``done`` is True.  ``points`` holds the IPO points as an array of shape (3, n)
+    (position, velocity, acceleration), for the compiled tick
+    (:mod:`hil.controller.compiled`).  The setpoint follows the IPO points without the one-IPO-cycle
     delay of a real NC; the caller adds a delay if it models one.
     """
 
@@ -270,6 +272,7 @@ class FineInterpolator:
         if not (ratio >= 1 and int(ratio) == ratio):
             raise ValueError(f"fine-interpolation ratio {ratio!r} must be an integer >= 1")
         ratio = int(ratio)
+        self.points = np.array((ipo.pos, ipo.vel, ipo.acc), dtype=np.float64)
         self._p = ipo.pos.tolist()
         self._v = ipo.vel.tolist()
         self._a = ipo.acc.tolist()

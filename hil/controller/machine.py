@@ -39,17 +39,18 @@ class MachineController:
         machine: the machine (one or more axes), each axis with a ``[controller]`` section.
         period_s: the basic clock (the common PWM period), s.
         x0: each axis's table position at start (SI; default all 0).
+        compiled: each axis's compiled path (:class:`~hil.controller.nc.Controller`).
     """
 
     def __init__(self, machine: MachineSet, period_s: float,
-                 x0: Sequence[float] | None = None):
+                 x0: Sequence[float] | None = None, compiled: bool = True):
         self.machine = machine
         x0 = tuple(x0) if x0 is not None else (0.0,) * len(machine.axes)
         if len(x0) != len(machine.axes):
             raise ValueError(f"{len(x0)} start positions for {len(machine.axes)} axes")
         self.names = machine.names
-        self.ctrls = tuple(Controller(a.config, period_s, x, load_controller(a.config), a.name)
-                           for a, x in zip(machine.axes, x0))
+        self.ctrls = tuple(Controller(a.config, period_s, x, load_controller(a.config), a.name,
+                                      compiled) for a, x in zip(machine.axes, x0))
         self.period = period_s
         self.enable_timeout_ticks = max(c.enable_timeout_ticks for c in self.ctrls)
 

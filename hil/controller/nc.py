@@ -39,6 +39,12 @@ Test modes for the measuring functions replace the position loop by a speed
 setpoint (``"speed"``) or the speed loop by a current setpoint (``"current"``),
 each given as a function of the controller time plus an optional additive
 excitation; the axis monitoring runs in position control only.
+
+The ticks of the steady state (position control, the drive enabled, no alarm) run
+compiled (:mod:`hil.controller.compiled`, packed and handed back by
+:mod:`hil.controller.compiled_path`), with the same results bit for bit; whatever they
+meet that is not steady (an alarm, a clamp block, a test mode, the enable sequence) runs
+here.
 """
 
 import math
@@ -52,6 +58,7 @@ from hil.controller.alarms import (
     feedback_detail,
 )
 from hil.controller.blocks import PT1, Delay
+from hil.controller.compiled_path import CompiledAxis
 from hil.controller.config import (
     ControllerSection,
     axis_limits,
@@ -88,6 +95,9 @@ class Controller:
         x0: the table position at start, m or rad.
         section: its ``[controller]`` machine data (default: the file's).
         axis: the axis name in alarms (default X, or C on a rotary table).
+        compiled: run the ticks of a steady state compiled
+            (:mod:`hil.controller.compiled_path`; the same results, bit for bit; False:
+            every tick in Python, the reference it equals).
 
     Signals of the last tick (SI, table units unless named otherwise) are
     attributes: ``x_set, v_set, a_set, x_act, theta_act (motor encoder, rad), v_act, v_cmd,
@@ -99,11 +109,15 @@ class Controller:
     :class:`~hil.controller.alarms.AlarmList`, ``phase`` its :class:`Phase`, ``monitored``
     whether position control runs with the axis monitoring (:meth:`run_points`),
     ``soft_limits`` its :class:`~hil.controller.limits.SoftwareLimits` and ``at_limit``
-    whether a test mode's speed is being limited by them.
+    whether a test mode's speed is being limited by them.  ``compiled`` is the compiled
+    path (None: every tick in Python); while it holds the state, a reader of the loops'
+    or the monitor's state calls :meth:`settle` first.
     """
 
     def __init__(self, cfg: MachineConfig, period_s: float, x0: float = 0.0,
-                 section: ControllerSection | None = None, axis: str | None = None):
+                 section: ControllerSection | None = None, axis: str | None = None,
+                 compiled: bool = True):
+        self.compiled: CompiledAxis | None = None
         self.cfg = cfg
         self.sec = sec = section or load_controller(cfg)
         self.period = period_s
@@ -149,9 +163,22 @@ class Controller:
         self.source: Callable[[float], float] | None = None
         self.excitation: Callable[[float], float] | None = None
         self.reset(x0)
+        self.compiled = CompiledAxis(self) if compiled else None
+
+    def settle(self) -> None:
+        """Bring the state the compiled path holds back into the controller's objects (its
+        loops, filters, monitor, interpolator), for a reader outside the tick."""
+        if self.compiled is not None:
+            self.compiled.leave()
+
+    def trace_feed_forward(self):
+        """The feed-forward of each position cycle a linear fine interpolation runs towards
+        when a trace gives it (:class:`hil.identify.trace_controller.TraceController`),
+        else None: the fine interpolator's."""
 
     def reset(self, x0: float) -> None:
         """At rest at table position ``x0``, drive disabled, program cleared."""
+        self.settle()
         self.tick_count = 0
         self.t = 0.0
         self.x_set = self.x_act = x0
@@ -230,6 +257,7 @@ class Controller:
 
     def _follow(self, ipo: ProfileSamples | None, monitored: bool) -> None:
         """Position mode on the IPO points ``ipo`` (None: the setpoint stays)."""
+        self.settle()
         self.mode = "position"
         ratio = self.sec.ipo_cycle_ratio // self.sec.position_cycle_ratio
         self.fine = None if ipo is None else FineInterpolator(ipo, ratio)
@@ -247,6 +275,7 @@ class Controller:
         is added to it."""
         if mode not in MODES[1:]:
             raise ValueError(f"test mode must be 'speed' or 'current', not {mode!r}")
+        self.settle()
         self.mode = mode
         self.source = source
         self.excitation = excitation
@@ -258,6 +287,7 @@ class Controller:
         """Stop the axis as for an alarm (without one: another axis's alarm stops this
         one too): the program is abandoned; an enabled axis brakes, then its drive is
         disabled; otherwise it is disabled at once."""
+        self.settle()
         self.fine = None
         self.clamps = ()
         if self.phase is not Phase.RUN:
@@ -271,6 +301,7 @@ class Controller:
     def reset_alarms(self) -> None:
         """The NC's RESET: clear the alarm list and, after a stop, request OPERATION
         ENABLED again (a faulted drive gets the fault-reset pulse first)."""
+        self.settle()
         self.alarms.clear()
         if self.phase is not Phase.RUN:
             self.phase = Phase.RUN
@@ -491,6 +522,8 @@ class Controller:
 
     def tick(self, fb: Feedback, sp: Setpoint) -> None:
         """One basic-clock cycle: read ``fb``, write ``sp``."""
+        if self.compiled is not None and self.compiled.run(fb, sp):
+            return
         sp.seq = (sp.seq + 1) & 0xFFFFFFFF
         k = self.tick_count
         self.tick_count += 1

@@ -202,8 +202,9 @@ class EmulatedDrive:
                 | (DI_POSITIVE_LIMIT if out[L.O_LIMIT_POS] > 0.0 else 0)
                 | (DI_HOME_SWITCH if out[L.O_HOME_SWITCH] > 0.0 else 0))
 
-    def _reference_inputs(self, fb: Feedback) -> None:
-        """The feedback's 60FDh and index mark latch (:class:`~io_adapters.messages.Feedback`).
+    def reference_inputs(self, fb: Feedback) -> None:
+        """The feedback's 60FDh and index mark latch (:class:`~io_adapters.messages.Feedback`),
+        after this drive's cycles (one, or a block of them run elsewhere: :mod:`hil.sim_block`).
 
         The plant gives the number of marks below the encoder position, so a change from
         k to k' tells exactly which mark was passed: k' moving up, k' + 1 moving down
@@ -221,7 +222,7 @@ class EmulatedDrive:
 
     def _cycle(self, sp: Setpoint, fb: Feedback) -> None:
         if self.compiled is not None and self.compiled.run(sp, fb):
-            self._reference_inputs(fb)
+            self.reference_inputs(fb)
             return
         plant, out, p, rpc = self.plant, self.plant.out, self.params, self.rad_per_count
         counts = out[L.O_ENCODER]
@@ -293,7 +294,7 @@ class EmulatedDrive:
         fb.iq_a = out[L.O_IQ_MEAS]
         fb.id_a = out[L.O_ID_MEAS]
         fb.fault = self.fault
-        self._reference_inputs(fb)
+        self.reference_inputs(fb)
 
     # -- faults and the controlword -------------------------------------------------------
     def _controlword(self, controlword: int, present: int) -> int:

@@ -20,10 +20,12 @@ to the measurement) and keeps every quantisation (encoder, scale, current LSB).
 * **NC records** (servo traces): the machine file's ``[controller]`` with the record's
   conventions (:mod:`hil.identify.conventions`: the header's keys override the machine
   file's; :class:`~hil.identify.trace_controller.TraceController`) and the emulated drive in
-  lock step.  The position cycle and the record's sample time are whole multiples of one
-  another: the record's setpoints are fed once per position cycle (every m-th sample when
-  the cycle is m samples) or, when a sample spans several cycles, linearly fine-interpolated
-  between samples.  The drive is enabled at the first setpoint and, with a header
+  lock step (:class:`hil.sim.LockStep`: the NC's and the drive's compiled steady states
+  in compiled blocks, as ``hil sim`` runs them; no fault injected).  The position cycle
+  and the record's sample time are whole multiples of one another: the record's
+  setpoints are fed once per position cycle (every m-th sample when the cycle is m
+  samples) or, when a sample spans several cycles, linearly fine-interpolated between
+  samples.  The drive is enabled at the first setpoint and, with a header
   ``preroll_s``, held there at rest that long before t = 0.  The speed feed-forward is the
   ``vel_set`` column (trace-format.md); where the header says the column is the whole speed
   command, it is recovered exactly, v_ff = (v_cmd - K_v e) / w_ff with e the record's own
@@ -44,7 +46,6 @@ from numba import njit
 from hil.controller.config import ControllerSection, axis_limits, load_controller
 from hil.controller.interpolator import ProfileSamples
 from hil.controller.loops import PositionLoop
-from hil.drive import EmulatedDrive
 from hil.identify.conventions import (
     ConventionError,
     Conventions,
@@ -52,9 +53,8 @@ from hil.identify.conventions import (
     read_conventions,
 )
 from hil.identify.record import Record
-from hil.identify.replay_kernel import CompiledLoop
 from hil.identify.trace_controller import TraceController
-from io_adapters.messages import Feedback, Setpoint
+from hil.sim import AxisRecording, LockStep
 from plant import Plant
 from plant import layout as L
 from plant.config import ConfigError, MachineConfig
@@ -73,12 +73,14 @@ ERROR_START = 49
 class Replay:
     """The model's answer to the record's setpoints, on the record's time grid.
 
-    Attributes (arrays of shape (n,); NaN after a plant fault):
+    Attributes (arrays of shape (n,); NaN after a fault):
         pos: m (rad), what the record's ``pos`` would be (same sensor: scale or encoder).
         effort: same kind and unit as ``Record.effort`` (A or N).
         motor_pos: motor encoder in table units (m or rad), read with ``pos``.
         vel: the model's table velocity, m/s (rad/s).
-        status: 0, or the plant's fault status (``plant.layout.STATUS_*``) that stopped it.
+        status: 0, or what stopped it: the drive's error code 603Fh (an NC record;
+            :mod:`hil.drive.faults`), the plant's status (an EMPS record;
+            ``plant.layout.STATUS_*``).
     """
     pos: np.ndarray
     effort: np.ndarray
@@ -94,9 +96,9 @@ def replay(cfg: MachineConfig, rec: Record, progress=None, compiled: bool = True
         cfg: the machine file (an EMPS record needs no ``[controller]``, an NC record does).
         rec: the measured record.
         progress: optional callable(fraction done), called about 20 times.
-        compiled: run an NC record's loop in :func:`hil.identify.replay_kernel.nc_loop`
-            once the drive is enabled (False: the Python controller and drive throughout,
-            the reference the compiled loop is tested against).
+        compiled: run an NC record's lock step on the NC's and the drive's compiled
+            paths (False: the Python controller and drive throughout, the reference the
+            compiled paths are tested against).
     Raises:
         ConventionError: the record's sample time is no whole number of PWM periods, a
             convention of the record's header the replay cannot honour
@@ -249,17 +251,6 @@ def _feed_forward(rec: Record, conv: Conventions, loop: PositionLoop, step: int)
     return v_ff
 
 
-def _enable(ctrl: TraceController, drive: EmulatedDrive, path) -> tuple[Setpoint, Feedback]:
-    """Run the CiA 402 enable sequence until the drive is in OPERATION ENABLED."""
-    sp, fb = Setpoint(), Feedback()
-    for _ in range(ctrl.enable_timeout_ticks * 2):
-        if ctrl.enabled:
-            return sp, fb
-        ctrl.tick(fb, sp)
-        drive.cycle(sp, fb)
-    raise RuntimeError(f"{path}: drive not enabled: {ctrl.enable.reason}")
-
-
 def _preroll_points(ctrl: TraceController, x0: float, ticks: int) -> ProfileSamples:
     """IPO points holding ``x0`` at rest for ``ticks`` PWM periods (and a little more)."""
     n_ipo = ticks // ctrl.sec.ipo_cycle_ratio + 2
@@ -268,9 +259,9 @@ def _preroll_points(ctrl: TraceController, x0: float, ticks: int) -> ProfileSamp
 
 
 def _replay_nc(cfg: MachineConfig, rec: Record, progress, compiled: bool = True) -> Replay:
-    """The machine file's NC (with the record's conventions) and drive in lock step, the
-    record's setpoints fed once per position cycle or once per sample, whichever is the
-    longer."""
+    """The machine file's NC (with the record's conventions) and drive in lock step
+    (:class:`hil.sim.LockStep`, no fault injected), the record's setpoints fed once per
+    position cycle or once per sample, whichever is the longer."""
     conv = read_conventions(rec, cfg)
     cfg = apply_conventions(cfg, conv)
     try:
@@ -283,66 +274,38 @@ def _replay_nc(cfg: MachineConfig, rec: Record, progress, compiled: bool = True)
     x0 = float(rec.pos_set[0])
     plant = Plant(cfg, table_pos=x0)
     grid = _grid(rec, plant, sec, cfg.path)
-    period_pos = sec.position_cycle_ratio * plant.pwm_period
+    n_pos = sec.position_cycle_ratio
+    period_pos = n_pos * plant.pwm_period
     section = dataclasses.replace(sec, ipo_cycle_ratio=grid.ipo)
-    ctrl = TraceController(cfg, plant.pwm_period, x0, section)
-    drive = EmulatedDrive(plant)
-    sp, fb = _enable(ctrl, drive, cfg.path)
+    ctrl = TraceController(cfg, plant.pwm_period, x0, section, compiled=compiled)
+    ls = LockStep(cfg, x0, inject=None, compiled=compiled, plant=plant, ctrl=ctrl)
+    try:
+        ls.enable(ctrl.enable_timeout_ticks * 2)
+    except RuntimeError:
+        raise RuntimeError(f"{cfg.path}: drive not enabled: {ctrl.enable.reason}") from None
     preroll_ticks = round(conv.preroll_s / ctrl.period)
-    preroll = _preroll_points(ctrl, x0, preroll_ticks)
+    if preroll_ticks > 0:
+        ctrl.follow_feed_forward(np.zeros(preroll_ticks // n_pos + 2))
+        ctrl.run_points(_preroll_points(ctrl, x0, preroll_ticks))
+        ls.run_ticks(preroll_ticks)
     v_lim = axis_limits(cfg, sec).velocity
     v_set = _feed_forward(rec, conv, PositionLoop(sec, period_pos, v_lim), grid.step)
     fed = slice(0, rec.n, grid.step)
     v_fed = v_set[fed]
-    points = ProfileSamples(rec.t[fed], rec.pos_set[fed], v_fed,
-                            np.gradient(v_fed, rec.dt * grid.step))
-    # the feed-forward of the next position cycle, for a linear fine interpolation
-    v_pos = np.interp(np.arange(rec.n * grid.every // sec.position_cycle_ratio + 2)
-                      * period_pos, rec.t[fed], v_fed)
-    n = rec.n
+    # the feed-forward of each position cycle, for a linear fine interpolation
+    ctrl.follow_feed_forward(np.interp(np.arange(rec.n * grid.every // n_pos + 2) * period_pos,
+                                       rec.t[fed], v_fed))
+    ctrl.run_points(ProfileSamples(rec.t[fed], rec.pos_set[fed], v_fed,
+                                   np.gradient(v_fed, rec.dt * grid.step)))
+    # the record's t = 0 is the first position cycle
+    first = -(-ctrl.tick_count // n_pos) * n_pos
+    out = AxisRecording(rec.n, ctrl, plant)
+    drive = ls.drive
+    ls.record([out], rec.n, first, grid.every, progress, stop=lambda: drive.fault != 0)
     per_amp = _force_per_amp(cfg, ctrl.ratio) if rec.effort_kind == "force" else 1.0
-    if compiled and ctrl.cur_loop is None:
-        loop = CompiledLoop(ctrl, plant, drive.params.max_current_a, grid.every, per_amp)
-        fine = (preroll.pos, preroll.vel, preroll.acc)
-        _, status = loop.run(fine, np.zeros(preroll_ticks // sec.position_cycle_ratio + 2),
-                             0, preroll_ticks)
-        if status == L.STATUS_OK:
-            out, status = loop.run((points.pos, points.vel, points.acc), v_pos, n)
-        else:
-            out = np.full((4, n), math.nan)
-        if progress is not None:
-            progress(1.0)
-        return Replay(out[0], out[1], out[2], out[3], status)
-    if preroll_ticks > 0:
-        ctrl.run_points(preroll)
-        for _ in range(preroll_ticks):
-            ctrl.tick(fb, sp)
-            drive.cycle(sp, fb)
-    ctrl.run_points(points)
-    pos, vel, effort = np.full(n, math.nan), np.full(n, math.nan), np.full(n, math.nan)
-    motor_pos = np.full(n, math.nan)
-    out = plant.out
-    every_report = max(1, n // 20)
-    row = 0
-    first = None  # the tick of the first position cycle: the record's t = 0
-    while row < n:
-        k = ctrl.tick_count
-        if k % sec.position_cycle_ratio == 0:
-            first = k if first is None else first
-            ctrl.set_next_feed_forward(float(v_pos[(k - first) // sec.position_cycle_ratio + 1]))
-        ctrl.tick(fb, sp)
-        drive.cycle(sp, fb)
-        if drive.fault:
-            return Replay(pos, effort, motor_pos, vel, int(drive.fault))
-        if first is not None and (k - first) % grid.every == 0:
-            pos[row] = ctrl.x_act
-            effort[row] = fb.iq_a * per_amp
-            motor_pos[row] = ctrl.theta_act * ctrl.ratio
-            vel[row] = out[L.O_TABLE_VEL]
-            if progress is not None and row % every_report == 0:
-                progress(row / n)
-            row += 1
-    return Replay(pos, effort, motor_pos, vel, L.STATUS_OK)
+    return Replay(out.rec["x_act"], out.rec["iq_meas"] * per_amp,
+                  out.rec["motor_pos_meas"] * ctrl.ratio, out.rec["table_vel"],
+                  int(drive.fault))
 
 
 def _force_per_amp(cfg: MachineConfig, ratio: float) -> float:

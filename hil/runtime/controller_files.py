@@ -71,6 +71,17 @@ def _trace(proc, a: int, cols: dict, name: str):
         **TRACE_METADATA})
 
 
+def nc_summary(mctrl, nc_ns: np.ndarray) -> dict:
+    """The NC's part of the recorded ticks (every axis's tick, ns per tick) and how many
+    ticks each axis ran on its compiled path (:mod:`hil.controller.compiled_path`), with
+    the statuses that handed a tick back to Python."""
+    return {"tick_us": Percentiles.of_ns_in_us(nc_ns).as_dict(),
+            "compiled_ticks": {c.axis: c.compiled.cycles if c.compiled else 0
+                               for c in mctrl.ctrls},
+            "declined": {c.axis: {str(k): v for k, v in c.compiled.exits.items()}
+                         if c.compiled else {} for c in mctrl.ctrls}}
+
+
 def write_outputs(proc, stats, granted, alignment: Alignment) -> dict:
     """Write the run folder of a finished :class:`~hil.runtime.controller_proc.
     ControllerProcess`; returns the summary (also in ``summary.json``)."""
@@ -115,6 +126,7 @@ def write_outputs(proc, stats, granted, alignment: Alignment) -> dict:
                                    "2+": int((lag >= 2).sum())}},
         "alignment": alignment.as_dict(),
         "loop": stats.as_dict(), "scheduling": scheduling_dict(granted),
+        "nc": nc_summary(proc.mctrl, proc.nc_ns[:n]),
         "adapter": {"name": rc.adapter_url, "stats": asdict(proc.ep.stats),
                     "errors": proc.adapter_errors},
         "injections_sent": [{"at_s": p.at_s, **p.request._asdict()}

@@ -65,6 +65,7 @@ from pathlib import Path
 import numpy as np
 
 from hil.cia402 import DISABLE_VOLTAGE
+from hil.controller.compiled_path import warm
 from hil.controller.config import clamp_codes, cnc_unit
 from hil.controller.interpolator import SETTLE_S, plan
 from hil.controller.machine import MachineController
@@ -177,6 +178,7 @@ class ControllerProcess:
         self.period_s = self.period_ns * 1e-9
         self.mctrl = MachineController(m, self.period_s, self.x0)
         self.ctrl = self.mctrl.ctrls[0]
+        warm()  # the NC's compiled tick, loaded now rather than at the loop's first steady tick
         if m.multi_axis:
             self.program = read_path_program(rc.program_file, m.names, self.x0,
                                              clamp=self.mctrl.clamp_codes)
@@ -201,6 +203,8 @@ class ControllerProcess:
         self.lag_is_age = False
         self.floats = np.full((self.n_run, len(m.axes), len(FLOAT_COLUMNS)), np.nan)
         self.ints = np.zeros((self.n_run, len(INT_COLUMNS)), dtype=np.int64)
+        #: each recorded tick's NC part (every axis's Controller.tick), ns
+        self.nc_ns = np.zeros(self.n_run, dtype=np.int64)
         self._get = attrgetter(*CTRL_SIGNALS)
         timeout = self.mctrl.enable_timeout_ticks
         self.loop = RealTimeLoop(self.period_ns, self.step, n_ticks=timeout + 2 + self.n_run,
@@ -232,7 +236,9 @@ class ControllerProcess:
         else:
             self.silent += 1
             self._extrapolate(1)
+        t0 = time.perf_counter_ns()
         mctrl.tick(fb, sp)
+        nc_ns = time.perf_counter_ns() - t0
         try:
             self.ep.send_setpoint(sp)
         except AdapterError:
@@ -241,6 +247,7 @@ class ControllerProcess:
             self._fail(f"no feedback for {self.silent} cycles at tick {k}")
             return
         if self.running:
+            self.nc_ns[self.rows] = nc_ns
             self._record(k, new)
             if self.injections.planned:
                 self._inject()

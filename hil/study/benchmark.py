@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 from distributed import as_completed
 
+from hil.bench.plant import kernel_calls
 from hil.study.keys import overrides_of
 from hil.study.progress import Progress
 from hil.study.run import (
@@ -24,10 +25,14 @@ from hil.study.run import (
 )
 from hil.study.spec import Study, load_study
 from hil.study.store import ResultStore
+from plant import Plant
+from plant import layout as L
+from plant.config import load_machine
 
 ARROW = Path(__file__).resolve().parents[2] / "configs" / "arrow500_x.toml"
 BARE_SAMPLES = 5
-GOALS = {"scaling_ratio_min": 0.9, "overhead_pct_max": 5.0}
+GOALS = {"scaling_ratio_min": 0.9, "overhead_pct_max": 5.0, "bare_ms_per_s_max": 30.0,
+         "bare_over_plant_max": 1.5, "task_vs_bare_pct_max": 5.0}
 
 SPEC = """
 [study]
@@ -65,8 +70,8 @@ def cpu_seconds() -> float:
 
 def bare_seconds(study: Study) -> tuple[float, float, float]:
     """Median (wall, CPU) seconds of the experiment called directly on the first samples'
-    machines, and the median wall seconds of building a sample's machine (which a task
-    does and the bare time leaves out)."""
+    machines (CPU: this thread's, the simulation's own), and the median wall seconds of
+    building a sample's machine (which a task does and the bare time leaves out)."""
     design = study_design(study)
     refs = study.parameters
     exp = study.experiments[0]
@@ -74,12 +79,29 @@ def bare_seconds(study: Study) -> tuple[float, float, float]:
     for values in design.values[:BARE_SAMPLES + 1]:
         t_build = time.perf_counter()
         machine = study.machine.build(overrides_of(refs, values))
-        t0, c0 = time.perf_counter(), cpu_seconds()
+        t0, c0 = time.perf_counter(), time.thread_time()
         exp.run(machine, {r.name: v for r, v in zip(refs, values)})
-        times.append((time.perf_counter() - t0, cpu_seconds() - c0, t0 - t_build))
+        times.append((time.perf_counter() - t0, time.thread_time() - c0, t0 - t_build))
     # the first call loads the kernels (and parses the machine file)
     wall, cpu, build = np.median(np.array(times[1:]), axis=0)
     return float(wall), float(cpu), float(build)
+
+
+def plant_seconds(seconds: float) -> float:
+    """Median seconds of the Arrow 500 X plant's kernel alone over the PWM periods of
+    ``seconds`` of simulated time, called once per period from compiled code (what the
+    lock-step's bare simulation steps, without the NC, the drive and the recording)."""
+    plant = Plant(load_machine(ARROW), table_pos=0.25)
+    plant.inp[L.I_ENABLE] = 1.0
+    arrays = (plant.params, plant.state, plant.inp, plant.out, plant.sub_per_pwm)
+    periods = math.ceil(seconds / plant.pwm_period)
+    kernel_calls(*arrays, 1)
+    times = []
+    for _ in range(BARE_SAMPLES):
+        t0 = time.perf_counter()
+        kernel_calls(*arrays, periods)
+        times.append(time.perf_counter() - t0)
+    return float(np.median(times))
 
 
 def loop_cpu_seconds(client) -> float:
@@ -139,10 +161,10 @@ def cluster_rounds(study: Study, workers: int, rounds: int, folder: Path, note,
     sleeping ``bare_s``), and the bare simulation in this process and in a worker (the
     cluster idle meanwhile).  The round of median wall time is the figure; every round
     is kept."""
-    runs, own_size, floors, bare_here, bare_worker = [], [], [], [], []
+    runs, own_size, floors, bare_here, bare_worker, bare_task = [], [], [], [], [], []
     with dask_client(None, workers, note) as client:
         warm_workers(client, study)
-        size = task_size(client, study.study.samples, 0)
+        size = task_size(client, study.study.samples, 0, bare_s or 0.0)
         for r in range(rounds):
             label = f"{workers} worker(s), round {r + 1}/{rounds}"
             runs.append(pipeline_round(client, study, folder / f"workers_{workers}_{r}",
@@ -154,6 +176,7 @@ def cluster_rounds(study: Study, workers: int, rounds: int, folder: Path, note,
             floors.append(dask_floor_round(client, study.study.samples, bare_s))
             bare_here.append(bare_seconds(study))
             bare_worker.append(next(iter(client.run(bare_seconds, study).values())))
+            bare_task.append(client.submit(bare_seconds, study, pure=False).result())
     median = sorted(runs, key=lambda x: x["wall_s"])[len(runs) // 2]
     out = {"workers": workers, **median, "rounds": runs}
     if bare_s is not None:
@@ -161,7 +184,8 @@ def cluster_rounds(study: Study, workers: int, rounds: int, folder: Path, note,
                     "bare_s_after_rounds": [b[0] for b in bare_here],
                     "bare_cpu_s_after_rounds": [b[1] for b in bare_here],
                     "build_s_after_rounds": [b[2] for b in bare_here],
-                    "bare_in_worker_s_after_rounds": [b[0] for b in bare_worker]})
+                    "bare_in_worker_s_after_rounds": [b[0] for b in bare_worker],
+                    "bare_in_task_after_rounds": [b[:2] for b in bare_task]})
     return out
 
 
@@ -172,6 +196,7 @@ def run(samples: int, seconds: float, rounds: int = 3, note=lambda message: None
         folder = Path(tmp)
         study = bench_study(folder, samples, seconds)
         first = bare_seconds(study)
+        plant_s = plant_seconds(seconds)
         one = cluster_rounds(study, 1, rounds, folder, note, bare_s=first[0])
         two = cluster_rounds(study, 2, rounds, folder, note)
     bares = [first[0], *one["bare_s_after_rounds"]]
@@ -185,6 +210,7 @@ def run(samples: int, seconds: float, rounds: int = 3, note=lambda message: None
     floor_loop = float(np.median([f["worker_loop_cpu_s"] for f in one["dask_floor_rounds"]]))
     bare, bare_cpu = float(np.median(bares)), float(np.median(bare_cpus))
     in_worker = float(np.median(one["bare_in_worker_s_after_rounds"]))
+    in_task, in_task_cpu = np.median(np.array(one["bare_in_task_after_rounds"]), axis=0)
     note(f"bare: {bare * 1e3:.1f} ms per {seconds:g} s simulation here (each: "
          + ", ".join(f"{b * 1e3:.1f}" for b in bares) + f" ms), {in_worker * 1e3:.1f} ms "
          "in a worker outside any task")
@@ -193,6 +219,11 @@ def run(samples: int, seconds: float, rounds: int = 3, note=lambda message: None
         "simulated_s": seconds, "samples": samples, "rounds": rounds, "cpus": os.cpu_count(),
         "bare_s_per_sample": bare, "bare_cpu_s_per_sample": bare_cpu,
         "bare_in_worker_s_per_sample": in_worker,
+        "plant_kernel_s_per_sample": plant_s, "bare_over_plant": bare / plant_s,
+        "bare_in_task_s_per_sample": float(in_task),
+        "bare_in_task_cpu_s_per_sample": float(in_task_cpu),
+        "task_vs_bare_pct": 100.0 * (in_task - bare) / bare,
+        "task_vs_bare_cpu_pct": 100.0 * (in_task_cpu - bare_cpu) / bare_cpu,
         "machine_build_s_per_sample": float(np.median([first[2], *one["build_s_after_rounds"]])),
         "one_worker": one, "two_workers": two,
         "scaling_ratio": two["samples_per_s"] / (2.0 * one["samples_per_s"]),
@@ -214,5 +245,8 @@ def run(samples: int, seconds: float, rounds: int = 3, note=lambda message: None
         "load_average_before": list(load_before), "load_average_after": list(os.getloadavg()),
         "goals": GOALS}
     report["ok"] = (report["scaling_ratio"] >= GOALS["scaling_ratio_min"]
-                    and report["overhead_pct"] <= GOALS["overhead_pct_max"])
+                    and report["overhead_pct_study_task_size"] <= GOALS["overhead_pct_max"]
+                    and 1e3 * bare / seconds <= GOALS["bare_ms_per_s_max"]
+                    and report["bare_over_plant"] <= GOALS["bare_over_plant_max"]
+                    and report["task_vs_bare_pct"] <= GOALS["task_vs_bare_pct_max"])
     return report

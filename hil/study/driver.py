@@ -11,12 +11,11 @@ from hil.study import summary
 from hil.study.progress import Progress
 from hil.study.run import (
     dask_client,
-    dispatch,
+    dispatch_sized,
     job_of,
     pending_of,
     send_job,
     study_design,
-    task_size,
     warm_workers,
 )
 from hil.study.spec import Study
@@ -32,10 +31,9 @@ def _samples(client, study: Study, store: ResultStore, requested: int, progress)
                   f"{store.dir}, {pending.ids.size} to run")
     if not pending.ids.size:
         return {"ran": 0}
-    size = task_size(client, pending.ids.size, requested)
     progress.start(pending.ids.size, "hil study")
-    batch = dispatch(client, send_job(client, job_of(study, store)), pending, store, size,
-                     progress)
+    batch, size = dispatch_sized(client, send_job(client, job_of(study, store)), pending,
+                                 store, requested, progress)
     return {"ran": batch.done, "task_size": size, "wall_s": batch.wall_s,
             "samples_per_s": batch.done / batch.wall_s if batch.wall_s > 0 else None}
 

@@ -7,10 +7,10 @@ the outputs; a sample that fails (a machine-file rule refuses the combination, t
 raises) is a row with its reason in ``status`` and NaN outputs, not a failed task.
 
 :class:`KernelWarmup` is registered on every worker, those of a remote cluster that join
-later included: it loads the plant's compiled kernels (numba's on-disk cache, compiled on
-the first use on that machine) by running the study's machine's drives enabled through
-their compiled path (:func:`hil.drive.compiled_path.warm`), so each worker compiles once,
-before its first task, not inside one.
+later included: it loads the lock-step's compiled kernels (numba's on-disk cache, compiled
+on the first use on that machine: the plant's, the drives', the NC's and the compiled
+blocks') by running the study's machine (:func:`hil.sim.warm`), so each worker compiles
+once, before its first task, not inside one.
 """
 
 import math
@@ -21,12 +21,10 @@ import numpy as np
 import pyarrow as pa
 from distributed import WorkerPlugin, get_worker
 
-from hil.drive import DriveSet, EmulatedDrive
-from hil.drive.compiled_path import warm
+from hil.sim import warm
 from hil.study.experiments import Experiment
 from hil.study.keys import KeyRef, overrides_of
 from hil.study.machine import MachineSource
-from plant import Plant
 
 
 @dataclass(frozen=True)
@@ -103,8 +101,8 @@ def evaluate_chunk(job: Job, ids: np.ndarray, values: np.ndarray) -> pa.Table:
 
 
 class KernelWarmup(WorkerPlugin):
-    """Load (or compile, once per machine) the plant's and the drive's kernels on a worker
-    as it starts, by running the study's machine's drives (module docstring)."""
+    """Load (or compile, once per machine) the lock-step's kernels on a worker as it
+    starts, by running the study's machine (module docstring)."""
 
     name = "hil-study-kernel-warmup"
 
@@ -114,7 +112,4 @@ class KernelWarmup(WorkerPlugin):
     def setup(self, worker) -> None:
         if self.machine is None:
             return
-        # the lock-step's drives run their compiled path (hil.sim): its kernels and the
-        # plant's, stepped by the drives
-        plants = [Plant(axis.config) for axis in self.machine.build().axes]
-        warm(DriveSet([EmulatedDrive(p, compiled=True) for p in plants]))
+        warm(self.machine.build())

@@ -8,10 +8,13 @@ elsewhere (``dask scheduler``, ``dask worker``) and runs unchanged: the machine 
 part programs travel as text (:mod:`hil.study.machine`), so the workers need the same
 feeddrive-hil installed, not the study's files.  The dashboard link is printed.
 
-Samples go out as tasks of many samples each (``--task-size``, by default about four
-tasks per worker, at most 32 samples), the design's values computed here
+Samples go out as tasks of many samples each, the design's values computed here
 (:mod:`hil.study.sampling`); each finished task is written to the Parquet store at once
 (:mod:`hil.study.store`), so the results grow while the study runs and survive a kill.
+The samples per task are ``--task-size``, or chosen (:func:`dispatch_sized`): the first
+sample runs as a task of its own, and its time sizes the others' tasks so that Dask's
+cost per task (:data:`TASK_COST_S`) stays within 5 % of their samples' time, at about four
+tasks per worker where the samples are many, at most 32 samples.
 """
 
 import importlib.util
@@ -33,6 +36,11 @@ from hil.study.store import ResultStore
 
 MAX_TASK_SIZE = 32
 TASKS_PER_WORKER = 4
+#: Dask's cost of one task, s: submitted, run, its table sent back and stored (``hil bench
+#: study``'s per-task overhead on a 2-vCPU VM, 8-10 ms)
+TASK_COST_S = 0.01
+#: the share of its samples' time a task's cost may take
+TASK_COST_SHARE = 0.05
 #: seconds to wait for a remote cluster's first worker
 WORKER_WAIT_S = 60.0
 DASHBOARD = "127.0.0.1:8787"
@@ -115,12 +123,18 @@ def warm_workers(client: Client, study: Study) -> float:
     return time.perf_counter() - t0
 
 
-def task_size(client: Client, pending: int, requested: int) -> int:
-    """Samples per task: ``requested``, or about TASKS_PER_WORKER tasks per worker."""
+def task_size(client: Client, pending: int, requested: int, sample_s: float = 0.0) -> int:
+    """Samples per task: ``requested``, or about TASKS_PER_WORKER tasks per worker, and
+    with samples of ``sample_s`` (s; 0: not known) enough of them that a task's cost
+    (:data:`TASK_COST_S`) is at most :data:`TASK_COST_SHARE` of their time; no fewer
+    tasks than workers, no more than MAX_TASK_SIZE samples each."""
     if requested > 0:
         return requested
     workers = max(1, len(client.scheduler_info()["workers"]))
-    return max(1, min(MAX_TASK_SIZE, math.ceil(pending / (TASKS_PER_WORKER * workers))))
+    size = math.ceil(pending / (TASKS_PER_WORKER * workers))
+    if sample_s > 0.0:
+        size = max(size, math.ceil(TASK_COST_S / (TASK_COST_SHARE * sample_s)))
+    return max(1, min(MAX_TASK_SIZE, math.ceil(pending / workers), size))
 
 
 def send_job(client: Client, job: Job) -> Future:
@@ -150,6 +164,24 @@ def dispatch(client: Client, payload: Future, design_: Design, store: ResultStor
         failed += sum(s != "ok" for s in table["status"].to_pylist())
         progress(done, failed)
     return Batch(done, failed, time.perf_counter() - t0, tuple(tables))
+
+
+def dispatch_sized(client: Client, payload: Future, design_: Design, store: ResultStore,
+                   requested: int, progress: Callable[[int, int], None]) -> tuple[Batch, int]:
+    """:func:`dispatch` with ``requested`` samples per task, or (``requested`` 0) the
+    first sample alone and the others in tasks :func:`task_size` sizes by its compute
+    time; the batch of both and the size of the others' tasks."""
+    if requested > 0 or design_.ids.size < 2:
+        size = task_size(client, design_.ids.size, requested)
+        return dispatch(client, payload, design_, store, size, progress), size
+    first = dispatch(client, payload, Design(design_.ids[:1], design_.values[:1]), store, 1,
+                     progress)
+    size = task_size(client, design_.ids.size - 1, 0,
+                     float(first.tables[0]["compute_s"][0].as_py()))
+    rest = dispatch(client, payload, Design(design_.ids[1:], design_.values[1:]), store, size,
+                    lambda done, failed: progress(first.done + done, first.failed + failed))
+    return Batch(first.done + rest.done, first.failed + rest.failed,
+                 first.wall_s + rest.wall_s, first.tables + rest.tables), size
 
 
 def pending_of(full: Design, store: ResultStore) -> Design:

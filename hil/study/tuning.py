@@ -34,7 +34,7 @@ from distributed import Future
 
 from hil.identify.config_out import patch_config
 from hil.study.outputs import OUTPUTS
-from hil.study.run import Design, dispatch, job_of, send_job, task_size
+from hil.study.run import Design, dispatch_sized, job_of, send_job
 from hil.study.sampling import design, to_values
 from hil.study.spec import Study
 from hil.study.store import Results, ResultStore
@@ -191,8 +191,8 @@ def _add_told(study: Study, opt: optuna.Study, trial: Trial, dists: dict) -> Non
 class Runner:
     """What a batch of trials runs with: the client, the job sent to the workers
     (:func:`~hil.study.run.send_job`), the store, the tolerance machines (M, varied),
-    the samples per task asked for (0: :func:`~hil.study.run.task_size` chooses per
-    batch), and the progress line."""
+    the samples per task asked for (0: :func:`~hil.study.run.dispatch_sized` chooses
+    per batch), and the progress line."""
     client: object
     payload: Future
     store: ResultStore
@@ -206,9 +206,9 @@ class Runner:
         rows = _rows_design(study, trials, self.robust, skip)
         by_index = {t.index: t for t in trials}
         machines = self.robust.shape[0]
-        size = task_size(self.client, rows.ids.size, self.requested_task_size)
-        result = dispatch(self.client, self.payload, rows, self.store, size,
-                          lambda done, failed: self.progress(done_before + done, failed))
+        result, _ = dispatch_sized(self.client, self.payload, rows, self.store,
+                                   self.requested_task_size,
+                                   lambda done, failed: self.progress(done_before + done, failed))
         for table in result.tables:
             for row in table.to_pylist():
                 _take(study, by_index[row["sample_id"] // machines], row)
