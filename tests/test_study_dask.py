@@ -100,9 +100,10 @@ def dask_cluster():
 def test_small_study_same_numbers_on_local_cluster_and_separate_dask_processes(tmp_path,
                                                                              dask_cluster):
     # one local worker against a separately started two-worker cluster: other worker
-    # counts and other processes, the same numbers (the resume test runs two local workers)
+    # counts and other processes, the same numbers (the resume test runs two local workers);
+    # tasks of 2 samples, so that both remote workers get some whatever the sizing does
     runs = {"one local worker": ["--workers", "1"],
-            "dask scheduler + dask worker": ["--scheduler", dask_cluster]}
+            "dask scheduler + dask worker": ["--scheduler", dask_cluster, "--task-size", "2"]}
     tables = {}
     for name, args in runs.items():
         out = tmp_path / name.replace(" ", "_")
