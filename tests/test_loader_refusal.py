@@ -486,9 +486,10 @@ COMMANDS = {
 
 @pytest.mark.parametrize("args", COMMANDS.values(), ids=COMMANDS.keys())
 def test_a_machine_file_nested_500_deep_is_refused_by_each_command(deep_toml, tmp_path,
-                                                                   args):
-    """The attacker's machine file: exit 2 and one line naming the file and the bound."""
-    line = refused_in_one_line(hil(*args(deep_toml, tmp_path)), "hil")
+                                                                   capsys, args):
+    """The attacker's machine file: exit 2 and one line naming the file and the bound
+    (in this process: a RecursionError would come back as an exception and fail it)."""
+    line = refused_in_process(capsys, "hil", *args(deep_toml, tmp_path))
     assert f"{deep_toml}: tables and arrays nested more than {MAX_NESTING} deep" in line
 
 
@@ -587,12 +588,12 @@ def test_hil_identify_refuses_each_bad_trace_before_any_fit(tmp_path, capsys, co
     assert fragment in line
 
 
-def test_hil_study_refuses_a_step_beyond_the_travel_with_exit_2(tmp_path):
+def test_hil_study_refuses_a_step_beyond_the_travel_with_exit_2(tmp_path, capsys):
     """The attacker's study (every sample failed, then a broadcast ValueError, exit 1):
     exit 2 and one line, before any worker starts."""
     path = _write(tmp_path / "far.toml", STUDY_TEXT.replace("at_mm = 250.0", "at_mm = 5000.0"))
-    line = refused_in_one_line(hil("study", path, "--out", tmp_path / "out"),
-                               f"hil study: {path}: [experiment] at_mm = 5000 mm")
+    line = refused_in_process(capsys, f"hil study: {path}: [experiment] at_mm = 5000 mm",
+                              "study", path, "--out", tmp_path / "out")
     assert "0 .. 510 mm" in line and not (tmp_path / "out").exists()
 
 
