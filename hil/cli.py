@@ -34,6 +34,7 @@ load, a part program that does not parse, an unknown experiment).
 """
 
 import argparse
+import importlib
 import json
 import sys
 from pathlib import Path
@@ -176,15 +177,35 @@ def cmd_measure(args) -> int:
     return 0
 
 
-def build_parser() -> argparse.ArgumentParser:
+def _chosen(argv: list[str]) -> tuple[str | None, str | None]:
+    """The command and, for ``bench``, the benchmark ``argv`` names (None: not given)."""
+    words = [a for a in argv if not a.startswith("-")]
+    return (words[0] if words else None), (words[1] if len(words) > 1 else None)
+
+
+def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
+    """The command line's parser.  A command implemented in a module of its own gets its
+    options only when ``argv`` (default: ``sys.argv[1:]``) names it: the module is
+    imported then, so ``hil --help`` and every other command start without importing
+    what they do not run (the CAN stack, asammdf, Dask, matplotlib: seconds)."""
+    command, what = _chosen(sys.argv[1:] if argv is None else argv)
     parser = argparse.ArgumentParser(prog="hil", description="Feed-drive HIL plant emulator")
     sub = parser.add_subparsers(dest="command", required=True)
 
-    from hil.validate import command as validate_command
-    v = sub.add_parser("validate", help="run the seed experiments: each row's kind "
-                       "(verification, reproduction, prediction) and verdict")
-    validate_command.add_arguments(v)
-    v.set_defaults(func=validate_command.run_from_args)
+    def module(subparsers, name: str, help_: str, path: str, chosen: bool) -> None:
+        """``name`` run by ``path``'s add_arguments and run_from_args (imported if
+        ``chosen``)."""
+        p = subparsers.add_parser(name, help=help_)
+        if chosen:
+            mod = importlib.import_module(path)
+            mod.add_arguments(p)
+            p.set_defaults(func=mod.run_from_args)
+
+    def command_module(name: str, help_: str, path: str) -> None:
+        module(sub, name, help_, path, command == name)
+
+    command_module("validate", "run the seed experiments: each row's kind (verification, "
+                   "reproduction, prediction) and verdict", "hil.validate.command")
 
     b = sub.add_parser("bench", help="benchmarks (JSON with --json)")
     bsub = b.add_subparsers(dest="what", required=True)
@@ -251,35 +272,19 @@ def build_parser() -> argparse.ArgumentParser:
     ba.add_argument("--json", action="store_true")
     ba.set_defaults(func=cmd_bench_adapters)
 
-    bf = bsub.add_parser("fuzz", help="N frames through every decoder into running drives: "
-                         "counts, faults, checks (exit 1 if a check fails)")
-    from hil.bench import fuzz
-    fuzz.add_arguments(bf)
-    bf.set_defaults(func=fuzz.run_from_args)
-    from hil.bench import tick as bench_tick
-    bt = bsub.add_parser("tick", help="the emulator's whole tick vs the plant step alone")
-    bench_tick.add_arguments(bt)
-    bt.set_defaults(func=bench_tick.run_from_args)
-    from hil.bench import can as bench_can
-    bc = bsub.add_parser("can", help="CSP over CAN at a 1 kHz SYNC against UDP and the "
-                         "lock-step simulation: following error, overruns, bus load")
-    bench_can.add_arguments(bc)
-    bc.set_defaults(func=bench_can.run_from_args)
-    from hil.bench import identify as bench_identify
-    bi = bsub.add_parser("identify", help="hil identify on traces of an independent "
-                         "simulator with undeclared effects: named first, error / floor, time")
-    bench_identify.add_arguments(bi)
-    bi.set_defaults(func=bench_identify.run_from_args)
-    from hil.bench import study as bench_study
-    bst = bsub.add_parser("study", help="hil study's samples/s on 1 and 2 local workers, "
-                          "per-task overhead against a bare simulation")
-    bench_study.add_arguments(bst)
-    bst.set_defaults(func=bench_study.run_from_args)
-    from hil.bench import controller as bench_controller
-    bco = bsub.add_parser("controller", help="hil controller's tick against hil run over "
-                          "UDP, one axis and five: p50, p99.9, the NC's part")
-    bench_controller.add_arguments(bco)
-    bco.set_defaults(func=bench_controller.run_from_args)
+    for name, help_ in (
+            ("fuzz", "N frames through every decoder into running drives: counts, faults, "
+                     "checks (exit 1 if a check fails)"),
+            ("tick", "the emulator's whole tick vs the plant step alone"),
+            ("can", "CSP over CAN at a 1 kHz SYNC against UDP and the lock-step simulation: "
+                    "following error, overruns, bus load"),
+            ("identify", "hil identify on traces of an independent simulator with undeclared "
+                         "effects: named first, error / floor, time"),
+            ("study", "hil study's samples/s on 1 and 2 local workers, per-task overhead "
+                      "against a bare simulation"),
+            ("controller", "hil controller's tick against hil run over UDP, one axis and "
+                           "five: p50, p99.9, the NC's part")):
+        module(bsub, name, help_, f"hil.bench.{name}", command == "bench" and what == name)
 
     r = sub.add_parser("report", help="latency and jitter report of a run folder")
     r.add_argument("run", help="run folder of hil run (recording.arrows + report.json)")
@@ -291,55 +296,26 @@ def build_parser() -> argparse.ArgumentParser:
                         "run for the round trip's total and transport")
     r.set_defaults(func=cmd_report)
 
-    from hil.replay import command as replay_command
-    rp = sub.add_parser("replay", help="re-run a recorded run offline on the setpoints it "
-                        "applied and compare it with its recording")
-    replay_command.add_arguments(rp)
-    rp.set_defaults(func=replay_command.run_from_args)
-
-    from hil.runtime import controller_proc, demo, emulator, export, soak
-
-    exp = sub.add_parser("export", help="a run's recording as MDF4 or servo-trace CSV")
-    export.add_arguments(exp)
-    exp.set_defaults(func=export.run_from_args)
-    sk = sub.add_parser("soak", help="emulator and controller for minutes or hours: memory, "
-                        "lateness and overruns per minute, a plot")
-    soak.add_arguments(sk)
-    sk.set_defaults(func=soak.run_from_args)
-
-    run = sub.add_parser("run", help="the emulator daemon: the plant behind an adapter, "
-                         "in real time")
-    emulator.add_arguments(run)
-    run.set_defaults(func=emulator.run_from_args)
-    ctl = sub.add_parser("controller", help="the simulated NC as a process over an adapter")
-    controller_proc.add_arguments(ctl)
-    ctl.set_defaults(func=controller_proc.run_from_args)
-    from hil import eds
-    ed = sub.add_parser("eds", help="the CiA 306 EDS and DCF of the CANopen nodes hil run "
-                        "serves on a can:// adapter")
-    eds.add_arguments(ed)
-    ed.set_defaults(func=eds.run_from_args)
-    dem = sub.add_parser("demo", help="emulator and controller over UDP loopback, compared "
-                         "with the lock-step simulation")
-    demo.add_arguments(dem)
-    dem.set_defaults(func=demo.run_from_args)
-    from hil.linuxcnc import command as linuxcnc_command
-    lcn = sub.add_parser("linuxcnc", help="LinuxCNC drives the emulated machine, headless: "
-                         "home, run a G-code program, a verdict")
-    linuxcnc_command.add_arguments(lcn)
-    lcn.set_defaults(func=linuxcnc_command.run_from_args)
-
-    from hil.identify import command as identify_command
-    idf = sub.add_parser("identify", help="find, fit and add the effects a machine file lacks "
-                         "from a measured trace")
-    identify_command.add_arguments(idf)
-    idf.set_defaults(func=identify_command.run_from_args)
-
-    from hil.study import command as study_command
-    stu = sub.add_parser("study", help="tolerance, sensitivity and tuning studies over many "
-                         "simulated machines, on Dask")
-    study_command.add_arguments(stu)
-    stu.set_defaults(func=study_command.run_from_args)
+    command_module("replay", "re-run a recorded run offline on the setpoints it applied and "
+                   "compare it with its recording", "hil.replay.command")
+    command_module("export", "a run's recording as MDF4 or servo-trace CSV",
+                   "hil.runtime.export")
+    command_module("soak", "emulator and controller for minutes or hours: memory, lateness "
+                   "and overruns per minute, a plot", "hil.runtime.soak")
+    command_module("run", "the emulator daemon: the plant behind an adapter, in real time",
+                   "hil.runtime.emulator")
+    command_module("controller", "the simulated NC as a process over an adapter",
+                   "hil.runtime.controller_proc")
+    command_module("eds", "the CiA 306 EDS and DCF of the CANopen nodes hil run serves on a "
+                   "can:// adapter", "hil.eds")
+    command_module("demo", "emulator and controller over UDP loopback, compared with the "
+                   "lock-step simulation", "hil.runtime.demo")
+    command_module("linuxcnc", "LinuxCNC drives the emulated machine, headless: home, run a "
+                   "G-code program, a verdict", "hil.linuxcnc.command")
+    command_module("identify", "find, fit and add the effects a machine file lacks from a "
+                   "measured trace", "hil.identify.command")
+    command_module("study", "tolerance, sensitivity and tuning studies over many simulated "
+                   "machines, on Dask", "hil.study.command")
 
     k = sub.add_parser("config-keys", help="every machine-file key with unit and meaning")
     k.add_argument("--markdown", action="store_true")
@@ -348,7 +324,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    args = build_parser(argv).parse_args(argv)
     try:
         return args.func(args)
     except (ConfigError, KeyError, ProgramError, ReportError, FileNotFoundError) as exc:

@@ -75,3 +75,26 @@ def test_the_emulator_loads_no_can_stack():
     pandas behind them: 0.65 s of a 1.1 s start); a ``can://`` URL loads them when the
     endpoint opens."""
     assert _loaded("hil.runtime.emulator", {"can", "canopen", "asammdf"}) == []
+
+
+def test_the_command_line_imports_only_the_command_it_runs():
+    """``hil --help`` lists every command without importing their modules (the CAN stack,
+    asammdf, Dask, matplotlib: 2.8 s of a start before); a named command gets its options
+    from its own module, every one of them."""
+    probe = ("import json, sys; from hil.cli import build_parser; "
+             "p = build_parser(['--help']); "
+             "cmds = p._subparsers._group_actions[0].choices; "
+             "print(json.dumps([sorted(cmds), sorted({'can', 'canopen', 'asammdf', "
+             "'distributed', 'matplotlib'} & sys.modules.keys())]))")
+    done = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True,
+                          cwd=ROOT, timeout=120, check=True)
+    commands, loaded = json.loads(done.stdout)
+    assert loaded == []
+    from hil.cli import build_parser
+    benches = ("fuzz", "tick", "can", "identify", "study", "controller")
+    for argv in [[c] for c in commands if c != "bench"] + [["bench", b] for b in benches]:
+        parser = build_parser(argv)
+        chosen = parser._subparsers._group_actions[0].choices[argv[0]]
+        if argv[0] == "bench":
+            chosen = chosen._subparsers._group_actions[0].choices[argv[1]]
+        assert "func" in chosen._defaults, argv
