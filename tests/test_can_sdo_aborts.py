@@ -283,14 +283,22 @@ def sdo_frames(draw) -> bytes:
     return data
 
 
+def reads_probe(frame: bytes) -> bool:
+    """Whether ``frame`` is itself an upload request of the probe's object (any 40h-5Fh
+    command, any reserved bytes): its answer is the probe's, which would end
+    :meth:`Rig.responses_to`'s collection early."""
+    return len(frame) == 8 and frame[0] & 0xE0 == 0x40 and frame[1:4] == PROBE[1:4]
+
+
 @settings(max_examples=60, deadline=None, database=None,
           suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture])
-@given(frames=st.lists(sdo_frames(), min_size=1, max_size=12))
+@given(frames=st.lists(sdo_frames().filter(lambda f: not reads_probe(f)),
+                       min_size=1, max_size=12))
 def test_the_sdo_server_survives_any_frames(arrow_drive, caplog, capfd, frames):
-    """Any frames, then a read of 1018h:01: each frame of 8 bytes but the master's abort
-    (80h-9Fh) has one answer, in order, and never canopen's general error (the trace of an
-    exception it caught); the others are counted ``malformed``; the read is answered;
-    nothing was logged or printed."""
+    """Any frames (but a read of the probe's object), then a read of 1018h:01: each frame
+    of 8 bytes but the master's abort (80h-9Fh) has one answer, in order, and never
+    canopen's general error (the trace of an exception it caught); the others are counted
+    ``malformed``; the read is answered; nothing was logged or printed."""
     caplog.clear()
     capfd.readouterr()
     rig = Rig(arrow_drive)

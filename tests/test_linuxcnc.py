@@ -101,19 +101,20 @@ def test_linuxcnc_following_error_is_reported_beside_the_drives(session):
         assert e["drive_max"] > 0.0125 and e["unit"] == "mm", (name, e)
 
 
-def test_an_injected_fault_shows_in_linuxcncs_following_error_and_fails_the_run(
-        session, tmp_path):
+def test_an_injected_fault_shows_in_linuxcncs_following_error_and_fails_the_run(tmp_path):
     """With X's motor weakened and its guides seizing, X cannot follow LinuxCNC: its
-    following error on X grows to several times the healthy run's (LinuxCNC's own check
-    trips when it passes the limit; or, as the weak axis overshoots the home switch,
-    LinuxCNC's homing gives up on joint 0), and the verdict says so in LinuxCNC's words;
-    the other joints stay inside their limits."""
+    following error in LinuxCNC grows to several times the healthy joints' of the same run
+    (LinuxCNC's own check trips when it passes the limit; or, as the weak axis overshoots
+    the home switch, LinuxCNC's homing gives up on joint 0), and the verdict says so in
+    LinuxCNC's words; the other joints stay inside their limits.  (Against the healthy
+    joints of the same run, not another run's: a stall of LinuxCNC's non-real-time thread
+    in either would blur the comparison.)"""
     _linuxcnc_or_skip()
-    healthy = session[1]["following_error"]["X"]["linuxcnc_max"]
     done, summary = _session(tmp_path, *FAULT)
     assert done.returncode == 1, done.stdout + done.stderr
     last = done.stdout.strip().splitlines()[-1]
     assert last.startswith("FAIL: LinuxCNC: ") and ("joint 0" in last or "j=0" in last), last
     e = summary["following_error"]
-    assert e["X"]["linuxcnc_max"] > 3.0 * healthy, (e["X"], healthy)
+    healthy = max(e["Y"]["linuxcnc_max"], e["Z"]["linuxcnc_max"])
+    assert e["X"]["linuxcnc_max"] > 3.0 * healthy, e
     assert all(e[n]["linuxcnc_max"] < e[n]["linuxcnc_limit"] for n in ("Y", "Z"))
