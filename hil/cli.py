@@ -13,6 +13,7 @@
     hil bench can [--config FILE] [--program FILE] [--sync-hz HZ] [--group G] [--json]
     hil bench study [--samples N] [--seconds S] [--json]
     hil bench controller [--config FILE --program FILE ...] [--no-rt] [--json]
+    hil bench linuxcnc [--ini FILE] [--program FILE.ngc] [--out DIR] [--no-rt] [--json]
     hil bench identify [--ci] [--cases NAME ...] [--out DIR] [--workers N] [--json]
     hil eds CONFIG --adapter can://... [--out DIR]
     hil study SPEC.toml [--out DIR] [--workers N | --scheduler tcp://HOST:8786] [--fresh]
@@ -283,7 +284,9 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
             ("study", "hil study's samples/s on 1 and 2 local workers, per-task overhead "
                       "against a bare simulation"),
             ("controller", "hil controller's tick against hil run over UDP, one axis and "
-                           "five: p50, p99.9, the NC's part")):
+                           "five: p50, p99.9, the NC's part"),
+            ("linuxcnc", "LinuxCNC's servo-thread jitter beside cyclictest, and the fixed "
+                         "wire's frames per second")):
         module(bsub, name, help_, f"hil.bench.{name}", command == "bench" and what == name)
 
     r = sub.add_parser("report", help="latency and jitter report of a run folder")

@@ -91,7 +91,7 @@ def test_the_command_line_imports_only_the_command_it_runs():
     commands, loaded = json.loads(done.stdout)
     assert loaded == []
     from hil.cli import build_parser
-    benches = ("fuzz", "tick", "can", "identify", "study", "controller")
+    benches = ("fuzz", "tick", "can", "identify", "study", "controller", "linuxcnc")
     for argv in [[c] for c in commands if c != "bench"] + [["bench", b] for b in benches]:
         parser = build_parser(argv)
         chosen = parser._subparsers._group_actions[0].choices[argv[0]]

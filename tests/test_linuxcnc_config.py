@@ -16,7 +16,9 @@ from hil.linuxcnc.session import (
     _ini,
     linuxcnc_ferror,
     read_config,
+    read_samples,
     sampler_hal,
+    servo_timing,
     set_key,
 )
 from hil.linuxcnc.verdict import Homing, judge
@@ -79,7 +81,9 @@ def test_a_bad_ini_is_refused_naming_the_key(tmp_path):
                             (f"MACHINE = {manifest}", "MACHINE = none.toml",
                              "MACHINE = .*none.toml: no such file"),
                             ("SCALE = 419430.4", "SCALE = 0", "SCALE = .*finite and not 0"),
-                            ("JOINTS = 3", "JOINTS = three", "is not a number")]:
+                            ("JOINTS = 3", "JOINTS = three", "is not a number"),
+                            ("SERVO_PERIOD = 1000000", "SERVO_PERIOD = 1e6",
+                             r"\[EMCMOT\] SERVO_PERIOD = 1e6: expected a whole number of ns")]:
         bad.write_text(text.replace(old, new, 1))
         with pytest.raises(LinuxCNCConfigError, match=match):
             read_config(bad)
@@ -95,19 +99,44 @@ def test_set_key_replaces_in_its_section_only_or_adds():
 
 
 def test_the_sampler_file_is_read_back_per_joint(tmp_path):
-    """halsampler's lines (f-error and its limit per joint, the machine's enable): the
-    largest error while enabled and in the period that disabled it, with its limit; a line
-    cut short and samples while disabled are left out."""
-    assert "cfg=ffffffb" in sampler_hal(3)
+    """halsampler's lines (f-error and its limit per joint, the machine's enable, the
+    servo period as it ran, the stale periods and frames received): the largest error
+    while enabled and in the period that disabled it, with its limit; a line cut short and
+    samples while disabled are left out."""
+    hal = sampler_hal(3)
+    assert "cfg=ffffffbuuu" in hal and "feeddrive.period-ns => sampler.0.pin.7" in hal
     path = tmp_path / "ferror.txt"
-    path.write_text("9.0 9.0 0.5 0.5 0\n"      # disabled: not judged
-                    "0.1 -0.2 0.5 0.5 1\n"
-                    "-0.3 0.1 0.6 0.5 1\n"
-                    "0.7 0.0 0.6 0.5 0\n"      # the period LinuxCNC tripped in
-                    "5.0 5.0 0.5 0.5 0\n"
-                    "1.0 1.0 0.5\n")           # cut short
-    assert linuxcnc_ferror(path, 2) == [(0.7, 0.6), (0.2, 0.5)]
-    assert linuxcnc_ferror(tmp_path / "none.txt", 2) == []
+    path.write_text("9.0 9.0 0.5 0.5 0 0 0 0\n"      # disabled: not judged
+                    "0.1 -0.2 0.5 0.5 1 1000000 0 2\n"
+                    "-0.3 0.1 0.6 0.5 1 1000000 0 4\n"
+                    "0.7 0.0 0.6 0.5 0 1000000 0 6\n"      # the period LinuxCNC tripped in
+                    "5.0 5.0 0.5 0.5 0 1000000 0 8\n"
+                    "1.0 1.0 0.5\n")                       # cut short
+    assert linuxcnc_ferror(read_samples(path, 2), 2) == [(0.7, 0.6), (0.2, 0.5)]
+    assert linuxcnc_ferror(read_samples(tmp_path / "none.txt", 2), 2) == []
+
+
+def test_the_servo_threads_timing_is_judged_while_the_machine_is_on(tmp_path):
+    """The periods as the component measured them while the machine was on, against a
+    hand-made file of one joint: a wake-up 300 µs late makes one period 1300 µs and the
+    next 700 µs (jitter 300 µs both); the stale periods and the frames received are
+    counted only while on; per second over the periods' own sum."""
+    path = tmp_path / "ferror.txt"
+    rows = ["0 1 0 0 0 5"]                                   # off, first read: not judged
+    rows += [f"0 1 1 1000000 0 {7 + 2 * k}" for k in range(6)]
+    rows += ["0 1 1 1300000 0 20", "0 1 1 700000 1 21", "0 1 1 1000000 1 23",
+             "0 1 0 5000000 9 99"]                           # off again: not judged
+    path.write_text("\n".join(rows) + "\n")
+    t = servo_timing(read_samples(path, 1), 1, 1_000_000)
+    assert (t.nominal_us, t.periods) == (1000.0, 9)
+    assert t.span_s == pytest.approx(9e-3)
+    assert (t.period_us.p50, t.period_us.max) == (1000.0, 1300.0)
+    assert (t.jitter_us.p50, t.jitter_us.max) == (0.0, 300.0)
+    assert (t.stale_periods, t.feedback_frames) == (1, 18)
+    assert t.setpoints_per_s == pytest.approx(1000.0)
+    assert t.feedback_per_s == pytest.approx(2000.0)
+    assert "jitter p50 0.0, p99.9 300.0, max 300.0 µs; 1 periods" in t.line()
+    assert servo_timing(read_samples(tmp_path / "none.txt", 1), 1, 1_000_000) is None
 
 
 def _result(**changes) -> dict:

@@ -9,9 +9,10 @@ following-error protection is what should notice it.
 
 Files in ``--out``: ``emulator/`` (hil run's recording.arrows, events.arrows,
 report.json), ``linuxcnc/`` (the run's INI and HAL files, ``result.json`` of the display,
-``ferror.txt``: every servo period's following error and limit per joint and the
-machine's enable), ``emulator.log``, ``linuxcnc.log`` and ``linuxcnc.json`` (the
-following errors, the homing, the verdict).  Exit status 0 on PASS, 1 on FAIL, 2 when the
+``ferror.txt``: every servo period's following error and limit per joint, the machine's
+enable and the servo thread's period as it ran), ``emulator.log``, ``linuxcnc.log`` and
+``linuxcnc.json`` (the following errors, the homing, the servo thread's timing while the
+machine was on, the verdict).  Exit status 0 on PASS, 1 on FAIL, 2 when the
 INI, the machine file or the program is refused, or LinuxCNC cannot be run here.
 """
 
@@ -94,7 +95,9 @@ def run_linuxcnc(ini: Path, program: Path | None, out: Path, inject: list[str],
     homing = [Homing(name, bool(j.get("homed")), j.get("index_counts"),
                      index_above_switch(c))
               for name, j, c in zip(machine.names, joints, machine.configs)]
-    lc_ferror = session.linuxcnc_ferror(files.ferror, cfg.joints)
+    samples = session.read_samples(files.ferror, cfg.joints)
+    lc_ferror = session.linuxcnc_ferror(samples, cfg.joints)
+    timing = session.servo_timing(samples, cfg.joints, cfg.servo_period_ns)
     drive = session.drive_ferror(files.emulator, machine.names, cfg.scales)
     errors = [FollowingError(*lc_ferror[j], drive[j]) if lc_ferror else
               FollowingError(math.nan, math.nan, drive[j]) for j in range(cfg.joints)]
@@ -106,10 +109,13 @@ def run_linuxcnc(ini: Path, program: Path | None, out: Path, inject: list[str],
         print(f"joint {h.name}: homed at increment {h.index_counts} (the index above the "
               f"home switch: {h.expected_counts:.0f})")
     print("\n".join(ferror_lines(machine.names, errors, unit)))
+    if timing is not None:
+        print(timing.line())
     for error in (result or {}).get("errors", []):
         print(f"LinuxCNC at {error['t_s']:.3f} s: {error['text']}")
     print(f"files in {out}/")
     write_json(out / "linuxcnc.json", {
+        "program": str(program) if program is not None else None,
         "url": processes.url, "emulator_exit": processes.emulator_status,
         "linuxcnc_exit": processes.linuxcnc_status, "phases": (result or {}).get("phases"),
         "linuxcnc_errors": (result or {}).get("errors"),
@@ -118,6 +124,8 @@ def run_linuxcnc(ini: Path, program: Path | None, out: Path, inject: list[str],
                                    "linuxcnc_limit": e.linuxcnc_limit,
                                    "drive_max": e.drive_max, "unit": unit}
                             for name, e in zip(machine.names, errors)},
+        "servo_thread": timing.as_dict() if timing is not None else None,
+        "rt_cpus": (result or {}).get("rt_cpus"),
         "replay": replay if isinstance(replay, str) else replay.as_dict(),
         "verdict": verdict.line(), "reasons": verdict.reasons})
     print(verdict.line())

@@ -9,16 +9,17 @@ exits, LinuxCNC shuts down.
 
 Its settings are in ``display.json`` beside it: ``result`` (the JSON written), ``program``
 (G-code, or null), ``ferror`` (where halsampler writes every servo period's sample of the
-run's sampler: each joint's following error and its limit, the machine's enable),
-``timeout_s`` (the longest a phase may take), ``servo_priority`` (the SCHED_FIFO priority
-its real-time threads are raised to before the machine is turned on, or null; see
-:func:`raise_realtime_threads`).
+run's sampler: each joint's following error and its limit, the machine's enable, the
+servo thread's period), ``timeout_s`` (the longest a phase may take), ``servo_priority``
+(the SCHED_FIFO priority its real-time threads are raised to before the machine is turned
+on, or null; see :func:`raise_realtime_threads`).
 
 The JSON: ``phases`` (each phase reached and its duration, s: ``on``, ``homed``,
 ``program``), ``errors`` (LinuxCNC's error and operator messages, in order), ``joints``
 (per joint after homing: the feeddrive pins ``counts``, ``index-counts``, ``pos-fb`` and
 LinuxCNC's ``position`` and ``homed``; at the end ``ferror_highmark``), ``completed`` (the
-program ran to its end), ``failed`` (why a phase did not end, or null).
+program ran to its end), ``failed`` (why a phase did not end, or null), ``fifo_threads``
+and ``rt_cpus`` (the real-time threads raised, and the CPUs they may run on).
 """
 
 import json
@@ -67,6 +68,18 @@ def raise_realtime_threads(priority: int) -> list:
     return raised
 
 
+def thread_cpus(tids: list) -> list:
+    """The CPUs any of the threads ``tids`` may run on, ascending (LinuxCNC pins its
+    real-time threads to one; a thread gone meanwhile is left out)."""
+    cpus = set()
+    for tid in tids:
+        try:
+            cpus |= os.sched_getaffinity(tid)
+        except OSError:
+            continue
+    return sorted(cpus)
+
+
 class Run:
     def __init__(self, settings: dict):
         self.settings = settings
@@ -75,7 +88,7 @@ class Run:
         self.stat = linuxcnc.stat()
         self.errors = linuxcnc.error_channel()
         self.result = {"phases": {}, "errors": [], "joints": [], "completed": False,
-                       "failed": None, "fifo_threads": []}
+                       "failed": None, "fifo_threads": [], "rt_cpus": []}
         self.t0 = time.monotonic()
 
     def drain_errors(self) -> None:
@@ -122,6 +135,7 @@ class Run:
         if self.settings["servo_priority"] is not None:
             self.result["fifo_threads"] = raise_realtime_threads(
                 self.settings["servo_priority"])
+            self.result["rt_cpus"] = thread_cpus(self.result["fifo_threads"])
         c.state(linuxcnc.STATE_ESTOP_RESET)
         if not self.wait("reset", lambda st: st.task_state == linuxcnc.STATE_ESTOP_RESET):
             return

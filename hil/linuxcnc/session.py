@@ -11,9 +11,10 @@ names, LinuxCNC on a copy of the INI for this run, and what both recorded.
    ``ADDRESS`` set to the emulator's port, ``[DISPLAY] DISPLAY`` set to the headless display
    (:mod:`hil.linuxcnc.display`: machine on, home, the program, its result as JSON), and a
    HAL file of this run's own added: LinuxCNC's ``sampler`` taking every joint's following
-   error and its limit (``joint.N.f-error``, ``joint.N.f-error-lim``) and whether the
-   machine is enabled, every servo period, written by ``halsampler`` to
-   ``OUT/linuxcnc/ferror.txt``.
+   error and its limit (``joint.N.f-error``, ``joint.N.f-error-lim``), whether the
+   machine is enabled, and the feeddrive component's view of the servo thread and the
+   link (``feeddrive.period-ns``, ``stale-periods``, ``rx-frames``), every servo period,
+   written by ``halsampler`` to ``OUT/linuxcnc/ferror.txt``.
 4. When LinuxCNC has exited, SIGTERM to ``hil run`` (its clean stop writes report.json).
 
 Every child has a timeout and is killed if it is still running when the session ends.
@@ -37,6 +38,7 @@ import numpy as np
 
 from hil.linuxcnc import install
 from hil.linuxcnc.install import LinuxCNC
+from hil.rt.loop import Percentiles
 from hil.runtime.common import reap
 from hil.runtime.demo import DemoError, wait_ready
 from hil.runtime.record_reader import Recording, RecordingError
@@ -74,11 +76,13 @@ class LinuxCNCConfig:
         machine: the emulated machine file (a manifest of the joints' axes, or one axis).
         start: ``hil run --start`` (the tables' positions at start, mm or deg).
         scales: increments per joint unit, per joint ([JOINT_N] SCALE).
+        servo_period_ns: LinuxCNC's servo thread period ([EMCMOT] SERVO_PERIOD), ns.
     """
     ini: Path
     machine: Path
     start: str
     scales: tuple[float, ...]
+    servo_period_ns: int
 
     @property
     def joints(self) -> int:
@@ -120,7 +124,12 @@ def read_config(ini: Path) -> LinuxCNCConfig:
     if not all(math.isfinite(s) and s != 0.0 for s in scales):
         raise LinuxCNCConfigError(f"{ini}: [JOINT_N] SCALE = {scales}: increments per unit, "
                                   f"finite and not 0")
-    return LinuxCNCConfig(ini.resolve(), machine, get("FEEDDRIVE", "START"), scales)
+    period = get("EMCMOT", "SERVO_PERIOD")
+    if not period.isdigit() or int(period) == 0:
+        raise LinuxCNCConfigError(f"{ini}: [EMCMOT] SERVO_PERIOD = {period}: expected a "
+                                  f"whole number of ns above 0")
+    return LinuxCNCConfig(ini.resolve(), machine, get("FEEDDRIVE", "START"), scales,
+                          int(period))
 
 
 def set_key(text: str, section: str, key: str, value: str) -> str:
@@ -141,16 +150,24 @@ def set_key(text: str, section: str, key: str, value: str) -> str:
     return "\n".join(lines) + "\n"
 
 
+#: the sampler's pins after the joints' following errors and limits, with their HAL types
+#: (bit, u32): the machine's enable, and the feeddrive component's period as it ran (ns),
+#: periods without a new feedback and datagrams received (both counted from its start)
+SAMPLED = (("motion.motion-enabled", "b"), ("feeddrive.period-ns", "u"),
+           ("feeddrive.stale-periods", "u"), ("feeddrive.rx-frames", "u"))
+
+
 def sampler_hal(joints: int) -> str:
-    """The run's HAL file: every joint's following error and limit, and the machine's
-    enable, sampled every servo period."""
-    lines = [f"loadrt sampler depth={SAMPLER_DEPTH} cfg={'ff' * joints}b",
-             "addf sampler.0 servo-thread"]
+    """The run's HAL file: every joint's following error and limit, and the pins of
+    :data:`SAMPLED`, sampled every servo period."""
+    cfg = "ff" * joints + "".join(kind for _, kind in SAMPLED)
+    lines = [f"loadrt sampler depth={SAMPLER_DEPTH} cfg={cfg}", "addf sampler.0 servo-thread"]
     for j in range(joints):
         lines.append(f"net hil-ferror-{j} joint.{j}.f-error => sampler.0.pin.{j}")
         lines.append(f"net hil-ferror-lim-{j} joint.{j}.f-error-lim => "
                      f"sampler.0.pin.{joints + j}")
-    lines.append(f"net hil-enabled motion.motion-enabled => sampler.0.pin.{2 * joints}")
+    for k, (pin, _) in enumerate(SAMPLED):
+        lines.append(f"net hil-{pin.split('.')[-1]} {pin} => sampler.0.pin.{2 * joints + k}")
     return "\n".join(lines) + "\n"
 
 
@@ -327,21 +344,29 @@ class FollowingError:
         return self.linuxcnc_max / self.linuxcnc_limit if self.linuxcnc_limit > 0 else math.nan
 
 
-def linuxcnc_ferror(path: Path, joints: int) -> list[tuple[float, float]]:
-    """(largest |f-error|, its limit there) per joint from halsampler's file (empty: no
-    sample while enabled)."""
+def read_samples(path: Path, joints: int) -> np.ndarray:
+    """halsampler's file as rows of samples (one per servo period) by columns: each joint's
+    f-error, each joint's f-error-lim, then :data:`SAMPLED`; shape (periods, 2 * joints +
+    4), float64 (none: the file is missing or has no whole line)."""
+    width = 2 * joints + len(SAMPLED)
     rows = []
     try:
         with open(path) as f:
             for line in f:
                 values = line.split()
-                if len(values) == 2 * joints + 1:  # a last line cut short is left out
+                if len(values) == width:  # a last line cut short is left out
                     rows.append([float(v) for v in values])
     except OSError:
+        pass
+    return np.array(rows, dtype=np.float64).reshape(-1, width)
+
+
+def linuxcnc_ferror(samples: np.ndarray, joints: int) -> list[tuple[float, float]]:
+    """(largest |f-error|, its limit there) per joint from :func:`read_samples`' rows
+    (empty: no sample while enabled)."""
+    a = samples
+    if not a.size:
         return []
-    if not rows:
-        return []
-    a = np.array(rows)
     enabled = a[:, 2 * joints] > 0.5
     # the period LinuxCNC disabled the machine in holds the error that tripped it
     judged = enabled | np.concatenate(([False], enabled[:-1]))
@@ -353,6 +378,80 @@ def linuxcnc_ferror(path: Path, joints: int) -> list[tuple[float, float]]:
         k = int(np.argmax(e))
         out.append((float(e[k]), float(a[judged, joints + j][k])))
     return out
+
+
+@dataclass(frozen=True)
+class ServoTiming:
+    """LinuxCNC's servo thread as the feeddrive component saw it while the machine was on
+    (:func:`servo_timing`).
+
+    ``jitter_us`` is each period's distance from the nominal one.  A thread woken ``L``
+    late on an absolute deadline runs one period ``L`` long and the next ``L`` short, so
+    its largest jitter is its largest wake-up latency, the figure cyclictest gives.
+
+    Attributes:
+        nominal_us: the servo period the INI asks for, µs.
+        periods: periods measured (the first read has none before it).
+        span_s: their total, s.
+        period_us: the periods as they ran, µs.
+        jitter_us: ``|period - nominal|``, µs.
+        stale_periods: periods that found no new feedback from the emulator.
+        feedback_frames: datagrams the component received over the span.
+    """
+    nominal_us: float
+    periods: int
+    span_s: float
+    period_us: Percentiles
+    jitter_us: Percentiles
+    stale_periods: int
+    feedback_frames: int
+
+    @property
+    def setpoints_per_s(self) -> float:
+        """Setpoint datagrams sent per second (one per period)."""
+        return self.periods / self.span_s if self.span_s > 0 else math.nan
+
+    @property
+    def feedback_per_s(self) -> float:
+        """Feedback datagrams received per second."""
+        return self.feedback_frames / self.span_s if self.span_s > 0 else math.nan
+
+    def as_dict(self) -> dict:
+        return {"nominal_us": self.nominal_us, "periods": self.periods, "span_s": self.span_s,
+                "period_us": self.period_us.as_dict(), "jitter_us": self.jitter_us.as_dict(),
+                "stale_periods": self.stale_periods, "feedback_frames": self.feedback_frames,
+                "setpoints_per_s": self.setpoints_per_s,
+                "feedback_per_s": self.feedback_per_s}
+
+    def line(self) -> str:
+        """One line for a person."""
+        return (f"LinuxCNC's servo thread ({self.nominal_us:g} µs): {self.periods} periods, "
+                f"jitter p50 {self.jitter_us.p50:.1f}, p99.9 {self.jitter_us.p999:.1f}, max "
+                f"{self.jitter_us.max:.1f} µs; {self.stale_periods} periods without a new "
+                f"feedback; {self.setpoints_per_s:.0f} setpoints and "
+                f"{self.feedback_per_s:.0f} feedbacks per second")
+
+
+def servo_timing(samples: np.ndarray, joints: int, nominal_ns: int) -> ServoTiming | None:
+    """The servo thread's timing from :func:`read_samples`' rows while the machine was on
+    (after LinuxCNC's start, with its threads at the session's priority: what a program
+    runs under); None: no such period measured."""
+    base = 2 * joints
+    if not samples.size:
+        return None
+    period_ns = samples[:, base + 1]
+    judged = (samples[:, base] > 0.5) & (period_ns > 0)
+    if not judged.any():
+        return None
+    measured = period_ns[judged]
+    stale, rx = (np.diff(samples[:, base + k], prepend=samples[0, base + k])[judged]
+                 for k in (2, 3))
+    return ServoTiming(
+        nominal_us=nominal_ns / 1e3, periods=int(measured.size),
+        span_s=float(measured.sum()) / 1e9,
+        period_us=Percentiles.of_ns_in_us(measured),
+        jitter_us=Percentiles.of_ns_in_us(np.abs(measured - nominal_ns)),
+        stale_periods=int(stale.sum()), feedback_frames=int(rx.sum()))
 
 
 def drive_ferror(run_dir: Path, names: tuple[str, ...], scales: tuple[float, ...]

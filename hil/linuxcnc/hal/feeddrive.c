@@ -44,8 +44,9 @@
  * and for the link (feeddrive.*): connected (out bit: a feedback within feedback-timeout),
  * rx-frames, rx-bad (datagrams refused: another length, magic, version, kind or number of
  * axes; or another sender), tx-dropped (sends the socket refused), stale-periods (periods
- * that found no new feedback) -- all out u32 -- and feedback-timeout (param rw float, s,
- * default 0.1).
+ * that found no new feedback), period-ns (the time from the previous read to this one:
+ * the servo thread's period as it ran, which shows its jitter; 0 at the first) -- all out
+ * u32 -- and feedback-timeout (param rw float, s, default 0.1).
  */
 
 #include "rtapi.h"
@@ -95,7 +96,7 @@ typedef struct {
 typedef struct {
     joint_t joint[MAX_JOINTS];
     hal_bit_t *connected;
-    hal_u32_t *rx_frames, *rx_bad, *tx_dropped, *stale_periods;
+    hal_u32_t *rx_frames, *rx_bad, *tx_dropped, *stale_periods, *period_ns;
     hal_float_t feedback_timeout;
 } feeddrive_t;
 
@@ -117,7 +118,7 @@ static struct sockaddr_in device;
 static uint32_t session, frame, seq;
 static uint32_t peer_session, peer_frame;
 static int have_peer, welcomed;
-static long long last_fb_ns, hello_ns;
+static long long last_fb_ns, hello_ns, last_read_ns;
 static unsigned char rx_buf[2048];
 static unsigned char fb_buf[2048];   /* the newest good feedback */
 static unsigned char tx_buf[sizeof(struct fdw_setpoint)
@@ -180,6 +181,11 @@ static void read_feedback(void *arg, long period)
     long long t = now_ns();
     (void)arg;
     (void)period;
+    if (last_read_ns) {
+        long long since = t - last_read_ns;
+        *hal->period_ns = since < 0 ? 0 : since > 0xFFFFFFFFLL ? 0xFFFFFFFFu : (hal_u32_t)since;
+    }
+    last_read_ns = t;
     for (;;) {
         ssize_t n;
         int verdict;
@@ -403,6 +409,7 @@ int rtapi_app_main(void)
     PIN(u32, HAL_OUT, &hal->rx_bad, "feeddrive.rx-bad");
     PIN(u32, HAL_OUT, &hal->tx_dropped, "feeddrive.tx-dropped");
     PIN(u32, HAL_OUT, &hal->stale_periods, "feeddrive.stale-periods");
+    PIN(u32, HAL_OUT, &hal->period_ns, "feeddrive.period-ns");
     if ((r = hal_param_float_newf(HAL_RW, &hal->feedback_timeout, comp_id,
                                   "feeddrive.feedback-timeout")))
         goto fail;
