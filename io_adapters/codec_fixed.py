@@ -129,6 +129,12 @@ def _layout(kind: int, n_axes: int) -> struct.Struct:
                          + "".join(c for _, c in axis) * n_axes)
 
 
+def largest_message(n_axes: int) -> int:
+    """Bytes of this wire's longest message of ``n_axes`` axes (the feedback: 64 + 64 per
+    axis; the setpoint is 32 + 64 per axis)."""
+    return max(_layout(kind, n_axes).size for kind in (KIND_SETPOINT, KIND_FEEDBACK))
+
+
 @cache
 def _stamps(kind: int) -> tuple[int, ...]:
     """Where the stamps are among a message's values (in its common part)."""

@@ -1,10 +1,11 @@
-"""Serial transport: msgpack messages (:mod:`io_adapters.codec`) in CRC-checked frames.
+"""Serial transport: msgpack messages (:mod:`io_adapters.codec`), or the fixed wire's
+(``wire=fixed``, :mod:`io_adapters.codec_fixed`), in CRC-checked frames.
 
 Frame on the wire::
 
     0xA5 0x5A   start of frame (SOF)
     LEN         payload length in bytes, 1..255
-    PAYLOAD     one msgpack message
+    PAYLOAD     one message
     CRC         2 bytes, big-endian: CRC-16/CCITT-FALSE over LEN and PAYLOAD
                 (polynomial 0x1021, initial value 0xFFFF, not reflected, no final
                 XOR; check value 0x29B1 for b"123456789")
@@ -28,7 +29,9 @@ Options: ``baud=N`` (bit/s; default 115200 for pyserial ports, unchanged for a
 descriptor), ``drain=1`` (see :class:`~io_adapters.base.Endpoint`), ``takeover_ms=MS``
 (device side, a controller ignores it: how long the pinned controller must have been
 silent before another one's HELLO is accepted, default 500 ms; the same session pinning
-and handshake as on UDP, :mod:`io_adapters.codec`, without addresses).
+and handshake as on UDP, :mod:`io_adapters.codec`, without addresses),
+``wire=msgpack|fixed`` (how messages are laid out, :mod:`io_adapters.wire`; a frame holds
+:data:`MAX_AXES_BY_WIRE` axes per message on each).
 
 A send never waits for the peer.  Writes are non-blocking; a frame the port takes only
 in part stays pending, and is finished (by the next send or receive) before another
@@ -70,13 +73,26 @@ from io_adapters.base import (
     positive_float,
     positive_int,
 )
-from io_adapters.msgpack_endpoint import DEFAULT_TAKEOVER_MS, MsgpackEndpoint
+from io_adapters.codec_fixed import MAX_AXES as FIXED_MAX_AXES
+from io_adapters.codec_fixed import largest_message
+from io_adapters.msgpack_endpoint import (
+    DEFAULT_TAKEOVER_MS,
+    MSGPACK_WIRE,
+    MsgpackEndpoint,
+)
+from io_adapters.wire import Wire, wire_named
 
 SOF = b"\xa5\x5a"
 MAX_PAYLOAD = 255
-#: the most axes a group message (codec version 2) may carry here: with every integer at
-#: its widest, 3 axes take 232 bytes (setpoint) and 226 (feedback), 4 axes 300 and 280
+#: the most axes a msgpack group message (codec version 2) may carry here: with every
+#: integer at its widest, 3 axes take 232 bytes (setpoint) and 226 (feedback), 4 axes 300
+#: and 280
 MAX_AXES = 3
+#: the most axes a message may carry here, per wire (the fixed wire's: as many as its
+#: feedback, 64 + 64 per axis bytes, fits a frame)
+MAX_AXES_BY_WIRE = {"msgpack": MAX_AXES,
+                    "fixed": max(n for n in range(1, FIXED_MAX_AXES + 1)
+                                 if largest_message(n) <= MAX_PAYLOAD)}
 DEFAULT_BAUD = 115200
 #: bytes asked for per read of the port
 READ_CHUNK = 4096
@@ -199,12 +215,13 @@ class SerialEndpoint(MsgpackEndpoint):
             an open Serial-like object; the endpoint closes it.
         baud: bit/s (None: 115200 for a path or URL, unchanged for a descriptor or object).
         drain: see :class:`~io_adapters.base.Endpoint`.
-        takeover_ms: see :class:`~io_adapters.msgpack_endpoint.MsgpackEndpoint`.
+        takeover_ms, wire: see :class:`~io_adapters.msgpack_endpoint.MsgpackEndpoint`.
     """
 
     def __init__(self, role: Role | str, port, *, baud: int | None = None,
-                 drain: bool = False, takeover_ms: float = DEFAULT_TAKEOVER_MS):
-        super().__init__(role, drain=drain, takeover_ms=takeover_ms)
+                 drain: bool = False, takeover_ms: float = DEFAULT_TAKEOVER_MS,
+                 wire: Wire = MSGPACK_WIRE):
+        super().__init__(role, drain=drain, takeover_ms=takeover_ms, wire=wire)
         self.name = f"fd/{port}" if isinstance(port, int) else str(getattr(port, "port", port))
         if isinstance(port, int):
             try:
@@ -235,7 +252,8 @@ class SerialEndpoint(MsgpackEndpoint):
         """``serial://PORT?options`` (see the module docstring)."""
         target, _, query = url.partition("://")[2].partition("?")
         options = parse_options(url, query, {
-            "baud": positive_int, "drain": flag, "takeover_ms": positive_float})
+            "baud": positive_int, "drain": flag, "takeover_ms": positive_float,
+            "wire": wire_named})
         if target.startswith("fd/"):
             if not target[3:].isdigit():
                 raise AdapterConfigError(f"{url!r}: expected serial://fd/N, N a descriptor")

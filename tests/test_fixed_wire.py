@@ -1,10 +1,11 @@
 """The fixed binary wire (``wire=fixed``, :mod:`io_adapters.codec_fixed`): the C header is
-its layout, records cross a real UDP link whole, bad messages are refused and counted as on
+its layout, records cross a real UDP link and a pty pair's serial frames whole, bad messages are refused and counted as on
 the msgpack wire, and the emulator answers a fixed-wire controller with its home switch and
 the index mark it passed.
 """
 
 import math
+import os
 import shutil
 import socket
 import struct
@@ -89,11 +90,22 @@ def _link(n_axes: int, device_query: str = "?wire=fixed"):
     return device, ctl
 
 
-@pytest.mark.parametrize("n_axes", [1, 3])
-def test_records_cross_a_udp_link_whole(n_axes):
+def _serial_link():
+    """A fixed-wire serial link over a pty pair, the device on the master side."""
+    master, slave = os.openpty()
+    device = open_endpoint(f"serial://fd/{master}?wire=fixed", "device")
+    device.setpoint_bounds = (SetpointBounds(),)
+    return device, open_endpoint(f"serial://fd/{slave}?wire=fixed", "controller")
+
+
+@pytest.mark.parametrize("transport, n_axes", [("udp", 1), ("udp", 3), ("serial", 1),
+                                               ("serial", 2)])
+def test_records_cross_a_link_whole(transport, n_axes):
     """Every field of a setpoint and of a feedback (the digital inputs and the index mark
-    too) arrives as sent, on one axis (the plain records) and on three (groups)."""
-    device, ctl = _link(n_axes)
+    too) arrives as sent, on one axis (the plain records) and on several (groups), over
+    UDP and in serial frames (two axes at most there: the feedback of three, 256 bytes,
+    does not fit a frame)."""
+    device, ctl = _link(n_axes) if transport == "udp" else _serial_link()
     with device, ctl:
         sp, fb = message_pair(n_axes)
         got_sp, got_fb = message_pair(n_axes)

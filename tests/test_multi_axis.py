@@ -38,9 +38,9 @@ from hil.runtime.emulator import Emulator, RuntimeConfig
 from hil.runtime.recording import units
 from hil.runtime.watchdog import FAULT_WATCHDOG
 from hil.sim import LockStep, MachineLockStep
-from io_adapters import FrameError, codec
+from io_adapters import FrameError, codec, codec_fixed
 from io_adapters.messages import FeedbackGroup, Setpoint, SetpointGroup, message_pair
-from io_adapters.serial_link import MAX_AXES, MAX_PAYLOAD
+from io_adapters.serial_link import MAX_AXES, MAX_AXES_BY_WIRE, MAX_PAYLOAD
 from io_adapters.udp import UdpEndpoint
 from plant import layout as L
 from plant.config import load_machine
@@ -343,6 +343,8 @@ def test_the_controller_refuses_axis_letters_with_a_manifest_and_start_of_unknow
     ("can://virtual/x?node=1&rated_current_ma=28000", 1, None),
     ("serial:///dev/null", 4, "3 axes per message at most"),
     ("serial:///dev/null", 3, None),
+    ("serial:///dev/null?wire=fixed", 3, "2 axes per message at most on the fixed wire"),
+    ("serial:///dev/null?baud=9600&wire=fixed", 2, None),
     ("udp://127.0.0.1:0", 9, None),
 ])
 def test_links_that_cannot_carry_the_axes_are_refused_before_start(url, n_axes, refused):
@@ -366,6 +368,17 @@ def test_serial_frames_hold_max_axes_at_their_widest():
         return max(len(codec.encode(m, 2**32 - 1, 2**32 - 1)) for m in (sp, fb))
 
     assert widest(MAX_AXES) <= MAX_PAYLOAD < widest(MAX_AXES + 1)
+
+
+def test_serial_frames_hold_the_fixed_wires_max_axes():
+    """MAX_AXES_BY_WIRE's fixed entry against the fixed codec's own bytes: the feedback of
+    2 axes (192 bytes) fits a 255-byte frame, of 3 (256) does not; the setpoint is
+    shorter."""
+    most = MAX_AXES_BY_WIRE["fixed"]
+    sizes = [max(len(codec_fixed.encode(m, 1, 1)) for m in message_pair(n))
+             for n in (most, most + 1)]
+    assert (most, sizes) == (2, [192, 256])
+    assert sizes[0] <= MAX_PAYLOAD < sizes[1]
 
 
 # -- the five-axis machine of seed 001 ----------------------------------------------------------

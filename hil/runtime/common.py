@@ -67,8 +67,8 @@ def start_positions(machine: MachineSet, start: float | dict[str, float]) -> tup
 
 def check_link(url: str, n_axes: int) -> str:
     """Refuse, before anything opens, a link that cannot carry ``n_axes`` axes per message
-    (``serial://``: at most :data:`io_adapters.serial_link.MAX_AXES`, its frames hold 255
-    bytes); returns the URL to open.  On ``can://`` that is one CiA 402 node per axis:
+    (``serial://``: at most :data:`io_adapters.serial_link.MAX_AXES_BY_WIRE` of its wire,
+    its frames hold 255 bytes); returns the URL to open.  On ``can://`` that is one CiA 402 node per axis:
     the URL with ``axes=N`` added (node-IDs ``node`` .. ``node + N - 1``), or refused
     when it names another number of axes."""
     if url.startswith("can://"):
@@ -81,12 +81,16 @@ def check_link(url: str, n_axes: int) -> str:
                                     f"machine has {n_axes} (one CiA 402 node per axis; "
                                     "leave axes out to take the machine's)")
     if url.startswith("serial://"):
-        from io_adapters.serial_link import MAX_AXES, MAX_PAYLOAD
+        from io_adapters.serial_link import MAX_AXES_BY_WIRE, MAX_PAYLOAD
 
-        if n_axes > MAX_AXES:
+        wires = [v for k, v in parse_qsl(urlsplit(url).query, keep_blank_values=True)
+                 if k == "wire"]
+        wire = wires[0] if wires else "msgpack"
+        most = MAX_AXES_BY_WIRE.get(wire)  # an unknown wire: the endpoint refuses it
+        if most is not None and n_axes > most:
             raise RuntimeInputError(f"--adapter {url}: serial frames hold {MAX_PAYLOAD} bytes, "
-                                    f"{MAX_AXES} axes per message at most; this machine has "
-                                    f"{n_axes} (use udp://)")
+                                    f"{most} axes per message at most on the {wire} wire; "
+                                    f"this machine has {n_axes} (use udp://)")
     return url
 
 

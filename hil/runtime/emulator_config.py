@@ -133,7 +133,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("config", help="machine file (TOML), or a manifest of several axes "
                    "(configs/machines/)")
     p.add_argument("--adapter", required=True, metavar="URL",
-                   help="udp://HOST:PORT (port 0: any free one, printed) or serial://PATH")
+                   help="udp://HOST:PORT[?wire=msgpack|fixed] (port 0: any free one, "
+                   "printed); serial://PATH or serial://fd/N [?baud=N&wire=msgpack|fixed]; "
+                   "can://INTERFACE/CHANNEL?node=N&rated_current_ma=MA (python-can, e.g. "
+                   "udp_multicast or socketcan; a CiA 402 node per axis); each scheme's "
+                   "options: the README")
     p.add_argument("--duration", type=float, metavar="S",
                    help="run S seconds (default: until SIGTERM/SIGINT); bounded by the disk "
                         "(the recording streams to it), checked before the start")
