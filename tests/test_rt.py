@@ -10,6 +10,8 @@ import math
 import os
 import shutil
 import signal
+import subprocess
+import sys
 import tracemalloc
 
 import numpy as np
@@ -21,6 +23,7 @@ from hil.rt.clock import MAX_SPIN_FRACTION, MonotonicClock, SimulatedClock
 from hil.rt.cyclictest import CyclictestError, parse_histogram, run_cyclictest
 from hil.rt.loop import SKIPPED, OverrunPolicy, Percentiles, RealTimeLoop, Stall
 from hil.rt.scheduling import SchedulingRequest, last_cpu, realtime_scheduling
+from hil.runtime.common import shared_cpu
 
 P = 100_000  # simulated period, ns
 
@@ -336,6 +339,47 @@ HISTOGRAM = """\
 # Histogram Overflow at cycle number:
 # Thread 0: 00092 00262
 """
+
+
+#: a process that pins itself to a CPU under SCHED_FIFO (argv: the CPU, the priority), a
+#: stand-in for another hil run or LinuxCNC's servo thread
+_FIFO_CHILD = """
+import os, sys
+os.sched_setaffinity(0, {int(sys.argv[1])})
+try:
+    os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(int(sys.argv[2])))
+except OSError as e:
+    print("refused", e, flush=True)
+else:
+    print("ready", flush=True)
+sys.stdin.read()
+"""
+
+
+def test_a_real_time_thread_of_another_process_on_the_loops_cpu_is_named():
+    """Another process pinned to the loop's CPU under SCHED_FIFO 10 is found there and on
+    no other CPU; the warning hil run and hil controller print names it and says that a
+    loop at 10 or below waits for it and one above preempts it; no warning without real
+    time or without a CPU (the loop is not pinned)."""
+    cpu = last_cpu()
+    child = subprocess.Popen([sys.executable, "-c", _FIFO_CHILD, str(cpu), "10"],
+                             stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    try:
+        line = child.stdout.readline().strip()
+        if line != "ready":
+            pytest.skip(f"SCHED_FIFO is refused here: {line}")
+        found = [n for n in scheduling.realtime_neighbours(cpu) if n.pid == child.pid]
+        assert [(n.tid, n.policy, n.priority) for n in found] == [(child.pid, "SCHED_FIFO", 10)]
+        assert not any(n.pid == child.pid for c in os.sched_getaffinity(0) - {cpu}
+                       for n in scheduling.realtime_neighbours(c))
+        _, warning = shared_cpu(True, cpu, 10)
+        assert f"CPU {cpu} is already held" in warning and f"pid {child.pid}" in warning
+        assert "SCHED_FIFO 10 waits whenever 1 of them" in warning and "--cpu N" in warning
+        assert "SCHED_FIFO 11 preempts them" in shared_cpu(True, cpu, 11)[1]
+        assert shared_cpu(False, cpu, 10) == ([], None) == shared_cpu(True, None, 10)
+    finally:
+        child.stdin.close()
+        child.wait(timeout=10)
 
 
 def test_cyclictest_histogram_is_reduced_to_nearest_rank_percentiles():

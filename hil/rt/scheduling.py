@@ -92,6 +92,65 @@ def last_cpu() -> int:
     return max(os.sched_getaffinity(0))
 
 
+@dataclass(frozen=True)
+class RealtimeNeighbour:
+    """A thread of another process pinned to a CPU under a real-time policy.
+
+    Attributes:
+        pid, tid: its process and thread ids.
+        command: the process's name (``/proc/PID/comm``).
+        policy: ``"SCHED_FIFO"`` or ``"SCHED_RR"``.
+        priority: its real-time priority, 1..99.
+    """
+    pid: int
+    tid: int
+    command: str
+    policy: str
+    priority: int
+
+    def describe(self) -> str:
+        return (f"{self.command} (pid {self.pid}, thread {self.tid}, {self.policy} "
+                f"{self.priority})")
+
+
+#: /proc/PID/stat: the kernel-thread flag (PF_KTHREAD), and the policies by number
+_PF_KTHREAD = 0x00200000
+_RT_POLICIES = {1: "SCHED_FIFO", 2: "SCHED_RR"}
+
+
+def realtime_neighbours(cpu: int) -> list[RealtimeNeighbour]:
+    """Threads of other processes pinned to ``cpu`` alone under SCHED_FIFO or SCHED_RR,
+    by pid and tid.  A loop put there waits whenever one of them at its priority or above
+    runs (the kernel's own per-CPU threads are left out: every CPU has them).  Empty off
+    Linux or where ``/proc`` cannot be read; a thread gone meanwhile is skipped."""
+    own = os.getpid()
+    found = []
+    try:
+        pids = [int(p) for p in os.listdir("/proc") if p.isdigit() and int(p) != own]
+    except OSError:
+        return []
+    for pid in pids:
+        try:
+            tids = [int(t) for t in os.listdir(f"/proc/{pid}/task")]
+        except OSError:
+            continue
+        for tid in tids:
+            try:
+                with open(f"/proc/{pid}/task/{tid}/stat") as f:
+                    stat = f.read()
+                # the fields after the command's closing parenthesis start at field 3
+                rest = stat[stat.rindex(")") + 2:].split()
+                flags, priority, policy = int(rest[6]), int(rest[37]), int(rest[38])
+                if (flags & _PF_KTHREAD or policy not in _RT_POLICIES
+                        or os.sched_getaffinity(tid) != {cpu}):
+                    continue
+                command = stat[stat.index("(") + 1:stat.rindex(")")]
+            except (OSError, ValueError, IndexError):
+                continue
+            found.append(RealtimeNeighbour(pid, tid, command, _RT_POLICIES[policy], priority))
+    return found
+
+
 @functools.cache
 def _libc() -> ctypes.CDLL:
     return ctypes.CDLL(None, use_errno=True)

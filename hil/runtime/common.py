@@ -19,7 +19,13 @@ from pathlib import Path
 from urllib.parse import parse_qsl, urlsplit
 
 from hil.controller.config import cnc_unit
-from hil.rt.scheduling import SchedulingReport, SchedulingRequest, realtime_scheduling
+from hil.rt.scheduling import (
+    RealtimeNeighbour,
+    SchedulingReport,
+    SchedulingRequest,
+    realtime_neighbours,
+    realtime_scheduling,
+)
 from plant.machines import MachineSet
 
 EXIT_OK = 0
@@ -123,6 +129,26 @@ def scheduling(realtime: bool, cpu: int | None, priority: int):
         return nullcontext(None)
     cpus = None if cpu is None else frozenset({cpu})
     return realtime_scheduling(SchedulingRequest(fifo_priority=priority, cpus=cpus))
+
+
+def shared_cpu(realtime: bool, cpu: int | None, priority: int
+               ) -> tuple[list[RealtimeNeighbour], str | None]:
+    """Other processes' real-time threads already pinned to the ``cpu`` a loop is about to
+    take at SCHED_FIFO ``priority`` (:func:`hil.rt.scheduling.realtime_neighbours`), and
+    a warning naming them (None: none, or the loop is not real-time or not pinned).  Two
+    loops on one CPU starve each other: the lower one waits while the other runs, and a
+    spinning one at the same priority holds the CPU until it sleeps."""
+    if not realtime or cpu is None:
+        return [], None
+    found = realtime_neighbours(cpu)
+    if not found:
+        return [], None
+    above = [n for n in found if n.priority >= priority]
+    return found, (f"CPU {cpu} is already held by real-time threads of other processes: "
+                   f"{'; '.join(n.describe() for n in found)}. This loop at SCHED_FIFO "
+                   f"{priority} " + (f"waits whenever {len(above)} of them at its priority "
+                                     f"or above run" if above else "preempts them") +
+                   "; choose a free CPU with --cpu N")
 
 
 def scheduling_dict(report: SchedulingReport | None) -> dict:

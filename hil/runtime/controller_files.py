@@ -126,6 +126,7 @@ def write_outputs(proc, stats, granted, alignment: Alignment) -> dict:
                                    "2+": int((lag >= 2).sum())}},
         "alignment": alignment.as_dict(),
         "loop": stats.as_dict(), "scheduling": scheduling_dict(granted),
+        "cpu_shared_with": proc.cpu_shared_with,
         "nc": nc_summary(proc.mctrl, proc.nc_ns[:n]),
         "adapter": {"name": rc.adapter_url, "stats": asdict(proc.ep.stats),
                     "errors": proc.adapter_errors},

@@ -87,6 +87,7 @@ from hil.runtime.common import (
     eprint,
     period_ns_of,
     scheduling,
+    shared_cpu,
     start_arg,
     start_positions,
     stop_on_signals,
@@ -217,6 +218,8 @@ class ControllerProcess:
         self.profile_start_s = 0.0
         self.silent = 0
         self.adapter_errors = 0
+        #: other processes' real-time threads pinned to the loop's CPU at its start
+        self.cpu_shared_with: list[str] = []
         self.result = "completed"
 
     def step(self, k: int) -> None:
@@ -327,6 +330,10 @@ class ControllerProcess:
         self.ep.drain = True
         self.delay_ticks = getattr(self.ep, "feedback_delay_ticks", 0)
         self.lag_is_age = getattr(self.ep, "lag_is_age", False)
+        neighbours, warning = shared_cpu(rc.realtime, rc.cpu, rc.priority)
+        self.cpu_shared_with = [n.describe() for n in neighbours]
+        if warning:
+            eprint(f"hil controller: {warning}")
         try:
             with scheduling(rc.realtime, rc.cpu, rc.priority) as granted:
                 alignment = align(self.ep, self.sp, self.fb, self.period_ns,

@@ -128,6 +128,7 @@ from hil.runtime.common import (
     eprint,
     scheduling,
     served_url,
+    shared_cpu,
     start_positions,
     stop_on_signals,
 )
@@ -230,6 +231,8 @@ class Emulator:
         self.endpoint: Endpoint | None = None
         self.sync_lock: SyncLock | None = None
         self.helper_threads: dict[str, str] = {}
+        #: other processes' real-time threads pinned to the loop's CPU at its start
+        self.cpu_shared_with: list[str] = []
         self.url = rc.adapter_url
         self.errors = AdapterErrors()
         self.setpoints_heard = 0
@@ -446,6 +449,10 @@ class Emulator:
         to the run folder).  The adapter, the run folder and the recording must be open."""
         rc = self.rc
         cpu = rc.cpu if rc.cpu is not None else last_cpu()
+        neighbours, warning = shared_cpu(rc.realtime, cpu, rc.priority)
+        self.cpu_shared_with = [n.describe() for n in neighbours]
+        if warning:
+            self._log(warning)
         self.writer.start(cpu)
         switch_interval = sys.getswitchinterval()
         sys.setswitchinterval(GIL_SWITCH_S)

@@ -82,6 +82,7 @@ def run_report(emu, stats: LoopStats, granted, safe: dict, status: int) -> dict:
                   "machine": a.config.machine.name} for a in m.axes],
         "runtime": {**runtime_dict(emu), **asdict(t),
                     "cpu_used": rc.cpu if rc.cpu is not None else last_cpu(),
+                    "cpu_shared_with": emu.cpu_shared_with,
                     "pwm_frequency_hz": emu.cfg.motor.pwm_frequency_hz},
         "loop": stats.as_dict(), "scheduling": scheduling_dict(granted),
         "adapter": {"name": emu.url, "stats": asdict(emu.endpoint.stats),
