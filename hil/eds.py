@@ -137,6 +137,12 @@ def _object(lines: list, key: tuple[int, int], dev: DeviceValues, dcf: bool) -> 
         lines.append(f"ParameterValue={_number(s.data_type, value)}")
 
 
+#: the objects every CANopen device has (CiA 301): device type, error register, identity
+MANDATORY = (0x1000, 0x1001, 0x1018)
+#: CiA 301's manufacturer-specific profile area, which CiA 306 lists as ManufacturerObjects
+MANUFACTURER_AREA = (0x2000, 0x5FFF)
+
+
 def _section_list(lines: list, name: str, indexes: list[int]) -> None:
     lines += ["", f"[{name}]", f"SupportedObjects={len(indexes)}"]
     lines += [f"{n}=0x{index:04X}" for n, index in enumerate(indexes, start=1)]
@@ -161,10 +167,13 @@ def write_eds(dev: DeviceValues, path: Path, dcf: bool = False) -> Path:
                   f"NodeName=node{dev.node}", f"Baudrate={dev.bitrate // 1000}", "NetNumber=0",
                   "NetworkName=", "CANopenManager=0", "LSS_SerialNumber=0"]
     indexes = sorted({i for i, _ in dev.values})
-    mandatory = [0x1000, 0x1001, 0x1018]
-    _section_list(lines, "MandatoryObjects", mandatory)
-    _section_list(lines, "OptionalObjects", [i for i in indexes if i not in mandatory])
-    _section_list(lines, "ManufacturerObjects", [])
+    # CiA 306: the manufacturer-specific profile area in its own list, every other object
+    # (communication and device profile areas) mandatory or optional
+    manufacturer = [i for i in indexes if MANUFACTURER_AREA[0] <= i <= MANUFACTURER_AREA[1]]
+    _section_list(lines, "MandatoryObjects", list(MANDATORY))
+    _section_list(lines, "OptionalObjects", [i for i in indexes if i not in MANDATORY
+                                             and i not in manufacturer])
+    _section_list(lines, "ManufacturerObjects", manufacturer)
     for index in indexes:
         lines += ["", f"[{index:04X}]"]
         if index in COMPOUNDS:

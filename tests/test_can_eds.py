@@ -12,6 +12,7 @@ CiA 301's "too high" / "too low" abort.
 
 import argparse
 import configparser
+import re
 
 import canopen
 import pytest
@@ -73,6 +74,31 @@ def test_canopens_reader_takes_every_object_as_the_catalog_declares_it(tmp_path)
     assert od[0x607D][1].min is None and od[0x60C2][2].min == -6
     assert od[0x60C2][2].default == -3
     assert od[0x1800][1].default == 0x180 + NODE  # $NODEID+0x180
+
+
+def test_every_object_is_listed_once_in_the_section_of_its_index_range(tmp_path):
+    """As an EDS checker reads CiA 306: MandatoryObjects holds 1000h, 1001h and 1018h;
+    ManufacturerObjects every object of 2000h-5FFFh (2F00h, the fault injection, is
+    there); OptionalObjects the rest of 1000h-1FFFh and 6000h-FFFFh; each list's
+    SupportedObjects is its count, numbered 1..N, and every object section of the file is
+    in exactly one list."""
+    imported(tmp_path)
+    eds = configparser.ConfigParser()
+    eds.optionxform = str
+    eds.read(tmp_path / f"node{NODE}.eds")
+    listed = {}
+    for name in ("MandatoryObjects", "OptionalObjects", "ManufacturerObjects"):
+        section = eds[name]
+        n = int(section["SupportedObjects"])
+        assert set(section) == {"SupportedObjects", *map(str, range(1, n + 1))}, name
+        listed[name] = [int(section[str(k)], 16) for k in range(1, n + 1)]
+    assert listed["MandatoryObjects"] == [0x1000, 0x1001, 0x1018]
+    assert 0x2F00 in listed["ManufacturerObjects"]
+    assert all(0x2000 <= i <= 0x5FFF for i in listed["ManufacturerObjects"])
+    assert all(i < 0x2000 or i >= 0x6000 for i in listed["OptionalObjects"])
+    objects = [int(name, 16) for name in eds.sections() if re.fullmatch(r"[0-9A-F]{4}", name)]
+    every = sum(listed.values(), [])
+    assert sorted(every) == sorted(objects) and len(set(every)) == len(every)
 
 
 def test_device_info_says_what_the_drive_is(tmp_path):
