@@ -16,7 +16,8 @@ Steps, each printed as it completes (exit 1 and the reason on the first that fai
    6040h (event-driven), RPDO2 = target position 607Ah (synchronous), TPDO1 = statusword
    6041h + following error 60F4h, TPDO2 = position actual 6064h (synchronous), the rest
    off.  Two nodes then need 825 bits of a 1 ms cycle at 1 Mbit/s (the default mapping
-   would need 1635: NMT start would be refused with EMCY 8110h).  Then NMT start.
+   would need 1635, more than the bus carries: the drives would start with EMCY FF20h
+   and lose frames, EMCY 8110h).  Then NMT start.
 4. **Homing** (6098h method 5: the home switch and the encoder's index mark above its
    edge; 6099h speeds, 609Ah acceleration), every node at once.
 5. **Profile position**: 607Ah, 6081h, 6083h, 6084h by SDO; the new set-point (controlword

@@ -10,11 +10,11 @@ them for one frame as sent (the CRC computed, the stuff bits counted);
 ``8n + 47 + floor((33 + 8n) / 4)`` bits (Davis, Burns, Bril, Lukkien 2007, eq. 4 with
 the intermission): 55 bits for an empty frame, 135 for eight bytes.
 
-:class:`BusPlan` is one communication cycle's worst case: the frames a configuration
-sends every cycle (:func:`plan_cycle`), their bits and the bus load at a bit rate.
+:class:`BusPlan` is one communication cycle of a configuration: the frames it sends,
+each at its rate (:func:`plan_cycle`; a frame sent every n cycles counts 1/n), their bits
+at the worst stuffing and the bus load at a bit rate.
 """
 
-import math
 from dataclasses import dataclass
 
 #: ISO 11898-1 CRC-15 generator x^15 + x^14 + x^10 + x^8 + x^7 + x^4 + x^3 + 1
@@ -70,7 +70,8 @@ def worst_frame_bits(n_bytes: int) -> int:
 
 @dataclass(frozen=True)
 class BusPlan:
-    """One communication cycle of a configuration at its worst.
+    """One communication cycle of a configuration: every frame at its rate, each at its
+    worst stuffing.
 
     Attributes:
         frames: (what, frames per cycle, data bytes) of every kind of frame counted.
@@ -113,6 +114,6 @@ def plan_cycle(frames: list[tuple[str, float, int]], cycle_s: float, bitrate: in
 
 
 def per_cycle(period_s: float, cycle_s: float) -> float:
-    """Frames per cycle of something sent every ``period_s`` (at least every cycle's
-    share; 0 for a period of 0: never)."""
-    return 0.0 if period_s <= 0.0 else math.ceil(cycle_s / period_s - 1e-9)
+    """Frames per cycle, on average, of something sent every ``period_s``: a heartbeat
+    every 100 ms is 0.01 frame of a 1 ms cycle, not one (0 for a period of 0: never)."""
+    return 0.0 if period_s <= 0.0 else cycle_s / period_s

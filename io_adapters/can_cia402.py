@@ -55,13 +55,20 @@ tick): NMT stop puts a node in STOPPED (no PDO, no SYNC, no SDO: LINK_STOPPED wh
 lasts); NMT reset node and reset communication are reported once (LINK_RESET), then the
 node boots again: boot-up message, PRE-OPERATIONAL, its communication objects (PDO
 mapping, 1016h, 1017h) back to their start values, and for a reset node the drive's
-objects and the factor group too.  NMT start is refused when the PDO configuration of the
-nodes then OPERATIONAL does not fit the communication cycle at the bus's bit rate
-(:meth:`bus_plan`): the node stays where it is and sends the EMCY 8110h with the load it
-would need (:data:`~io_adapters.can_node.EMCY_BUS_OVERLOAD`).  A heartbeat consumer
-(1016h:01, the ``heartbeat_consumer`` option or an SDO write) watches the master's
-heartbeat from the first one on: none within the consumer time is LINK_HEARTBEAT_LOST
-until the next one.  What the drive does then is its abort connection option code 6007h.
+objects and the factor group too.  NMT start always starts the node (CiA 301's commands
+are unconditional); when the PDO configuration of the nodes then OPERATIONAL does not fit
+the communication cycle at the bus's bit rate (:meth:`bus_plan`, every frame at its
+rate), the node says so in the EMCY FF20h with the load it needs
+(:data:`~io_adapters.can_node.EMCY_PLAN_OVERLOAD`).  The bus then carries what it can:
+our frames beyond a cycle's bits wait in the transmit queue for the next cycle, and with
+the queue full they are lost, counted, and reported by the EMCY 8110h "CAN overrun"
+(:mod:`io_adapters.can_tap`; its error reset once a cycle loses none).  A heartbeat
+consumer (1016h:01, the ``heartbeat_consumer`` option or an SDO write) watches the
+master's heartbeat from the first one on: none within the consumer time on the bus's
+time (the frames' arrival as the receive thread took them,
+:meth:`~io_adapters.can_tap.BusTap.bus_time_s`: a starved emulator does not take the
+master for silent) is LINK_HEARTBEAT_LOST until the next one.  What the drive does then
+is its abort connection option code 6007h.
 An error code that changes in the feedback (603Fh) is sent as an EMCY (80h + node-ID:
 code, 1001h, five zero bytes) at the next cycle start; its clearing as the EMCY "error
 reset" (code 0).
@@ -139,19 +146,24 @@ class CanStats(AdapterStats):
             sent or received, worst-case stuffing; cycles longer than :data:`LONG_CYCLE`
             periods left out).
         bus_load_max: those bits as a share of the communication cycle 1006h at the bit
-            rate (1.0: the whole cycle).
+            rate (1.0: the whole cycle, at most: :mod:`io_adapters.can_tap`).
         bus_load_mean: every cycle's bits over the time the cycles lasted, as a share of
             the bit rate.
-        start_refused: NMT starts refused because the PDO configuration did not fit.
-        bus_plan_load: the worst-case load of the configuration at the last NMT start
-            taken (:meth:`CanDriveEndpoint.bus_plan`), as a share of the cycle.
+        starts_over_plan: NMT starts whose PDO configuration did not fit the cycle (EMCY
+            FF20h).
+        bus_plan_load: the load of the configuration at the last NMT start
+            (:meth:`CanDriveEndpoint.bus_plan`), as a share of the cycle.
+        frames_delayed: our frames that waited for a later cycle.
+        frames_lost: our frames lost with the transmit queue full (EMCY 8110h).
     """
     sync_cycles: int = 0
     bus_bits_per_cycle_max: int = 0
     bus_load_max: float = 0.0
     bus_load_mean: float = 0.0
-    start_refused: int = 0
+    starts_over_plan: int = 0
     bus_plan_load: float = 0.0
+    frames_delayed: int = 0
+    frames_lost: int = 0
 
 
 class CanDriveEndpoint(Endpoint):
@@ -284,7 +296,7 @@ class CanDriveEndpoint(Endpoint):
         if node.reset_event:
             node.reset_event = False
             conditions |= LINK_RESET
-        if node.watch is not None and node.heartbeat_lost(time.monotonic()):
+        if node.watch is not None and node.heartbeat_lost(self.bus.bus_time_s()):
             conditions |= LINK_HEARTBEAT_LOST
         return conditions
 
@@ -375,10 +387,14 @@ class CanDriveEndpoint(Endpoint):
             for node in self._nodes:
                 if node.operational:
                     frames += node.sync_frames(by_sync, counter, now)
+        lost = self.bus.tx.lost
         for node in self._nodes:
             due = node.emcy_due()
             if due is not None:
                 node.send_emcy(*due)
+            overrun = node.overrun_emcy(lost.get(node.local.id, 0))
+            if overrun is not None:
+                node.send_emcy(*overrun)
         self._send_all(frames)
         self._staged = 0
         if self._ready:
@@ -396,10 +412,14 @@ class CanDriveEndpoint(Endpoint):
         load, stats = self.bus.load, self.stats
         cycle = min(n.dict.cycle_s for n in self._nodes)
         load.max_interval_s = LONG_CYCLE * cycle
+        load.capacity_bits = self.link.bitrate * cycle
+        load.period_s = cycle
         stats.sync_cycles = load.cycles
         stats.bus_bits_per_cycle_max = load.max_bits
         stats.bus_load_max = load.max_bits / (self.link.bitrate * cycle)
         stats.bus_load_mean = load.total_bits / max(1e-9, self.link.bitrate * load.total_s)
+        stats.frames_delayed = self.bus.tx.delayed
+        stats.frames_lost = sum(self.bus.tx.lost.values())
 
     def _on_sync(self, can_id: int, data: bytearray, timestamp: float) -> None:
         if any(n.nmt.state in ("PRE-OPERATIONAL", "OPERATIONAL") for n in self.nodes):

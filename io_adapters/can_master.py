@@ -43,9 +43,9 @@ setpoints sent with SYNC k-1 and SYNC k (stamped as their RPDOs and SYNC went ou
 :meth:`~io_adapters.messages.Feedback.round_trip_ns` is the time from sending SYNC k to
 taking the TPDO set it brought back.
 
-A node that refuses NMT start because its PDO configuration does not fit the bus (its
-EMCY 8110h) makes :meth:`recv_feedback` raise :class:`~io_adapters.base.AdapterError`
-with the load it needs.
+A node that starts with a PDO configuration the bus cannot carry (its EMCY FF20h) makes
+:meth:`recv_feedback` raise :class:`~io_adapters.base.AdapterError` with the load it
+needs.
 
 With ``heartbeat=ID:MS`` the master produces a heartbeat (700h + ID, state OPERATIONAL)
 at most every MS ms, sent after a SYNC, for a drive that consumes it (1016h).
@@ -74,7 +74,7 @@ from io_adapters.can_catalog import (
     spec,
 )
 from io_adapters.can_cia402 import CanDriveEndpoint
-from io_adapters.can_node import ECHO_SHIFT, EMCY_BUS_OVERLOAD, SW_ECHO, SW_ECHO_MASK
+from io_adapters.can_node import ECHO_SHIFT, EMCY_PLAN_OVERLOAD, SW_ECHO, SW_ECHO_MASK
 from io_adapters.can_tap import open_bus
 from io_adapters.can_url import CanLink
 from io_adapters.cia402_objects import amps, permille, rpdo_layouts, tpdo_layouts
@@ -291,15 +291,16 @@ class CanMasterEndpoint(Endpoint):
         return True
 
     def _check_emcy(self, node: int, data: bytearray) -> None:
-        """A node that refused NMT start for the bus load (EMCY 8110h with the load in per
-        mille and the cycle in µs) will never answer: AdapterError saying why."""
-        if len(data) == 8 and int.from_bytes(data[:2], "little") == EMCY_BUS_OVERLOAD:
+        """A node started with a PDO configuration the bus cannot carry (EMCY FF20h with
+        the load in per mille and the cycle in µs): its answers will come late or not at
+        all, so this master stops with an AdapterError saying why."""
+        if len(data) == 8 and int.from_bytes(data[:2], "little") == EMCY_PLAN_OVERLOAD:
             load = int.from_bytes(data[3:5], "little") / 10
             cycle_us = int.from_bytes(data[5:8], "little")
-            raise AdapterError(f"{self!r}: node {node} refused NMT start: its PDO "
-                               f"configuration needs {load:g} % of the {cycle_us} µs "
-                               f"communication cycle (1006h) at {self.link.bitrate} bit/s; "
-                               "map fewer PDOs or lengthen 1006h")
+            raise AdapterError(f"{self!r}: node {node}'s PDO configuration needs {load:g} % "
+                               f"of the {cycle_us} µs communication cycle (1006h) at "
+                               f"{self.link.bitrate} bit/s: its frames would wait and be "
+                               "lost; map fewer PDOs or lengthen 1006h")
 
     def _fill(self, into: Feedback, values: list[tuple]) -> None:
         (statusword, _mode, error_code), (position, velocity), (current, _, scale) = values

@@ -19,7 +19,6 @@ process data is not heard).
 """
 
 import math
-import time
 
 import can
 import canopen
@@ -71,9 +70,14 @@ ECHO_SHIFT = 14
 SW_ECHO_MASK = SW_ECHO | 3 << ECHO_SHIFT
 STATUSWORD = (0x6041, 0)
 ERROR_CODE = (0x603F, 0)
-#: the EMCY of a start refused for the bus load (CiA 301: CAN overrun, objects lost);
-#: bytes 3-4 the load needed in per mille, 5-7 the communication cycle in µs
-EMCY_BUS_OVERLOAD = 0x8110
+#: the EMCY of an NMT start whose PDO configuration needs more of the communication cycle
+#: than the bus carries (a device-specific code: CiA 301 has one for frames lost, not for
+#: a plan that will lose them; the node starts all the same, as NMT commands are
+#: unconditional); bytes 3-4 the load needed in per mille, 5-7 the cycle in µs
+EMCY_PLAN_OVERLOAD = 0xFF20
+#: the EMCY of frames of ours lost with the transmit queue full (CiA 301: CAN overrun,
+#: objects lost); bytes 3-4 the frames lost so far (saturating)
+EMCY_CAN_OVERRUN = 0x8110
 #: the EMCY of an RPDO of the wrong length (CiA 301: PDO not processed due to length
 #: error); bytes 3-5 the RPDO's number, the DLC received, the DLC of its mapping
 EMCY_PDO_LENGTH = 0x8210
@@ -110,7 +114,9 @@ class DriveNode:
         self.mode = NO_MODE
         self.refused = False
         self.emcy_code = 0
-        self.start_refused = False  # the last NMT start was refused: an EMCY is standing
+        self.plan_overloaded = False  # the last NMT start's plan did not fit: EMCY standing
+        self.overrun = False  # frames were lost: EMCY 8110h standing
+        self.lost_seen = 0  # the frames lost by the time the last cycle started
         self.reset_event = False
         self.watch: tuple[int, float, float] | None = None
         self.length_errors: set[int] = set()
@@ -375,22 +381,22 @@ class DriveNode:
 
     # -- network management ------------------------------------------------------------------
     def on_nmt(self, command: int, data: bytearray, timestamp: float) -> None:
-        """An NMT command for this node: a start the bus cannot carry is refused (the node
-        stays where it is and says why in an EMCY); a reset boots the node again; the
-        rest is canopen's."""
+        """An NMT command for this node (CiA 301: unconditional): a start whose PDO plan
+        the bus cannot carry starts all the same and says so in EMCY FF20h (its frames
+        will wait, and be lost: 8110h then); a reset boots the node again; the rest is
+        canopen's."""
         if command == NMT_START and self.local.nmt.state != "OPERATIONAL":
             plan = self.owner.bus_plan(starting=self)
+            self.owner.stats.bus_plan_load = plan.load
             if not plan.fits:
-                self.owner.stats.start_refused += 1
+                self.owner.stats.starts_over_plan += 1
                 load = min(round(plan.load * 1000), 0xFFFF)
                 cycle = round(plan.cycle_s * 1e6)
-                self.send_emcy(EMCY_BUS_OVERLOAD, error_register(EMCY_BUS_OVERLOAD),
+                self.send_emcy(EMCY_PLAN_OVERLOAD, error_register(EMCY_PLAN_OVERLOAD),
                                load.to_bytes(2, "little") + cycle.to_bytes(3, "little"))
-                self.start_refused = True
-                return
-            self.owner.stats.bus_plan_load = plan.load
-            if self.start_refused:  # the EMCY's error is gone: error reset
-                self.start_refused = False
+                self.plan_overloaded = True
+            elif self.plan_overloaded:  # the EMCY's error is gone: error reset
+                self.plan_overloaded = False
                 self.send_emcy(0, self.register(self.emcy_code))
             self.tpdo.restart()
         self.local.nmt.on_command(0, data, timestamp)
@@ -413,13 +419,29 @@ class DriveNode:
 
     def on_heartbeat(self, can_id: int, data: bytearray, timestamp: float) -> None:
         watched = self.watch
-        if watched is not None:
-            self.watch = (watched[0], watched[1], time.monotonic())
+        if watched is not None:  # when the bus delivered it (python-can's clock)
+            self.watch = (watched[0], watched[1], timestamp)
 
-    def heartbeat_lost(self, now_s: float) -> bool:
-        """The consumed heartbeat is overdue (monitoring starts with the first one)."""
+    def heartbeat_lost(self, bus_time_s: float) -> bool:
+        """The consumed heartbeat is overdue at the bus's time ``bus_time_s``
+        (:meth:`~io_adapters.can_tap.BusTap.bus_time_s`: a receive thread held up has not
+        seen the time pass); monitoring starts with the first one."""
         watched = self.watch
-        return watched is not None and now_s - watched[2] > watched[1]
+        return watched is not None and bus_time_s - watched[2] > watched[1]
+
+    def overrun_emcy(self, lost: int) -> tuple[int, int, bytes] | None:
+        """(code, 1001h, data) of the EMCY to send at a cycle's start for ``lost``, this
+        node's frames lost so far: 8110h when frames were lost since the last cycle, the
+        error reset once a cycle lost none (lock held)."""
+        new, self.lost_seen = lost > self.lost_seen, lost
+        if new == self.overrun or self.local.nmt.state not in ("PRE-OPERATIONAL",
+                                                              "OPERATIONAL"):
+            return None
+        self.overrun = new
+        if new:
+            return (EMCY_CAN_OVERRUN, error_register(EMCY_CAN_OVERRUN),
+                    min(lost, 0xFFFF).to_bytes(2, "little"))
+        return 0, self.register(self.emcy_code), b""
 
     def boot(self, application: bool) -> None:
         """NMT reset: the master's process data cleared (controlword 0: disable voltage,

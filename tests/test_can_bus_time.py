@@ -81,6 +81,8 @@ def test_a_plan_says_its_load():
     assert "85% of the bus" in plan.describe()
 
 
-def test_per_cycle_rounds_up():
-    assert per_cycle(1e-3, 1e-3) == 1 and per_cycle(0.4e-3, 1e-3) == 3
-    assert per_cycle(0.0, 1e-3) == 0.0 and per_cycle(5e-3, 1e-3) == 1
+def test_per_cycle_is_the_frames_rate():
+    """A frame counts at its rate: every cycle 1, every 0.4 ms 2.5 per 1 ms cycle, a
+    heartbeat every 100 ms 0.01 (not a whole frame in every cycle), never 0."""
+    assert per_cycle(1e-3, 1e-3) == 1 and per_cycle(0.4e-3, 1e-3) == pytest.approx(2.5)
+    assert per_cycle(0.0, 1e-3) == 0.0 and per_cycle(100e-3, 1e-3) == pytest.approx(0.01)

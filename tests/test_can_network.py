@@ -63,12 +63,37 @@ def emcy_frame(bus: can.BusABC) -> tuple[int, int, int, int]:
             int.from_bytes(data[5:8], "little"))
 
 
-def test_a_start_the_bus_cannot_carry_is_refused_with_the_load():
-    """1006h = 250 µs with the default mapping: SYNC (1 byte) and eight PDOs of 3, 8, 4,
+def emcys(bus: can.BusABC, quiet_s: float = 0.3) -> list[tuple[int, int, int, int]]:
+    """Every EMCY of the node until none came for ``quiet_s``."""
+    out = []
+    while (msg := bus.recv(quiet_s)) is not None:
+        if msg.arbitration_id == 0x080 + NODE:
+            data = msg.data
+            out.append((int.from_bytes(data[:2], "little"), data[2],
+                        int.from_bytes(data[3:5], "little"), int.from_bytes(data[5:8], "little")))
+    return out
+
+
+def cycles(bus: can.BusABC, ep, n: int) -> None:
+    """``n`` SYNCs, the drive's loop answering each (its feedback staged: the next SYNC
+    sends its TPDOs)."""
+    sp, fb = Setpoint(), Feedback()
+    for _ in range(n):
+        bus.send(frame(0x080, ""))
+        assert ep.recv_setpoint(sp, 5.0) or ep.taken
+        ep.send_feedback(fb)
+
+
+def test_a_start_the_bus_cannot_carry_starts_says_so_and_loses_frames_as_a_bus_would():
+    """1006h = 250 µs with the default mapping: SYNC (1 byte) and seven PDOs of 3, 8, 4,
     4, 5, 8 and 8 bytes need 850 bits per cycle at the worst, 340 % of 250 µs at
-    1 Mbit/s.  NMT start is refused (the node stays PRE-OPERATIONAL) with EMCY 8110h
-    carrying 3400 per mille and 250 µs, and our master says so; at 1 ms it starts and the
-    EMCY's error is reset."""
+    1 Mbit/s.  NMT start starts the node all the same (CiA 301: NMT commands are
+    unconditional) with EMCY FF20h carrying 3400 per mille and 250 µs, and our master
+    stops saying why.  At that SYNC the node's three TPDOs (375 bits) wait for room, the
+    oldest going out after the next SYNC, and with the transmit queue full (10) they are
+    lost: EMCY 8110h "CAN overrun", frames delayed and lost counted, and no cycle holds
+    more than the 250 bits the bus carries.  Started again at 1 ms, the plan fits (85 %):
+    both errors are reset."""
     needed = sum(worst_frame_bits(n) for n in (1, 3, 8, 4, 4, 5, 8, 8))
     assert needed == 850
     channel = virtual_channel()
@@ -77,18 +102,42 @@ def test_a_start_the_bus_cannot_carry_is_refused_with_the_load():
             open_endpoint(url + DEVICE, "device") as ep:
         recv_id(bus, HEARTBEAT)
         sdo_write_u32(bus, NODE, 0x1006, 0, 250)
-        bus.send(frame(0x000, f"01{NODE:02X}"))
-        assert emcy_frame(bus) == (0x8110, 0x11, round(needed / 250 * 1000), 250)
-        assert ep.nmt_state == "PRE-OPERATIONAL" and ep.stats.start_refused == 1
         with open_endpoint(url, "controller") as master, \
-                pytest.raises(AdapterError, match="node 5 refused NMT start.*340 %"):
+                pytest.raises(AdapterError, match="node 5's PDO configuration needs 340 % "
+                                                  "of the 250 µs"):
             master.recv_feedback(Feedback(), 5.0)  # (it sent NMT start when opened)
+        wait_for(lambda: ep.nmt_state == "OPERATIONAL", "OPERATIONAL")
+        assert emcys(bus)[0] == (0xFF20, 0x81, round(needed / 250 * 1000), 250)
+        assert ep.stats.starts_over_plan == 1
+        cycles(bus, ep, 30)
+        assert (0x8110, 0x11) in [e[:2] for e in emcys(bus)]
+        st = ep.stats
+        assert st.frames_delayed > 0 and st.frames_lost > 0, st
+        assert 0 < st.bus_load_max <= 1.0 and st.bus_bits_per_cycle_max <= 250, st
+        bus.send(frame(0x000, f"80{NODE:02X}"))
+        wait_for(lambda: ep.nmt_state == "PRE-OPERATIONAL", "PRE-OPERATIONAL")
         sdo_write_u32(bus, NODE, 0x1006, 0, 1000)
         bus.send(frame(0x000, f"01{NODE:02X}"))
         wait_for(lambda: ep.nmt_state == "OPERATIONAL", "OPERATIONAL")
-        assert emcy_frame(bus)[:2] == (0, 0)  # error reset
+        cycles(bus, ep, 20)
+        assert [e[:2] for e in emcys(bus)].count((0, 0)) == 2  # plan and overrun reset
         assert ep.stats.bus_plan_load == pytest.approx(0.85)
         assert ep.bus_plan().describe().startswith("85% of the bus: 850 bits per 1 ms")
+
+
+def test_a_heartbeat_counts_at_its_rate_in_the_plan():
+    """1017h = 100 ms adds one 1-byte frame (65 bits at the worst) every 100 cycles of
+    1 ms: 0.65 bits per cycle, not a whole frame in every one."""
+    channel = virtual_channel()
+    with can.Bus(interface="virtual", channel=channel) as bus, \
+            open_endpoint(f"can://virtual/{channel}?{QUERY}{DEVICE}", "device") as ep:
+        recv_id(bus, HEARTBEAT)
+        bus.send(frame(0x000, f"01{NODE:02X}"))
+        wait_for(lambda: ep.nmt_state == "OPERATIONAL", "OPERATIONAL")
+        before = ep.bus_plan().bits
+        bus.send(frame(0x600 + NODE, "2B1710006400" + "0000"))  # 1017h = 100 ms (U16)
+        assert recv_id(bus, 0x580 + NODE).data[0] == 0x60
+        assert ep.bus_plan().bits - before == pytest.approx(worst_frame_bits(1) / 100)
 
 
 @pytest.mark.parametrize("suffix", [".asc", ".blf"])
