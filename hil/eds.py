@@ -7,7 +7,9 @@ its device configuration file (DCF), for a master to import.
         --adapter 'can://udp_multicast/239.74.163.2?node=5&rated_current_ma=28000'
 
 writes ``eds/node5.eds`` and ``eds/node5.dcf`` (one pair per node of a machine of several
-axes).  The EDS describes the device: ``[DeviceInfo]`` (vendor, product code, revision,
+axes), and for CAN tools ``eds/nodes.dbc`` and ``eds/nodes.viewer``: every node's PDOs as
+they power up, as a DBC and as python-can's ``can.viewer`` decode file
+(:mod:`hil.dbc`).  The EDS describes the device: ``[DeviceInfo]`` (vendor, product code, revision,
 every CiA 301 bit rate, dynamic PDO mapping: ``Granularity=8``, four RPDOs and four
 TPDOs) and every object of :mod:`io_adapters.cia402_objects` with its data type, access
 type, PDO mapping, limits (``LowLimit``/``HighLimit``) and ``DefaultValue``: the value the
@@ -26,6 +28,7 @@ import datetime
 from dataclasses import dataclass
 from pathlib import Path
 
+from hil.dbc import pdo_frames, write_dbc, write_viewer
 from hil.drive import DriveSet, EmulatedDrive
 from hil.drive.objects import DriveObjects
 from hil.runtime.common import (
@@ -211,4 +214,7 @@ def run_from_args(args: argparse.Namespace) -> int:
     for dev in nodes:
         for dcf, suffix in ((False, "eds"), (True, "dcf")):
             print(write_eds(dev, out / f"node{dev.node}.{suffix}", dcf))
+    frames = [f for dev in nodes for f in pdo_frames(dev.node, dev.values)]
+    print(write_dbc(frames, out / "nodes.dbc"))
+    print(write_viewer(frames, out / "nodes.viewer"))
     return EXIT_OK

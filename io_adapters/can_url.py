@@ -50,7 +50,7 @@ from io_adapters.can_bus_time import BIT_RATES
 
 INTERFACES = ("socketcan", "udp_multicast", "virtual")
 #: python-can writers a log may use, by suffix
-LOG_SUFFIXES = (".asc", ".blf", ".trc", ".log")
+LOG_SUFFIXES = (".asc", ".blf", ".trc", ".log", ".mf4")
 DEFAULT_BITRATE = 1_000_000
 
 

@@ -173,7 +173,12 @@ def test_hil_eds_writes_one_pair_per_node(tmp_path, capsys):
                               "--out", str(tmp_path)])
     assert run_from_args(args) == 0
     names = sorted(p.name for p in tmp_path.iterdir())
-    assert names == ["node5.dcf", "node5.eds", "node6.dcf", "node6.eds"]
+    assert names == ["node5.dcf", "node5.eds", "node6.dcf", "node6.eds", "nodes.dbc",
+                     "nodes.viewer"]
+    dbc = (tmp_path / "nodes.dbc").read_text()
+    assert "BO_ 389 TPDO1_node5: 5" in dbc and "BO_ 646 TPDO2_node6: 8" in dbc  # 185h, 286h
+    assert "SG_ Position_actual_value_6064 : 0|32@1- (1,0)" in dbc
+    assert "286:<ll" in (tmp_path / "nodes.viewer").read_text().splitlines()
     assert canopen.import_od(str(tmp_path / "node6.dcf")).node_id == 6
     too_high = "can://udp_multicast/g?node=127&rated_current_ma=1"
     bad = parser.parse_args([str(XY), "--adapter", too_high, "--out", str(tmp_path)])

@@ -9,6 +9,8 @@ the EMCY layout); the worst-case frame lengths summed by hand (:func:`worst_fram
 of Davis et al., test_can_bus_time.py checks it); python-can's own log readers.
 """
 
+from pathlib import Path
+
 import can
 import pytest
 
@@ -140,7 +142,7 @@ def test_a_heartbeat_counts_at_its_rate_in_the_plan():
         assert ep.bus_plan().bits - before == pytest.approx(worst_frame_bits(1) / 100)
 
 
-@pytest.mark.parametrize("suffix", [".asc", ".blf"])
+@pytest.mark.parametrize("suffix", [".asc", ".blf", ".mf4"])
 def test_the_bus_traffic_is_logged_for_can_tools(tmp_path, suffix):
     """``log=FILE`` on the device side: python-can's reader for the suffix gets back the
     boot-up, every SYNC, the master's RPDOs and the drive's TPDOs, directions marked.  (A
@@ -165,6 +167,54 @@ def test_the_bus_traffic_is_logged_for_can_tools(tmp_path, suffix):
     assert all(m.is_rx for m in frames if m.arbitration_id in (0x080, 0x205))
     assert all(not m.is_rx for m in frames if m.arbitration_id == 0x185)
     assert [m.timestamp for m in frames] == sorted(m.timestamp for m in frames)
+
+
+def _logged_run(log: Path, url: str, k_max: int = 5) -> None:
+    """Our master driving the node in CST at 100 per mille of the rated torque (2.8 of
+    28 A) for ``k_max`` cycles; the drive answers statusword 0231h and position k."""
+    with open_endpoint(f"{url}{DEVICE}&log={log}", "device") as device, \
+            open_endpoint(url, "controller") as master:
+        wait_for(lambda: device.nmt_state == "OPERATIONAL", "OPERATIONAL")
+        sp, got = Setpoint(mode=MODE_CST, controlword=6, iq_ref_a=2.8), Setpoint()
+        for k in range(k_max):
+            master.send_setpoint(sp)
+            assert device.recv_setpoint(got, 5.0)
+            device.send_feedback(Feedback(statusword=0x0231, encoder_counts=float(k)))
+        assert master.recv_feedback(Feedback(), 5.0)
+
+
+def test_a_bus_log_decodes_into_named_signals_with_hil_eds_files(tmp_path):
+    """hil eds's DBC decodes an MDF4 bus log (``log=bus.mf4``, python-can's writer) in
+    asammdf's bus-logging extraction, and its can.viewer file decodes an ASC log's frames
+    with can.viewer's own parser: the statusword, the positions answered, the target
+    torque in per mille, each under its object's name."""
+    from asammdf import MDF
+    from can.viewer import CanViewer, _parse_viewer_args
+
+    from hil.dbc import pdo_frames, write_dbc, write_viewer
+    from hil.eds import device_values
+    from io_adapters.can_node import SW_ECHO_MASK
+    from tests.conftest import CONFIGS
+    channel = virtual_channel()
+    url = f"can://virtual/{channel}?{QUERY}"
+    frames = pdo_frames(NODE, device_values(CONFIGS / "arrow500_x.toml", url)[0].values)
+    dbc, viewer = write_dbc(frames, tmp_path / "nodes.dbc"), write_viewer(frames,
+                                                                           tmp_path / "v.txt")
+    _logged_run(tmp_path / "bus.mf4", url)
+    with MDF(tmp_path / "bus.mf4") as mdf:
+        decoded = mdf.extract_bus_logging({"CAN": [(str(dbc), 0)]})
+        signals = {ch.name: ch for ch in decoded.iter_channels()}
+    # (the statusword's bits 8, 14 and 15 echo the SYNC counter: io_adapters.can_cia402)
+    assert [int(s) & ~SW_ECHO_MASK for s in signals["Statusword_6041"].samples] == [0x0231] * 4
+    assert list(signals["Position_actual_value_6064"].samples) == [0, 1, 2, 3]
+    assert signals["Position_actual_value_6064"].unit == "inc"
+    assert set(signals["Target_torque_6071"].samples) == {100}
+    assert signals["Target_torque_6071"].unit == "permille"
+    _logged_run(tmp_path / "bus.asc", f"can://virtual/{virtual_channel()}?{QUERY}")
+    _, structs = _parse_viewer_args(["-d", str(viewer)])
+    tpdo2 = [CanViewer.unpack_data(m.arbitration_id, structs, m.data)
+             for m in can.LogReader(tmp_path / "bus.asc") if m.arbitration_id == 0x285]
+    assert [values[0] for values in tpdo2] == [0, 1, 2, 3]  # 6064h, then 606Ch
 
 
 def test_a_log_name_without_a_can_suffix_is_refused():
