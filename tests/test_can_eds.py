@@ -97,7 +97,7 @@ def test_every_object_is_listed_once_in_the_section_of_its_index_range(tmp_path)
     assert all(0x2000 <= i <= 0x5FFF for i in listed["ManufacturerObjects"])
     assert all(i < 0x2000 or i >= 0x6000 for i in listed["OptionalObjects"])
     objects = [int(name, 16) for name in eds.sections() if re.fullmatch(r"[0-9A-F]{4}", name)]
-    every = sum(listed.values(), [])
+    every = [i for indices in listed.values() for i in indices]
     assert sorted(every) == sorted(objects) and len(set(every)) == len(every)
 
 
