@@ -13,9 +13,10 @@ Steps, each printed as it completes (exit 1 and the reason on the first that fai
    (``BaseNode402(node, "eds/nodeN.eds")``); the identity 1018h read back against it.
 3. **PDO mapping** by SDO, in PRE-OPERATIONAL, the CiA 301 way (canopen's
    ``PdoMap.save``: make not valid, count 0, entries, count, valid): RPDO1 = controlword
-   6040h (event-driven), RPDO2 = target position 607Ah (synchronous), TPDO1 = statusword
-   6041h + following error 60F4h, TPDO2 = position actual 6064h (synchronous), the rest
-   off.  Two nodes then need 825 bits of a 1 ms cycle at 1 Mbit/s (the default mapping
+   6040h (event-driven), RPDO2 = target position 607Ah + velocity offset 60B1h (the speed
+   feed-forward; synchronous), TPDO1 = statusword 6041h + following error 60F4h, TPDO2 =
+   position actual 6064h (synchronous), the rest off (a valid PDO takes its frame in every
+   cycle).  Two nodes then need 905 bits of a 1 ms cycle at 1 Mbit/s (the default mapping
    would need 1635, more than the bus carries: the drives would start with EMCY FF20h
    and lose frames, EMCY 8110h).  Then NMT start.
 4. **Homing** (6098h method 5: the home switch and the encoder's index mark above its
@@ -23,7 +24,7 @@ Steps, each printed as it completes (exit 1 and the reason on the first that fai
 5. **Profile position**: 607Ah, 6081h, 6083h, 6084h by SDO; the new set-point (controlword
    bit 4) acknowledged (statusword bit 12), then target reached (bit 10).
 6. **CSP at 1 kHz SYNC on every node**: a smooth move (cosine ramp of ``--csp-mm`` over
-   ``--csp-s``) sent as 607Ah targets, one per SYNC: each cycle the RPDO2 of every node,
+   ``--csp-s``) sent as 607Ah targets with their speed as 60B1h, one per SYNC: each cycle the RPDO2 of every node,
    then SYNC with its counter, from this loop; 60F4h comes back by TPDO1 with the SYNC it
    answers (the drive's echo of the counter), 6064h by TPDO2, into ``OUT/csp.csv`` (one
    row per node and SYNC answered, with the time the SYNC went out).
@@ -128,7 +129,8 @@ class Master:
         for node in self.nodes.values():
             node.rpdo.read()
             node.tpdo.read()
-            for pdos, layout in ((node.rpdo, {1: ((0x6040,), 255), 2: ((0x607A,), 1)}),
+            for pdos, layout in ((node.rpdo, {1: ((0x6040,), 255),
+                                              2: ((0x607A, 0x60B1), 1)}),
                                  (node.tpdo, {1: ((0x6041, 0x60F4), 1), 2: ((0x6064,), 1)})):
                 for k in (1, 2, 3, 4):
                     pdo = pdos[k]
@@ -216,7 +218,7 @@ class Master:
         starts = {}
         for n, node in self.nodes.items():
             starts[n] = node.sdo[0x6064].raw
-            node.rpdo[2][0x607A].raw = starts[n]
+            node.rpdo[2][0x607A].raw, node.rpdo[2][0x60B1].raw = starts[n], 0
             node.rpdo[2].transmit()
         self.enable("CYCLIC SYNCHRONOUS POSITION")
         rows, synced = [], [0]
@@ -236,15 +238,17 @@ class Master:
         distance = a.csp_mm * a.counts_per_mm
         cycles = round(a.csp_s / SYNC_S)
         settle = round(0.5 / SYNC_S)
-        targets, sent = {}, {}
+        targets, feedforward, sent = {}, {}, {}
         self.network.sync.stop()
         start = deadline = time.monotonic()
         for k in range(1, cycles + settle + 1):
             share = 0.5 * (1 - math.cos(math.pi * min(k, cycles) / cycles))
             for i, (n, node) in enumerate(self.nodes.items()):
                 target = round(starts[n] + (-1) ** i * distance * share)
-                targets[(k, n)] = target
-                node.rpdo[2][0x607A].raw = target
+                # the speed over the cycle the drive interpolates this target in (60C2h)
+                speed = round((target - targets.get((k - 1, n), starts[n])) / SYNC_S)
+                targets[(k, n)], feedforward[(k, n)] = target, speed
+                node.rpdo[2][0x607A].raw, node.rpdo[2][0x60B1].raw = target, speed
                 node.rpdo[2].transmit()
             self.network.sync.transmit(k % SYNC_COUNTER_MAX + 1)
             now = time.monotonic()
@@ -258,10 +262,12 @@ class Master:
         out = Path(a.out)
         with open(out / "csp.csv", "w", newline="") as f:
             w = csv.writer(f)
-            w.writerow(["sync", "sent_s", "node", "target", "position", "following_error"])
+            w.writerow(["sync", "sent_s", "node", "target", "velocity_offset", "position",
+                        "following_error"])
             for k, n, position, fe in rows:
                 if (k, n) in targets:
-                    w.writerow([k, f"{sent[k]:.6f}", n, targets[(k, n)], position, fe])
+                    w.writerow([k, f"{sent[k]:.6f}", n, targets[(k, n)],
+                                feedforward[(k, n)], position, fe])
         worst = {n: max(abs(fe) for _, m, _, fe in rows if m == n) for n in self.nodes}
         self.step("csp", {"syncs": cycles + settle, "rows": len(rows),
                           "max_following_error": worst})

@@ -24,13 +24,18 @@ References:
 * CSP: :func:`lockstep_following_error` runs each axis's drive and plant in this process
   on the setpoints the master sent, one per SYNC, the drive's interpolation over 60C2h =
   1 ms exactly as the node sets it, ideal timing, and samples 60F4h where the drive's
-  TPDO2 does (the tick before each SYNC).  No feed-forward from the master: the
-  following error is about v / K_v (0.9 mm at the move's 31 mm/s).  Tolerance
-  :data:`FE_TOLERANCE` of the lock-step's maximum |60F4h| and RMS, per axis: a SYNC that
-  comes late shifts the next setpoint by a tick (0.5 ms, 16 µm at 31 mm/s, under 2 %),
-  and a TPDO read after the next SYNC went out is labelled a SYNC late (the following
-  error moves by at most a = 0.05 m/s² x 1 ms / K_v per SYNC: negligible); the plant's
-  noise differs.
+  TPDO2 does (the tick before each SYNC), with the master's speed feed-forward (60B1h,
+  each target's step over its cycle) as it sent it.  Tolerance :data:`FE_TOLERANCE_UM`
+  per axis on the SYNCs clear of timing faults: a SYNC that comes late shifts the next
+  setpoint by a tick (0.5 ms, 16 µm at 31 mm/s), which those leave out, and a TPDO read
+  after the next SYNC went out is labelled a SYNC late (the following error moves by at
+  most a = 0.05 m/s² x 1 ms / K_v per SYNC: negligible); the plant's noise differs.
+  Without the feed-forward the error was v / K_v (0.9 mm at 31 mm/s); with it, what is
+  left is the speed loop's lag while the axis accelerates (50 µm at the most), and the
+  first :data:`SETTLE_S` of the program is left out too: the reference's drive starts
+  from rest 25 ms before, the real one stood for seconds after its profile-position move,
+  so its friction and integrator states differ and the first acceleration differs by up
+  to 6 µm (after it the two agree within 0.3 µm here).
 """
 
 import csv
@@ -63,7 +68,7 @@ REV = 4194304          # increments per motor revolution = 10 mm
 HOME_COUNTS = REV      # the encoder at the home position, the index mark at 10 mm
 SYNC_S = 0.001
 TICKS_PER_SYNC = 2     # drive cycles (2 kHz PWM) per SYNC
-FE_TOLERANCE = 0.02    # of the lock-step maximum |60F4h| (see the docstring)
+FE_TOLERANCE_UM = 3.0  # |60F4h - lock-step| on the SYNCs clear of timing faults
 #: a SYNC sent this far off its period is a timing fault of the master's loop: up to
 #: SYNC_PHASE + SYNC_WAIT of a drive cycle late (0.33 ms at 2 kHz) the drive's tick still
 #: takes it (hil.runtime.sync), later it takes it a cycle late ...
@@ -80,11 +85,13 @@ MASTER_S = 240.0       # bound on the master's whole run
 EMULATOR_OPTIONS = ("--start", START_MM, "--overrun", "skip", "--watchdog-cycles", 1000)
 
 
-def lockstep_following_error(config, start_counts: float, targets: list[float]) -> np.ndarray:
+def lockstep_following_error(config, start_counts: float, targets: list[float],
+                             speeds: list[float]) -> np.ndarray:
     """60F4h (increments) of one axis in the lock-step simulation: the drive enabled in
     CSP where it stands (the table where the real one started the program), then
-    ``targets[k]`` from the k-th SYNC on, the SYNCs ``SYNC_S`` apart; entry k is what the
-    TPDO at SYNC k carries (the tick before it)."""
+    ``targets[k]`` with the velocity offset ``speeds[k]`` (increments/s) from the k-th
+    SYNC on, the SYNCs ``SYNC_S`` apart; entry k is what the TPDO at SYNC k carries (the
+    tick before it)."""
     table_m = (start_counts + HOME_COUNTS) / REV * 0.01  # 6064h reads 0 at the home mark
     plant = Plant(config, table_pos=table_m)
     drive = EmulatedDrive(plant)
@@ -101,9 +108,10 @@ def lockstep_following_error(config, start_counts: float, targets: list[float]) 
     ticks = round(SYNC_S / plant.pwm_period)
     fe = np.empty(len(targets) + 1)
     fe[0] = 0.0
-    for k, target in enumerate(targets, start=1):
+    for k, (target, speed) in enumerate(zip(targets, speeds), start=1):
         fe[k] = drive.monitor.following_error / drive.rad_per_count
         sp.seq, sp.target_position_counts = k, here + (target - targets[0])
+        sp.velocity_offset_counts_s = speed
         for _ in range(ticks):
             drive.cycle(sp, fb)
     return fe[1:]
@@ -142,7 +150,7 @@ def test_canopens_master_commissions_two_drives_served_by_hil_run(multicast_grou
     stats = report["adapter"]["stats"]
     assert stats["starts_over_plan"] == 0 and stats["malformed"] == 0
     assert stats["frames_lost"] == 0
-    assert stats["bus_plan_load"] == pytest.approx(825 / 1000)  # the remapped PDOs
+    assert stats["bus_plan_load"] == pytest.approx(905 / 1000)  # the remapped PDOs
     assert stats["bus_load_mean"] > 0 and 0 < stats["bus_load_max"] <= 1.0
 
     frames = list(can.LogReader(log))
@@ -159,14 +167,16 @@ def test_canopens_master_commissions_two_drives_served_by_hil_run(multicast_grou
     for axis, n in enumerate(NODES):
         mine = {int(r["sync"]): r for r in rows if int(r["node"]) == n}
         first, last = min(mine), max(mine)
-        program = []  # the target of every SYNC (a row missing: its neighbour's is the same)
+        program, speeds = [], []  # every SYNC's (a row missing: its neighbour's is the same)
         for k in range(first, last + 1):
             program.append(float(mine[k]["target"]) if k in mine else program[-1])
-        ref = lockstep_following_error(machine.configs[axis], program[0], program)
+            speeds.append(float(mine[k]["velocity_offset"]) if k in mine else speeds[-1])
+        ref = lockstep_following_error(machine.configs[axis], program[0], program, speeds)
         syncs = np.array(sorted(mine))
         fe = np.array([float(mine[k]["following_error"]) for k in syncs])
         sent = np.array([float(mine[k]["sent_s"]) for k in syncs])
         late = master_late(sent) | drive_late(syncs, recording, offset)
+        late[0] = True  # the start: the reference's drive has no history (docstring)
         clear = settled(late)
         diff = np.abs(fe - ref[syncs - first])
         worst_ref = np.abs(ref).max()
@@ -175,7 +185,8 @@ def test_canopens_master_commissions_two_drives_served_by_hil_run(multicast_grou
               f"on them ({diff.max() / REV * 1e4:.1f} on every row); lock-step max |60F4h| "
               f"{worst_ref / REV * 10:.3f} mm, this run {np.abs(fe).max() / REV * 10:.3f} mm")
         assert clear.sum() >= MIN_CLEAR * (last - first + 1), n
-        assert diff[clear].max() <= FE_TOLERANCE * worst_ref, n
+        assert diff[clear].max() <= FE_TOLERANCE_UM * REV / 1e4, n
+        assert worst_ref < 0.2 * 0.9 / 10 * REV, n  # the feed-forward: not v / K_v
 
 
 def master_late(sent_s: np.ndarray) -> np.ndarray:

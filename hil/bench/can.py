@@ -8,8 +8,10 @@ UDP and the lock-step simulation -- following error and overruns side by side (J
                   [--sync-hz 1000] [--group 239.74.163.2] [--port 43113] [--json]
 
 The program is planned by the NC's interpolator (:func:`hil.controller.interpolator.plan`)
-and sampled once per communication cycle: one 607Ah target (motor-encoder increments, no
-feed-forward) per SYNC, as a CiA 402 master in CSP sends it.  Three runs of those targets:
+and sampled once per communication cycle: one 607Ah target (motor-encoder increments) per
+SYNC, as a CiA 402 master in CSP sends it, without feed-forward, and again with the
+velocity offset 60B1h a master sends as its speed feed-forward: the target's step over the
+cycle the drive interpolates it in, per second.  Five runs of those targets:
 
 * **lock-step**: the drive and plant of the machine file in this process, the targets
   taken every ``PWM / sync-hz`` drive cycles exactly, interpolated over 60C2h = the SYNC
@@ -19,7 +21,9 @@ feed-forward) per SYNC, as a CiA 402 master in CSP sends it.  Three runs of thos
   the RPDOs and SYNC, at ``sync-hz`` (the drive interpolates between SYNCs; its loop keeps
   the PWM rate);
 * **udp**: ``hil run`` on ``udp://127.0.0.1:0``, the same targets sent at ``sync-hz``
-  (the drive takes each as it comes: UDP has no interpolation time period).
+  (the drive takes each as it comes: UDP has no interpolation time period);
+* **lockstep_ff** and **can_ff**: the lock-step and the CAN run with the feed-forward, the
+  CAN run compared with the lock-step with it.
 
 The following error here is the drive's target less its position, per drive cycle, in µm
 of table travel: each link run's from its recording (``sp_target_position_counts``,
@@ -87,6 +91,11 @@ class Program:
     sync_s: float
     ticks_per_sync: int
 
+    def feedforward(self) -> np.ndarray:
+        """60B1h with each target, increments/s, shape (n,): the step from the target
+        before it over the cycle the drive interpolates it in."""
+        return np.diff(self.deltas, prepend=0.0) / self.sync_s
+
 
 def load_axis(config: Path) -> MachineConfig:
     """The machine file of one axis (or a manifest of one axis, with its overrides);
@@ -114,9 +123,10 @@ def program_targets(config: Path, program: Path, sync_hz: float) -> Program:
     return Program(start * cnc_unit(cfg)[0], np.round(counts), sync_s, round(ticks))
 
 
-def lockstep(config: Path, prog: Program) -> tuple[np.ndarray, np.ndarray]:
+def lockstep(config: Path, prog: Program, feedforward: bool = False
+             ) -> tuple[np.ndarray, np.ndarray]:
     """(targets, positions) per drive cycle of the lock-step run, increments, from the
-    first target on."""
+    first target on (with ``feedforward``: each target with its 60B1h)."""
     cfg = load_axis(config)
     plant = Plant(cfg, table_pos=prog.start_mm / cnc_unit(cfg)[0])
     drive = EmulatedDrive(plant)
@@ -134,8 +144,10 @@ def lockstep(config: Path, prog: Program) -> tuple[np.ndarray, np.ndarray]:
             raise RuntimeError(f"lock-step: {seq.reason}")
     n = len(prog.deltas) * prog.ticks_per_sync
     targets, positions = np.empty(n), np.empty(n)
+    velocities = prog.feedforward() if feedforward else np.zeros(len(prog.deltas))
     for k, delta in enumerate(prog.deltas):
         sp.seq, sp.target_position_counts = k + 1, start + delta
+        sp.velocity_offset_counts_s = velocities[k]
         for j in range(prog.ticks_per_sync):
             drive.cycle(sp, fb)
             targets[k * prog.ticks_per_sync + j] = sp.target_position_counts
@@ -143,14 +155,15 @@ def lockstep(config: Path, prog: Program) -> tuple[np.ndarray, np.ndarray]:
     return targets - start, positions - start
 
 
-def master(ep: Endpoint, prog: Program) -> None:
+def master(ep: Endpoint, prog: Program, feedforward: bool = False) -> None:
     """Enable the drive in CSP where it stands, send the targets one per SYNC period (RPDOs
-    and SYNC over CAN), hold the last, disable.  Raises AdapterError if it will not
-    enable."""
+    and SYNC over CAN; with ``feedforward`` each with its 60B1h), hold the last, disable.
+    Raises AdapterError if it will not enable."""
     period_ns = round(prog.sync_s * 1e9)
     clock = MonotonicClock.for_period(period_ns)
     sp, fb = Setpoint(mode=MODE_CSP), Feedback()
     seq = EnableSequencer(timeout_cycles=round(ENABLE_S / prog.sync_s))
+    velocities = prog.feedforward() if feedforward else np.zeros(len(prog.deltas))
     start = None
     deadline = clock.now_ns()
     silent_until = deadline + round(ENABLE_S * 1e9)
@@ -175,6 +188,9 @@ def master(ep: Endpoint, prog: Program) -> None:
             k += 1
             if k < len(prog.deltas):
                 sp.target_position_counts = start + prog.deltas[k]
+                sp.velocity_offset_counts_s = velocities[k]
+            else:
+                sp.velocity_offset_counts_s = 0.0
         sp.seq += 1
         ep.send_setpoint(sp)
     seq.disable()
@@ -190,7 +206,8 @@ def master(ep: Endpoint, prog: Program) -> None:
             break
 
 
-def link_run(config: Path, url: str, prog: Program, folder: Path) -> tuple[dict, dict]:
+def link_run(config: Path, url: str, prog: Program, folder: Path,
+             feedforward: bool = False) -> tuple[dict, dict]:
     """``hil run`` on ``url`` in a child process and :func:`master` here: (report.json,
     the recording's target and encoder columns)."""
     run_dir = folder / "run"
@@ -203,7 +220,7 @@ def link_run(config: Path, url: str, prog: Program, folder: Path) -> tuple[dict,
         served = wait_ready(proc, READY_S)
         with open_endpoint(served, "controller") as ep:
             ep.drain = True
-            master(ep, prog)
+            master(ep, prog, feedforward)
     finally:
         if proc.poll() is None:
             proc.send_signal(signal.SIGTERM)
@@ -243,28 +260,31 @@ def summary(fe_um: np.ndarray, reference_um: np.ndarray) -> dict:
 
 
 def run(config: Path, program: Path, sync_hz: float, group: str, port: int) -> dict:
-    """The three runs; the JSON ``hil bench can`` prints."""
+    """The five runs; the JSON ``hil bench can`` prints."""
     prog = program_targets(config, program, sync_hz)
     cfg = load_axis(config)
     plant = Plant(cfg)
     um = plant.built.ratio / plant.params[L.P_ENC_COUNTS_PER_RAD] * 1e6  # µm per increment
     n = len(prog.deltas) * prog.ticks_per_sync
-    targets, positions = lockstep(config, prog)
-    reference = following_error(np.arange(n), targets, positions, np.ones(n, bool), n) * um
-    rows = {"lockstep": {**summary(reference, reference), "overruns": 0, "ticks": n}}
-    links = {"can": f"can://udp_multicast/{group}?node=5&rated_current_ma={RATED_MA}"
-                    f"&port={port}",
-             "udp": "udp://127.0.0.1:0"}
-    for name, url in links.items():
+    rows, references = {}, {}
+    for name, ff in (("lockstep", False), ("lockstep_ff", True)):
+        targets, positions = lockstep(config, prog, ff)
+        references[ff] = reference = following_error(np.arange(n), targets, positions,
+                                                     np.ones(n, bool), n) * um
+        rows[name] = {**summary(reference, reference), "overruns": 0, "ticks": n}
+    can_url = f"can://udp_multicast/{group}?node=5&rated_current_ma={RATED_MA}&port={port}"
+    links = {"can": (can_url, False), "udp": ("udp://127.0.0.1:0", False),
+             "can_ff": (can_url, True)}
+    for name, (url, ff) in links.items():
         with tempfile.TemporaryDirectory(prefix=f"hil-bench-can-{name}-") as tmp:
-            report, cols = link_run(config, url, prog, Path(tmp))
+            report, cols = link_run(config, url, prog, Path(tmp), ff)
         enabled = cols["drive_state"] == State.OPERATION_ENABLED
         fe = following_error(cols["tick"], cols["sp_target_position_counts"],
                              cols["plant_encoder_counts"], enabled, n) * um
         loop = report["loop"]
-        rows[name] = {**summary(fe, reference), "overruns": loop["overruns"],
+        rows[name] = {**summary(fe, references[ff]), "overruns": loop["overruns"],
                       "ticks": loop["ticks"], "lateness_p99_us": loop["lateness_us"]["p99"]}
-        if name == "can":
+        if url == can_url:
             stats = report["adapter"]["stats"]
             rows[name].update({k: stats[k] for k in ("bus_load_max", "bus_load_mean",
                                                      "bus_plan_load", "bus_bits_per_cycle_max",
@@ -305,7 +325,7 @@ def run_from_args(args: argparse.Namespace) -> int:
         eprint(f"hil bench can: {result['syncs']} SYNCs at {result['sync_hz']:g} Hz, drive "
                f"at {result['pwm_hz']:g} Hz")
         for name, row in result["runs"].items():
-            eprint(f"  {name:9s} following error max {row['fe_max_um']:9.1f} µm, RMS "
+            eprint(f"  {name:11s} following error max {row['fe_max_um']:9.1f} µm, RMS "
                    f"{row['fe_rms_um']:8.1f} µm, max difference to lock-step "
                    f"{row['difference_to_lockstep_max_um']:7.1f} µm, overruns "
                    f"{row['overruns']} of {row['ticks']} ticks ({row['cycles_run']} of the "
