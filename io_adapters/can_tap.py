@@ -25,6 +25,7 @@ receive thread has taken (python-can's stamp: the kernel's receive time on
 is later.  A consumer judged on it (the heartbeat, CiA 301) sees the frames as the bus
 delivered them: a receive thread that was held up has not yet seen the time pass. """
 
+import importlib
 import math
 import threading
 import time
@@ -241,6 +242,17 @@ class BusTap(can.BusABC):
                 self._log = None
 
 
+def mf4_writer_ready() -> None:
+    """Make python-can's MF4 writer usable in this process.  Importing asammdf before
+    python-can's MF4 module leaves that module without it: asammdf imports python-can,
+    whose MF4 module then finds asammdf half-imported and turns itself off.  Once asammdf
+    is whole the module is loaded again (its writer class reads the module's names)."""
+    import can.io.mf4 as mf4
+
+    if mf4.asammdf is None:
+        importlib.reload(mf4)
+
+
 def open_bus(link: CanLink, **options) -> can.BusABC:
     """The python-can bus of ``link`` (``options`` go to ``can.Bus``) behind a
     :class:`BusTap`; ``udp_multicast`` stays on the loopback
@@ -257,6 +269,8 @@ def open_bus(link: CanLink, **options) -> can.BusABC:
     except (can.CanError, OSError, ValueError) as e:
         raise AdapterError(f"{link.url!r}: cannot open the {link.interface} bus "
                            f"{link.channel!r}: {e}") from e
+    if link.log is not None and link.log.lower().endswith(".mf4"):
+        mf4_writer_ready()
     try:
         return BusTap(bus, link.log)
     except (OSError, ValueError) as e:

@@ -7,6 +7,7 @@ import signal
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from hil.cia402 import DISABLE_VOLTAGE, State, statusword_state
@@ -217,3 +218,52 @@ def test_the_drives_monitoring_faults_it_in_a_separate_process(config, tmp_path,
         assert terminate(proc) == 0, children.log("emulator")
     report, _ = check_recording(run_dir)
     assert report["faults"]["X"]["events"][0]["code"] == code
+
+
+# -- a CAN run's bus frames beside its recording ------------------------------------------
+
+def test_an_export_places_the_bus_frames_on_the_runs_time(config, tmp_path, multicast_group):
+    """hil run on udp_multicast with ``log=bus.asc``, driven in CSP by our master along a
+    ramp (5 mm/s); ``hil export --to mdf4 --bus bus.asc`` holds the recording and the
+    frames as MDF4 bus logging, which hil eds's DBC decodes: every position actual value
+    (6064h, TPDO2) is an encoder reading the recording has, at a time within 5 ms of the
+    recording's (a frame answers the newest tick before its SYNC: a tick or two, 0.5-1 ms,
+    and the bus's latency; the clocks placed wrongly would be seconds off)."""
+    from asammdf import MDF
+
+    from hil.bench.can import Program, master
+    from hil.dbc import pdo_frames, write_dbc
+    from hil.eds import device_values
+    from hil.cli import main as hil
+    from hil.runtime.record_reader import Recording
+    group, port = multicast_group
+    log = tmp_path / "bus.asc"
+    url = (f"can://udp_multicast/{group}?node={CAN_NODE}&rated_current_ma={CAN_RATED_MA}"
+           f"&port={port}")
+    run_dir = tmp_path / "run"
+    counts_per_ms = 4194304 / 10 * 5 / 1000  # 5 mm/s at 1 ms SYNC
+    program = Program(START_MM, np.arange(1, 301) * counts_per_ms, 1e-3, 2)
+    with Children(tmp_path) as children:
+        proc, _ = children.emulator(config, f"{url}&log={log}", run_dir, "--rate", 2000,
+                                    "--start", START_MM)
+        with open_endpoint(url, "controller") as ep:
+            ep.drain = True
+            master(ep, program)
+        assert terminate(proc) == 0, children.log("emulator")
+    dbc = write_dbc(pdo_frames(CAN_NODE, device_values(config, url)[0].values),
+                    tmp_path / "nodes.dbc")
+    out = tmp_path / "run.mf4"
+    assert hil(["export", str(run_dir), "--to", "mdf4", "--bus", str(log), "--out",
+                str(out)]) == 0
+    rec = Recording(run_dir).read(["tick", "plant_encoder_counts"])
+    t_rec = rec["tick"] * 0.5e-3
+    with MDF(out) as mdf:
+        assert "plant_encoder_counts" in mdf.channels_db
+        decoded = mdf.extract_bus_logging({"CAN": [(str(dbc), 0)]})
+        position = decoded.get("Position_actual_value_6064")
+    moving = np.flatnonzero(np.diff(position.samples) != 0) + 1
+    assert moving.size > 200
+    for t, p in zip(position.timestamps[moving], position.samples[moving]):
+        rows = np.flatnonzero(np.round(rec["plant_encoder_counts"]) == p)
+        assert rows.size, p
+        assert np.abs(t_rec[rows] - t).min() < 5e-3, (t, p)

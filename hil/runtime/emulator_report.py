@@ -5,6 +5,7 @@ Functions of a :class:`~hil.runtime.emulator.Emulator`'s state, called by its li
 they read it and change nothing.
 """
 
+import time
 from dataclasses import asdict
 from datetime import datetime, timezone
 from pathlib import Path
@@ -28,7 +29,10 @@ def metadata(emu) -> dict:
     an export needs: ``table_per_count`` (table units, m or rad, per motor-encoder count:
     a CSP target's unit), ``scale_resolution_m`` and the axis's column prefix; and the
     fault injections known at the start (machine file, ``--inject``; those arriving over
-    the adapter are events of the recording and listed in ``report.json``)."""
+    the adapter are events of the recording and listed in ``report.json``); and the
+    wall clock beside the drive's (``clock``: ``unix_ns`` read between two readings of
+    the monotonic clock, ``monotonic_ns`` their middle), so that what other tools stamped
+    in wall-clock time (a CAN bus log) can be placed on the run's time."""
     m, t = emu.machine, emu.timing
     files = ([Path(m.path)] if m.manifest else []) + [Path(c.path) for c in m.configs]
     axes = [{"name": a.name, "machine_file": a.config.path, "kind": a.config.machine.kind,
@@ -42,7 +46,16 @@ def metadata(emu) -> dict:
             "axes": axes, "runtime": runtime_dict(emu), "period_ns": t.period_ns,
             "rate_hz": t.rate_hz, "cycles_per_tick": t.cycles_per_tick,
             "pwm_frequency_hz": emu.cfg.motor.pwm_frequency_hz, "adapter": emu.url,
-            "started_utc": datetime.now(timezone.utc).isoformat(timespec="seconds")}
+            "started_utc": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+            "clock": _clock_pair()}
+
+
+def _clock_pair() -> dict:
+    """The wall clock and the monotonic clock at one moment, ns (see :func:`metadata`)."""
+    m0 = time.monotonic_ns()
+    unix = time.time_ns()
+    m1 = time.monotonic_ns()
+    return {"unix_ns": unix, "monotonic_ns": (m0 + m1) // 2}
 
 
 def stop_reason(emu, stats: LoopStats) -> str:

@@ -3,13 +3,19 @@
 ::
 
     hil export runs/r1 --to mdf4            # runs/r1/recording.mf4
+    hil export runs/r1 --to mdf4 --bus out/bus.asc   # and the CAN frames (CANape, asammdf)
     hil export runs/r1 --to csv [--axis X]  # runs/r1/trace.csv (trace_X.csv, ... per axis)
 
 * **MDF4** (ASAM MDF 4.10 through asammdf; what ControlDesk, CANape and asammdf's GUI
   open): one channel group ``recording`` with every column of the recording, its unit
   and its meaning as the channel comment, on the master time ``t = tick * period``; a
   channel group ``events`` (time, axis, source, kind, 603Fh code, drive cycle, reason);
-  the machine file(s) attached, the run's metadata in the file comment.
+  the machine file(s) attached, the run's metadata in the file comment; the file's start
+  time is the wall-clock time of tick 0.  With ``--bus LOG`` (a CAN run's ``log=``:
+  ``.asc``, ``.blf`` or ``.mf4``) the bus frames too, as MDF4 bus logging (python-can's
+  MF4 writer: ``CAN_DataFrame`` with its ID, DLC, data bytes and direction), placed on the
+  run's time by their wall-clock stamps: a DBC then decodes them beside the recording
+  (``MDF.extract_bus_logging``, with ``hil eds``'s ``nodes.dbc``).
 * **CSV**: the servo-trace format of ``../shared/docs/trace-format.md`` per axis
   (:mod:`hil.runtime.record_trace` says which recording column makes which trace
   column), one row per tick on a uniform time base (a tick without a row -- dropped by
@@ -100,9 +106,57 @@ def _every_tick(columns: dict[str, np.ndarray], tick: np.ndarray, first: int,
     return out
 
 
-def export_mdf4(rec: Recording, out: Path, force: bool = False) -> Path:
-    """``out``: the whole recording and its events as MDF4, up to a corrupt batch (see the
-    module docstring)."""
+#: bus logs python-can reads with wall-clock time stamps
+BUS_LOGS = (".asc", ".blf", ".mf4")
+
+
+def tick0_unix_ns(rec: Recording, rows: dict) -> int | None:
+    """The wall-clock time of tick 0's deadline, ns, from the recording's clock pair and
+    the first row of ``rows`` that started on a new setpoint (its wake-up less its
+    lateness, less its ticks); None when the run recorded no clock pair or no such row."""
+    clock = rec.meta.get("clock")
+    started = np.flatnonzero(rows["tick_start_ns"] > 0)
+    if not clock or not started.size:
+        return None
+    i = started[0]
+    deadline = int(rows["tick_start_ns"][i]) - int(rows["lateness_ns"][i])
+    t0_monotonic = deadline - int(rows["tick"][i]) * rec.period_ns
+    return clock["unix_ns"] + t0_monotonic - clock["monotonic_ns"]
+
+
+def bus_mdf(path: Path):
+    """The frames of the CAN log ``path`` as an MDF4 bus-logging file (python-can's MF4
+    writer, in a temporary file), opened; its start time the writer's, its frames at their
+    wall-clock stamps from it (so :meth:`MDF.stack` with ``sync`` places them)."""
+    import tempfile
+
+    import can
+    from asammdf import MDF
+
+    from io_adapters.can_tap import mf4_writer_ready
+
+    if path.suffix.lower() not in BUS_LOGS:
+        raise ExportError(f"--bus {path}: a CAN log with wall-clock stamps is one of "
+                          f"{', '.join(BUS_LOGS)}")
+    options = {"relative_timestamp": False} if path.suffix.lower() == ".asc" else {}
+    tmp = Path(tempfile.mkdtemp(prefix="hil-export-bus-")) / "bus.mf4"
+    mf4_writer_ready()
+    try:
+        writer = can.Logger(str(tmp))
+        for msg in can.LogReader(str(path), **options):
+            writer.on_message_received(msg)
+        writer.stop()
+    except (OSError, ValueError, can.CanError) as e:
+        raise ExportError(f"--bus {path}: cannot read it: {e}") from e
+    return MDF(tmp)
+
+
+def export_mdf4(rec: Recording, out: Path, force: bool = False,
+                bus: tuple[Path, ...] = ()) -> Path:
+    """``out``: the whole recording and its events as MDF4, up to a corrupt batch, with the
+    frames of the CAN logs ``bus`` (see the module docstring)."""
+    from datetime import datetime, timezone
+
     from asammdf import MDF, Signal  # only this export needs asammdf
 
     period_s = rec.period_ns * 1e-9
@@ -112,9 +166,13 @@ def export_mdf4(rec: Recording, out: Path, force: bool = False) -> Path:
     for path, text in rec.meta.get("machine_files", {}).items():
         mdf.attach(text.encode(), file_name=Path(path).name, comment=f"machine file {path}",
                    embedded=True)
-    group = None
+    group, t0_ns = None, None
     for rows in rec.batches(stop_at_corrupt=True):
         t = rows["tick"] * period_s
+        if t0_ns is None:
+            t0_ns = tick0_unix_ns(rec, rows)
+            if t0_ns is not None:
+                mdf.header.start_time = datetime.fromtimestamp(t0_ns / 1e9, timezone.utc)
         if group is None:
             group = mdf.append([Signal(rows[n], t, unit=rec.units[n], name=n,
                                        comment=rec.docs[n]) for n in rec.names],
@@ -139,6 +197,22 @@ def export_mdf4(rec: Recording, out: Path, force: bool = False) -> Path:
                     Signal(ev["cycle"], t, name="cycle", comment="drive cycle (-1: none)"),
                     text("reason", "why")],
                    acq_name="events", comment="events of the run; after the loop: at the end")
+    if bus:
+        if t0_ns is None:
+            raise ExportError(f"{rec.path}: the run recorded no wall clock beside its own "
+                              "(hil run before it did, or no setpoint ever came): the bus "
+                              "frames cannot be placed on its time")
+        logs = [bus_mdf(path) for path in bus]
+        stacked = MDF.stack([mdf, *logs], sync=True)
+        stacked.header.comment, stacked.header.start_time = mdf.header.comment, \
+            mdf.header.start_time
+        for attachment in mdf.attachments:
+            stacked.attach(attachment.extract(), file_name=attachment.file_name,
+                           comment=attachment.comment, embedded=True)
+        mdf.close()
+        for log in logs:
+            log.close()
+        mdf = stacked
     mdf.save(_fresh(out, force), overwrite=True)
     mdf.close()
     return out
@@ -152,6 +226,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--axis", help="csv: only this axis (default: every axis)")
     p.add_argument("--out", metavar="PATH", help=f"mdf4: the file (default RUN/{MDF_NAME}); "
                    "csv: the folder (default RUN)")
+    p.add_argument("--bus", action="append", default=[], metavar="LOG",
+                   help="mdf4: add a CAN run's bus log (hil run's log=FILE: .asc, .blf or "
+                   ".mf4) as MDF4 bus logging on the run's time (repeatable)")
     p.add_argument("--force", action="store_true", help="replace existing output files")
 
 
@@ -161,7 +238,8 @@ def run_from_args(args: argparse.Namespace) -> int:
     try:
         rec = Recording(run)
         if args.to == "mdf4":
-            outputs = [export_mdf4(rec, Path(args.out or run / MDF_NAME), args.force)]
+            outputs = [export_mdf4(rec, Path(args.out or run / MDF_NAME), args.force,
+                                   tuple(Path(b) for b in args.bus))]
         else:
             names = [args.axis] if args.axis else [a["name"] for a in rec.meta["axes"]]
             folder = Path(args.out or run)
