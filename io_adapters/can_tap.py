@@ -247,7 +247,7 @@ def mf4_writer_ready() -> None:
     python-can's MF4 module leaves that module without it: asammdf imports python-can,
     whose MF4 module then finds asammdf half-imported and turns itself off.  Once asammdf
     is whole the module is loaded again (its writer class reads the module's names)."""
-    import can.io.mf4 as mf4
+    from can.io import mf4
 
     if mf4.asammdf is None:
         importlib.reload(mf4)

@@ -232,9 +232,9 @@ def test_an_export_places_the_bus_frames_on_the_runs_time(config, tmp_path, mult
     from asammdf import MDF
 
     from hil.bench.can import Program, master
+    from hil.cli import main as hil
     from hil.dbc import pdo_frames, write_dbc
     from hil.eds import device_values
-    from hil.cli import main as hil
     from hil.runtime.record_reader import Recording
     group, port = multicast_group
     log = tmp_path / "bus.asc"
