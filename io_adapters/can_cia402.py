@@ -205,6 +205,7 @@ class CanDriveEndpoint(Endpoint):
         self._fresh = False   # process data taken since the last cycle started
         self._staged = 0      # send_feedback calls since the last cycle started
         self._sync_interval_s = 0.0  # SYNC to SYNC, averaged over SYNC_MEAN_SAMPLES
+        self._sync_arrival_s = 0.0  # the newest SYNC's arrival (python-can's stamp)
         self._rpdo_of: dict = {}
         self.last_sync_ns = 0
         self.cycles = 0
@@ -425,10 +426,13 @@ class CanDriveEndpoint(Endpoint):
         if any(n.nmt.state in ("PRE-OPERATIONAL", "OPERATIONAL") for n in self.nodes):
             now_ns = time.monotonic_ns()
             with self._lock:
-                if self.last_sync_ns:
-                    interval = (now_ns - self.last_sync_ns) * 1e-9
+                if self._sync_arrival_s:
+                    # as the bus delivered them: a receive thread held up takes a queue
+                    # of SYNCs at once, which are no shorter cycles for it
+                    interval = timestamp - self._sync_arrival_s
                     self._sync_interval_s += (interval - self._sync_interval_s) / (
                         1 if not self._sync_interval_s else SYNC_MEAN_SAMPLES)
+                self._sync_arrival_s = timestamp
                 self.last_sync_ns = now_ns
                 self._start_cycle(now_ns * 1e-9, True, data[0] if len(data) == 1 else None)
                 self._update_load()

@@ -74,8 +74,9 @@ FE_TOLERANCE_UM = 3.0  # |60F4h - lock-step| on the SYNCs clear of timing faults
 #: takes it (hil.runtime.sync), later it takes it a cycle late ...
 LATE_S = 0.3e-3
 #: ... whose effect on the following error has decayed after this long (1/K_v = 30 ms:
-#: a 15 µm dip decays below 1 µm)
-SETTLE_S = 0.1
+#: 150 µm, a master held up 5 ms at 31 mm/s with the feed-forward running on, decays
+#: below 0.2 µm)
+SETTLE_S = 0.2
 #: of the program's SYNCs must be clear of timing faults
 MIN_CLEAR = 0.2
 MASTER_S = 240.0       # bound on the master's whole run
