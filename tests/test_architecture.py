@@ -98,3 +98,15 @@ def test_the_command_line_imports_only_the_command_it_runs():
         if argv[0] == "bench":
             chosen = chosen._subparsers._group_actions[0].choices[argv[1]]
         assert "func" in chosen._defaults, argv
+
+
+def test_hil_runs_help_names_every_adapter_scheme_with_its_options():
+    """``hil run --help``: udp://, serial:// and can:// each with the options a first run
+    needs (the wire, the node-ID and rated current)."""
+    from hil.cli import build_parser
+    parser = build_parser(["run"])
+    run = parser._subparsers._group_actions[0].choices["run"]
+    text = next(a.help for a in run._actions if "--adapter" in a.option_strings)
+    for scheme in ("udp://HOST:PORT", "serial://PATH", "can://INTERFACE/CHANNEL"):
+        assert scheme in text, scheme
+    assert "wire=msgpack|fixed" in text and "node=N&rated_current_ma=MA" in text

@@ -285,8 +285,9 @@ def test_a_recording_of_the_format_before_the_checksums_reads_unchecked(tmp_path
                 w.write_batch(batch)
     rec = Recording(tmp_path)
     assert not rec.checksums and rec.read(["tick"])["tick"].tolist() == list(range(50))
-    args = argparse.Namespace(run=str(tmp_path), to="mdf4", axis=None,
-                              out=str(tmp_path / "r.mf4"), force=False)
+    parser = argparse.ArgumentParser()
+    export.add_arguments(parser)  # hil export's own options, whatever they become
+    args = parser.parse_args([str(tmp_path), "--to", "mdf4", "--out", str(tmp_path / "r.mf4")])
     assert export.run_from_args(args) == 0
     assert "carries no checksums" in capsys.readouterr().err
 

@@ -115,8 +115,10 @@ def tick0_unix_ns(rec: Recording, rows: dict) -> int | None:
     the first row of ``rows`` that started on a new setpoint (its wake-up less its
     lateness, less its ticks); None when the run recorded no clock pair or no such row."""
     clock = rec.meta.get("clock")
+    if not clock:
+        return None
     started = np.flatnonzero(rows["tick_start_ns"] > 0)
-    if not clock or not started.size:
+    if not started.size:
         return None
     i = started[0]
     deadline = int(rows["tick_start_ns"][i]) - int(rows["lateness_ns"][i])
