@@ -72,7 +72,13 @@ NODE = 5
 LOCK_STEP = "&sync_timeout_ms=60000"
 PROGRAM = ROOT / "programs" / "xy_moves.nc"
 FEEDBACK_DELAY_TICKS = 1   # the answer to SYNC k comes with SYNC k+1
-TOLERANCE = 0.02           # of the lock-step maximum |following error| per axis
+TOLERANCE = 0.02           # of the lock-step maximum |following error| per axis ...
+#: ... or this much, mm, whichever is more, over udp_multicast between two processes: the
+#: differences there are a few µm on either axis whatever its own following error (Y's
+#: 2 % is 3.0 µm; this VM gave 1.9-3.3 µm quiet and 3.5-4.7 µm in a loaded suite run,
+#: 2026-11-29, the same before and after that session's CAN changes), while a timing
+#: fault the controller cannot see shows as tens of µm
+FLOOR_MM = 0.006
 FINAL_COUNTS = 10          # scale counts, as tests/test_loopback_can.py
 MIN_CLEAR = 0.2
 ATTEMPTS = 3
@@ -339,7 +345,7 @@ def compare(folder: Path, summary: dict, lockstep: dict[str, Path], config: Path
         n = min(fe.size, fe_ref.size)
         keep = clear[:n]
         diff = np.abs(fe[:n] - fe_ref[:n])
-        worst, allowed = diff[keep].max(), TOLERANCE * np.abs(fe_ref).max()
+        worst, allowed = diff[keep].max(), max(TOLERANCE * np.abs(fe_ref).max(), FLOOR_MM)
         print(f"\n{name}: {keep.sum()} of {n} rows clear; max |FE diff| {worst * 1e3:.2f} µm "
               f"(allowed {allowed * 1e3:.2f}); lock-step max |FE| "
               f"{np.abs(fe_ref).max() * 1e3:.1f} µm")
@@ -361,7 +367,8 @@ def test_two_axes_over_can_match_the_machine_lockstep(multicast_group, config, l
     controller's columns, so :func:`settled_rows` can count its rows clear (at 2 kHz, once
     in eight runs on this 2-vCPU VM: 6.4 µm on one row).  Measured at 1 kHz: 1.3-2.5 µm
     on X and Y in six runs (0.3-0.8 µm at 2 kHz: the per-mille current steps held twice
-    as long), every row clear in five of them."""
+    as long), every row clear in five of them; 1.9-3.7 µm in eight runs on 2026-11-29
+    (hence :data:`FLOOR_MM`)."""
     group, port = multicast_group
     link = f"can://udp_multicast/{group}?node={NODE}&rated_current_ma={RATED_MA}&port={port}"
     failures = []
