@@ -253,8 +253,8 @@ def _load_mat(path: Path) -> Record:
     raw = read_bytes(path, "MATLAB .mat record", MAX_TRACE_BYTES, TraceFormatError)
     try:
         data = loadmat(io.BytesIO(raw))
-    # a corrupt file makes scipy's reader raise nearly anything (MatReadError, zlib.error,
-    # IndexError, NotImplementedError, OSError ...): each means the same to the user
+    # a corrupt file makes scipy's reader raise errors of many kinds (MatReadError,
+    # zlib.error, IndexError, OSError and more): each means the same to the user
     except Exception as exc:  # noqa: BLE001
         why = " ".join(str(exc).split())  # one line, whatever the reader said
         raise TraceFormatError(f"{path}: not a readable MATLAB .mat file ({why})") from None

@@ -34,6 +34,7 @@ nothing could be checked.
 import argparse
 import json
 import math
+import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -126,12 +127,10 @@ def tick0_unix_ns(rec: Recording, rows: dict) -> int | None:
     return clock["unix_ns"] + t0_monotonic - clock["monotonic_ns"]
 
 
-def bus_mdf(path: Path):
+def bus_mdf(path: Path, tmp: Path):
     """The frames of the CAN log ``path`` as an MDF4 bus-logging file (python-can's MF4
-    writer, in a temporary file), opened; its start time the writer's, its frames at their
+    writer) written to ``tmp``, opened; its start time the writer's, its frames at their
     wall-clock stamps from it (so :meth:`MDF.stack` with ``sync`` places them)."""
-    import tempfile
-
     import can
     from asammdf import MDF
 
@@ -141,7 +140,6 @@ def bus_mdf(path: Path):
         raise ExportError(f"--bus {path}: a CAN log with wall-clock stamps is one of "
                           f"{', '.join(BUS_LOGS)}")
     options = {"relative_timestamp": False} if path.suffix.lower() == ".asc" else {}
-    tmp = Path(tempfile.mkdtemp(prefix="hil-export-bus-")) / "bus.mf4"
     mf4_writer_ready()
     try:
         writer = can.Logger(str(tmp))
@@ -204,17 +202,20 @@ def export_mdf4(rec: Recording, out: Path, force: bool = False,
             raise ExportError(f"{rec.path}: the run recorded no wall clock beside its own "
                               "(hil run before it did, or no setpoint ever came): the bus "
                               "frames cannot be placed on its time")
-        logs = [bus_mdf(path) for path in bus]
-        stacked = MDF.stack([mdf, *logs], sync=True)
-        stacked.header.comment, stacked.header.start_time = mdf.header.comment, \
-            mdf.header.start_time
-        for attachment in mdf.attachments:
-            stacked.attach(attachment.extract(), file_name=attachment.file_name,
-                           comment=attachment.comment, embedded=True)
-        mdf.close()
-        for log in logs:
-            log.close()
-        mdf = stacked
+        with tempfile.TemporaryDirectory(prefix="hil-export-bus-") as tmp:
+            logs = [bus_mdf(path, Path(tmp) / f"bus{i}.mf4") for i, path in enumerate(bus)]
+            stacked = MDF.stack([mdf, *logs], sync=True)
+            stacked.header.comment, stacked.header.start_time = mdf.header.comment, \
+                mdf.header.start_time
+            for attachment in mdf.attachments:
+                stacked.attach(attachment.extract(), file_name=attachment.file_name,
+                               comment=attachment.comment, embedded=True)
+            mdf.close()
+            for log in logs:
+                log.close()
+            stacked.save(_fresh(out, force), overwrite=True)
+            stacked.close()
+        return out
     mdf.save(_fresh(out, force), overwrite=True)
     mdf.close()
     return out
