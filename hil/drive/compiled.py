@@ -74,6 +74,9 @@ EXIT_CAUSE = 3
 EXIT_LOOP = 4
 #: the plant's status is not OK (the step was undone)
 EXIT_PLANT = 5
+#: the exit codes' names (reports)
+EXIT_NAMES = {EXIT_COMMAND: "command", EXIT_REFUSED: "refused", EXIT_CAUSE: "cause",
+              EXIT_LOOP: "loop", EXIT_PLANT: "plant"}
 
 #: the recording's integer row of an axis (hil.runtime.recording.AXIS_INTS)
 RING_INTS = ("sp_controlword", "sp_mode", "fb_statusword", "fb_fault", "drive_state",

@@ -1,22 +1,27 @@
 """Clocks a real-time loop waits on: ``now_ns()`` and ``sleep_until(deadline_ns)``.
 
-:class:`MonotonicClock` sleeps for the bulk of the wait and spins on
-``time.monotonic_ns`` for the last ``spin_ns``, so it wakes within a clock read of the
-deadline unless the sleep itself overshoots the margin.  The standard library has no
-``clock_nanosleep`` (``time`` lacks it on the Python 3.11 this was written on), so the
-bulk is a relative ``time.sleep`` (resumed after a signal, PEP 475); the spin ends on the
-absolute deadline, so relative sleeps cannot accumulate drift.  The sleep wakes late by
-the thread's timer slack (50 µs by default): request a slack of 1 ns with
-:func:`hil.rt.scheduling.realtime_scheduling` before a run.  Sleeping for most of the
-period matters under SCHED_FIFO: a thread that busy-waits through whole periods runs into
-the kernel's real-time throttling and is stopped for tens of milliseconds.
+:class:`MonotonicClock` sleeps for the bulk of the wait and spins on the clock for the
+last ``spin_ns``, so it wakes within a clock read of the deadline unless the sleep itself
+overshoots the margin.  Both are :func:`sleep_until_ns`, compiled: ``clock_nanosleep``
+on ``CLOCK_MONOTONIC`` to the absolute time ``deadline - spin`` (resumed after a signal),
+then ``clock_gettime`` until the deadline, so no wait accumulates drift.  The emulator's
+compiled steady loop (:mod:`hil.runtime.steady_tick`) waits with the same function, so
+both paths keep one discipline.  The sleep wakes late by the thread's timer slack (50 µs
+by default): request a slack of 1 ns with :func:`hil.rt.scheduling.realtime_scheduling`
+before a run.  Sleeping for most of the period matters under SCHED_FIFO: a thread that
+busy-waits through whole periods runs into the kernel's real-time throttling and is
+stopped for tens of milliseconds.
 
 :class:`SimulatedClock` jumps to each deadline; a step can :meth:`~SimulatedClock.advance`
 it to model its compute time, which makes overruns deterministic in tests.
 """
 
+import errno
 import time
 from typing import Protocol
+
+import numpy as np
+from numba import njit, types
 
 #: default spin margin: covers the usual wake-up latency of a sleep with 1 ns timer slack
 #: under SCHED_FIFO with /dev/cpu_dma_latency at 0 (p99 about 30-40 µs on a 2-vCPU VM).
@@ -24,6 +29,39 @@ DEFAULT_SPIN_NS = 50_000
 #: the most of a period :meth:`MonotonicClock.for_period` spins: the thread must sleep
 #: for most of every period or real-time throttling stops it.
 MAX_SPIN_FRACTION = 0.4
+
+
+_clock_gettime = types.ExternalFunction("clock_gettime",
+                                        types.int32(types.int32, types.voidptr))
+_clock_nanosleep = types.ExternalFunction(
+    "clock_nanosleep", types.int32(types.int32, types.int32, types.voidptr, types.voidptr))
+_CLOCK_MONOTONIC, _TIMER_ABSTIME, _EINTR = time.CLOCK_MONOTONIC, 1, errno.EINTR
+
+
+@njit(cache=True, inline="always")
+def now_ns(timespec):
+    """``CLOCK_MONOTONIC`` (``time.monotonic_ns``'s clock), ns; ``timespec``: int64[2]
+    of room."""
+    _clock_gettime(_CLOCK_MONOTONIC, timespec.ctypes)
+    return timespec[0] * 1_000_000_000 + timespec[1]
+
+
+@njit(cache=True, nogil=True)
+def sleep_until_ns(deadline_ns, spin_ns, timespec):
+    """Sleep until ``spin_ns`` before ``deadline_ns`` (``CLOCK_MONOTONIC``, absolute),
+    then spin until it; the time woken, ns.  ``timespec``: int64[2] of room."""
+    start = deadline_ns - spin_ns
+    if start > now_ns(timespec):
+        timespec[0] = start // 1_000_000_000
+        timespec[1] = start % 1_000_000_000
+        while _clock_nanosleep(_CLOCK_MONOTONIC, _TIMER_ABSTIME, timespec.ctypes,
+                               timespec.ctypes) == _EINTR:
+            timespec[0] = start // 1_000_000_000
+            timespec[1] = start % 1_000_000_000
+    t_ns = now_ns(timespec)
+    while t_ns < deadline_ns:
+        t_ns = now_ns(timespec)
+    return t_ns
 
 
 class Clock(Protocol):
@@ -48,6 +86,7 @@ class MonotonicClock:
         if spin_ns < 0:
             raise ValueError(f"spin_ns must be >= 0, got {spin_ns}")
         self.spin_ns = int(spin_ns)
+        self._timespec = np.zeros(2, np.int64)
 
     @classmethod
     def for_period(cls, period_ns: int, spin_ns: int = DEFAULT_SPIN_NS) -> "MonotonicClock":
@@ -59,14 +98,7 @@ class MonotonicClock:
         return time.monotonic_ns()
 
     def sleep_until(self, deadline_ns: int) -> int:
-        now_ns = time.monotonic_ns
-        sleep_ns = deadline_ns - self.spin_ns - now_ns()
-        if sleep_ns > 0:
-            time.sleep(sleep_ns * 1e-9)
-        t_ns = now_ns()
-        while t_ns < deadline_ns:
-            t_ns = now_ns()
-        return t_ns
+        return sleep_until_ns(deadline_ns, self.spin_ns, self._timespec)
 
 
 class SimulatedClock:

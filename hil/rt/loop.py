@@ -191,8 +191,16 @@ def run_ticks(loop, end_tick: Callable[[int, int, int], None], n: int) -> TickCo
     at ``t0 + k * loop.period_ns`` for k < ``n``, ``end_tick(k, lateness_ns,
     compute_ns)`` after each, ``loop.policy`` on an overrun, ``loop.stop_requested``
     checked before every tick, waits on ``loop.clock``, logs stalls in
-    ``loop.stall_log``."""
+    ``loop.stall_log``.
+
+    A loop with a ``burst`` (not None) may run ticks in compiled code:
+    ``loop.burst(k, t0, n)`` runs ticks from k on, each waited for, run and ended as
+    here, up to the first that overran, and returns (ticks run, the last one's end, and
+    the wake-up of the tick after them when that one was woken but is this loop's to run:
+    :meth:`hil.runtime.steady_tick.SteadyTick.burst`); the policy here judges the last
+    one as it judges a tick run here."""
     step, now_ns, sleep_until = loop.step, loop.clock.now_ns, loop.clock.sleep_until
+    burst = getattr(loop, "burst", None)
     period = loop.period_ns
     skip = loop.policy.action == "skip"
     stop_after = loop.policy.stop_after if loop.policy.action == "stop" else 0
@@ -205,16 +213,26 @@ def run_ticks(loop, end_tick: Callable[[int, int, int], None], n: int) -> TickCo
     wall0, cpu0 = time.monotonic_ns(), time.process_time_ns()
     t0 = now_ns() + period
     k = 0
+    woke = None  # the wake-up of tick k, woken in a burst but this loop's to run
     while k < n:
         if loop.stop_requested:
             stopped_by = "stop_flag"
             break
-        deadline = t0 + k * period
-        wake = sleep_until(deadline)
-        step(k)
-        end = now_ns()
-        end_tick(k, wake - deadline, end - wake)
-        ticks += 1
+        ran = 0
+        if burst is not None and woke is None:
+            ran, end, woke = burst(k, t0, n)
+        if ran:
+            ticks += ran
+            k += ran - 1  # the last tick run; the ones before it ended on time
+            deadline = t0 + k * period
+        else:
+            deadline = t0 + k * period
+            wake = woke if woke is not None else sleep_until(deadline)
+            woke = None
+            step(k)
+            end = now_ns()
+            end_tick(k, wake - deadline, end - wake)
+            ticks += 1
         if end <= deadline + period:
             k += 1
             continue

@@ -116,6 +116,7 @@ from hil.drive import DriveSet, EmulatedDrive, load_drive
 from hil.drive.compiled_path import WARM_CYCLES, warm
 from hil.drive.objects import DriveObjects
 from hil.inject.schedule import InjectEvent, injectors_for
+from hil.rt.clock import MonotonicClock
 from hil.rt.loop import OverrunPolicy
 from hil.rt.scheduling import helper_threads_realtime, last_cpu
 from hil.runtime.common import (
@@ -335,6 +336,8 @@ class Emulator:
             self.sync_lock = SyncLock(clock, self.timing.period_ns)
         self.url = served_url(url, getattr(self.endpoint, "address", None))
         self.steady = SteadyTick.for_emulator(self) if self.rc.steady_tick else None
+        if self.steady is not None and type(self.loop.clock) is MonotonicClock:
+            self.loop.burst = self.steady.burst
         return self.url
 
     def step(self, k: int) -> None:
@@ -342,9 +345,7 @@ class Emulator:
         t_ns = time.monotonic_ns()
         steady = self.steady
         if steady is not None:
-            heard = steady.tick(k, t_ns)
-            if heard is not None:
-                self.setpoints_heard += heard
+            if steady.tick(k, t_ns) is not None:  # it counted setpoints_heard
                 if self._notices:
                     self._link_notices(k)
                 return

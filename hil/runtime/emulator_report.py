@@ -102,6 +102,7 @@ def run_report(emu, stats: LoopStats, granted, safe: dict, status: int) -> dict:
                     "rx_budget": getattr(emu.endpoint, "rx_budget", None)},
         "adapter_errors": asdict(emu.errors),
         "sync_lock": None if emu.sync_lock is None else emu.sync_lock.as_dict(),
+        "compiled_loop": None if emu.steady is None else emu.steady.as_dict(),
         "helper_threads": emu.helper_threads,
         "setpoints": {"ticks_with_new_setpoint": emu.setpoints_heard,
                       "last_seq": int(emu.sp.seq)},

@@ -256,14 +256,12 @@ class Recorder:
             if path is not None:
                 path.set_row(self._row)
 
-    def steady_row(self) -> int:
-        """For a tick that writes its whole row in compiled code
-        (:mod:`hil.runtime.steady_tick`: the axis's part and the common part that
-        :meth:`record` writes; no drive's fault log grows in such a tick): its column, or
-        -1 when the ring is full (:meth:`end_tick` then counts the tick lost)."""
-        j = self._next_column()
+    def wrote_row(self, j: int) -> None:
+        """A tick wrote its whole row in compiled code (:mod:`hil.runtime.steady_tick`:
+        the axis's part and the common part that :meth:`record` writes; no drive's fault
+        log grows in such a tick) at column ``j``, or none (-1: the ring was full;
+        :meth:`end_tick` then counts the tick lost)."""
         self._skip = j < 0
-        return j
 
     def record(self, k: int, heard: bool, tick_start_ns: int, sp, fb,
                drives: EmulatedDrive | DriveSet, refused: int = 0) -> None:

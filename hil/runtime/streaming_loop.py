@@ -60,11 +60,17 @@ class StreamingLoop:
         self.policy = policy
         self.clock = clock if clock is not None else MonotonicClock.for_period(self.period_ns)
         self.stop_requested = False
+        #: the same request for compiled code (hil.runtime.steady_tick reads it every tick)
+        self.stop_word = np.zeros(1, np.int64)
         self.stall_log: list[Stall] = []  # appended by the loop's thread, read by others
+        #: runs ticks in compiled code where it may (:func:`hil.rt.loop.run_ticks`); None:
+        #: every tick is ``step``'s
+        self.burst = None
 
     def request_stop(self) -> None:
         """Stop before the next tick (safe from a signal handler or another thread)."""
         self.stop_requested = True
+        self.stop_word[0] = 1
 
     def run(self) -> LoopStats:
         """Run the ticks (until done, stopped by the policy, or asked to stop)."""

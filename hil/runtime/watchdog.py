@@ -39,6 +39,8 @@ Nothing here allocates per tick except the event record when something changes.
 import math
 from dataclasses import asdict, dataclass
 
+import numpy as np
+
 from hil.drive import DriveSet, EmulatedDrive
 from hil.drive.faults import ERROR_CODE, Cause
 from io_adapters.base import LINK_HEARTBEAT_LOST, LINK_RESET, LINK_STOPPED
@@ -147,22 +149,22 @@ class Watchdog:
             self._link_events(conditions, axis, tick, seq)
             d.link_causes = causes
 
-    def heard_steady(self) -> None:
-        """:meth:`update` of a heard tick on a link without conditions or ``heard_for_s``
-        (UDP) while not tripped, where it changes nothing but the count: for the compiled
-        tick (:mod:`hil.runtime.steady_tick`)."""
-        self.silent = 0
-        self._covered = -1
+    def steady_counts(self, counts: np.ndarray) -> bool:
+        """Before the compiled steady loop (:mod:`hil.runtime.steady_tick`) runs ticks on
+        a link without conditions or ``heard_for_s`` (UDP): the count into ``counts``
+        (int64[3]: silent ticks, ticks a setpoint still covers, the limit); False when
+        tripped (its ticks are the Python path's).  The compiled loop counts as
+        :meth:`update` does while nothing but the count changes: a heard tick sets silent
+        to 0 and covers nothing more; a silent tick adds one, and only while no setpoint
+        covers it and it stays below the limit (the tick that would trip it is declined)."""
+        if self.tripped:
+            return False
+        counts[0], counts[1], counts[2] = self.silent, self._covered, self.limit
+        return True
 
-    def may_stay_silent(self) -> bool:
-        """A tick that hears nothing would change nothing but the count: no setpoint
-        covers it, and it stays below the limit (no trip, no cause)."""
-        return not self.tripped and self._covered <= 0 and self.silent + 1 < self.limit
-
-    def silent_steady(self) -> None:
-        """:meth:`update` of a tick that heard nothing on a link without conditions
-        (UDP) where :meth:`may_stay_silent` said so: for the compiled tick."""
-        self.silent += 1
+    def steady_settle(self, counts: np.ndarray) -> None:
+        """After the compiled loop: its count back (:meth:`steady_counts`)."""
+        self.silent, self._covered = int(counts[0]), int(counts[1])
 
     def _link_events(self, conditions: int, axis: int, tick: int, seq: int) -> None:
         before = self._conditions[axis]
