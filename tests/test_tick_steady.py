@@ -1,5 +1,6 @@
-"""The tick compiled from the datagram to the answer (:mod:`hil.runtime.steady_tick`)
-against the emulator's Python tick, over real UDP sockets on 127.0.0.1, bit for bit.
+"""The emulator's compiled loop (:mod:`hil.runtime.steady_tick`: one tick of it, as
+:meth:`Emulator.step` calls it) against the emulator's Python tick, over real UDP sockets
+on 127.0.0.1, bit for bit.
 
 Two emulators of the Arrow 500 X, one with the compiled tick and one without
 (``RuntimeConfig.steady_tick``), each behind its own UDP device endpoint, get the same
@@ -7,7 +8,7 @@ setpoints from two controller endpoints, tick by tick (:meth:`Emulator.step`, th
 ring's ``end_tick``, as the loop calls them).  The scenarios of
 tests/test_tick_equivalence.py (enable, motion, a following-error fault, fault reset,
 CSV, CST, software limits, refused setpoints, quick stop, parameters written) run over
-the wire, on one axis and on a machine of two, with traffic mixed in: what the compiled
+the wire, on one axis and on machines of two and five, with traffic mixed in: what the compiled
 tick takes itself (two or three setpoints queued in one tick, a silent tick, also after a
 tick the Python path ran) and what it must hand to the Python path (a malformed
 datagram, a repeated and an older frame, a stranger's datagram, a HELLO, a value out of
@@ -51,6 +52,7 @@ from tests.test_tick_equivalence import Script
 
 ARROW_PATH = CONFIGS / "arrow500_x.toml"
 XY_PATH = CONFIGS / "machines" / "arrow500_xy.toml"
+FIVE_PATH = CONFIGS / "machines" / "geiss_5axis.toml"
 #: the feedback's clock stamps: taken on each machine, compared for consistency only
 STAMPS = ("t_ns", "sp_t_ns", "sp_rx_ns", "tick_ns", "rx_ns")
 #: the traffic of several datagrams in one tick
@@ -299,6 +301,21 @@ def test_two_axes():
     assert min(steady.declined.values()) >= 1
     # the "queued" tick and the last of the flood's: its 65 setpoints take 7 ticks' budgets
     assert steady.silent == 3 and steady.queued == 2
+
+
+def test_five_axes():
+    """Seed 001's five-axis machine (three linear axes, two rotary), one group message a
+    tick: enable, CSP, a fault on every axis, re-enable, with the traffic that goes to the
+    Python path and the queued and silent ticks the compiled loop takes itself."""
+    extra = {400: "garbage_only", 401: "silent", 450: "repeat", 500: "queued",
+             550: "then_repeat", 600: "range", 900: "skip", 950: "stranger", 1000: "hello"}
+    b = _compare([("csp", 300, 0.0), ("csp", 500, 20.0), ("jump", 150, 3.0e7), ("cw", 3, 0),
+                  ("cw", 3, 0x80), ("csp", 400, 5.0)], extra, FIVE_PATH)
+    steady = b.emulator.steady
+    assert len(b.drives.drives) == 5
+    assert steady.ticks > 500  # none while the value out of range's fault lasts
+    assert min(steady.declined.values()) >= 1
+    assert steady.silent == 1 and steady.queued == 1
 
 
 @pytest.mark.parametrize("config", [ARROW_PATH, XY_PATH])
