@@ -87,6 +87,8 @@ class MonotonicClock:
             raise ValueError(f"spin_ns must be >= 0, got {spin_ns}")
         self.spin_ns = int(spin_ns)
         self._timespec = np.zeros(2, np.int64)
+        # compiled (or loaded from numba's cache) now, not at the loop's first deadline
+        sleep_until_ns(0, 0, self._timespec)
 
     @classmethod
     def for_period(cls, period_ns: int, spin_ns: int = DEFAULT_SPIN_NS) -> "MonotonicClock":
