@@ -82,20 +82,29 @@ def cmd_bench_plant(args) -> int:
 def cmd_bench_loop(args) -> int:
     from hil.bench.loop import main_rows
 
-    rates = [int(r) for r in args.rate.split(",")]
     if args.adapter and not args.with_plant:
         _eprint("hil bench loop: --adapter needs --with-plant")
         return 2
-    rows = main_rows(rates, args.seconds, args.with_plant, adapter=args.adapter)
+    if args.config is not None and not args.with_plant:
+        _eprint("hil bench loop: --config needs --with-plant")
+        return 2
+    # with the emulator, the machine's own rate unless asked
+    rates = ([int(r) for r in args.rate.split(",")] if args.rate is not None
+             else [None] if args.adapter else [1000, 4000, 8000])
+    rows = main_rows(rates, args.seconds, args.with_plant, adapter=args.adapter,
+                     **({"config": Path(args.config)} if args.config else {}))
     if args.json:
         print(json.dumps(rows, indent=1))
     else:
         for r in rows:
             lat, cyc = r["lateness_us"], r["cyclictest_us"]
             base = (f"cyclictest p99.9 {cyc['p999']:7.1f} µs" if cyc else "cyclictest: n/a")
-            print(f"{r['rate_hz']:6d} Hz  lateness p50 {lat['p50']:6.2f}  p99 {lat['p99']:7.2f}  "
+            beyond = r.get("cyclictest_beyond")
+            later = (f" ({r['overrun_episodes']} episodes); cyclictest later than "
+                     f"{beyond['slack_us']:.1f} µs: {beyond['beyond']}" if beyond else "")
+            print(f"{r['rate_hz']:6g} Hz  lateness p50 {lat['p50']:6.2f}  p99 {lat['p99']:7.2f}  "
                   f"p99.9 {lat['p999']:7.1f}  max {lat['max']:8.1f} µs  overruns "
-                  f"{r['overruns']:4d}  {base}")
+                  f"{r['overruns']:4d}  {base}{later}")
     return 0
 
 
@@ -256,13 +265,16 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     m.set_defaults(func=cmd_measure)
 
     bl = bsub.add_parser("loop", help="hard-timed loop lateness vs cyclictest, same interval")
-    bl.add_argument("--rate", default="1000,4000,8000", help="comma-separated rates, Hz")
+    bl.add_argument("--rate", help="comma-separated rates, Hz (default: 1000,4000,8000; "
+                    "with --adapter the machine's PWM frequency)")
     bl.add_argument("--seconds", type=float, default=5.0, help="run per rate and tool, s")
     bl.add_argument("--with-plant", action="store_true",
                     help="step the Arrow 500 X plant every tick")
     bl.add_argument("--adapter", choices=("udp",), help="the emulator's whole tick (drive, "
                     "recording) behind this adapter, a controller process on the other end "
                     "(needs --with-plant)")
+    bl.add_argument("--config", help="machine file or manifest of the plant or the emulator "
+                    "(default: the Arrow 500 X)")
     bl.add_argument("--json", action="store_true")
     bl.set_defaults(func=cmd_bench_loop)
 

@@ -21,16 +21,23 @@ Each row::
 or failed; the reason goes to stderr.  The goal: lateness p99.9 at or below
 cyclictest's, at no more than half a core (``cpu_fraction`` <= 0.5) at 8 kHz.
 
-With an adapter (``adapter="udp"``, with the plant; issue 12 part 8) the tick is the
-emulator's real one, :meth:`hil.runtime.emulator.Emulator.step` on the Arrow 500 X at
-that rate: the UDP adapter's device end on 127.0.0.1, the watchdog, the drive (its
-compiled cycle, and the tick compiled from the datagram to the answer where it applies,
-:mod:`hil.runtime.steady_tick`), the feedback, the row written into the recording's ring
-(drained between ticks, as the recording's writer would).  The controller is
-``hil bench tick``'s: a child process (spawned) that enables the drive and moves it in
-CSP, one setpoint per period of its own clock.  The row adds ``adapter`` (null without
-one) and ``link``: ``{"setpoints", "feedbacks", "ticks_without_setpoint",
-"compiled_ticks"}`` counted over the run.
+With an adapter (``adapter="udp"``, with the plant; issues 12 part 8 and 29) the loop is
+``hil run``'s own: the emulator (:class:`~hil.runtime.emulator.Emulator`) on ``config``
+(any machine file or manifest; default the Arrow 500 X) at that rate (``None``: its PWM
+frequency), its :class:`~hil.runtime.streaming_loop.StreamingLoop` with the steady ticks
+in the compiled loop (:mod:`hil.runtime.steady_tick`), the UDP adapter's device end on
+127.0.0.1, the recording's rows taken by a thread as the writer process would, its
+overrun policy ``hil run``'s (``"count"``), under the same real-time request.  The
+controller is ``hil bench tick``'s: a child process (spawned) that enables the drives and
+moves them in CSP, one setpoint per period of its own clock.  The row adds ``config``,
+``axes``, ``adapter`` (null without one), ``link``: ``{"setpoints", "feedbacks",
+"ticks_without_setpoint", "compiled_ticks", "compiled_calls"}`` counted over the run, and
+``cyclictest_beyond``: ``{"slack_us", "samples", "beyond"}``, cyclictest's samples
+later than the slack a tick leaves (the period less the tick's p50) in an equally long
+run: a stall that cyclictest also sees is the machine's, not the loop's.  One stall is
+one late cyclictest sample but, under ``"count"``, as many overruns as ticks it held up:
+``overrun_episodes`` counts runs of consecutive overrun ticks after the grace period,
+each once, and that is what ``beyond`` is compared with (issue 29's goal: no more).
 """
 
 import sys
@@ -38,10 +45,18 @@ from collections.abc import Callable
 from contextlib import ExitStack
 from pathlib import Path
 
+import numpy as np
+
 from hil.bench import tick as bench_tick
 from hil.bench.adapters import server
-from hil.rt.cyclictest import CyclictestError, run_cyclictest
-from hil.rt.loop import OverrunPolicy, RealTimeLoop
+from hil.rt.cyclictest import (
+    CyclictestError,
+    cyclictest_histogram,
+    parse_histogram,
+    run_cyclictest,
+    samples_beyond,
+)
+from hil.rt.loop import OverrunPolicy, Percentiles, RealTimeLoop
 from hil.rt.scheduling import SchedulingRequest, last_cpu, realtime_scheduling
 
 PLANT_CONFIG = Path(__file__).resolve().parents[2] / "configs" / "arrow500_x.toml"
@@ -56,10 +71,12 @@ def _idle_step(k: int) -> None:
 
 
 def plant_step(config: Path = PLANT_CONFIG) -> Callable[[int], None]:
-    """A step that advances ``config``'s plant by one PWM period, compiled and warmed."""
+    """A step that advances ``config``'s plant (a manifest's first axis) by one PWM
+    period, compiled and warmed."""
     from plant import Plant
+    from plant.machines import load_machine_set
 
-    plant = Plant.from_file(config)
+    plant = Plant(load_machine_set(config).configs[0])
     n_sub = plant.sub_per_pwm
     for _ in range(PLANT_WARMUP_CALLS):
         plant.step(n_sub)
@@ -70,64 +87,71 @@ def plant_step(config: Path = PLANT_CONFIG) -> Callable[[int], None]:
     return step
 
 
-class EmulatorTick:
-    """The emulator's real tick at ``rate_hz`` behind a UDP device end (see the module
-    docstring); call it with the tick's index.
+def emulator_rate(rate_hz: int | None, seconds: float, config: Path, cpu: int,
+                  note: Callable[[str], None]) -> dict:
+    """One row with the emulator: ``hil run``'s loop on ``config`` at ``rate_hz`` (None:
+    its PWM frequency) behind the UDP adapter's device end, a controller child on the
+    other end, under the same real-time request as the plain loop; then cyclictest at the
+    same interval (see the module docstring)."""
+    from hil.bench.tick import _Drain
+    from hil.runtime.emulator import Emulator, RuntimeConfig, short_gil_switch
+    from plant.machines import load_machine_set
 
-    Args:
-        rate_hz: the loop's rate (the drive cycles per tick follow from the PWM's).
-        config: the machine file.
-    """
-
-    def __init__(self, rate_hz: int, config: Path = PLANT_CONFIG):
-        from hil.runtime.emulator import Emulator, RuntimeConfig
-        from plant.machines import load_machine_set
-
-        rc = RuntimeConfig(config, "udp://127.0.0.1:0", realtime=False, rate_hz=rate_hz)
-        self.emulator = Emulator(rc, load_machine_set(config), log=lambda message: None)
-        self.emulator.open()
-        self.recorder = self.emulator.recorder
-        self.period_ns = self.emulator.timing.period_ns
-        self._counted = (0, 0, 0, 0)
-        self.ticks = 0
-
-    @property
-    def port(self) -> int:
-        return self.emulator.endpoint.address[1]
-
-    def __call__(self, k: int) -> None:
-        self.emulator.step(k)
-        self.recorder.end_tick(k, 0, 0)
-        self.recorder.release(self.recorder.committed)  # the writer's part
-        self.ticks += 1
-
-    def link(self) -> dict:
-        """The counts since the last call: setpoints heard, feedbacks sent, ticks that
-        heard none, ticks the compiled tick ran (silent ones included)."""
-        em = self.emulator
-        now = (em.setpoints_heard, em.endpoint.stats.sent, self.ticks,
-               em.steady.ticks if em.steady is not None else 0)
-        heard, sent, ticks, compiled = (a - b for a, b in zip(now, self._counted))
-        self._counted = now
-        return {"setpoints": heard, "feedbacks": sent, "ticks_without_setpoint": ticks - heard,
-                "compiled_ticks": compiled}
-
-    def close(self) -> None:
-        self.emulator.endpoint.close()
-
-
-def adapter_step(stack: ExitStack, adapter: str, rate_hz: int,
-                 config: Path = PLANT_CONFIG) -> EmulatorTick:
-    """The emulator behind ``adapter``'s device end with its controller child running,
-    both closed by ``stack``; the emulator warm (compiled code loaded) before it is
-    returned, and the link counts zeroed."""
-    if adapter not in ADAPTERS:
-        raise ValueError(f"adapter must be one of {ADAPTERS}, got {adapter!r}")
-    step = EmulatorTick(rate_hz, config)
-    stack.callback(step.close)
-    stack.enter_context(server(bench_tick.controller, step.port, 1, step.period_ns))
-    step.link()
-    return step
+    machine = load_machine_set(config)
+    rc = RuntimeConfig(config, "udp://127.0.0.1:0", realtime=False, rate_hz=rate_hz,
+                       duration_s=seconds)
+    emulator = Emulator(rc, machine, log=lambda message: None)
+    emulator.open()
+    timing = emulator.timing
+    period_us = timing.period_ns / 1000
+    drain = _Drain(emulator.recorder, timing.n_ticks)
+    with ExitStack() as stack:
+        stack.callback(emulator.endpoint.close)
+        stack.enter_context(server(bench_tick.controller, emulator.endpoint.address[1],
+                                   len(machine.axes), timing.period_ns))
+        drain.start()
+        stack.callback(drain.stop)
+        with short_gil_switch(), realtime_scheduling(
+                SchedulingRequest(cpus=frozenset({cpu}))) as report:
+            stats = emulator.loop.run()
+    ran = drain.compute >= 0
+    compute = Percentiles.of_ns_in_us(drain.compute[ran])
+    steady = emulator.steady
+    # an episode: consecutive ticks that ended after their next deadline (one stall of the
+    # machine makes one, however many ticks it holds up under "count")
+    late = (drain.lateness + drain.compute > timing.period_ns) & ran
+    late[:timing.grace_ticks] = False
+    episodes = int(np.count_nonzero(np.diff(late.astype(np.int8), prepend=0) == 1))
+    row = {"rate_hz": timing.rate_hz, "period_us": period_us, "config": str(config),
+           "axes": len(machine.axes), "ticks": stats.ticks,
+           "lateness_us": Percentiles.of_ns_in_us(drain.lateness[ran]).as_dict(),
+           "compute_us": compute.as_dict(), "overruns": stats.overruns,
+           "overrun_episodes": episodes,
+           "skipped": stats.skipped, "cpu_fraction": stats.cpu_fraction,
+           "scheduling": report.as_dict(),
+           "link": {"setpoints": emulator.setpoints_heard,
+                    "feedbacks": emulator.endpoint.stats.sent,
+                    "ticks_without_setpoint": stats.ticks - emulator.setpoints_heard,
+                    "compiled_ticks": steady.ticks if steady is not None else 0,
+                    "compiled_calls": steady.calls if steady is not None else 0}}
+    if not float(period_us).is_integer():
+        note(f"cyclictest takes whole µs, the period is {period_us} µs: cyclictest_us is null")
+        return {**row, "cyclictest_us": None, "cyclictest_beyond": None}
+    # a stall cyclictest also sees is the machine's: its wake-ups later than the slack a
+    # tick of median compute time leaves would have overrun too
+    slack_us = period_us - compute.p50
+    try:
+        text = cyclictest_histogram(int(period_us), seconds, cpu=cpu)
+    except CyclictestError as err:
+        note(f"cyclictest failed, cyclictest_us is null: {err}")
+        text = None
+    if text is None:
+        note("cyclictest is not installed (apt-get install rt-tests): cyclictest_us is null")
+        return {**row, "cyclictest_us": None, "cyclictest_beyond": None}
+    beyond, samples = samples_beyond(text, slack_us)
+    return {**row, "cyclictest_us": parse_histogram(text).as_dict(),
+            "cyclictest_beyond": {"slack_us": slack_us, "samples": samples,
+                                  "beyond": beyond}}
 
 
 def bench_rate(rate_hz: int, seconds: float, step: Callable[[int], None], cpu: int,
@@ -152,40 +176,48 @@ def bench_rate(rate_hz: int, seconds: float, step: Callable[[int], None], cpu: i
             "cyclictest_us": None if reference is None else reference.as_dict()}
 
 
-def run(rates: list[int], seconds: float, with_plant: bool,
-        note: Callable[[str], None] = lambda message: None, adapter: str | None = None
-        ) -> list[dict]:
+def run(rates: list[int | None], seconds: float, with_plant: bool,
+        note: Callable[[str], None] = lambda message: None, adapter: str | None = None,
+        config: Path = PLANT_CONFIG) -> list[dict]:
     """Benchmark every rate (Hz) for ``seconds`` each; returns the JSON-ready rows.
 
     Args:
+        rates: with an adapter, None stands for the machine's PWM frequency.
         note: receives a line per finished rate and any reason ``cyclictest_us`` is null.
-        adapter: None, or one of :data:`ADAPTERS` (needs ``with_plant``): the tick is the
-            emulator's behind that adapter's device end, a controller child on the other.
+        adapter: None, or one of :data:`ADAPTERS` (needs ``with_plant``): the emulator
+            (``hil run``'s loop) on ``config`` behind that adapter's device end, a
+            controller child on the other.
+        config: the machine file or manifest of the plant (with an adapter: of the
+            emulator).
     """
-    if any(not 1 <= r <= 1_000_000 for r in rates):
+    if any(r is not None and not 1 <= r <= 1_000_000 for r in rates) or (
+            adapter is None and None in rates):
         raise ValueError(f"rates must be 1..1000000 Hz, got {rates}")
     if adapter is not None and not with_plant:
         raise ValueError(f"adapter={adapter!r} needs with_plant: the adapter carries the "
                          f"plant's setpoints and feedback")
+    if adapter is not None and adapter not in ADAPTERS:
+        raise ValueError(f"adapter must be one of {ADAPTERS}, got {adapter!r}")
     cpu = last_cpu()
     rows = []
-    shared = plant_step() if with_plant and adapter is None else _idle_step
+    shared = plant_step(config) if with_plant and adapter is None else _idle_step
     for rate_hz in rates:
-        with ExitStack() as stack:  # the emulator runs at the row's rate
-            linked = adapter_step(stack, adapter, rate_hz) if adapter is not None else None
-            row = {**bench_rate(rate_hz, seconds, linked or shared, cpu, note),
-                   "with_plant": with_plant, "adapter": adapter,
-                   "link": None if linked is None else linked.link()}
-            rows.append(row)
+        if adapter is not None:
+            row = {**emulator_rate(rate_hz, seconds, config, cpu, note), "with_plant": True,
+                   "adapter": adapter}
+        else:
+            row = {**bench_rate(rate_hz, seconds, shared, cpu, note),
+                   "with_plant": with_plant, "adapter": None, "link": None}
+        rows.append(row)
         ref = row["cyclictest_us"]
-        note(f"  {rate_hz:6d} Hz  lateness p99.9 {row['lateness_us']['p999']:8.2f} µs  "
+        note(f"  {row['rate_hz']:8g} Hz  lateness p99.9 {row['lateness_us']['p999']:8.2f} µs  "
              f"cyclictest p99.9 {'-' if ref is None else format(ref['p999'], '8.2f')} "
              f"µs  overruns {row['overruns']}  CPU {row['cpu_fraction']:.0%}")
     return rows
 
 
-def main_rows(rates: list[int], seconds: float, with_plant: bool,
-              adapter: str | None = None) -> list[dict]:
+def main_rows(rates: list[int | None], seconds: float, with_plant: bool,
+              adapter: str | None = None, config: Path = PLANT_CONFIG) -> list[dict]:
     """What ``hil bench loop`` prints: :func:`run` with its notes on stderr."""
-    return run(rates, seconds, with_plant, adapter=adapter,
+    return run(rates, seconds, with_plant, adapter=adapter, config=config,
                note=lambda message: print(message, file=sys.stderr, flush=True))

@@ -57,7 +57,7 @@ from hil.cia402 import EnableSequencer
 from hil.drive import compiled as C
 from hil.rt.loop import Percentiles
 from hil.runtime import steady_tick as S
-from hil.runtime.emulator import Emulator, RuntimeConfig
+from hil.runtime.emulator import Emulator, RuntimeConfig, short_gil_switch
 from io_adapters import open_endpoint
 from io_adapters.messages import MODE_CSP, axis_records, message_pair
 from plant import Plant
@@ -155,7 +155,8 @@ def bench(config: Path, seconds: float, compiled: bool = True) -> dict:
             raise RuntimeError(f"the controller process did not start within {START_S} s")
         parent.recv()
         drain.start()
-        stats = emulator.loop.run()
+        with short_gil_switch():
+            stats = emulator.loop.run()
     finally:
         drain.stop()
         parent.send("stop")
@@ -227,15 +228,16 @@ class _Drain:
             self._take()
 
     def _take(self) -> None:
+        """The rows committed since the last call, in a few array operations (the GIL is
+        held meanwhile, and the loop may want it back)."""
         recorder = self.recorder
         first, end = recorder.pending()
-        slots, common = recorder.slots, recorder.common
-        for row in range(first, end):
-            j = row % slots
-            k = common[S.R_TICK, j]
-            if 0 <= k < self.compute.size:
-                self.lateness[k] = common[S.R_LATENESS, j]
-                self.compute[k] = common[S.R_COMPUTE, j]
+        j = np.arange(first, end) % recorder.slots
+        common = recorder.common
+        k = common[S.R_TICK, j]
+        keep = (k >= 0) & (k < self.compute.size)
+        self.lateness[k[keep]] = common[S.R_LATENESS, j[keep]]
+        self.compute[k[keep]] = common[S.R_COMPUTE, j[keep]]
         recorder.release(end)
 
 

@@ -70,6 +70,27 @@ def parse_histogram(text: str) -> Percentiles:
                        p999=percentile_us(999), max=float(max_us))
 
 
+def samples_beyond(text: str, threshold_us: float) -> tuple[int, int]:
+    """From cyclictest's ``-h`` output: (samples whose latency exceeded ``threshold_us``,
+    the overflows past the histogram's range among them; all samples).  A bin of b µs
+    holds latencies in [b, b + 1): it counts when b >= ``threshold_us``."""
+    beyond = total = 0
+    overflows = 0
+    for line in text.splitlines():
+        if line.startswith("#"):
+            key, _, values = line[1:].partition(":")
+            if key.strip() == "Histogram Overflows":
+                overflows = sum(int(v) for v in values.split())
+            continue
+        fields = line.split()
+        if len(fields) >= 2 and fields[0].isdigit():
+            n = sum(int(c) for c in fields[1:])
+            total += n
+            if int(fields[0]) >= threshold_us:
+                beyond += n
+    return beyond + overflows, total + overflows
+
+
 def cyclictest_histogram(interval_us: int, seconds: float, priority: int = 80,
                          cpu: int | None = None,
                          histogram_us: int = DEFAULT_HISTOGRAM_US) -> str | None:

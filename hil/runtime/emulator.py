@@ -168,7 +168,8 @@ from plant.machines import MachineSet, load_machine_set, single_axis
 from plant.substeps import realtime_limit, realtime_limit_text
 
 __all__ = ["Emulator", "RuntimeConfig", "Timing", "add_arguments",
-           "main", "resolve_timing", "run_from_args", "signals_end_process"]
+           "main", "resolve_timing", "run_from_args", "short_gil_switch",
+           "signals_end_process"]
 
 #: drive cycles run on the plant before the clock starts (compiled code and caches warm)
 WARMUP_CYCLES = WARM_CYCLES
@@ -455,18 +456,13 @@ class Emulator:
         if warning:
             self._log(warning)
         self.writer.start(cpu)
-        switch_interval = sys.getswitchinterval()
-        sys.setswitchinterval(GIL_SWITCH_S)
-        try:
-            with scheduling(rc.realtime, cpu, rc.priority) as granted:
-                if granted is not None and granted.fifo.granted:
-                    self.helper_threads = helper_threads_realtime(cpu, max(1, rc.priority - 1))
-                try:
-                    stats = self.loop.run()
-                finally:  # an exception leaves the axes in their safe state too
-                    safe = self.safe_state()
-        finally:
-            sys.setswitchinterval(switch_interval)
+        with short_gil_switch(), scheduling(rc.realtime, cpu, rc.priority) as granted:
+            if granted is not None and granted.fifo.granted:
+                self.helper_threads = helper_threads_realtime(cpu, max(1, rc.priority - 1))
+            try:
+                stats = self.loop.run()
+            finally:  # an exception leaves the axes in their safe state too
+                safe = self.safe_state()
         self.endpoint.close()
         self.writer.stop(final_events(self, stats, safe))
         lateness, compute = self.writer.loop_percentiles()
@@ -481,6 +477,18 @@ class Emulator:
         finally:
             self.folder.close()
         return report
+
+
+@contextmanager
+def short_gil_switch() -> Iterator[None]:
+    """The interpreter's thread switch interval at :data:`GIL_SWITCH_S` for the ``with``
+    block (a loop's run), the previous one after it."""
+    previous = sys.getswitchinterval()
+    sys.setswitchinterval(GIL_SWITCH_S)
+    try:
+        yield
+    finally:
+        sys.setswitchinterval(previous)
 
 
 @contextmanager
