@@ -315,3 +315,139 @@ def encode_feedback(out, fb_ints, fb_axis_ints, fb_floats):
     for k in range(F_SP_T_NS, N_FB_INTS):
         pos = _write_int(out, pos, fb_ints[k])
     return pos
+
+
+@njit(cache=True)
+def _read_feedback_axis(buf, pos, n, fb_axis_ints, fb_floats, a, first, write):
+    """An axis's statusword, fault and finite floats ``first`` .. 5 at ``pos`` (checked,
+    and with ``write`` written as axis ``a``): (ok, next position)."""
+    ok, statusword, pos = _read_int(buf, pos, n, 0, 0xFFFF)
+    if ok:
+        ok, fault, pos = _read_int(buf, pos, n, _FAULT_MIN, _FAULT_MAX)
+    if ok and write:
+        fb_axis_ints[a, A_STATUSWORD], fb_axis_ints[a, A_FAULT] = statusword, fault
+    k = first
+    while ok and k < 6:
+        ok, x, pos = _read_finite(buf, pos, n)
+        if write:
+            fb_floats[a, k] = x
+        k += 1
+    return ok, pos
+
+
+@njit(cache=True)
+def _read_stamps(buf, pos, n, fb_ints, write):
+    """The four stamps (sp_t_ns, sp_rx_ns, t_ns, tick_ns) at ``pos``: (ok, next)."""
+    ok = True
+    for k in range(F_SP_T_NS, N_FB_INTS):
+        ok, v, pos = _read_int(buf, pos, n, 0, T_NS_MAX)
+        if not ok:
+            return False, pos
+        if write:
+            fb_ints[k] = v
+    return True, pos
+
+
+@njit(cache=True, _nrt=False)
+def decode_feedback(buf, n, fb_ints, fb_axis_ints, fb_floats):
+    """Read the feedback in ``buf[:n]`` (uint8) into ``fb_ints``, ``fb_axis_ints`` and
+    ``fb_floats`` (see the module docstring; a group's ``time_s`` into axis 0's column
+    0): a version-1 Feedback (a msgpack array 16) when ``fb_axis_ints`` has one row, else
+    a version-2 FeedbackGroup of that many axes.  False, with nothing written, unless it
+    is one with every float finite (the controller's endpoint refuses the others)."""
+    n_axes = fb_axis_ints.shape[0]
+    group = n_axes > 1
+    if group:
+        if n < 1 or buf[0] != 0x90 + _FBG_LENGTH:
+            return False
+        pos = 1
+    else:
+        if n < 3 or buf[0] != 0xDC or buf[1] != 0 or buf[2] != _FB_LENGTH:
+            return False
+        pos = 3
+    ok, _, pos = _read_int(buf, pos, n, VERSION_GROUP if group else VERSION,
+                           VERSION_GROUP if group else VERSION)
+    if ok:
+        ok, _, pos = _read_int(buf, pos, n, KIND_FEEDBACK, KIND_FEEDBACK)
+    if ok:
+        ok, session, pos = _read_u32(buf, pos, n)
+    if ok:
+        ok, frame, pos = _read_u32(buf, pos, n)
+    if ok:
+        ok, seq, pos = _read_u32(buf, pos, n)
+    if not ok:
+        return False
+    start = pos
+    for write in (False, True):  # check all, then write: nothing written on a refusal
+        pos = start
+        if group:
+            ok, time_s, pos = _read_finite(buf, pos, n)
+            if ok:
+                ok, pos = _read_stamps(buf, pos, n, fb_ints, write)
+            if not ok or pos >= n or buf[pos] != 0x90 + n_axes:
+                return False
+            pos += 1
+            for a in range(n_axes):
+                if pos >= n or buf[pos] != 0x90 + _FBG_AXIS:
+                    return False
+                ok, pos = _read_feedback_axis(buf, pos + 1, n, fb_axis_ints, fb_floats, a,
+                                              1, write)
+                if not ok:
+                    return False
+            if write:
+                fb_floats[0, 0] = time_s
+        else:
+            ok, pos = _read_feedback_axis(buf, pos, n, fb_axis_ints, fb_floats, 0, 0, write)
+            if ok:
+                ok, pos = _read_stamps(buf, pos, n, fb_ints, write)
+            if not ok:
+                return False
+        if pos != n:
+            return False
+    fb_ints[F_SESSION], fb_ints[F_FRAME], fb_ints[F_SEQ] = session, frame, seq
+    return True
+
+
+@njit(cache=True, _nrt=False)
+def encode_setpoint(out, ints, axis_ints, floats):
+    """The setpoint of ``ints``, ``axis_ints`` and ``floats`` into ``out`` (uint8, at
+    least 40 + 75 bytes per axis): a version-1 Setpoint for one row, else a version-2
+    SetpointGroup, the bytes ``msgpack.packb`` writes.  Its length, or -1 (nothing
+    meaningful written) when a float is not finite or an integer is outside its field's
+    range."""
+    n_axes = axis_ints.shape[0]
+    for a in range(n_axes):
+        for k in range(7):
+            x = floats[a, k]
+            if x != x or abs(x) == math.inf:
+                return -1
+        if not (0 <= axis_ints[a, A_CONTROLWORD] <= 0xFFFF
+                and -128 <= axis_ints[a, A_MODE] <= 127):
+            return -1
+    if not (0 <= ints[I_SESSION] <= U32 and 0 <= ints[I_FRAME] <= U32
+            and 0 <= ints[I_SEQ] <= U32 and 0 <= ints[I_T_NS] <= T_NS_MAX):
+        return -1
+    if n_axes > 1:
+        out[0] = 0x90 + _SPG_LENGTH
+        pos = _write_int(out, 1, VERSION_GROUP)
+    else:
+        out[0] = 0x90 + _SP_LENGTH
+        pos = _write_int(out, 1, VERSION)
+    pos = _write_int(out, pos, KIND_SETPOINT)
+    for k in range(I_SESSION, I_T_NS):
+        pos = _write_int(out, pos, ints[k])
+    if n_axes > 1:
+        pos = _write_int(out, pos, ints[I_T_NS])
+        out[pos] = 0x90 + n_axes
+        pos += 1
+    for a in range(n_axes):
+        if n_axes > 1:
+            out[pos] = 0x90 + _SPG_AXIS
+            pos += 1
+        pos = _write_int(out, pos, axis_ints[a, A_CONTROLWORD])
+        pos = _write_int(out, pos, axis_ints[a, A_MODE])
+        for k in range(7):
+            pos = _write_float(out, pos, floats[a, k])
+    if n_axes == 1:
+        pos = _write_int(out, pos, ints[I_T_NS])
+    return pos

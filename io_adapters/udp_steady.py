@@ -220,10 +220,11 @@ def idle(books):
 
 
 @njit(cache=True, inline="always")
-def send(link, out, n_out, fb_ints, send_name, books):
-    """Send the answer ``out[:n_out]`` to the peer (``n_out`` 0: none was encoded);
-    0, or -1 after a send error other than no room (``link[L_SEND_ERRNO]``: the
-    caller's Python raises it)."""
+def send(link, out, n_out, head, send_name, books):
+    """Send the record ``out[:n_out]`` to the peer (``n_out`` 0: none was encoded), its
+    session and frame number in ``head[0]`` and ``head[1]`` (an answer's ``fb_ints``, a
+    setpoint's ``sp_ints``: the frame advanced when sent); 0, or -1 after a send error
+    other than no room (``link[L_SEND_ERRNO]``: the caller's Python raises it)."""
     if n_out <= 0 or link[L_SEND_LEN] == 0:
         return 0
     if _sendto(link[L_FD], out.ctypes, n_out, _MSG_DONTWAIT, send_name.ctypes,
@@ -236,7 +237,7 @@ def send(link, out, n_out, fb_ints, send_name, books):
         return -1
     books[B_BYTES_SENT] += n_out
     books[B_SENT] += 1
-    fb_ints[F_FRAME] = (fb_ints[F_FRAME] + 1) & U32
+    head[F_FRAME] = (head[F_FRAME] + 1) & U32
     return 0
 
 
@@ -266,8 +267,10 @@ def address_of(name: bytes) -> tuple:
 
 
 class SteadyLink:
-    """The compiled code's face of the UDP device endpoint ``endpoint`` of a machine of
-    ``n_axes`` axes (see the module docstring).
+    """The compiled code's face of the UDP endpoint ``endpoint`` of a machine of
+    ``n_axes`` axes (see the module docstring): a device, which reads setpoints and
+    answers with feedback, or a controller, which reads feedback and sends setpoints (a
+    stranger's datagram is foreign to it, whatever its first byte).
 
     Attributes:
         bufs: uint8[:data:`MAX_QUEUED`, MAX_DATAGRAM], the datagrams :func:`receive`
@@ -276,17 +279,20 @@ class SteadyLink:
             (:func:`io_adapters.codec_compiled.decode_setpoint`).
         link: int64[:data:`N_LINK`] (layout above).
         books: int64[len(:data:`BOOKS`)], the counts since the last :meth:`settle`.
-        fb_ints, fb_axis_ints, fb_floats: the answer's values
-            (:mod:`io_adapters.codec_compiled` layout); its session and frame written by
-            :meth:`prepare`, the rest by the compiled tick and its caller.
-        out: uint8[:data:`OUT_BYTES`], the encoded answer.
+        fb_ints, fb_axis_ints, fb_floats: the feedback's values
+            (:mod:`io_adapters.codec_compiled` layout): a device's answer, a controller's
+            feedback read.
+        head: the record sent's ints (a device's ``fb_ints``, a controller's
+            ``sp_ints``): its session and frame written by :meth:`prepare`, the frame
+            advanced by :func:`send`.
+        out: uint8[:data:`OUT_BYTES`], the encoded record sent.
         hdr, iov, slots, name_slots, names, ctrl, peer_name, send_name, hello_leads,
             peek: the C structures and buffers :func:`receive` and :func:`send` use.
     """
 
     def __init__(self, endpoint: UdpEndpoint, n_axes: int = 1):
-        if not isinstance(endpoint, UdpEndpoint) or endpoint.role is not Role.DEVICE:
-            raise AdapterConfigError(f"{endpoint!r}: a compiled tick needs a UDP device")
+        if not isinstance(endpoint, UdpEndpoint):
+            raise AdapterConfigError(f"{endpoint!r}: a compiled tick needs a UDP endpoint")
         if not 1 <= n_axes <= MAX_AXES:
             raise AdapterConfigError(f"a compiled tick takes 1 to {MAX_AXES} axes, not "
                                      f"{n_axes}")
@@ -314,7 +320,10 @@ class SteadyLink:
         self.peer_name = np.zeros(NAME_BYTES, np.uint8)
         self.send_name = np.zeros(NAME_BYTES, np.uint8)
         self.hello_leads = np.zeros(256, np.uint8)
-        self.hello_leads[list(endpoint.wire.hello_leads)] = 1
+        self.device = endpoint.role is Role.DEVICE
+        if self.device:  # a controller counts every stranger's datagram foreign
+            self.hello_leads[list(endpoint.wire.hello_leads)] = 1
+        self.head = self.fb_ints if self.device else self.sp_ints
         self.peek = np.zeros(1, np.uint8)
         self.link[L_FD] = endpoint._sock.fileno()
         self.link[L_STAMPS_ON] = endpoint._clock is not None
@@ -322,10 +331,11 @@ class SteadyLink:
         self._peer = self._send_to = None  # the addresses written into the arrays
 
     def ready(self) -> bool:
-        """The compiled code may read: a pinned peer, nothing handed back still waiting
-        in the endpoint."""
+        """The compiled code may read: a pinned peer (a controller: welcomed by it),
+        nothing handed back still waiting in the endpoint."""
         ep = self.endpoint
-        return ep._peer_session is not None and not ep._stash
+        return (ep._peer_session is not None and not ep._stash
+                and (self.device or ep.welcomed))
 
     def prepare(self) -> None:
         """Before a call of compiled code: the endpoint's state into the arrays (its peer,
@@ -356,8 +366,8 @@ class SteadyLink:
         link[L_PEER_SESSION] = ep._peer_session
         link[L_PEER_FRAME] = ep._peer_frame
         link[L_HEARD_NS] = ep._heard_ns
-        self.fb_ints[F_SESSION] = ep.session
-        self.fb_ints[F_FRAME] = ep._frame
+        self.head[F_SESSION] = ep.session
+        self.head[F_FRAME] = ep._frame
 
     def settle(self, took: bool) -> None:
         """After a call of compiled code: the counts and states it kept into the endpoint
@@ -369,15 +379,16 @@ class SteadyLink:
             if books[k]:
                 setattr(st, name, getattr(st, name) + int(books[k]))
         books.fill(0)
-        ep._frame = int(self.fb_ints[F_FRAME])
+        ep._frame = int(self.head[F_FRAME])
         if took:
             ep.refused_axes = 0
         if ep._peer_frame != link[L_PEER_FRAME]:
             ep._peer_frame = int(link[L_PEER_FRAME])
             ep._after_jump = None
-            ep._heard_ns = int(link[L_HEARD_NS])
-            ep._sp_t_ns = int(self.fb_ints[F_SP_T_NS])
-            ep._sp_rx_ns = int(self.fb_ints[F_SP_RX_NS])
+            if self.device:
+                ep._heard_ns = int(link[L_HEARD_NS])
+                ep._sp_t_ns = int(self.fb_ints[F_SP_T_NS])
+                ep._sp_rx_ns = int(self.fb_ints[F_SP_RX_NS])
 
     def hand_back(self) -> None:
         """Hand the datagrams the last :func:`receive` read (and its receive error) back

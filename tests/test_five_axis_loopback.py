@@ -9,20 +9,23 @@ Checked against the lock-step simulation of the whole machine
 (:class:`hil.sim.MachineLockStep`, the same controller and plants in one process, no
 wire): on the rows clear of every timing fault's effect
 (:func:`hil.runtime.sync.settled_rows`), at least MIN_CLEAR of them, each axis's
-following error within the larger of 2 % of its lock-step maximum and FLOOR (a few
-scale counts: where a tick's setpoint lands within its period differs between the two),
-and each axis's final position within FINAL_COUNTS scale counts; at most ATTEMPTS runs
-(a shared CI machine may stall a run past use).  The emulator's report must show the
-compiled loop carrying the motion: most ticks compiled, in calls of many ticks.
+following error within the larger of 2 % of its lock-step maximum and FLOOR_COUNTS
+position counts (where a tick's setpoint lands within its period differs between the
+two), and each axis's final position within FINAL_COUNTS counts; at most ATTEMPTS runs
+(a shared CI machine may stall a run past use).  The emulator's report and the controller's
+summary must show both compiled loops carrying the motion: most ticks compiled, in calls
+of many ticks.
 """
 
 import json
+import math
 import os
 
 import numpy as np
 import pytest
 
 from hil.commands import SETTLE_S
+from hil.controller.config import cnc_unit
 from hil.runtime.sync import settled_rows
 from hil.trace_file import read_trace
 from plant.machines import load_machine_set
@@ -33,8 +36,8 @@ from tests.runtime_helpers import (EXIT_S, Children, machine_lockstep_traces, py
 CONFIG = CONFIGS / "machines" / "geiss_5axis.toml"
 PROGRAM = ROOT / "programs" / "geiss_5axis_moves.nc"
 TOLERANCE = 0.02
-#: the smallest following-error difference judged, in the trace's unit (mm, or degrees on
-#: a rotary axis): a few scale counts
+#: the smallest following-error difference judged, in position counts (the scale's, or a
+#: direct-drive rotary axis's encoder's)
 FLOOR_COUNTS = 20
 FINAL_COUNTS = 10
 MIN_CLEAR = 0.2
@@ -90,23 +93,35 @@ def test_five_axes_at_8khz_match_the_machine_lockstep(lockstep, tmp_path):
     assert report["runtime"]["rate_hz"] == 8000.0
     assert report["adapter"]["stats"]["malformed"] == 0
     compiled = report["compiled_loop"]
-    print(f"\ncompiled loop: {compiled}; loop: {report['loop']['compute_us']}")
-    # the program's motion and the holds around it run compiled, many ticks a call
-    assert compiled["ticks"] >= 0.5 * summary["ticks_recorded"]
-    assert compiled["ticks"] >= 10 * compiled["calls"]
+    print(f"\nemulator's compiled loop: {compiled}; loop: {report['loop']['compute_us']}; "
+          f"controller's: {summary['compiled_loop']}; loop: {summary['loop']['compute_us']}")
+    # the program's motion and the holds around it run compiled, many ticks a call, on
+    # both sides
+    for loop in (compiled, summary["compiled_loop"]):
+        assert loop["ticks"] >= 0.5 * summary["ticks_recorded"]
+        assert loop["ticks"] >= 10 * loop["calls"]
     for name, cfg in zip(machine.names, machine.configs):
         t, t_ref = (read_trace(p) for p in (folder / "controller" / f"trace_{name}.csv",
                                              lockstep[name]))
-        fe = t.column("pos_set_mm") - t.column("pos_mm")
-        fe_ref = t_ref.column("pos_set_mm") - t_ref.column("pos_mm")
+        k, unit = cnc_unit(cfg)
+        fe = t.column(f"pos_set_{unit}") - t.column(f"pos_{unit}")
+        fe_ref = t_ref.column(f"pos_set_{unit}") - t_ref.column(f"pos_{unit}")
         n = min(fe.size, fe_ref.size)
         keep = clear[name][:n]
         diff = np.abs(fe[:n] - fe_ref[:n])
-        count = cfg.sensors.scale_resolution_m * 1e3
+        count = position_count(cfg) * k
         worst = diff[keep].max()
         allowed = max(TOLERANCE * np.abs(fe_ref).max(), FLOOR_COUNTS * count)
-        print(f"{name}: {keep.sum()} of {n} rows clear; max |FE diff| {worst:.5f} "
-              f"(allowed {allowed:.5f}); lock-step max |FE| {np.abs(fe_ref).max():.5f}")
+        print(f"{name}: {keep.sum()} of {n} rows clear; max |FE diff| {worst:.6f} {unit} "
+              f"(allowed {allowed:.6f}); lock-step max |FE| {np.abs(fe_ref).max():.6f}")
         assert worst <= allowed, f"{name}: row {np.flatnonzero(keep & (diff > allowed))[0]}"
-        final, final_ref = t.column("pos_mm")[-1], t_ref.column("pos_mm")[-1]
+        final, final_ref = t.column(f"pos_{unit}")[-1], t_ref.column(f"pos_{unit}")[-1]
         assert abs(final - final_ref) <= FINAL_COUNTS * count + 1e-12, name
+
+
+def position_count(cfg) -> float:
+    """The axis's position resolution in SI (m or rad): its linear scale's count, or,
+    without one (a direct-drive rotary axis), its motor encoder's."""
+    if cfg.sensors.scale_resolution_m > 0.0:
+        return cfg.sensors.scale_resolution_m
+    return 2.0 * math.pi / cfg.sensors.encoder_counts_per_rev

@@ -288,12 +288,18 @@ class RealTimeLoop:
         self.lateness_ns = np.full(self.n_ticks, SKIPPED, dtype=np.int64)
         self.compute_ns = np.full(self.n_ticks, SKIPPED, dtype=np.int64)
         self.stop_requested = False
+        #: the same request for compiled code that runs ticks (a ``burst``), read every tick
+        self.stop_word = np.zeros(1, np.int64)
         self.stall_log: list[Stall] = []
+        #: runs ticks in compiled code where it may, writing their ``lateness_ns`` and
+        #: ``compute_ns`` itself (:func:`run_ticks`); None: every tick is ``step``'s
+        self.burst = None
 
     def request_stop(self) -> None:
         """Stop before the next tick (safe to call from a signal handler).  The request
         stays: a later :meth:`run` returns at once."""
         self.stop_requested = True
+        self.stop_word[0] = 1
 
     def run(self) -> LoopStats:
         """Run the ticks (until done, stopped by the policy, or asked to stop)."""

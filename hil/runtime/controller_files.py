@@ -128,6 +128,7 @@ def write_outputs(proc, stats, granted, alignment: Alignment) -> dict:
         "loop": stats.as_dict(), "scheduling": scheduling_dict(granted),
         "cpu_shared_with": proc.cpu_shared_with,
         "nc": nc_summary(proc.mctrl, proc.nc_ns[:n]),
+        "compiled_loop": None if proc.steady is None else proc.steady.as_dict(),
         "adapter": {"name": rc.adapter_url, "stats": asdict(proc.ep.stats),
                     "errors": proc.adapter_errors},
         "injections_sent": [{"at_s": p.at_s, **p.request._asdict()}

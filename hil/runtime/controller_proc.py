@@ -93,6 +93,7 @@ from hil.runtime.common import (
     stop_on_signals,
 )
 from hil.runtime.controller_files import FLOAT_COLUMNS, INT_COLUMNS, write_outputs
+from hil.runtime.controller_steady import ControllerSteady
 from hil.runtime.sync import U32, DriveNotAnswering, align
 from io_adapters import AdapterError, Endpoint, open_endpoint
 from io_adapters.messages import axis_records, message_pair
@@ -213,6 +214,8 @@ class ControllerProcess:
         stop.attach(self.loop)
         self.stop = stop
         self.ep: Endpoint | None = None
+        #: the compiled steady loop (run() builds it once the link is open)
+        self.steady: ControllerSteady | None = None
         self.rows = 0
         self.running = False
         self.profile_start_s = 0.0
@@ -223,7 +226,11 @@ class ControllerProcess:
         self.result = "completed"
 
     def step(self, k: int) -> None:
-        """Newest feedback, one controller tick, the setpoint out; enable, then the program."""
+        """Newest feedback, one controller tick, the setpoint out; enable, then the program
+        (in compiled code where :class:`~hil.runtime.controller_steady.ControllerSteady`
+        takes the tick)."""
+        if self.steady is not None and self.steady.tick(k):
+            return
         mctrl, sp, fb = self.mctrl, self.sp, self.fb
         try:
             new = self.ep.recv_feedback(fb, 0.0)
@@ -330,6 +337,10 @@ class ControllerProcess:
         self.ep.drain = True
         self.delay_ticks = getattr(self.ep, "feedback_delay_ticks", 0)
         self.lag_is_age = getattr(self.ep, "lag_is_age", False)
+        self.steady = ControllerSteady.for_process(self)
+        if self.steady is not None:
+            self.steady.warm()
+            self.loop.burst = self.steady.burst
         neighbours, warning = shared_cpu(rc.realtime, rc.cpu, rc.priority)
         self.cpu_shared_with = [n.describe() for n in neighbours]
         if warning:
