@@ -220,6 +220,11 @@ _BASE_STATUSWORD = tuple(
 N_TRANSITIONS = 17  # transition numbers 0 .. 16
 
 
+def base_statusword(state: State) -> int:
+    """The statusword of ``state`` without a cycle's flags (:data:`SW_CALLER_BITS`)."""
+    return _BASE_STATUSWORD[state]
+
+
 def statusword_state(statusword: int) -> State:
     """The state a statusword reports.
 
@@ -321,6 +326,17 @@ class DriveStateMachine:
     def state(self) -> State:
         """The current state."""
         return self._state
+
+    def stays(self, controlword: int) -> bool:
+        """Under ``controlword``, repeated, with no fault, the state takes no transition of
+        its own: true only in SWITCH ON DISABLED, READY TO SWITCH ON and SWITCHED ON, whose
+        rows all hang on the command (13, the fault, aside)."""
+        rows = self._rows[self._state]
+        return (self._state in (State.SWITCH_ON_DISABLED, State.READY_TO_SWITCH_ON,
+                                State.SWITCHED_ON)
+                and all(r.condition == _Cond.FAULT or (r.condition == _Cond.COMMAND
+                                                       and not r.command.matches(controlword))
+                        for r in rows))
 
     @property
     def statusword(self) -> int:

@@ -331,11 +331,12 @@ class SteadyLink:
         self._peer = self._send_to = None  # the addresses written into the arrays
 
     def ready(self) -> bool:
-        """The compiled code may read: a pinned peer (a controller: welcomed by it),
-        nothing handed back still waiting in the endpoint."""
+        """The compiled code may read: nothing handed back still waiting in the endpoint;
+        a controller welcomed by its drive (a device without a peer yet takes no
+        setpoint compiled: every datagram is a stranger's)."""
         ep = self.endpoint
-        return (ep._peer_session is not None and not ep._stash
-                and (self.device or ep.welcomed))
+        return not ep._stash and (self.device or (ep._peer_session is not None
+                                                  and ep.welcomed))
 
     def prepare(self) -> None:
         """Before a call of compiled code: the endpoint's state into the arrays (its peer,
@@ -349,7 +350,7 @@ class SteadyLink:
             flood.watch(now, ep._peer_origin, ep._peer_fresh(now))
         if ep._peer_origin != self._peer:
             self._peer = ep._peer_origin
-            name = sockaddr(self._peer, self._family)
+            name = sockaddr(self._peer, self._family) if self._peer is not None else b""
             self.peer_name[:len(name)] = np.frombuffer(name, np.uint8)
             link[L_PEER_LEN] = len(name)
         to = ep.peer
@@ -363,7 +364,7 @@ class SteadyLink:
             clock.monotonic_ns(time.clock_gettime_ns(time.CLOCK_REALTIME))
             link[L_OFFSET] = clock.offset_ns
         link[L_BUDGET] = ep.rx_budget if ep.rx_budget is not None else sys.maxsize
-        link[L_PEER_SESSION] = ep._peer_session
+        link[L_PEER_SESSION] = ep._peer_session if ep._peer_session is not None else -1
         link[L_PEER_FRAME] = ep._peer_frame
         link[L_HEARD_NS] = ep._heard_ns
         self.head[F_SESSION] = ep.session

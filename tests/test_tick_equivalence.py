@@ -17,6 +17,7 @@ import math
 from dataclasses import dataclass, field, fields
 
 import numpy as np
+import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -39,21 +40,25 @@ from plant.config import load_machine
 from tests.conftest import CONFIGS
 
 ARROW = load_machine(CONFIGS / "arrow500_x.toml")
+#: the Arrow with a holding brake on its motor (closing in 30 ms)
+BRAKED = load_machine(CONFIGS / "arrow500_x.toml", {"brake": {"holding_torque_nm": 20.0}})
 FB_FLOATS = tuple(f.name for f in fields(Feedback) if f.type in (float, "float"))
 FB_INTS = tuple(f.name for f in fields(Feedback) if f.name not in FB_FLOATS)
 
 
 @dataclass
 class Twin:
-    """One machine of ``n_axes`` Arrow 500 X axes, Python or compiled, with its ring."""
+    """One machine of ``n_axes`` Arrow 500 X axes (or ``machine``'s), Python or compiled,
+    with its ring."""
     compiled: bool
     n_axes: int
     ticks: int
+    machine: object = ARROW
     drives: DriveSet = field(init=False)
     recorder: Recorder = field(init=False)
 
     def __post_init__(self):
-        self.drives = DriveSet([EmulatedDrive(Plant(ARROW, table_pos=0.25),
+        self.drives = DriveSet([EmulatedDrive(Plant(self.machine, table_pos=0.25),
                                               compiled=self.compiled)
                                 for _ in range(self.n_axes)])
         self.sp, self.fb = message_pair(self.n_axes)
@@ -98,6 +103,9 @@ def assert_same_state(a: EmulatedDrive, b: EmulatedDrive) -> None:
     """The objects' state once the compiled path has handed it back."""
     b.settle()
     for get in (lambda d: d.monitor.__dict__, lambda d: d.modes.interp.__dict__,
+                lambda d: d.holding_brake.__dict__, lambda d: d.modes.profile.__dict__,
+                lambda d: {k: v for k, v in d.modes.__dict__.items()
+                           if isinstance(v, (int, float, tuple, type(None)))},
                 lambda d: d.loops.speed.pi.__dict__, lambda d: d.loops.speed.notch.__dict__,
                 lambda d: d.loops.pos.sym.__dict__):
         va, vb = get(a), get(b)
@@ -174,9 +182,9 @@ class Script:
                 k += 1
 
 
-def _compare(segments, n_axes: int = 1) -> Twin:
+def _compare(segments, n_axes: int = 1, machine=ARROW) -> Twin:
     ticks = sum(t for _, t, _ in segments)
-    a, b = Twin(False, n_axes, ticks), Twin(True, n_axes, ticks)
+    a, b = Twin(False, n_axes, ticks, machine), Twin(True, n_axes, ticks, machine)
     Script(segments, n_axes).run(a, b)
     assert_same_rows(a, b)
     for da, db in zip(a.drives.drives, b.drives.drives):
@@ -186,6 +194,31 @@ def _compare(segments, n_axes: int = 1) -> Twin:
 
 def _compiled_share(twin: Twin, enabled_ticks: int) -> float:
     return min(d.compiled.cycles for d in twin.drives.drives) / enabled_ticks
+
+
+@pytest.mark.parametrize("machine", [ARROW, BRAKED], ids=["arrow", "arrow_with_brake"])
+def test_power_off_states(machine):
+    """The power-off cycle (SWITCH ON DISABLED, READY TO SWITCH ON, SWITCHED ON under a
+    held controlword): at rest, then coasting after disable voltage in motion (with a
+    holding brake: it closes after its closing time, and stops the axis), between
+    enables; the objects' state compared after each stretch."""
+    segments = [
+        ("cw", 300, 0x0000),        # SWITCH ON DISABLED
+        ("settle", 0, 0.0),
+        ("cw", 300, 0x0006),        # shutdown: READY TO SWITCH ON
+        ("cw", 300, 0x0007),        # switch on: SWITCHED ON
+        ("settle", 0, 0.0),
+        ("csp", 600, 40.0),         # enable, CSP ramp
+        ("cw", 800, 0x0000),        # disable voltage while moving: the axis coasts
+        ("settle", 0, 0.0),
+        ("csp", 400, 0.0),          # enable again, hold
+        ("cw", 300, 0x0006),        # shutdown from OPERATION ENABLED: READY TO SWITCH ON
+    ]
+    b = _compare(segments, machine=machine)
+    d = b.drives.drives[0].compiled
+    # every held stretch but its first cycle (the transition's, in Python) and the one
+    # that packs the state
+    assert d.idle_cycles >= 300 + 300 + 300 + 800 + 300 - 5 * 3
 
 
 def test_enable_motion_fault_reset_modes_limits_refusal_quick_stop():

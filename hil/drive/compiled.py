@@ -88,7 +88,8 @@ S_IQ, S_ID, S_UD, S_UQ, S_POS, S_VEL, S_VOFF = range(7)
 N_SPF = 7
 I_SEQ, I_CW, I_MODE = range(3)
 
-#: ``prm``: motor units per increment; the speed cycle, the drive cycle (s); 607Dh, 6080h,
+#: ``prm`` (the last two: the holding brake's presence, 1.0, and closing time, s):
+#: motor units per increment; the speed cycle, the drive cycle (s); 607Dh, 6080h,
 #: 6072h, 6065h-6068h, the I²t levels, the overspeed and standstill speeds, 60C2h (s), the
 #: home shift (increments), 2.0 (``pow``'s exponent); the adapter's bounds (wire units);
 #: the position loop (K_v 1/s, feed-forward weight, symmetrising PT1 factor, speed limit),
@@ -105,16 +106,23 @@ I_SEQ, I_CW, I_MODE = range(3)
  R_SET_B0, R_SET_B1, R_SET_B2, R_SET_A1, R_SET_A2,
  R_CUR_B0, R_CUR_B1, R_CUR_B2, R_CUR_A1, R_CUR_A2,
  R_NOTCH_B0, R_NOTCH_B1, R_NOTCH_B2, R_NOTCH_A1, R_NOTCH_A2, R_MAX_CURRENT2, R_PEAK_TRIP2,
- R_PEAK_TIME, R_VOLTAGE_OK, N_PRM) = range(56)
-#: ``fst``: the drive's, the monitor's, the modes' and interpolator's and the loops' floats
+ R_PEAK_TIME, R_VOLTAGE_OK, R_BRAKE_PRESENT, R_BRAKE_CLOSING, N_PRM) = range(58)
+#: ``fst``: the drive's, the monitor's, the modes' and interpolator's and the loops' floats;
+#: the holding brake's time since the pulses went off (s); the power-off cycle's last
+#: position and speed actual and the last setpoint's 607Ah and 60B1h (NaN: none ran since
+#: the state was packed)
 (F_COUNTS_PREV, F_VELOCITY, F_I2T, F_FE_TIME, F_IN_WINDOW, F_SWITCH_NEG, F_SWITCH_POS,
  F_FOLLOWING_ERROR, F_DEMAND, F_SPEED, F_START_A, F_START_B, F_END_A, F_END_B,
  F_SYM_Y, F_POS_ERROR, F_INTEG, F_SET_Z1, F_SET_Z2, F_CUR_Z1, F_CUR_Z2, F_NOTCH_Z1,
- F_NOTCH_Z2, F_E_PREV, F_W_CMD, F_IQ, F_LAST_GOOD_X, F_PEAK_TIME, N_FST) = range(29)
+ F_NOTCH_Z2, F_E_PREV, F_W_CMD, F_IQ, F_LAST_GOOD_X, F_PEAK_TIME, F_BRAKE_OFF, F_IDLE_THETA,
+ F_IDLE_W, F_IDLE_POS, F_IDLE_VOFF, N_FST) = range(34)
 #: ``ist``: the drive cycle, statusword bits, the interpolator's segment, the cycle ratios,
-#: sub-steps per cycle, the steady state's mode and controlword, the ring's column
+#: sub-steps per cycle, the steady state's mode and controlword, the ring's column; 1 when
+#: the steady state is a power-off one (:func:`steady_cycle` runs the power-off cycle), its
+#: CiA 402 state and that state's statusword without the cycle's flags
 (J_TICK, J_LIMITED, J_HOT, J_MONITOR_FLAGS, J_STATUSWORD, J_INTERP_SEQ, J_CYCLES, J_LENGTH,
- J_SPEED_RATIO, J_POSITION_RATIO, J_N_SUB, J_MODE, J_CONTROLWORD, J_ROW, N_IST) = range(15)
+ J_SPEED_RATIO, J_POSITION_RATIO, J_N_SUB, J_MODE, J_CONTROLWORD, J_ROW, J_IDLE, J_STATE,
+ J_BASE_STATUSWORD, N_IST) = range(18)
 B_TIME, B_ENCODER, B_SCALE, B_VELOCITY, B_IQ, B_ID = range(6)
 #: ``[controller] speed_antiwindup`` in ``prm[R_ANTIWINDUP]``
 AW_CONDITIONAL, AW_TORQUE_SETPOINT, AW_CLAMP, AW_NONE = 0.0, 1.0, 2.0, 3.0
@@ -219,9 +227,8 @@ def _command(prm, w, wi, spf, spi, theta):
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def _monitor(prm, w, wi, out, target, theta, w_act, voltage):
-    """Monitor.check in OPERATION ENABLED (``voltage``: in voltage mode): its statusword
-    flags, or -1 when a fault cause is present (then the cycle is the Python path's)."""
+def _i2t(prm, w, wi, out):
+    """Monitor._i2t on the sampled currents: True when hot (the cause OVERCURRENT)."""
     currents_a2 = math.pow(out[L.O_IQ_MEAS], prm[R_TWO]) + math.pow(out[L.O_ID_MEAS],
                                                                      prm[R_TWO])
     heat = w[F_I2T] + (currents_a2 - prm[R_CONTINUOUS2]) * prm[R_CYCLE]
@@ -230,7 +237,15 @@ def _monitor(prm, w, wi, out, target, theta, w_act, voltage):
         wi[J_HOT] = 1
     elif w[F_I2T] <= prm[R_I2T_COOLED]:
         wi[J_HOT] = 0
-    if wi[J_HOT] or abs(w_act) > prm[R_OVERSPEED]:
+    return currents_a2, wi[J_HOT] != 0
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _monitor(prm, w, wi, out, target, theta, w_act, voltage):
+    """Monitor.check in OPERATION ENABLED (``voltage``: in voltage mode): its statusword
+    flags, or -1 when a fault cause is present (then the cycle is the Python path's)."""
+    currents_a2, hot = _i2t(prm, w, wi, out)
+    if hot or abs(w_act) > prm[R_OVERSPEED]:
         return -1
     if voltage:  # Monitor._peak
         if currents_a2 > prm[R_MAX_CURRENT2]:
@@ -342,10 +357,11 @@ def _current(prm, w, wi, spf, mode, target, w_cmd, theta, w_act):
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def _step_plant(p, s, inp, out, saved, n_sub, iq, i_d, voltage, ud, uq):
+def _step_plant(p, s, inp, out, saved, n_sub, iq, i_d, voltage, ud, uq, enable, brake):
     """The plant's PWM period on the q- and d-current setpoints ``iq``, ``i_d`` (A), or
-    with ``voltage`` on the d- and q-voltages ``ud``, ``uq`` (V); a status not OK is undone
-    from ``saved`` (the arrays as they were), and returned."""
+    with ``voltage`` on the d- and q-voltages ``ud``, ``uq`` (V), the pulses on or off
+    (``enable`` 1.0 or 0.0) and the holding brake's input ``brake``; a status not OK is
+    undone from ``saved`` (the arrays as they were), and returned."""
     n_s, n_i = s.size, inp.size
     for k in range(n_s):
         saved[k] = s[k]
@@ -353,8 +369,8 @@ def _step_plant(p, s, inp, out, saved, n_sub, iq, i_d, voltage, ud, uq):
         saved[n_s + k] = inp[k]
     for k in range(out.size):
         saved[n_s + n_i + k] = out[k]
-    inp[L.I_ENABLE] = 1.0
-    inp[L.I_BRAKE] = 0.0  # open with the pulses (HoldingBrake.update)
+    inp[L.I_ENABLE] = enable
+    inp[L.I_BRAKE] = brake
     inp[L.I_MODE] = L.INPUT_VOLTAGE if voltage else L.INPUT_CURRENT
     inp[L.I_IQ_REF] = iq
     inp[L.I_ID_REF] = i_d
@@ -372,8 +388,9 @@ def _step_plant(p, s, inp, out, saved, n_sub, iq, i_d, voltage, ud, uq):
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def _write_row(ring_f, ring_i, j, spf, out, spi, statusword):
-    """The axis's recording row in column ``j`` of its ring planes."""
+def _write_row(ring_f, ring_i, j, spf, out, spi, statusword, state, enable):
+    """The axis's recording row in column ``j`` of its ring planes (``state``: the CiA 402
+    state, ``enable``: 1 with the power stage on)."""
     for k in range(N_SPF):
         ring_f[k, j] = spf[k]
     for k in range(out.size):
@@ -382,8 +399,69 @@ def _write_row(ring_f, ring_i, j, spf, out, spi, statusword):
     ring_i[1, j] = spi[I_MODE]
     ring_i[2, j] = statusword
     ring_i[3, j] = 0  # 603Fh: no fault is latched in steady state
-    ring_i[4, j] = State.OPERATION_ENABLED
-    ring_i[5, j] = 1  # the power stage on
+    ring_i[4, j] = state
+    ring_i[5, j] = enable
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _idle_cycle(prm, fst, ist, spf, spi, p, s, inp, out, saved, fbf, ring_f, ring_i):
+    """A drive cycle with the power stage off, in SWITCH ON DISABLED, READY TO SWITCH ON
+    or SWITCHED ON under a controlword that takes no transition there (see
+    :func:`steady_cycle`): EmulatedDrive._cycle's path when not operating -- the speed
+    actual value, the monitor's I²t, overspeed and limit-switch flags, the statusword,
+    the holding brake, the plant's PWM period with the pulses off, the feedback.  The
+    modes' hold and the loops' reset, which change nothing but their own state on inputs
+    this cycle leaves in ``fst``, are :meth:`hil.drive.compiled_path.CompiledPath.leave`'s
+    to replay."""
+    w, wi = fst[N_FST:], ist[N_IST:]
+    _copy(fst, w, N_FST)
+    _copy(ist, wi, N_IST)
+    counts = out[L.O_ENCODER]
+    _speed_actual(prm, w, wi, counts)
+    theta = counts * prm[R_RPC]
+    w_act = w[F_VELOCITY] * prm[R_RPC]
+    # Monitor.check, not operating: overcurrent and overspeed are latched even so
+    _, hot = _i2t(prm, w, wi, out)
+    if hot or abs(w_act) > prm[R_OVERSPEED]:
+        return EXIT_CAUSE
+    flags = SW_WARNING if w[F_I2T] >= prm[R_I2T_WARNING] else 0
+    neg, pos = out[L.O_LIMIT_NEG], out[L.O_LIMIT_POS]
+    w[F_SWITCH_NEG], w[F_SWITCH_POS] = neg, pos
+    if neg > 0.0 or pos > 0.0:
+        flags |= SW_INTERNAL_LIMIT_ACTIVE
+    wi[J_MONITOR_FLAGS] = flags
+    # DriveStateMachine.update without a transition; EmulatedDrive._flags out of
+    # OPERATION ENABLED: the monitor's flags (no limit met: the power stage is off)
+    wi[J_STATUSWORD] = wi[J_BASE_STATUSWORD] | (flags & SW_CALLER_BITS)
+    w[F_IDLE_THETA], w[F_IDLE_W] = theta, w_act
+    w[F_IDLE_POS], w[F_IDLE_VOFF] = spf[S_POS], spf[S_VOFF]
+    # HoldingBrake.update with the pulses off
+    w[F_BRAKE_OFF] += prm[R_CYCLE]
+    brake = 1.0 if prm[R_BRAKE_PRESENT] != 0.0 and w[F_BRAKE_OFF] >= prm[R_BRAKE_CLOSING] \
+        else 0.0
+    if _step_plant(p, s, inp, out, saved, wi[J_N_SUB], 0.0, 0.0, False, 0.0, 0.0, 0.0,
+                   brake) != L.STATUS_OK:
+        return EXIT_PLANT
+    w[F_LAST_GOOD_X] = out[L.O_TABLE_POS]
+    wi[J_TICK] += 1
+    _copy(w, fst, N_FST)
+    _copy(wi, ist, N_IST)
+    _feedback(prm, w, out, fbf)
+    if ist[J_ROW] >= 0:
+        _write_row(ring_f, ring_i, ist[J_ROW], spf, out, spi, ist[J_STATUSWORD],
+                   ist[J_STATE], 0)
+    return DONE
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _feedback(prm, w, out, fbf):
+    """The feedback's floats after a cycle."""
+    fbf[B_TIME] = out[L.O_TIME]
+    fbf[B_ENCODER] = out[L.O_ENCODER] + prm[R_SHIFT]
+    fbf[B_SCALE] = out[L.O_SCALE]
+    fbf[B_VELOCITY] = w[F_VELOCITY]
+    fbf[B_IQ] = out[L.O_IQ_MEAS]
+    fbf[B_ID] = out[L.O_ID_MEAS]
 
 
 @njit(cache=True, error_model="numpy", _nrt=False)
@@ -399,6 +477,9 @@ def steady_cycle(prm, fst, ist, spf, spi, p, s, inp, out, saved, fbf, ring_f, ri
         return EXIT_COMMAND
     if _refused(prm, spf, mode):
         return EXIT_REFUSED
+    if ist[J_IDLE]:
+        return _idle_cycle(prm, fst, ist, spf, spi, p, s, inp, out, saved, fbf, ring_f,
+                           ring_i)
     w, wi = fst[N_FST:], ist[N_IST:]
     _copy(fst, w, N_FST)
     _copy(ist, wi, N_IST)
@@ -428,19 +509,17 @@ def steady_cycle(prm, fst, ist, spf, spi, p, s, inp, out, saved, fbf, ring_f, ri
         iq = math.copysign(limit, iq)
     i_d = 0.0 if voltage else _py_min(_py_max(spf[S_ID], -limit), limit)
     ud, uq = (spf[S_UD], spf[S_UQ]) if voltage else (0.0, 0.0)
+    # the holding brake opens with the pulses (HoldingBrake.update)
+    w[F_BRAKE_OFF] = 0.0
     if _step_plant(p, s, inp, out, saved, wi[J_N_SUB], iq, i_d, voltage, ud,
-                   uq) != L.STATUS_OK:
+                   uq, 1.0, 0.0) != L.STATUS_OK:
         return EXIT_PLANT
     w[F_LAST_GOOD_X] = out[L.O_TABLE_POS]
     wi[J_TICK] += 1
     _copy(w, fst, N_FST)
     _copy(wi, ist, N_IST)
-    fbf[B_TIME] = out[L.O_TIME]
-    fbf[B_ENCODER] = out[L.O_ENCODER] + prm[R_SHIFT]
-    fbf[B_SCALE] = out[L.O_SCALE]
-    fbf[B_VELOCITY] = w[F_VELOCITY]
-    fbf[B_IQ] = out[L.O_IQ_MEAS]
-    fbf[B_ID] = out[L.O_ID_MEAS]
+    _feedback(prm, w, out, fbf)
     if ist[J_ROW] >= 0:
-        _write_row(ring_f, ring_i, ist[J_ROW], spf, out, spi, ist[J_STATUSWORD])
+        _write_row(ring_f, ring_i, ist[J_ROW], spf, out, spi, ist[J_STATUSWORD],
+                   State.OPERATION_ENABLED, 1)
     return DONE

@@ -18,7 +18,7 @@ does).
 
 import numpy as np
 
-from hil.cia402 import EnableSequencer, State
+from hil.cia402 import EnableSequencer, State, base_statusword
 from hil.drive import compiled as C
 from hil.drive.faults import OVERSPEED_FACTOR
 from hil.drive.monitor import I2T_COOLED, I2T_WARNING, PEAK_TIME_S, PEAK_TRIP_FACTOR
@@ -27,6 +27,7 @@ from io_adapters.messages import (
     MODE_CST,
     MODE_CSV,
     MODE_VOLTAGE,
+    Setpoint,
     axis_records,
     message_pair,
 )
@@ -39,6 +40,9 @@ WARM_CYCLES = 2000
 #: controlword bits 7, 3, 2, 1, 0 of enable operation (hil.cia402.ENABLE_OPERATION): the
 #: only command under which OPERATION ENABLED takes no transition
 _ENABLE_MASK, _ENABLE_VALUE = 0x008F, 0x000F
+#: the states whose cycle runs compiled with the power stage off (the power-off cycle)
+IDLE_STATES = frozenset((State.SWITCH_ON_DISABLED, State.READY_TO_SWITCH_ON,
+                         State.SWITCHED_ON))
 
 
 class CompiledPath:
@@ -46,7 +50,9 @@ class CompiledPath:
 
     Attributes:
         active: the arrays hold the drive's state.
-        cycles: cycles run compiled since the drive was built.
+        idle: ... of a power-off steady state (:data:`IDLE_STATES`).
+        cycles: cycles run compiled since the drive was built; idle_cycles: of those,
+            power-off cycles.
         exits: how often each ``EXIT_*`` code of :mod:`hil.drive.compiled` handed a cycle
             back to Python (index: the code).
         row_written: the last cycle wrote the tick's recording row (:meth:`set_row`).
@@ -66,8 +72,8 @@ class CompiledPath:
         self.ist[C.J_ROW] = -1
         self.row_written = False
         self.saved = np.zeros(plant.state.size + plant.inp.size + plant.out.size)
-        self.active = False
-        self.cycles = 0
+        self.active = self.idle = False
+        self.cycles = self.idle_cycles = 0
         self.exits = [0] * (C.EXIT_PLANT + 1)
         self._generation = -1
 
@@ -88,7 +94,10 @@ class CompiledPath:
         path must run it (the state is back in the drive's objects)."""
         d = self.drive
         if self.active:
-            if d.link_causes or d.faults.latched or d.params.generation != self._generation:
+            # a link cause acts on a drive whose power stage may be on (6007h), not on one
+            # with the pulses off
+            if ((d.link_causes and not self.idle) or d.faults.latched
+                    or d.params.generation != self._generation):
                 self.row_written = False
                 self.leave()
                 return False
@@ -118,6 +127,7 @@ class CompiledPath:
             return False
         self.row_written = True
         self.cycles += 1
+        self.idle_cycles += self.idle
         d.tick += 1
         fb.seq = sp.seq
         fb.statusword = int(self.ist[C.J_STATUSWORD])
@@ -127,22 +137,35 @@ class CompiledPath:
         return True
 
     def _enter(self, sp) -> bool:
-        """Pack the state if this cycle starts a steady state."""
+        """Pack the state if this cycle starts a steady state: OPERATION ENABLED, or with
+        the power stage off one of :data:`IDLE_STATES` under a controlword that takes no
+        transition there."""
         d = self.drive
         cw = sp.controlword
-        if (d.loops is None or d.sm.state != State.OPERATION_ENABLED or d.link_causes
-                or d.faults.latched or d.brake.active or d._override >= 0
-                or d._link_handled or sp.mode not in CYCLIC or sp.mode != d.modes._mode
-                or cw != d._previous_cw or cw & _ENABLE_MASK != _ENABLE_VALUE):
+        if (d.faults.latched or d.brake.active or d._override >= 0 or d._link_handled
+                or sp.mode not in CYCLIC or cw != d._previous_cw):
             return False
-        self._pack(sp)
+        state = d.sm.state
+        if state in IDLE_STATES:
+            if d._limited or cw != d.sm._previous_controlword or not d.sm.stays(cw):
+                return False
+            self._pack_drive(sp)
+            self._pack_idle(state)
+            self.active = self.idle = True
+            return True
+        if (d.loops is None or state != State.OPERATION_ENABLED or d.link_causes
+                or sp.mode != d.modes._mode or cw & _ENABLE_MASK != _ENABLE_VALUE):
+            return False
+        self._pack_drive(sp)
+        self._pack_loops()
         self.active = True
         return True
 
-    def _pack(self, sp) -> None:
+    def _pack_drive(self, sp) -> None:
+        """What both steady states run on: the drive's, the monitor's and the holding
+        brake's parameters and state."""
         d = self.drive
-        p, m, modes, it, lp = d.params, d.monitor, d.modes, d.modes.interp, d.loops
-        pos, spd = lp.pos, lp.speed
+        p, m, modes = d.params, d.monitor, d.modes
         trip = p.i2t_trip_a2s
         bounds = d._bounds
         prm = self.prm
@@ -161,6 +184,37 @@ class CompiledPath:
         prm[[C.R_B_POSITION, C.R_B_VELOCITY, C.R_B_CURRENT, C.R_B_VOLTAGE]] = (
             bounds.position_counts, bounds.velocity_counts_s, bounds.current_a,
             bounds.voltage_v)
+        brake = d.holding_brake
+        prm[[C.R_MAX_CURRENT2, C.R_PEAK_TRIP2, C.R_PEAK_TIME, C.R_VOLTAGE_OK,
+             C.R_BRAKE_PRESENT, C.R_BRAKE_CLOSING]] = (
+            p.max_current_a ** 2, (PEAK_TRIP_FACTOR * p.max_current_a) ** 2, PEAK_TIME_S,
+            float(MODE_VOLTAGE in bounds.modes), float(brake.present), brake.closing_time_s)
+        self._generation = p.generation
+        fst = self.fst
+        fst[[C.F_COUNTS_PREV, C.F_VELOCITY, C.F_LAST_GOOD_X, C.F_BRAKE_OFF]] = (
+            d.counts_prev, d.velocity_counts_s, d._last_good_x, brake._off_s)
+        fst[[C.F_I2T, C.F_FE_TIME, C.F_IN_WINDOW, C.F_SWITCH_NEG, C.F_SWITCH_POS,
+             C.F_FOLLOWING_ERROR]] = (m.i2t_a2s, m._fe_time_s, m._in_window_s, *m._switches,
+                                      m.following_error)
+        fst[[C.F_DEMAND, C.F_SPEED, C.F_PEAK_TIME]] = modes.demand, modes.speed, m._peak_s
+        ist = self.ist
+        ist[[C.J_TICK, C.J_LIMITED, C.J_HOT, C.J_MONITOR_FLAGS, C.J_STATUSWORD]] = (
+            d.tick, d._limited, int(m._hot), m.flags, d.sm.statusword)
+        ist[[C.J_SPEED_RATIO, C.J_N_SUB]] = d.speed_ratio, d.plant.sub_per_pwm
+        ist[[C.J_MODE, C.J_CONTROLWORD, C.J_IDLE]] = sp.mode, sp.controlword, 0
+
+    def _pack_idle(self, state: State) -> None:
+        """The power-off cycle's state: the CiA 402 state, none of its cycles run yet."""
+        self.fst[C.F_IDLE_THETA] = np.nan
+        self.ist[[C.J_IDLE, C.J_STATE, C.J_BASE_STATUSWORD]] = (1, state,
+                                                                base_statusword(state))
+
+    def _pack_loops(self) -> None:
+        """OPERATION ENABLED's: the modes' interpolator and the loops."""
+        d = self.drive
+        it, lp = d.modes.interp, d.loops
+        pos, spd = lp.pos, lp.speed
+        prm = self.prm
         prm[[C.R_KV, C.R_FF, C.R_SYM_A, C.R_V_LIM]] = pos.kv, pos.ff, pos.sym.a, pos.v_lim
         prm[[C.R_KD_T, C.R_KP, C.R_KI_T, C.R_PI_LIMIT, C.R_INV_KT, C.R_I_MAX, C.R_KT,
              C.R_ANTIWINDUP]] = (spd.kd_t, spd.pi.kp, spd.pi.ki_t, spd.pi.limit,
@@ -169,31 +223,17 @@ class CompiledPath:
         for base, f in ((C.R_SET_B0, spd.set_filter), (C.R_CUR_B0, spd.cur_filter),
                         (C.R_NOTCH_B0, spd.notch)):
             prm[base:base + 5] = f.b0, f.b1, f.b2, f.a1, f.a2
-        prm[[C.R_MAX_CURRENT2, C.R_PEAK_TRIP2, C.R_PEAK_TIME, C.R_VOLTAGE_OK]] = (
-            p.max_current_a ** 2, (PEAK_TRIP_FACTOR * p.max_current_a) ** 2, PEAK_TIME_S,
-            float(MODE_VOLTAGE in bounds.modes))
-        self._generation = p.generation
         fst = self.fst
-        fst[[C.F_COUNTS_PREV, C.F_VELOCITY, C.F_LAST_GOOD_X]] = (
-            d.counts_prev, d.velocity_counts_s, d._last_good_x)
-        fst[[C.F_I2T, C.F_FE_TIME, C.F_IN_WINDOW, C.F_SWITCH_NEG, C.F_SWITCH_POS,
-             C.F_FOLLOWING_ERROR]] = (m.i2t_a2s, m._fe_time_s, m._in_window_s, *m._switches,
-                                      m.following_error)
-        fst[[C.F_DEMAND, C.F_SPEED]] = modes.demand, modes.speed
         fst[[C.F_START_A, C.F_START_B, C.F_END_A, C.F_END_B]] = (*it._start, *it._end)
         fst[[C.F_SYM_Y, C.F_POS_ERROR, C.F_W_CMD, C.F_IQ]] = (pos.sym.y, pos.error, lp.w_cmd,
                                                                lp.iq)
-        fst[[C.F_INTEG, C.F_E_PREV, C.F_PEAK_TIME]] = spd.pi.integ, spd.e_prev, m._peak_s
+        fst[[C.F_INTEG, C.F_E_PREV]] = spd.pi.integ, spd.e_prev
         fst[[C.F_SET_Z1, C.F_SET_Z2, C.F_CUR_Z1, C.F_CUR_Z2, C.F_NOTCH_Z1, C.F_NOTCH_Z2]] = (
             spd.set_filter.z1, spd.set_filter.z2, spd.cur_filter.z1, spd.cur_filter.z2,
             spd.notch.z1, spd.notch.z2)
         ist = self.ist
-        ist[[C.J_TICK, C.J_LIMITED, C.J_HOT, C.J_MONITOR_FLAGS, C.J_STATUSWORD]] = (
-            d.tick, d._limited, int(m._hot), m.flags, d.sm.statusword)
         ist[[C.J_INTERP_SEQ, C.J_CYCLES, C.J_LENGTH]] = it.seq, it._cycles, it._length
-        ist[[C.J_SPEED_RATIO, C.J_POSITION_RATIO, C.J_N_SUB]] = (
-            d.speed_ratio, lp.position_ratio, d.plant.sub_per_pwm)
-        ist[[C.J_MODE, C.J_CONTROLWORD]] = sp.mode, sp.controlword
+        ist[C.J_POSITION_RATIO] = lp.position_ratio
 
     def leave(self) -> None:
         """Copy the state back into the drive's objects (nothing when not active)."""
@@ -201,17 +241,32 @@ class CompiledPath:
             return
         self.active = False
         d = self.drive
-        m, modes, it, lp = d.monitor, d.modes, d.modes.interp, d.loops
-        pos, spd = lp.pos, lp.speed
+        m = d.monitor
         f = self.fst.tolist()
         i = self.ist.tolist()
         d.counts_prev, d.velocity_counts_s = f[C.F_COUNTS_PREV], f[C.F_VELOCITY]
         d._last_good_x = f[C.F_LAST_GOOD_X]
         d.tick, d._limited = i[C.J_TICK], i[C.J_LIMITED]
+        d.holding_brake._off_s = f[C.F_BRAKE_OFF]
         m.i2t_a2s, m._hot, m.flags = f[C.F_I2T], bool(i[C.J_HOT]), i[C.J_MONITOR_FLAGS]
+        m._switches = (f[C.F_SWITCH_NEG], f[C.F_SWITCH_POS])
+        d.sm._statusword = i[C.J_STATUSWORD]
+        if self.idle:
+            self.idle = False
+            m.reset()
+            theta = f[C.F_IDLE_THETA]
+            if theta == theta:  # a power-off cycle ran: the last one's hold and reset
+                last = Setpoint(controlword=i[C.J_CONTROLWORD], mode=i[C.J_MODE],
+                                target_position_counts=f[C.F_IDLE_POS],
+                                velocity_offset_counts_s=f[C.F_IDLE_VOFF])
+                d.modes.hold(last, theta, f[C.F_IDLE_W])
+                if d.loops is not None:
+                    d.loops.reset(theta)
+            return
+        modes, it, lp = d.modes, d.modes.interp, d.loops
+        pos, spd = lp.pos, lp.speed
         m._fe_time_s, m._in_window_s = f[C.F_FE_TIME], f[C.F_IN_WINDOW]
         m._peak_s = f[C.F_PEAK_TIME]
-        m._switches = (f[C.F_SWITCH_NEG], f[C.F_SWITCH_POS])
         m.following_error = f[C.F_FOLLOWING_ERROR]
         modes.demand, modes.speed = f[C.F_DEMAND], f[C.F_SPEED]
         it.seq, it._cycles, it._length = i[C.J_INTERP_SEQ], i[C.J_CYCLES], i[C.J_LENGTH]
@@ -223,7 +278,6 @@ class CompiledPath:
         spd.set_filter.z1, spd.set_filter.z2 = f[C.F_SET_Z1], f[C.F_SET_Z2]
         spd.cur_filter.z1, spd.cur_filter.z2 = f[C.F_CUR_Z1], f[C.F_CUR_Z2]
         spd.notch.z1, spd.notch.z2 = f[C.F_NOTCH_Z1], f[C.F_NOTCH_Z2]
-        d.sm._statusword = i[C.J_STATUSWORD]
 
 
 def warm(drives, cycles: int = WARM_CYCLES, stop=lambda: False) -> int:

@@ -369,8 +369,7 @@ class ControllerSteady:
         if reason == S.DECLINED:
             code = int(run[N_DECLINED])
             self.declined[code] = self.declined.get(code, 0) + 1
-            if code != DECLINED_TIMEOUT:
-                link.hand_back()
+            link.hand_back()  # what the tick read
         elif reason == S.SEND_FAILED:
             link.send_error()
             proc.adapter_errors += 1

@@ -20,7 +20,10 @@ writes the row's common part, keeps the endpoint's books and the watchdog's coun
 the answer (``sendto``) and finishes the row with the loop's lateness and compute time
 (the ring's ``end_tick``).  A silent tick runs compiled only while it changes nothing in
 the watchdog but its count (:meth:`~hil.runtime.watchdog.Watchdog.steady_counts`): the
-tick that trips it is the Python path's.
+tick that trips it, or finds the controller absent, is the Python path's, and so is the
+first heard tick after an absence; while the controller is absent (before the first
+setpoint, or after a silence with every drive's power stage off) a silent tick sends no
+answer and changes nothing, and runs compiled.
 
 The call releases the GIL, so the emulator's other threads (the recording's answer
 thread) no longer delay a tick, and returns to Python (:class:`SteadyTick`, called by the
@@ -81,8 +84,9 @@ R_TICK, R_LATENESS, R_COMPUTE = range(3)
 R_TICK_START, R_SP_T_NS, R_SP_RX_NS, R_FB_T_NS, R_SP_NEW, R_SP_SEQ, R_SP_REFUSED = range(3, 10)
 #: why a tick was declined (the Python path runs it); > 0: the answer's length
 DECLINED_FRAME, DECLINED_SEQUENCE, DECLINED_CYCLE = -1, -2, -3
-#: ... and, the tick's receive declined (its datagrams handed back), or a silent tick
-#: that would change the watchdog beyond its count
+#: ... and, the tick's receive declined (its datagrams handed back), or a tick that would
+#: change the watchdog beyond its count (the tick that trips it or finds the controller
+#: absent, the one that hears it again)
 DECLINED_RECEIVE, DECLINED_SILENT = -4, -5
 #: the tick ran but its answer did not encode (the Python path sends it)
 UNENCODED = 0
@@ -289,7 +293,12 @@ def _run(bufs, sp_ints, axis_ints, sp_floats, link, books, fb_ints, fb_axis_ints
         run[N_WAKE] = wake
         n = U.receive(link, bufs, hdr, iov, slots, name_slots, names, ctrl, peer_name,
                       hello_leads, peek, books)
-        if n < 0 or (n == 0 and not (wd[1] <= 0 and wd[0] + 1 < wd[2])):
+        # the watchdog (Watchdog.update on a link without conditions): a heard tick while
+        # the controller is absent, or a silent one that reaches the limit, changes the
+        # drives' link causes; an absent controller's silent tick changes nothing
+        absent = wd[0] >= wd[2]
+        if n < 0 or (n > 0 and absent) or (
+                n == 0 and not absent and not (wd[1] <= 0 and wd[0] + 1 < wd[2])):
             run[N_DECLINED] = DECLINED_RECEIVE if n < 0 else DECLINED_SILENT
             reason = DECLINED
             break
@@ -311,10 +320,12 @@ def _run(bufs, sp_ints, axis_ints, sp_floats, link, books, fb_ints, fb_axis_ints
             queued += n > 1
         else:
             U.idle(books)
-            wd[0] += 1
+            if not absent:
+                wd[0] += 1
             silent += 1
         sending = now_ns(clock) if timed else 0
-        sent = U.send(link, out, result, fb_ints, send_name, books)
+        # the drives answer while the controller was heard within the limit
+        sent = U.send(link, out, result, fb_ints, send_name, books) if wd[0] < wd[2] else 0
         done += 1
         run[N_ROW] = j
         if sent < 0:
@@ -520,12 +531,17 @@ class SteadyTick:
         """Every drive's compiled path holds its state with nothing to react to, no
         injection is under way, the watchdog is content and the link ready."""
         em = self.emulator
+        watchdog = em.watchdog
+        if not watchdog.steady_counts(self.wd) or not self.link.ready():
+            return self._python()
+        causes = watchdog.steady_causes()
         for d, path, inj in zip(self.drives, self.paths, em.injectors):
-            if (not path.active or d.link_causes or d.faults.latched or inj.busy
+            # a drive with its power stage off (the power-off cycle) ignores the cause of
+            # an absent controller
+            if (not path.active or d.link_causes != (causes if path.idle else 0)
+                    or d.faults.latched or inj.busy
                     or d.params.generation != path._generation):
                 return self._python()
-        if not em.watchdog.steady_counts(self.wd) or not self.link.ready():
-            return self._python()
         return True
 
     def _call_compiled(self, entered: int | None) -> tuple[int, int]:
@@ -565,8 +581,7 @@ class SteadyTick:
             code = int(run[N_DECLINED])
             if code in self.declined:
                 self.declined[code] += 1
-            if code != DECLINED_SILENT:
-                link.hand_back()
+            link.hand_back()  # what the tick read (and the budget it left)
             self._python()
         elif reason == SEND_FAILED:
             em._adapter_error("send", link.send_error())

@@ -229,13 +229,15 @@ def in_step(cols: dict, period_s: float, delay_ticks: int = 0,
 
 
 def settled_rows(cols: dict, every: int, period_s: float, delay_ticks: int = 0,
-                 drive_clock: bool = True) -> np.ndarray:
+                 drive_clock: bool = True, glitch_window_s: float = 0.0) -> np.ndarray:
     """Per servo-trace row (ticks that are multiples of ``every``): True when no timing
     fault's effect remains in it.  A fault is a run of ticks not :func:`in_step` (with
-    ``delay_ticks`` and ``drive_clock``); its effect lasts no longer than its own ticks
-    after a run of at most :data:`GLITCH_TICKS` ticks (a late tick, one missing feedback:
-    the controller extrapolates over it), and :data:`SETTLE_WINDOW_S` after a longer one
-    (a process or the VM paused); :data:`DELAYED_SETTLE_WINDOW_S` with ``delay_ticks``."""
+    ``delay_ticks`` and ``drive_clock``); its effect lasts ``glitch_window_s`` after a run
+    of at most :data:`GLITCH_TICKS` ticks (a late tick, one missing feedback: the
+    controller extrapolates over it; by default no longer than its own ticks, which holds
+    where a tick is long against the loops' settling: a caller at 8 kHz gives the speed
+    loop's few ms), and :data:`SETTLE_WINDOW_S` after a longer one (a process or the VM
+    paused); :data:`DELAYED_SETTLE_WINDOW_S` with ``delay_ticks``."""
     bad = np.flatnonzero(~in_step(cols, period_s, delay_ticks, drive_clock))
     settle_s = SETTLE_WINDOW_S if delay_ticks == 0 else DELAYED_SETTLE_WINDOW_S
     n = len(cols["tick"])
@@ -243,7 +245,7 @@ def settled_rows(cols: dict, every: int, period_s: float, delay_ticks: int = 0,
     if bad.size:
         split = np.flatnonzero(np.diff(bad) > 1)
         for first, last in zip(bad[np.r_[0, split + 1]], bad[np.r_[split, bad.size - 1]]):
-            window = 0.0 if last - first < GLITCH_TICKS else settle_s
+            window = glitch_window_s if last - first < GLITCH_TICKS else settle_s
             touched[first:last + 1 + round(window / period_s)] = True
     return ~touched[np.flatnonzero(cols["tick"] % every == 0)]
 

@@ -156,11 +156,19 @@ class Watchdog:
         tripped (its ticks are the Python path's).  The compiled loop counts as
         :meth:`update` does while nothing but the count changes: a heard tick sets silent
         to 0 and covers nothing more; a silent tick adds one, and only while no setpoint
-        covers it and it stays below the limit (the tick that would trip it is declined)."""
+        covers it and it stays below the limit (the tick that would reach it is
+        declined); with the controller absent (silent at the limit, not tripped: no
+        drive's power stage is on) a silent tick changes nothing and a heard one is
+        declined."""
         if self.tripped:
             return False
         counts[0], counts[1], counts[2] = self.silent, self._covered, self.limit
         return True
+
+    def steady_causes(self) -> int:
+        """The link cause a silent tick of the compiled loop leaves on every drive: the
+        watchdog's while the controller is absent, else none (:meth:`update`)."""
+        return Cause.WATCHDOG if self.silent >= self.limit else 0
 
     def steady_settle(self, counts: np.ndarray) -> None:
         """After the compiled loop: its count back (:meth:`steady_counts`)."""
