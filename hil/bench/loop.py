@@ -34,7 +34,8 @@ moves them in CSP, one setpoint per period of its own clock.  The row adds ``con
 "ticks_without_setpoint", "compiled_ticks", "compiled_calls"}`` counted over the run, and
 ``cyclictest_beyond``: ``{"slack_us", "samples", "beyond"}``, cyclictest's samples
 later than the slack a tick leaves (the period less the tick's p50) in an equally long
-run: a stall that cyclictest also sees is the machine's, not the loop's.  One stall is
+run at ``cyclictest_interval_us``, the period to the nearest whole µs (cyclictest's
+unit: 62 µs for 16 kHz's 62.5): a stall that cyclictest also sees is the machine's, not the loop's.  One stall is
 one late cyclictest sample but, under ``"count"``, as many overruns as ticks it held up:
 ``overrun_episodes`` counts runs of consecutive overrun ticks after the grace period,
 each once, and that is what ``beyond`` is compared with (issue 29's goal: no more).
@@ -134,14 +135,16 @@ def emulator_rate(rate_hz: int | None, seconds: float, config: Path, cpu: int,
                     "ticks_without_setpoint": stats.ticks - emulator.setpoints_heard,
                     "compiled_ticks": steady.ticks if steady is not None else 0,
                     "compiled_calls": steady.calls if steady is not None else 0}}
-    if not float(period_us).is_integer():
-        note(f"cyclictest takes whole µs, the period is {period_us} µs: cyclictest_us is null")
-        return {**row, "cyclictest_us": None, "cyclictest_beyond": None}
+    interval_us = round(period_us)  # cyclictest's unit: the nearest whole µs
+    if interval_us != period_us:
+        note(f"cyclictest takes whole µs: it runs at {interval_us} µs for the period of "
+             f"{period_us} µs")
+    row["cyclictest_interval_us"] = interval_us
     # a stall cyclictest also sees is the machine's: its wake-ups later than the slack a
     # tick of median compute time leaves would have overrun too
     slack_us = period_us - compute.p50
     try:
-        text = cyclictest_histogram(int(period_us), seconds, cpu=cpu)
+        text = cyclictest_histogram(interval_us, seconds, cpu=cpu)
     except CyclictestError as err:
         note(f"cyclictest failed, cyclictest_us is null: {err}")
         text = None
