@@ -32,6 +32,9 @@ by a :class:`~hil.rt.loop.RealTimeLoop` instead of back to back with the drive:
    reading a frozen encoder as standstill; on a link whose feedback says how old it is
    (``lag_is_age``: ``can://``, where an answer that came after this loop's tick is read
    a tick late) a late answer is extrapolated the same way over the ticks it is late;
+   Over UDP, while the program runs in steady state, the loop's ticks are compiled
+   (:mod:`hil.runtime.controller_steady`, the loop's ``burst``; the same setpoints,
+   rows and counters as this Python tick);
 5. send disable voltage, close, write ``trace.csv`` (servo-trace format, one row per
    position-control cycle, :func:`hil.sim.servo_trace_columns`), ``controller.npz`` (every
    recorded tick: :data:`FLOAT_COLUMNS`, :data:`INT_COLUMNS`, and the loop's

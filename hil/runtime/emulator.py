@@ -71,11 +71,13 @@ feedback's values and the axis's row of the recording's ring.  Anything else -- 
 cause, a changed controlword or mode, a refused setpoint, a plant status not OK -- hands
 that cycle to the Python drive, before anything changed, which stays the one owner of the
 state machine, the faults and their reactions (:mod:`hil.drive.compiled_path`; both give
-the same bits, ``tests/test_tick_equivalence.py``).  Over UDP the whole steady tick is
-one compiled call, from the datagrams to the answer (:mod:`hil.runtime.steady_tick`:
-silent ticks and setpoints queued behind a late tick included); on the other links
-Python decodes the setpoint, runs the watchdog, encodes and sends the feedback and
-writes the row's common columns.
+the same bits, ``tests/test_tick_equivalence.py``); so does a drive with its power stage
+off under a held controlword.  Over UDP the loop itself is compiled: one call runs up to
+:data:`hil.runtime.steady_tick.BURST_S` of ticks, each from the deadline's wait to the
+answer's send and the row's end (:mod:`hil.runtime.steady_tick`, the loop's ``burst``:
+silent ticks, setpoints queued behind a late tick and an absent controller's ticks
+included); on the other links Python decodes the setpoint, runs the watchdog, encodes and
+sends the feedback and writes the row's common columns.
 
 The recording streams to disk while the loop runs (:mod:`hil.runtime.record_writer`: a
 separate process reads the ring in shared memory, about a second of it, whatever the
