@@ -21,7 +21,6 @@ import select
 import socket
 from dataclasses import fields
 
-import numpy as np
 import pytest
 
 from hil.runtime import controller_steady as CS

@@ -32,8 +32,13 @@ from hil.runtime.sync import settled_rows
 from hil.trace_file import read_trace
 from plant.machines import load_machine_set
 from tests.conftest import CONFIGS, ROOT
-from tests.runtime_helpers import (EXIT_S, Children, machine_lockstep_traces, python_module,
-                                   terminate)
+from tests.runtime_helpers import (
+    EXIT_S,
+    Children,
+    machine_lockstep_traces,
+    python_module,
+    terminate,
+)
 
 CONFIG = CONFIGS / "machines" / "geiss_5axis.toml"
 PROGRAM = ROOT / "programs" / "geiss_5axis_moves.nc"

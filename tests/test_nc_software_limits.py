@@ -21,7 +21,7 @@ import numpy as np
 import pytest
 
 from hil.cli import main
-from hil.controller.config import axis_limits, clamp_codes, load_controller
+from hil.controller.config import axis_limits, clamp_codes
 from hil.controller.interpolator import SETTLE_S, ProfileSamples, plan
 from hil.controller.path import parse_path_program
 from hil.controller.program import ProgramError, parse_program

@@ -45,8 +45,14 @@ from io_adapters.codec import U32
 from io_adapters.messages import MODE_CST, FeedbackGroup, axis_records
 from io_adapters.msgpack_endpoint import MAX_DROPOUT
 from io_adapters.udp import UdpEndpoint
-from io_adapters.udp_steady import L_FRAMES, L_LENGTHS, L_PEER_FRAME, L_PEER_SESSION, \
-    L_RX_NS, SteadyLink
+from io_adapters.udp_steady import (
+    L_FRAMES,
+    L_LENGTHS,
+    L_PEER_FRAME,
+    L_PEER_SESSION,
+    L_RX_NS,
+    SteadyLink,
+)
 
 #: ``run``: the call's inputs (first tick, the loop's t0, period, end tick, most ticks,
 #: spin, waits (1) or runs one tick now (0), the feedback timeout in ticks, rows to

@@ -73,8 +73,16 @@ from io_adapters.codec import U32
 from io_adapters.messages import FeedbackGroup, axis_records
 from io_adapters.msgpack_endpoint import MAX_DROPOUT
 from io_adapters.udp import UdpEndpoint
-from io_adapters.udp_steady import L_CALL_NS, L_CLOCK, L_FRAMES, L_LENGTHS, L_PEER_FRAME, \
-    L_PEER_SESSION, L_RX_NS, SteadyLink
+from io_adapters.udp_steady import (
+    L_CALL_NS,
+    L_CLOCK,
+    L_FRAMES,
+    L_LENGTHS,
+    L_PEER_FRAME,
+    L_PEER_SESSION,
+    L_RX_NS,
+    SteadyLink,
+)
 
 #: the most time one call runs ticks, s: Python's signal handlers wait for its end
 BURST_S = 0.01
