@@ -102,8 +102,10 @@ def cmd_bench_loop(args) -> int:
             beyond = r.get("cyclictest_beyond")
             later = (f" ({r['overrun_episodes']} episodes); cyclictest later than "
                      f"{beyond['slack_us']:.1f} µs: {beyond['beyond']}" if beyond else "")
+            wake = r.get("wake_latency_us")
+            woke = f"  wake-up latency p99.9 {wake['p999']:7.1f} µs" if wake else ""
             print(f"{r['rate_hz']:6g} Hz  lateness p50 {lat['p50']:6.2f}  p99 {lat['p99']:7.2f}  "
-                  f"p99.9 {lat['p999']:7.1f}  max {lat['max']:8.1f} µs  overruns "
+                  f"p99.9 {lat['p999']:7.1f}  max {lat['max']:8.1f} µs{woke}  overruns "
                   f"{r['overruns']:4d}  {base}{later}")
     return 0
 

@@ -136,6 +136,23 @@ def _read_u32(buf, pos, n):
 
 
 @njit(cache=True)
+def _read_header(buf, pos, n, version, kind):
+    """A record's header at ``pos``: its version and kind as given, then its session,
+    frame and sequence numbers: (ok, session, frame, seq, next position)."""
+    session = frame = seq = 0
+    ok, _, pos = _read_int(buf, pos, n, version, version)
+    if ok:
+        ok, _, pos = _read_int(buf, pos, n, kind, kind)
+    if ok:
+        ok, session, pos = _read_u32(buf, pos, n)
+    if ok:
+        ok, frame, pos = _read_u32(buf, pos, n)
+    if ok:
+        ok, seq, pos = _read_u32(buf, pos, n)
+    return ok, session, frame, seq, pos
+
+
+@njit(cache=True)
 def _read_axis(buf, pos, n):
     """Check an axis's controlword, mode and 7 finite floats at ``pos``: (ok, next)."""
     ok, _, pos = _read_int(buf, pos, n, 0, 0xFFFF)
@@ -168,16 +185,8 @@ def decode_setpoint(buf, n, ints, axis_ints, floats):
     group = n_axes > 1
     if n < 1 or buf[0] != 0x90 + (_SPG_LENGTH if group else _SP_LENGTH):
         return False
-    ok, _, pos = _read_int(buf, 1, n, VERSION_GROUP if group else VERSION,
-                              VERSION_GROUP if group else VERSION)
-    if ok:
-        ok, _, pos = _read_int(buf, pos, n, KIND_SETPOINT, KIND_SETPOINT)
-    if ok:
-        ok, session, pos = _read_u32(buf, pos, n)
-    if ok:
-        ok, frame, pos = _read_u32(buf, pos, n)
-    if ok:
-        ok, seq, pos = _read_u32(buf, pos, n)
+    ok, session, frame, seq, pos = _read_header(buf, 1, n, VERSION_GROUP if group
+                                                else VERSION, KIND_SETPOINT)
     if not ok:
         return False
     if group:
@@ -365,16 +374,8 @@ def decode_feedback(buf, n, fb_ints, fb_axis_ints, fb_floats):
         if n < 3 or buf[0] != 0xDC or buf[1] != 0 or buf[2] != _FB_LENGTH:
             return False
         pos = 3
-    ok, _, pos = _read_int(buf, pos, n, VERSION_GROUP if group else VERSION,
-                           VERSION_GROUP if group else VERSION)
-    if ok:
-        ok, _, pos = _read_int(buf, pos, n, KIND_FEEDBACK, KIND_FEEDBACK)
-    if ok:
-        ok, session, pos = _read_u32(buf, pos, n)
-    if ok:
-        ok, frame, pos = _read_u32(buf, pos, n)
-    if ok:
-        ok, seq, pos = _read_u32(buf, pos, n)
+    ok, session, frame, seq, pos = _read_header(buf, pos, n, VERSION_GROUP if group
+                                                else VERSION, KIND_FEEDBACK)
     if not ok:
         return False
     start = pos

@@ -159,6 +159,60 @@ def machine_lockstep_traces(config: Path, program: Path, settle_s: float, folder
         for name, ctrl in zip(m.names, ls.ctrl.ctrls)}
 
 
+def run_loopback_pair(config: Path, link: str, program: Path,
+                      folder: Path) -> tuple[dict, dict] | str:
+    """``hil run`` on ``link`` (pinned to the last CPU) and ``hil controller`` running
+    ``program`` (on the first, where there are two), both on ``config``, in ``folder``:
+    (the controller's summary, the emulator's report), or the controller's log when it
+    gave up."""
+    cpus = sorted(os.sched_getaffinity(0))
+    pin = ["--cpu", cpus[0]] if len(cpus) > 1 else []
+    with Children(folder) as children:
+        emulator, served = children.emulator(config, link, folder / "emulator",
+                                             "--cpu", cpus[-1])
+        ctl = children.start("controller", python_module(
+            "hil.runtime.controller_proc", config, "--adapter", served, "--program", program,
+            "--out", folder / "controller", *pin))
+        code = ctl.wait(timeout=EXIT_S)
+        assert terminate(emulator) == 0, children.log("emulator")
+        if code != 0:
+            return children.log("controller")
+    return (json.loads((folder / "controller" / "summary.json").read_text()),
+            json.loads((folder / "emulator" / "report.json").read_text()))
+
+
+def usable_loopback(config: Path, program: Path, tmp_path: Path, attempts: int,
+                    min_clear: float, glitch_window_s: float = 0.0
+                    ) -> tuple[Path, dict, dict, dict[str, np.ndarray]]:
+    """Loopback runs over UDP (:func:`run_loopback_pair`), at most ``attempts``, until one
+    has at least ``min_clear`` of every axis's trace rows clear of timing faults
+    (:func:`hil.runtime.sync.settled_rows`); (its folder, summary, report, each axis's
+    clear rows).  Fails the test, with each attempt's reason, when none has."""
+    import pytest
+
+    from hil.runtime.sync import settled_rows
+    failures = []
+    for attempt in range(1, attempts + 1):
+        folder = tmp_path / f"attempt{attempt}"
+        folder.mkdir()
+        result = run_loopback_pair(config, "udp://127.0.0.1:0", program, folder)
+        if isinstance(result, str):
+            failures.append(f"attempt {attempt}: the controller gave up:\n{result[-600:]}")
+            continue
+        summary, report = result
+        with np.load(folder / "controller" / "controller.npz") as npz:
+            cols = {k: npz[k] for k in ("lag_ticks", "fb_time_s", "tick")}
+        clear = {name: settled_rows(cols, axis["trace_every_ticks"],
+                                    summary["period_ns"] * 1e-9,
+                                    glitch_window_s=glitch_window_s)
+                 for name, axis in summary["axes"].items()}
+        if min(c.mean() for c in clear.values()) >= min_clear:
+            return folder, summary, report, clear
+        failures.append(f"attempt {attempt}: too few rows clear of timing faults; "
+                        f"controller feedback: {summary['feedback']}")
+    pytest.fail("no usable run:\n" + "\n".join(failures))
+
+
 def exchange(ep, sp, fb, n: int, seq=None, iq: float = 0.0) -> None:
     """``n`` feedbacks, each answered at once by a setpoint (controlword from ``seq``)."""
     for _ in range(n):

@@ -29,6 +29,8 @@ def test_loop_with_the_emulator_over_udp_counts_the_link(monkeypatch, tmp_path, 
     assert link["ticks_without_setpoint"] == row["ticks"] - link["setpoints"]
     assert 0 < link["compiled_ticks"] <= row["ticks"]  # silent ticks run compiled too
     assert link["compiled_ticks"] > 5 * link["compiled_calls"]
+    # the sleep's end after its target, never before it (an absolute clock_nanosleep)
+    assert 0.0 <= row["wake_latency_us"]["p50"] <= row["wake_latency_us"]["max"]
     assert row["cyclictest_us"] is None and row["cyclictest_beyond"] is None
 
 

@@ -19,26 +19,17 @@ controller's summary must show both compiled loops carrying the motion: most tic
 compiled, in calls of many ticks.
 """
 
-import json
 import math
-import os
 
 import numpy as np
 import pytest
 
 from hil.commands import SETTLE_S
 from hil.controller.config import cnc_unit
-from hil.runtime.sync import settled_rows
 from hil.trace_file import read_trace
 from plant.machines import load_machine_set
 from tests.conftest import CONFIGS, ROOT
-from tests.runtime_helpers import (
-    EXIT_S,
-    Children,
-    machine_lockstep_traces,
-    python_module,
-    terminate,
-)
+from tests.runtime_helpers import machine_lockstep_traces, usable_loopback
 
 CONFIG = CONFIGS / "machines" / "geiss_5axis.toml"
 PROGRAM = ROOT / "programs" / "geiss_5axis_moves.nc"
@@ -66,44 +57,9 @@ def lockstep(tmp_path_factory):
                                    tmp_path_factory.mktemp("lockstep5"))
 
 
-def run_pair(folder):
-    cpus = sorted(os.sched_getaffinity(0))
-    pin = ["--cpu", cpus[0]] if len(cpus) > 1 else []
-    with Children(folder) as children:
-        emulator, served = children.emulator(CONFIG, "udp://127.0.0.1:0", folder / "emulator",
-                                             "--cpu", cpus[-1])
-        ctl = children.start("controller", python_module(
-            "hil.runtime.controller_proc", CONFIG, "--adapter", served, "--program", PROGRAM,
-            "--out", folder / "controller", *pin))
-        code = ctl.wait(timeout=EXIT_S)
-        assert terminate(emulator) == 0, children.log("emulator")
-        if code != 0:
-            return children.log("controller")
-    return (json.loads((folder / "controller" / "summary.json").read_text()),
-            json.loads((folder / "emulator" / "report.json").read_text()))
-
-
 def test_five_axes_at_8khz_match_the_machine_lockstep(lockstep, tmp_path):
-    failures = []
-    for attempt in range(1, ATTEMPTS + 1):
-        folder = tmp_path / f"attempt{attempt}"
-        folder.mkdir()
-        result = run_pair(folder)
-        if isinstance(result, str):
-            failures.append(f"attempt {attempt}: the controller gave up:\n{result[-600:]}")
-            continue
-        summary, report = result
-        with np.load(folder / "controller" / "controller.npz") as npz:
-            cols = {k: npz[k] for k in ("lag_ticks", "fb_time_s", "tick")}
-        clear = {name: settled_rows(cols, axis["trace_every_ticks"], summary["period_ns"] * 1e-9,
-                                    glitch_window_s=GLITCH_WINDOW_S)
-                 for name, axis in summary["axes"].items()}
-        if min(c.mean() for c in clear.values()) >= MIN_CLEAR:
-            break
-        failures.append(f"attempt {attempt}: too few rows clear of timing faults; "
-                        f"controller feedback: {summary['feedback']}")
-    else:
-        pytest.fail("no usable run:\n" + "\n".join(failures))
+    folder, summary, report, clear = usable_loopback(CONFIG, PROGRAM, tmp_path, ATTEMPTS,
+                                                     MIN_CLEAR, GLITCH_WINDOW_S)
     machine = load_machine_set(CONFIG)
     assert summary["result"] == "completed" and set(summary["axes"]) == set(machine.names)
     assert report["exit_status"] == 0 and not report["watchdog"]["events"]

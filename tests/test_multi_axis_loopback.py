@@ -12,20 +12,16 @@ axis, and each axis's final position within ten scale counts (1 µm: where an ax
 at the end of its last move depends on which of its ticks ran late).
 """
 
-import json
-import os
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from hil.commands import SETTLE_S
-from hil.runtime.sync import settled_rows
 from hil.trace_file import read_trace
 from plant.machines import load_machine_set
 from tests.conftest import ROOT
-from tests.runtime_helpers import (EXIT_S, Children, machine_lockstep_traces, python_module,
-                                   terminate)
+from tests.runtime_helpers import machine_lockstep_traces, usable_loopback
 from tests.test_multi_axis import ARROW, SLOW, write_manifest
 
 PROGRAM = ROOT / "programs" / "xy_moves.nc"
@@ -48,45 +44,9 @@ def lockstep(config, tmp_path_factory) -> dict[str, Path]:
                                    tmp_path_factory.mktemp("lockstep"))
 
 
-def run_pair(config: Path, folder: Path) -> tuple[dict, dict] | str:
-    """Emulator and controller over UDP: (controller summary, emulator report), or the
-    controller's log when it gave up."""
-    cpus = sorted(os.sched_getaffinity(0))
-    pin = ["--cpu", cpus[0]] if len(cpus) > 1 else []
-    with Children(folder) as children:
-        emulator, served = children.emulator(config, "udp://127.0.0.1:0", folder / "emulator",
-                                             "--cpu", cpus[-1])
-        ctl = children.start("controller", python_module(
-            "hil.runtime.controller_proc", config, "--adapter", served, "--program", PROGRAM,
-            "--out", folder / "controller", *pin))
-        code = ctl.wait(timeout=EXIT_S)
-        assert terminate(emulator) == 0, children.log("emulator")
-        if code != 0:
-            return children.log("controller")
-    return (json.loads((folder / "controller" / "summary.json").read_text()),
-            json.loads((folder / "emulator" / "report.json").read_text()))
-
-
 def test_two_axes_over_udp_match_the_machine_lockstep(config, lockstep, tmp_path):
-    failures = []
-    for attempt in range(1, ATTEMPTS + 1):
-        folder = tmp_path / f"attempt{attempt}"
-        folder.mkdir()
-        result = run_pair(config, folder)
-        if isinstance(result, str):
-            failures.append(f"attempt {attempt}: the controller gave up:\n{result[-600:]}")
-            continue
-        summary, report = result
-        with np.load(folder / "controller" / "controller.npz") as npz:
-            cols = {k: npz[k] for k in ("lag_ticks", "fb_time_s", "tick")}
-        clear = {name: settled_rows(cols, axis["trace_every_ticks"], summary["period_ns"] * 1e-9)
-                 for name, axis in summary["axes"].items()}
-        if min(c.mean() for c in clear.values()) >= MIN_CLEAR:
-            break
-        failures.append(f"attempt {attempt}: too few rows clear of timing faults; "
-                        f"controller feedback: {summary['feedback']}")
-    else:
-        pytest.fail("no usable run:\n" + "\n".join(failures))
+    folder, summary, report, clear = usable_loopback(config, PROGRAM, tmp_path, ATTEMPTS,
+                                                     MIN_CLEAR)
     assert summary["result"] == "completed" and set(summary["axes"]) == {"X", "Y"}
     assert report["exit_status"] == 0 and not report["watchdog"]["events"]
     assert report["adapter"]["stats"]["malformed"] == 0

@@ -37,7 +37,9 @@ later than the slack a tick leaves (the period less the tick's p50) in an equall
 run at ``cyclictest_interval_us``, the period to the nearest whole µs (cyclictest's
 unit: 62 µs for 16 kHz's 62.5): a stall that cyclictest also sees is the machine's, not the loop's.  One stall is
 one late cyclictest sample but, under ``"count"``, as many overruns as ticks it held up:
-``overrun_episodes`` counts runs of consecutive overrun ticks after the grace period,
+``wake_latency_us`` the compiled ticks' wake-up latency (when the sleep before the spin
+ended, after its target: what cyclictest measures, which the loop's spin hides from its
+lateness); ``overrun_episodes`` counts runs of consecutive overrun ticks after the grace period,
 each once, and that is what ``beyond`` is compared with (issue 29's goal: no more).
 """
 
@@ -95,6 +97,7 @@ def emulator_rate(rate_hz: int | None, seconds: float, config: Path, cpu: int,
     other end, under the same real-time request as the plain loop; then cyclictest at the
     same interval (see the module docstring)."""
     from hil.bench.tick import _Drain
+    from hil.runtime import steady_tick as S
     from hil.runtime.emulator import Emulator, RuntimeConfig, short_gil_switch
     from plant.machines import load_machine_set
 
@@ -106,6 +109,8 @@ def emulator_rate(rate_hz: int | None, seconds: float, config: Path, cpu: int,
     timing = emulator.timing
     period_us = timing.period_ns / 1000
     drain = _Drain(emulator.recorder, timing.n_ticks)
+    trace = emulator.steady.keep_trace(timing.n_ticks) if emulator.steady is not None \
+        else None
     with ExitStack() as stack:
         stack.callback(emulator.endpoint.close)
         stack.enter_context(server(bench_tick.controller, emulator.endpoint.address[1],
@@ -126,6 +131,8 @@ def emulator_rate(rate_hz: int | None, seconds: float, config: Path, cpu: int,
     row = {"rate_hz": timing.rate_hz, "period_us": period_us, "config": str(config),
            "axes": len(machine.axes), "ticks": stats.ticks,
            "lateness_us": Percentiles.of_ns_in_us(drain.lateness[ran]).as_dict(),
+           "wake_latency_us": None if trace is None else Percentiles.of_ns_in_us(
+               trace[trace[:, S.T_WAKE] != 0, S.T_WAKE_LATENCY]).as_dict(),
            "compute_us": compute.as_dict(), "overruns": stats.overruns,
            "overrun_episodes": episodes,
            "skipped": stats.skipped, "cpu_fraction": stats.cpu_fraction,

@@ -439,29 +439,35 @@ def _idle_cycle(prm, fst, ist, spf, spi, p, s, inp, out, saved, fbf, ring_f, rin
     w[F_BRAKE_OFF] += prm[R_CYCLE]
     brake = 1.0 if prm[R_BRAKE_PRESENT] != 0.0 and w[F_BRAKE_OFF] >= prm[R_BRAKE_CLOSING] \
         else 0.0
-    if _step_plant(p, s, inp, out, saved, wi[J_N_SUB], 0.0, 0.0, False, 0.0, 0.0, 0.0,
+    return _end_cycle(prm, fst, ist, spf, spi, p, s, inp, out, saved, fbf, ring_f, ring_i,
+                      0.0, 0.0, False, 0.0, 0.0, 0.0, brake, ist[J_STATE])
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _end_cycle(prm, fst, ist, spf, spi, p, s, inp, out, saved, fbf, ring_f, ring_i, iq, i_d,
+               voltage, ud, uq, enable, brake, state):
+    """Both cycles' end: the plant's PWM period (:func:`_step_plant`), the working copy
+    made the state, the feedback's floats, the recording row (``state``: the CiA 402
+    state, the power stage on with ``enable`` 1.0); :data:`DONE`, or EXIT_PLANT with the
+    plant's step undone and the state as it was."""
+    w, wi = fst[N_FST:], ist[N_IST:]
+    if _step_plant(p, s, inp, out, saved, wi[J_N_SUB], iq, i_d, voltage, ud, uq, enable,
                    brake) != L.STATUS_OK:
         return EXIT_PLANT
     w[F_LAST_GOOD_X] = out[L.O_TABLE_POS]
     wi[J_TICK] += 1
     _copy(w, fst, N_FST)
     _copy(wi, ist, N_IST)
-    _feedback(prm, w, out, fbf)
-    if ist[J_ROW] >= 0:
-        _write_row(ring_f, ring_i, ist[J_ROW], spf, out, spi, ist[J_STATUSWORD],
-                   ist[J_STATE], 0)
-    return DONE
-
-
-@njit(cache=True, error_model="numpy", inline="always")
-def _feedback(prm, w, out, fbf):
-    """The feedback's floats after a cycle."""
     fbf[B_TIME] = out[L.O_TIME]
     fbf[B_ENCODER] = out[L.O_ENCODER] + prm[R_SHIFT]
     fbf[B_SCALE] = out[L.O_SCALE]
     fbf[B_VELOCITY] = w[F_VELOCITY]
     fbf[B_IQ] = out[L.O_IQ_MEAS]
     fbf[B_ID] = out[L.O_ID_MEAS]
+    if ist[J_ROW] >= 0:
+        _write_row(ring_f, ring_i, ist[J_ROW], spf, out, spi, ist[J_STATUSWORD], state,
+                   1 if enable else 0)
+    return DONE
 
 
 @njit(cache=True, error_model="numpy", _nrt=False)
@@ -511,15 +517,5 @@ def steady_cycle(prm, fst, ist, spf, spi, p, s, inp, out, saved, fbf, ring_f, ri
     ud, uq = (spf[S_UD], spf[S_UQ]) if voltage else (0.0, 0.0)
     # the holding brake opens with the pulses (HoldingBrake.update)
     w[F_BRAKE_OFF] = 0.0
-    if _step_plant(p, s, inp, out, saved, wi[J_N_SUB], iq, i_d, voltage, ud,
-                   uq, 1.0, 0.0) != L.STATUS_OK:
-        return EXIT_PLANT
-    w[F_LAST_GOOD_X] = out[L.O_TABLE_POS]
-    wi[J_TICK] += 1
-    _copy(w, fst, N_FST)
-    _copy(wi, ist, N_IST)
-    _feedback(prm, w, out, fbf)
-    if ist[J_ROW] >= 0:
-        _write_row(ring_f, ring_i, ist[J_ROW], spf, out, spi, ist[J_STATUSWORD],
-                   State.OPERATION_ENABLED, 1)
-    return DONE
+    return _end_cycle(prm, fst, ist, spf, spi, p, s, inp, out, saved, fbf, ring_f, ring_i,
+                      iq, i_d, voltage, ud, uq, 1.0, 0.0, State.OPERATION_ENABLED)

@@ -49,7 +49,9 @@ def now_ns(timespec):
 @njit(cache=True, nogil=True)
 def sleep_until_ns(deadline_ns, spin_ns, timespec):
     """Sleep until ``spin_ns`` before ``deadline_ns`` (``CLOCK_MONOTONIC``, absolute),
-    then spin until it; the time woken, ns.  ``timespec``: int64[2] of room."""
+    then spin until it: (the time woken, the time the sleep ended), ns; the second less
+    ``deadline_ns - spin_ns`` is the wake-up latency cyclictest measures (the time the
+    call came, when that was later).  ``timespec``: int64[2] of room."""
     start = deadline_ns - spin_ns
     if start > now_ns(timespec):
         timespec[0] = start // 1_000_000_000
@@ -58,10 +60,10 @@ def sleep_until_ns(deadline_ns, spin_ns, timespec):
                                timespec.ctypes) == _EINTR:
             timespec[0] = start // 1_000_000_000
             timespec[1] = start % 1_000_000_000
-    t_ns = now_ns(timespec)
+    slept = t_ns = now_ns(timespec)
     while t_ns < deadline_ns:
         t_ns = now_ns(timespec)
-    return t_ns
+    return t_ns, slept
 
 
 class Clock(Protocol):
@@ -100,7 +102,7 @@ class MonotonicClock:
         return time.monotonic_ns()
 
     def sleep_until(self, deadline_ns: int) -> int:
-        return sleep_until_ns(deadline_ns, self.spin_ns, self._timespec)
+        return sleep_until_ns(deadline_ns, self.spin_ns, self._timespec)[0]
 
 
 class SimulatedClock:

@@ -131,7 +131,7 @@ def controller_run(bufs, link, books, hdr, iov, slots, name_slots, names, ctrl, 
         if k >= end or stop[0]:
             break
         deadline = t0 + k * period
-        wake = sleep_until_ns(deadline, spin, clock) if timed else now_ns(clock)
+        wake = sleep_until_ns(deadline, spin, clock)[0] if timed else now_ns(clock)
         run[N_WAKE] = wake
         n = U.receive(link, bufs, hdr, iov, slots, name_slots, names, ctrl, peer_name,
                       hello_leads, peek, books)

@@ -113,8 +113,9 @@ N_DECLINED = N_RUN
 #: ``trace`` columns, per tick run compiled in a timed call (a benchmark's; none in hil
 #: run): woken, datagrams read, answer encoded and row written, books kept (the send
 #: begins), answer sent (the tick's end: its compute time ends there, as the ring's
-#: end_tick has it)
-T_WAKE, T_RECEIVED, T_WORKED, T_SENDING, T_SENT, N_TRACE = range(6)
+#: end_tick has it), the wake-up latency (the sleep's end after its target, the deadline
+#: less the spin: :func:`hil.rt.clock.sleep_until_ns`)
+T_WAKE, T_RECEIVED, T_WORKED, T_SENDING, T_SENT, T_WAKE_LATENCY, N_TRACE = range(7)
 #: the wire's setpoint floats (codec_compiled.SP_FLOAT_FIELDS) in the drive's ``spf``
 _SPF_SLOT = tuple(C.SP_FLOATS.index(name) for name in K.SP_FLOAT_FIELDS)
 
@@ -297,7 +298,10 @@ def _run(bufs, sp_ints, axis_ints, sp_floats, link, books, fb_ints, fb_axis_ints
         if k >= end or stop[0]:
             break
         deadline = t0 + k * period
-        wake = sleep_until_ns(deadline, spin, clock) if timed else run[N_WAKE]
+        if timed:
+            wake, slept = sleep_until_ns(deadline, spin, clock)
+        else:
+            wake = slept = run[N_WAKE]
         run[N_WAKE] = wake
         n = U.receive(link, bufs, hdr, iov, slots, name_slots, names, ctrl, peer_name,
                       hello_leads, peek, books)
@@ -349,6 +353,7 @@ def _run(bufs, sp_ints, axis_ints, sp_floats, link, books, fb_ints, fb_axis_ints
             if k < trace.shape[0]:
                 trace[k, T_WAKE], trace[k, T_RECEIVED] = wake, received
                 trace[k, T_WORKED], trace[k, T_SENDING], trace[k, T_SENT] = worked, sending, t_end
+                trace[k, T_WAKE_LATENCY] = slept - (deadline - spin)
             if t_end > deadline + period:
                 reason = OVERRAN
                 break
