@@ -1,5 +1,7 @@
 """The compiled steady-state codec (:mod:`io_adapters.codec_compiled`) against the Python
-codec it stands for (:mod:`io_adapters.codec`, msgpack's own packer and unpacker).
+codec it stands for (:mod:`io_adapters.codec`, msgpack's own packer and unpacker): the
+emulator's side (setpoints read, feedback written) and the controller's (feedback read,
+setpoints written).
 
 A setpoint (a version-1 Setpoint, or a version-2 group) the compiled reader accepts must
 be one that :func:`io_adapters.codec.decode` accepts with finite floats, with the same
@@ -263,3 +265,69 @@ def test_groups_both_ways(data, n_axes):
         for name in K.FB_FLOAT_FIELDS[1:]:
             setattr(f, name, data.draw(_FINITE))
     _assert_encodes_as_msgpack(fb, session, frame)
+
+
+def _feedback(draw, n_axes: int) -> Feedback | FeedbackGroup:
+    _, fb = message_pair(n_axes)
+    fb.seq = draw(_U32)
+    fb.sp_t_ns, fb.sp_rx_ns, fb.t_ns, fb.tick_ns = (draw(_T_NS) for _ in range(4))
+    fb.time_s = draw(_FINITE)
+    for f in axis_records(fb):
+        f.statusword, f.fault = draw(st.integers(0, 0xFFFF)), draw(
+            st.integers(-2**31, 2**31 - 1))
+        for name in K.FB_FLOAT_FIELDS[1:]:
+            setattr(f, name, draw(_FINITE))
+    return fb
+
+
+def _read_feedback(payload: bytes, n_axes: int):
+    """(accepted, ints, axis ints, floats) of the compiled feedback reader; the arrays
+    start as sentinels."""
+    buf = np.zeros(2048, np.uint8)
+    buf[:len(payload)] = np.frombuffer(payload, np.uint8)
+    ints = np.full(K.N_FB_INTS, -7, np.int64)
+    axis_ints, floats = np.full((n_axes, 2), -7, np.int64), np.full((n_axes, 6), -7.0)
+    ok = K.decode_feedback(buf, len(payload), ints, axis_ints, floats)
+    return ok, ints, axis_ints, floats
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.data(), st.sampled_from([1, 2, 5]))
+def test_the_controller_side_both_ways(data, n_axes):
+    """A controller's compiled loop (hil.runtime.controller_steady): feedback msgpack
+    writes is read with the same values (a group's time_s once), a mutated one only where
+    the Python codec takes it with finite floats (the caller's arrays untouched
+    otherwise), and a setpoint is written as msgpack writes it."""
+    fb = _feedback(data.draw, n_axes)
+    session, frame = data.draw(_U32), data.draw(_U32)
+    payload = bytearray(encode(fb, session, frame))
+    ok, ints, axis_ints, floats = _read_feedback(bytes(payload), n_axes)
+    assert ok
+    assert list(ints) == [session, frame, fb.seq, fb.sp_t_ns, fb.sp_rx_ns, fb.t_ns,
+                          fb.tick_ns]
+    assert axis_ints.tolist() == [[f.statusword, f.fault] for f in axis_records(fb)]
+    assert np.array([[getattr(f, n) for n in K.FB_FLOAT_FIELDS[1:]]
+                     for f in axis_records(fb)]).tobytes() == floats[:, 1:].tobytes()
+    assert np.float64(fb.time_s).tobytes() == floats[0, 0].tobytes()
+    assert not _read_feedback(bytes(payload), n_axes + 1)[0]  # another number of axes
+    payload[data.draw(st.integers(0, len(payload) - 1))] = data.draw(st.integers(0, 255))
+    record = type(fb)
+    try:
+        values = decode(bytes(payload), record, n_axes)
+        floats_of = ([values[5]] + [v for a in values[-1] for v in a[2:]] if n_axes > 1
+                     else values[7:13])
+        taken = values[1] == 2 and all(map(math.isfinite, floats_of))
+    except FrameError:
+        taken = False
+    ok, ints, axis_ints, floats = _read_feedback(bytes(payload), n_axes)
+    assert ok == taken, payload.hex()
+    if not ok:
+        assert (ints == -7).all() and (axis_ints == -7).all() and (floats == -7.0).all()
+    sp = _group_setpoint(data.draw, n_axes) if n_axes > 1 else _setpoint(data.draw)
+    out = np.zeros(1024, np.uint8)
+    n = K.encode_setpoint(
+        out, np.array([session, frame, sp.seq, sp.t_ns], np.int64),
+        np.array([[s.controlword, s.mode] for s in axis_records(sp)], np.int64),
+        np.array([[getattr(s, name) for name in K.SP_FLOAT_FIELDS]
+                  for s in axis_records(sp)]))
+    assert out[:n].tobytes() == encode(sp, session, frame)
