@@ -31,16 +31,17 @@ overrun policy ``hil run``'s (``"count"``), under the same real-time request.  T
 controller is ``hil bench tick``'s: a child process (spawned) that enables the drives and
 moves them in CSP, one setpoint per period of its own clock.  The row adds ``config``,
 ``axes``, ``adapter`` (null without one), ``link``: ``{"setpoints", "feedbacks",
-"ticks_without_setpoint", "compiled_ticks", "compiled_calls"}`` counted over the run, and
-``cyclictest_beyond``: ``{"slack_us", "samples", "beyond"}``, cyclictest's samples
-later than the slack a tick leaves (the period less the tick's p50) in an equally long
-run at ``cyclictest_interval_us``, the period to the nearest whole µs (cyclictest's
-unit: 62 µs for 16 kHz's 62.5): a stall that cyclictest also sees is the machine's, not the loop's.  One stall is
-one late cyclictest sample but, under ``"count"``, as many overruns as ticks it held up:
-``wake_latency_us`` the compiled ticks' wake-up latency (when the sleep before the spin
-ended, after its target: what cyclictest measures, which the loop's spin hides from its
-lateness); ``overrun_episodes`` counts runs of consecutive overrun ticks after the grace period,
-each once, and that is what ``beyond`` is compared with (issue 29's goal: no more).
+"ticks_without_setpoint", "compiled_ticks", "compiled_calls"}`` counted over the run;
+``wake_latency_us``, the compiled ticks' wake-up latency (when the sleep before the spin
+ended, after its target: what cyclictest measures, and what the spin hides from the
+lateness); ``overrun_episodes``, the runs of consecutive overrun ticks after the grace
+period, each counted once (one stall is one late cyclictest sample but, under
+``"count"``, as many overruns as ticks it held up); and ``cyclictest_beyond``:
+``{"slack_us", "samples", "beyond"}``, cyclictest's samples later than the slack a tick
+leaves (the period less the tick's p50) in an equally long run at
+``cyclictest_interval_us``, the period to the nearest whole µs (cyclictest's unit: 62 µs
+for 16 kHz's 62.5).  A stall that cyclictest also sees is the machine's, not the loop's:
+issue 29's goal is no more overrun episodes than ``beyond``.
 """
 
 import sys

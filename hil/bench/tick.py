@@ -280,11 +280,11 @@ def run_from_args(args: argparse.Namespace) -> int:
               f"{late['p999']:.1f} µs; plant step p50 {r['plant_step_us']['p50']:.1f} µs; "
               f"tick/plant {r['ratio_p50']:.2f}; compiled {100 * r['compiled_share']:.1f} % "
               f"of ticks; overruns {r['overruns']}; load {r['load_avg_1min']:.2f}")
-        if r["compiled_loop"] is not None:
+        loop = r["compiled_loop"]
+        if loop is not None:
             c, w, g = r["socket_calls_us"], r["compiled_work_us"], r["glue_us"]
             print(f"  compiled ticks: socket calls p50 {c['p50']:.1f} µs, compiled work p50 "
                   f"{w['p50']:.1f} µs ({r['ratio_compiled_work_p50']:.2f} x the plant step), "
                   f"glue p50 {g['p50']:.2f} µs; Python {r['python_per_call_us']:.1f} µs per "
-                  f"call of {r['compiled_loop']['ticks'] / max(1, r['compiled_loop']['calls']):.0f} "
-                  "ticks")
+                  f"call of {loop['ticks'] / max(1, loop['calls']):.0f} ticks")
     return 0

@@ -41,6 +41,7 @@ from hil.rt.clock import now_ns, sleep_until_ns
 from hil.runtime import steady_tick as S
 from io_adapters import codec_compiled as K
 from io_adapters import udp_steady as U
+from io_adapters.base import AdapterError
 from io_adapters.codec import U32
 from io_adapters.messages import MODE_CST, FeedbackGroup, axis_records
 from io_adapters.msgpack_endpoint import MAX_DROPOUT
@@ -382,7 +383,7 @@ class ControllerSteady:
         elif reason == SEND_IN_PYTHON:
             try:
                 proc.ep.send_setpoint(proc.sp)
-            except Exception:  # an AdapterError or the encoder's refusal, as step counts it
+            except AdapterError:  # counted as ControllerProcess.step counts it
                 proc.adapter_errors += 1
         if reason == ROWS_DONE:
             proc.loop.request_stop()
