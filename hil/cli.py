@@ -195,6 +195,15 @@ def _chosen(argv: list[str]) -> tuple[str | None, str | None]:
     return (words[0] if words else None), (words[1] if len(words) > 1 else None)
 
 
+def _version() -> str:
+    """The installed package's version (pyproject.toml's), from its metadata."""
+    from importlib.metadata import PackageNotFoundError, version
+    try:
+        return version("feeddrive-hil")
+    except PackageNotFoundError:  # run from a checkout that was never installed
+        return "(not installed)"
+
+
 def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     """The command line's parser.  A command implemented in a module of its own gets its
     options only when ``argv`` (default: ``sys.argv[1:]``) names it: the module is
@@ -202,6 +211,7 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     what they do not run (the CAN stack, asammdf, Dask, matplotlib: seconds)."""
     command, what = _chosen(sys.argv[1:] if argv is None else argv)
     parser = argparse.ArgumentParser(prog="hil", description="Feed-drive HIL plant emulator")
+    parser.add_argument("--version", action="version", version=f"hil {_version()}")
     sub = parser.add_subparsers(dest="command", required=True)
 
     def module(subparsers, name: str, help_: str, path: str, chosen: bool) -> None:

@@ -9,6 +9,7 @@ import sys
 from pathlib import Path
 
 import pytest
+import tomllib
 
 ROOT = Path(__file__).resolve().parent.parent
 FORBIDDEN = {"plant": {"hil", "io_adapters"}, "io_adapters": {"plant", "hil"}}
@@ -75,6 +76,14 @@ def test_the_emulator_loads_no_can_stack():
     pandas behind them: 0.65 s of a 1.1 s start); a ``can://`` URL loads them when the
     endpoint opens."""
     assert _loaded("hil.runtime.emulator", {"can", "canopen", "asammdf"}) == []
+
+
+def test_hil_version_says_the_packages_version():
+    """``hil --version`` prints the version pyproject.toml declares, exit status 0."""
+    done = subprocess.run([sys.executable, "-m", "hil.cli", "--version"], capture_output=True,
+                          text=True, cwd=ROOT, timeout=120, check=True)
+    declared = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["version"]
+    assert done.stdout.strip() == f"hil {declared}"
 
 
 def test_the_command_line_imports_only_the_command_it_runs():
