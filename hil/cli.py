@@ -154,11 +154,15 @@ def cmd_config_keys(args) -> int:
         print("| section | key | unit | range | default | applies to | meaning |")
         print("|---|---|---|---|---|---|---|")
         for r in rows:
-            print(f"| {r['section']} | `{r['key']}` | {r['unit']} | {r['range']} | "
-                  f"{r['default']} | {r['only']} | {r['doc']} |")
+            cells = (r["section"], f"`{r['key']}`", r["unit"], r["range"], r["default"],
+                     r["only"], r["doc"])
+            # a | inside a cell would end it (GitHub's tables): escaped
+            print("| " + " | ".join(str(c).replace("|", "\\|") for c in cells) + " |")
     else:
+        print(f"{'[section] key':<45} {'unit':<10} {'range':<18} {'default':<10} meaning")
         for r in rows:
-            print(f"[{r['section']}] {r['key']:<34} {r['unit']:<10} {r['default']:<10} {r['doc']}")
+            print(f"{'[' + r['section'] + '] ' + r['key']:<45} {r['unit']:<10} "
+                  f"{r['range']:<18} {r['default']:<10} {r['doc']}")
     return 0
 
 

@@ -195,6 +195,31 @@ def test_every_key_is_documented():
             assert set(values.split("|")) <= allowed[name], f"{where}: only={row['only']}"
 
 
+def test_config_keys_tables_hold_together():
+    """`hil config-keys --markdown` is a table every row of which has the header's seven
+    cells when split as GitHub's tables split them (on pipes not escaped: a choice list
+    "screw | linear | rotary" inside a cell is escaped), and the plain listing has the
+    range column the README promises."""
+    import re
+    import subprocess
+    import sys
+
+    def run(*args):
+        return subprocess.run([sys.executable, "-m", "hil.cli", "config-keys", *args],
+                              capture_output=True, text=True, check=True, timeout=120).stdout
+
+    rows = [line for line in run("--markdown").splitlines() if line.startswith("|")]
+    assert len(rows) > 100
+    cells = [[c.strip() for c in re.split(r"(?<!\\)\|", row)[1:-1]] for row in rows]
+    assert {len(c) for c in cells} == {7}
+    kind = next(c for c in cells if c[:2] == ["machine", "`kind`"])
+    assert kind[3] == r"screw \| linear \| rotary"
+    plain = run().splitlines()
+    assert plain[0].split()[:5] == ["[section]", "key", "unit", "range", "default"]
+    assert any(line.startswith("[machine] kind") and "screw | linear | rotary" in line
+               for line in plain)
+
+
 def _config(name):
     return Plant.from_file(CONFIG_DIR / name)
 
