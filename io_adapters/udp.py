@@ -312,7 +312,12 @@ class UdpEndpoint(MsgpackEndpoint):
 
     def __repr__(self) -> str:
         host, port = self._sock.getsockname()[:2] if not self._closed else ("-", "-")
-        return f"<UdpEndpoint {self.role.value} {host}:{port}{' closed' * self._closed}>"
+        # the other end too: a message about a drive that does not answer names the drive
+        other = self.peer
+        peer = "" if other is None else (
+            f", {'controller' if self.role is Role.DEVICE else 'drive'} {other[0]}:{other[1]}")
+        return (f"<UdpEndpoint {self.role.value} {host}:{port}{peer}"
+                f"{' closed' * self._closed}>")
 
     def _send_bytes(self, payload: bytes, to) -> bool:
         to = to or self.peer

@@ -293,3 +293,16 @@ def test_datagrams_from_another_sender_are_counted_and_the_run_goes_on(slow_conf
     stats = report["adapter"]["stats"]
     assert (stats["foreign"], stats["received"]) == (3, 21), "every good setpoint taken"
     assert report["loop"]["stopped_by"] == "stop_flag" and rec["sp_new"].sum() > 0
+
+
+def test_a_controller_without_a_drive_names_the_drive_it_waited_for():
+    """No emulator at the URL: the alignment gives up after its timeout and says which
+    drive address it waited for (not only its own port)."""
+    from hil.runtime.sync import DriveNotAnswering, align
+
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:  # a port nobody serves
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    with open_endpoint(f"udp://127.0.0.1:{port}", "controller") as ep:
+        with pytest.raises(DriveNotAnswering, match=rf"drive 127\.0\.0\.1:{port}\b"):
+            align(ep, Setpoint(), Feedback(), 125_000, 0.2)
