@@ -62,19 +62,18 @@ from io_adapters.udp import MAX_DATAGRAM, SO_TIMESTAMPNS, UdpEndpoint
 #: datagrams one compiled tick takes at most (more queued: the Python tick drains them)
 MAX_QUEUED = 64
 #: ``link``: the pinned peer's session and last frame number, the newest datagram's
-#: arrival (monotonic ns: the kernel's stamp, else when it was read), when the compiled
-#: tick's call began (monotonic ns, written by it), two words of room for its clock
-#: readings (a struct timespec); the socket, the receive budget of a tick, what the last
-#: receive left of it, kernel stamps on (1/0), realtime minus monotonic (ns), the
-#: datagrams the last receive read and kept (handed back on a decline), a receive
-#: error's errno, a send error's errno, when the peer was last heard (monotonic ns), the
-#: foreign datagrams the last receive counted, the peer's and the answer's address
-#: lengths (0: nobody to send to); then per datagram read, oldest first: its length,
-#: (written by the compiled tick) its frame number, its kernel stamp, its sender's
-#: address length
-(L_PEER_SESSION, L_PEER_FRAME, L_RX_NS, L_CALL_NS, L_CLOCK, _L_CLOCK_2, L_FD, L_BUDGET,
- L_LEFT, L_STAMPS_ON, L_OFFSET, L_N, L_ERRNO, L_SEND_ERRNO, L_HEARD_NS, L_FOREIGN,
- L_PEER_LEN, L_SEND_LEN, L_LENGTHS) = range(19)
+#: arrival (monotonic ns: the kernel's stamp, else when it was read), two words of room
+#: for the compiled code's clock readings (a struct timespec); the socket, the receive
+#: budget of a tick, what the last receive left of it, kernel stamps on (1/0), realtime
+#: minus monotonic (ns), the datagrams the last receive read and kept (handed back on a
+#: decline), a receive error's errno, a send error's errno, when the peer was last heard
+#: (monotonic ns), the foreign datagrams the last receive counted, the peer's and the
+#: answer's address lengths (0: nobody to send to); then per datagram read, oldest first:
+#: its length, (written by the compiled tick) its frame number, its kernel stamp, its
+#: sender's address length
+(L_PEER_SESSION, L_PEER_FRAME, L_RX_NS, L_CLOCK, _L_CLOCK_2, L_FD, L_BUDGET, L_LEFT,
+ L_STAMPS_ON, L_OFFSET, L_N, L_ERRNO, L_SEND_ERRNO, L_HEARD_NS, L_FOREIGN, L_PEER_LEN,
+ L_SEND_LEN, L_LENGTHS) = range(18)
 L_FRAMES = L_LENGTHS + MAX_QUEUED
 L_STAMPS = L_FRAMES + MAX_QUEUED
 L_NAME_LENS = L_STAMPS + MAX_QUEUED

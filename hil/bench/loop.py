@@ -97,7 +97,7 @@ def emulator_rate(rate_hz: int | None, seconds: float, config: Path, cpu: int,
     its PWM frequency) behind the UDP adapter's device end, a controller child on the
     other end, under the same real-time request as the plain loop; then cyclictest at the
     same interval (see the module docstring)."""
-    from hil.bench.tick import _Drain
+    from hil.bench.tick import Drain
     from hil.runtime import steady_tick as S
     from hil.runtime.emulator import Emulator, RuntimeConfig, short_gil_switch
     from plant.machines import load_machine_set
@@ -109,7 +109,7 @@ def emulator_rate(rate_hz: int | None, seconds: float, config: Path, cpu: int,
     emulator.open()
     timing = emulator.timing
     period_us = timing.period_ns / 1000
-    drain = _Drain(emulator.recorder, timing.n_ticks)
+    drain = Drain(emulator.recorder, timing.n_ticks)
     trace = emulator.steady.keep_trace(timing.n_ticks) if emulator.steady is not None \
         else None
     with ExitStack() as stack:

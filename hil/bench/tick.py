@@ -149,7 +149,7 @@ def bench(config: Path, seconds: float, compiled: bool = True) -> dict:
     child = ctx.Process(target=controller, args=(emulator.endpoint.address[1],
                                                   len(drives), period_ns, child_conn))
     child.start()
-    drain = _Drain(emulator.recorder, n_ticks)
+    drain = Drain(emulator.recorder, n_ticks)
     try:
         if not parent.poll(START_S):
             raise RuntimeError(f"the controller process did not start within {START_S} s")
@@ -202,7 +202,7 @@ def bench(config: Path, seconds: float, compiled: bool = True) -> dict:
             "ratio_compiled_work_p50": work_p.p50 / plant_p.p50}
 
 
-class _Drain:
+class Drain:
     """The recording writer's part, in a thread of this process: takes the ring's rows
     as they are committed (every :data:`DRAIN_S`), keeping each tick's lateness and
     compute time (ns; -1: the tick did not run)."""

@@ -404,7 +404,8 @@ def _write_row(ring_f, ring_i, j, spf, out, spi, statusword, state, enable):
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def _idle_cycle(prm, fst, ist, spf, spi, p, s, inp, out, saved, fbf, ring_f, ring_i):
+def _idle_cycle(prm, fst, ist, spf, spi, p, s, inp, out, saved, fbf, ring_f, ring_i, w, wi,
+                theta, w_act):
     """A drive cycle with the power stage off, in SWITCH ON DISABLED, READY TO SWITCH ON
     or SWITCHED ON under a controlword that takes no transition there (see
     :func:`steady_cycle`): EmulatedDrive._cycle's path when not operating -- the speed
@@ -412,14 +413,8 @@ def _idle_cycle(prm, fst, ist, spf, spi, p, s, inp, out, saved, fbf, ring_f, rin
     the holding brake, the plant's PWM period with the pulses off, the feedback.  The
     modes' hold and the loops' reset, which change nothing but their own state on inputs
     this cycle leaves in ``fst``, are :meth:`hil.drive.compiled_path.CompiledPath.leave`'s
-    to replay."""
-    w, wi = fst[N_FST:], ist[N_IST:]
-    _copy(fst, w, N_FST)
-    _copy(ist, wi, N_IST)
-    counts = out[L.O_ENCODER]
-    _speed_actual(prm, w, wi, counts)
-    theta = counts * prm[R_RPC]
-    w_act = w[F_VELOCITY] * prm[R_RPC]
+    to replay.  ``w``, ``wi``: the working copies, ``theta``, ``w_act``: the position and
+    speed actual values, as :func:`steady_cycle` began the cycle."""
     # Monitor.check, not operating: overcurrent and overspeed are latched even so
     _, hot = _i2t(prm, w, wi, out)
     if hot or abs(w_act) > prm[R_OVERSPEED]:
@@ -483,9 +478,6 @@ def steady_cycle(prm, fst, ist, spf, spi, p, s, inp, out, saved, fbf, ring_f, ri
         return EXIT_COMMAND
     if _refused(prm, spf, mode):
         return EXIT_REFUSED
-    if ist[J_IDLE]:
-        return _idle_cycle(prm, fst, ist, spf, spi, p, s, inp, out, saved, fbf, ring_f,
-                           ring_i)
     w, wi = fst[N_FST:], ist[N_IST:]
     _copy(fst, w, N_FST)
     _copy(ist, wi, N_IST)
@@ -493,6 +485,9 @@ def steady_cycle(prm, fst, ist, spf, spi, p, s, inp, out, saved, fbf, ring_f, ri
     _speed_actual(prm, w, wi, counts)
     theta = counts * prm[R_RPC]
     w_act = w[F_VELOCITY] * prm[R_RPC]
+    if ist[J_IDLE]:
+        return _idle_cycle(prm, fst, ist, spf, spi, p, s, inp, out, saved, fbf, ring_f,
+                           ring_i, w, wi, theta, w_act)
     target, w_cmd = _command(prm, w, wi, spf, spi, theta)
     voltage = mode == MODE_VOLTAGE
     flags = _monitor(prm, w, wi, out, target, theta, w_act, voltage)

@@ -30,6 +30,8 @@ from hil.trace_file import write_trace
 FLOAT_COLUMNS = ("t_s", "x_set", "v_set", "a_set", "x_act", "v_act", "v_cmd", "w_set",
                  "w_act", "iq_set", "following_error", "contour_deviation", "iq_meas",
                  "motor_pos", "tick", "fb_time_s")
+#: the controller's attributes recorded in FLOAT_COLUMNS' first columns (``t`` is t_s)
+CTRL_SIGNALS = ("t", *FLOAT_COLUMNS[1:FLOAT_COLUMNS.index("iq_meas")])
 #: float columns common to every axis
 COMMON_FLOATS = ("t_s", "tick", "fb_time_s")
 #: integer columns (see hil.runtime.controller_proc)

@@ -95,7 +95,12 @@ from hil.runtime.common import (
     start_positions,
     stop_on_signals,
 )
-from hil.runtime.controller_files import FLOAT_COLUMNS, INT_COLUMNS, write_outputs
+from hil.runtime.controller_files import (
+    CTRL_SIGNALS,
+    FLOAT_COLUMNS,
+    INT_COLUMNS,
+    write_outputs,
+)
 from hil.runtime.controller_steady import ControllerSteady
 from hil.runtime.sync import U32, DriveNotAnswering, align
 from io_adapters import AdapterError, Endpoint, open_endpoint
@@ -107,9 +112,6 @@ from plant.machines import load_machine_set
 #: coarse (MD36000), mm or deg
 START_WINDOW_CNC = 0.04
 DEFAULT_FEEDBACK_TIMEOUT_S = 0.1
-#: controller attributes recorded each tick (SI, hil.sim.SIGNALS names; ``t`` is t_s)
-CTRL_SIGNALS = ("t", "x_set", "v_set", "a_set", "x_act", "v_act", "v_cmd", "w_set", "w_act",
-                "iq_set", "following_error", "contour_deviation")
 #: FLOAT_COLUMNS and INT_COLUMNS of controller.npz: :mod:`hil.runtime.controller_files`.
 #: The integer columns: the loop's deadline index, 1 when new feedback came, the lag
 #: (ticks between the setpoint the feedback answers and the one sent last tick: 0 =

@@ -39,6 +39,7 @@ from numba import njit
 from hil.controller import compiled as NC
 from hil.rt.clock import now_ns, sleep_until_ns
 from hil.runtime import steady_tick as S
+from hil.runtime.controller_files import CTRL_SIGNALS, FLOAT_COLUMNS
 from io_adapters import codec_compiled as K
 from io_adapters import udp_steady as U
 from io_adapters.base import AdapterError
@@ -71,13 +72,12 @@ DECLINED_TIMEOUT, DECLINED_NC = -6, -7
 #: the setpoint's floats (codec_compiled.SP_FLOAT_FIELDS) the NC writes
 _IQ, _ID, _UD, _UQ = (K.SP_FLOAT_FIELDS.index(n) for n in ("iq_ref_a", "id_ref_a", "ud_v",
                                                             "uq_v"))
-#: controller.npz's float columns (hil.runtime.controller_files.FLOAT_COLUMNS) that are the
-#: NC's signals, as indices into its state (hil.controller.compiled.SIGNALS)
-_SIGNAL_AT = tuple(NC.SIGNALS.index(n) for n in (
-    "t", "x_set", "v_set", "a_set", "x_act", "v_act", "v_cmd", "w_set", "w_act", "iq_set",
-    "following_error", "contour_deviation"))
-#: ... then the feedback's q current, the motor position, the tick, the feedback's time
-_C_IQ, _C_MOTOR_POS, _C_TICK, _C_FB_TIME = range(12, 16)
+#: controller.npz's float columns (hil.runtime.controller_files.FLOAT_COLUMNS): the NC's
+#: signals, as indices into its state (hil.controller.compiled.SIGNALS), then the
+#: feedback's q current, the motor position, the tick, the feedback's time
+_SIGNAL_AT = tuple(NC.SIGNALS.index(n) for n in CTRL_SIGNALS)
+_C_IQ, _C_MOTOR_POS, _C_TICK, _C_FB_TIME = (FLOAT_COLUMNS.index(n) for n in (
+    "iq_meas", "motor_pos", "tick", "fb_time_s"))
 #: the feedback's floats (codec_compiled.FB_FLOAT_FIELDS): time, encoder, scale, speed,
 #: q and d current
 _TIME, _ENC, _SCALE, _VEL, _FIQ, _FID = range(6)

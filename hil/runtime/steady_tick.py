@@ -74,7 +74,6 @@ from io_adapters.messages import FeedbackGroup, axis_records
 from io_adapters.msgpack_endpoint import MAX_DROPOUT
 from io_adapters.udp import UdpEndpoint
 from io_adapters.udp_steady import (
-    L_CALL_NS,
     L_CLOCK,
     L_FRAMES,
     L_LENGTHS,
@@ -192,8 +191,6 @@ def _tick(bufs, n, sp_ints, axis_ints, sp_floats, link, fb_ints, fb_axis_ints, f
     started at ``tick_ns``, its recording row in column ``j`` (-1: not recorded); every
     per-axis argument a tuple.  Returns the answer's length, or :data:`UNENCODED` (the
     tick ran), or a ``DECLINED_*`` code (nothing changed)."""
-    # the call's own time ends at the answer's stamp (hil bench tick reports it)
-    link[L_CALL_NS] = now_ns(link[L_CLOCK:])
     n_axes = len(prms)
     # every axis as it was: its setpoint arrays always (the cycle reads them), and all the
     # cycle changes where a later cycle or axis may still decline
@@ -570,12 +567,9 @@ class SteadyTick:
                 link.fb_axis_ints[a, K.A_FAULT] = d.fault
             self._faults_written = True
         link.prepare()
-        if entered is not None:
-            called = time.monotonic_ns()
-            self._call(*self._args)
-            returned = time.monotonic_ns()
-        else:
-            self._call(*self._args)
+        called = time.monotonic_ns()
+        self._call(*self._args)
+        returned = time.monotonic_ns()
         done, reason = int(run[N_DONE]), int(run[N_REASON])
         link.settle(done > 0)
         em.watchdog.steady_settle(self.wd)
