@@ -60,8 +60,9 @@ are unconditional); when the PDO configuration of the nodes then OPERATIONAL doe
 the communication cycle at the bus's bit rate (:meth:`bus_plan`, every frame at its
 rate), the node says so in the EMCY FF20h with the load it needs
 (:data:`~io_adapters.can_node.EMCY_PLAN_OVERLOAD`).  The bus then carries what it can:
-our frames beyond a cycle's bits wait in the transmit queue for the next cycle, and with
-the queue full they are lost, counted, and reported by the EMCY 8110h "CAN overrun"
+our frames wait in their node's transmit queue while the bus has no room (it fills at the
+bit rate, whoever sends the SYNC when), and with the queue full they are lost, counted,
+and reported by the EMCY 8110h "CAN overrun"
 (:mod:`io_adapters.can_tap`; its error reset once a cycle loses none).  A heartbeat
 consumer (1016h:01, the ``heartbeat_consumer`` option or an SDO write) watches the
 master's heartbeat from the first one on: none within the consumer time on the bus's
@@ -145,15 +146,16 @@ class CanStats(AdapterStats):
         bus_bits_per_cycle_max: the most bits one SYNC cycle held (every frame this side
             sent or received, worst-case stuffing; cycles longer than :data:`LONG_CYCLE`
             periods left out).
-        bus_load_max: those bits as a share of the communication cycle 1006h at the bit
-            rate (1.0: the whole cycle, at most: :mod:`io_adapters.can_tap`).
+        bus_load_max: the highest share of its capacity one such cycle held: of the
+            communication cycle 1006h at the bit rate, or of its own interval where SYNC
+            came sooner (1.0: the whole cycle, at most: :mod:`io_adapters.can_tap`).
         bus_load_mean: every cycle's bits over the time the cycles lasted, as a share of
             the bit rate.
         starts_over_plan: NMT starts whose PDO configuration did not fit the cycle (EMCY
             FF20h).
         bus_plan_load: the load of the configuration at the last NMT start
             (:meth:`CanDriveEndpoint.bus_plan`), as a share of the cycle.
-        frames_delayed: our frames that waited for a later cycle.
+        frames_delayed: our frames that waited for room on the bus.
         frames_lost: our frames lost with the transmit queue full (EMCY 8110h).
     """
     sync_cycles: int = 0
@@ -414,10 +416,10 @@ class CanDriveEndpoint(Endpoint):
         cycle = min(n.dict.cycle_s for n in self._nodes)
         load.max_interval_s = LONG_CYCLE * cycle
         load.capacity_bits = self.link.bitrate * cycle
-        load.period_s = cycle
+        load.bit_rate = self.link.bitrate
         stats.sync_cycles = load.cycles
         stats.bus_bits_per_cycle_max = load.max_bits
-        stats.bus_load_max = load.max_bits / (self.link.bitrate * cycle)
+        stats.bus_load_max = load.max_share
         stats.bus_load_mean = load.total_bits / max(1e-9, self.link.bitrate * load.total_s)
         stats.frames_delayed = self.bus.tx.delayed
         stats.frames_lost = sum(self.bus.tx.lost.values())

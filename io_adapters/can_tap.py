@@ -10,14 +10,17 @@ the SYNC counted in the cycle it opens (:class:`CycleLoad`).  The tap wraps the 
 python-can opened, so canopen's own sends (SDO answers, heartbeats, EMCY) are seen too.
 :func:`open_bus` opens the bus of a ``can://`` URL behind a tap, for either side.
 
-**A bus carries what its bit rate allows.**  With a capacity set (the device side: the bit
-rate times the communication cycle), a cycle holds at most that many bits.  A frame of
-ours that does not fit waits in the transmit queue, as a CAN controller's frames wait for
-the bus, and goes out, oldest first, when a new cycle has room: after the next SYNC, or
-once a cycle's time has passed without one (an idle bus); with :data:`TX_QUEUE` frames
-waiting, a further one is lost (CiA 301's "CAN overrun, objects lost": the endpoint sends
-EMCY 8110h).  Frames received beyond the capacity were on the bus later than the tap saw
-them: their bits count in the next cycle.  So no cycle holds more than the bus can carry.
+**A bus carries what its bit rate allows.**  With a bit rate and a capacity set (the
+device side: the bit rate, and its product with the communication cycle), the bus's room
+fills at the bit rate up to one cycle's bits, and every frame on it, ours or received,
+takes its bits from that room (:class:`CycleLoad`).  A frame of ours that does not fit
+waits in the transmit queue, as a CAN controller's frames wait for the bus, and goes out,
+oldest first, once the room has grown enough; with :data:`TX_QUEUE` frames of its node
+waiting, a further one is lost (CiA 301's "CAN overrun, objects lost": the endpoint sends EMCY
+8110h).  Frames received beyond the room were on the bus later than the tap saw them:
+their bits are owed by the room, and count in the next cycle when a cycle cannot hold
+them.  So no cycle holds more than the bus can carry in it, whether the master's SYNC
+comes at 1006h or faster.
 
 **The bus's time** (:meth:`BusTap.bus_time_s`): the newest arrival among the frames the
 receive thread has taken (python-can's stamp: the kernel's receive time on
@@ -41,15 +44,22 @@ from io_adapters.can_loopback import LoopbackMulticastBus
 from io_adapters.can_url import CanLink
 
 _WORST = tuple(worst_frame_bits(n) for n in range(9))
-#: frames our CAN controller holds while the bus has no room (SocketCAN's default
+#: frames a node's CAN controller holds while the bus has no room (SocketCAN's default
 #: txqueuelen for a CAN interface); one more is lost
 TX_QUEUE = 10
 
 
 @dataclass(slots=True)
 class CycleLoad:
-    """Bits on the bus per SYNC cycle, as the tap saw them (worst-case stuffing); the
-    frames before the first SYNC (the master configuring the node by SDO) are in no cycle.
+    """Bits on the bus per SYNC cycle, as the tap saw them (worst-case stuffing), and the
+    bus's room for our frames; the frames before the first SYNC (the master configuring
+    the node by SDO) are in no cycle.  Times are the bus's (python-can's clock,
+    ``time.time``): a received frame's arrival stamp, a frame of ours when it is sent.
+
+    The room is a token bucket: it fills at the bit rate, up to one communication cycle's
+    bits (a cycle's frames may go out together after its SYNC), and every frame on the bus
+    -- ours or received -- takes its bits from it.  So the bus never carries more than its
+    bit rate, whatever the master's SYNC period against 1006h.
 
     Attributes:
         cycles: SYNC cycles closed.
@@ -58,76 +68,137 @@ class CycleLoad:
         max_bits: the most bits a closed cycle of at most ``max_interval_s`` held (a
             longer one -- SYNC late, or stopped and started again -- is no communication
             cycle: it counts in the totals only); at most ``capacity_bits``.
+        max_share: the highest share of its capacity such a cycle held (at most 1).
         total_bits: the bits of every closed cycle.
         total_s: how long the closed cycles lasted together, s.
         max_interval_s: see ``max_bits`` (set by the endpoint from 1006h).
-        capacity_bits: the most bits a cycle carries (the bit rate times 1006h, set by the
-            endpoint; inf: no bound).
-        period_s: the communication cycle (1006h, set by the endpoint): a window of the
-            bus's room is this long when no SYNC starts the next.
-        opened_s: when the running cycle's SYNC came (monotonic s; None before the first).
-        window_s, window_bits: when the bus's present window of room began (a SYNC, or a
-            cycle's time after the last window) and the bits in it.
+        bit_rate: the bus's bit rate, bit/s (set by the endpoint; inf: no bound).
+        capacity_bits: the bits of one communication cycle (the bit rate times 1006h, set
+            by the endpoint; inf: no bound).  A cycle carries at most this, or what the bit
+            rate allows in its own interval if that is shorter (SYNC faster than 1006h);
+            what it held beyond counts in the next.
+        opened_s: when the running cycle's SYNC came (None before the first).
+        credit_bits, credit_s: the room in the bucket, bits, as of ``credit_s`` (below
+            zero: received frames were on the bus later than the tap saw them).
     """
     cycles: int = 0
     bits: int = 0
     max_bits: int = 0
+    max_share: float = 0.0
     total_bits: int = 0
     total_s: float = 0.0
     max_interval_s: float = math.inf
+    bit_rate: float = math.inf
     capacity_bits: float = math.inf
-    period_s: float = math.inf
     opened_s: float | None = None
-    window_s: float = 0.0
-    window_bits: int = 0
+    credit_bits: float = 0.0
+    credit_s: float = 0.0
 
-    def add(self, bits: int) -> None:
+    def _refill(self, now_s: float) -> None:
+        if now_s > self.credit_s:
+            self.credit_bits = min(self.capacity_bits,
+                                   self.credit_bits + (now_s - self.credit_s) * self.bit_rate)
+            self.credit_s = now_s
+
+    def add(self, bits: int, at_s: float) -> None:
+        """A frame of ``bits`` on the bus at ``at_s``.  A received frame the receive thread
+        took late may be older than the room's last update (a frame of ours sent since):
+        within a cycle of it, it still takes its bits; an older one does not, since the
+        room would have filled to its cap in the time after it."""
         self.bits += bits
-        self.window_bits += bits
+        if self.opened_s is not None and (
+                at_s >= self.credit_s - self.capacity_bits / self.bit_rate):
+            self._refill(at_s)
+            self.credit_bits -= bits
 
     def room(self, bits: int, now_s: float) -> bool:
-        """A frame of ``bits`` fits the bus's present window at ``now_s`` (any does before
-        the first SYNC)."""
+        """The bus has room for a frame of ``bits`` at ``now_s`` (any before the first
+        SYNC)."""
         if self.opened_s is None:
             return True
-        if now_s - self.window_s >= self.period_s:  # a cycle's time passed without a SYNC
-            self.window_s, self.window_bits = now_s, 0
-        return self.window_bits + bits <= self.capacity_bits
+        self._refill(now_s)
+        return self.credit_bits >= bits
+
+    def wait_s(self, bits: int, now_s: float) -> float:
+        """How long from ``now_s`` until the bus has room for a frame of ``bits``, s."""
+        if self.room(bits, now_s):
+            return 0.0
+        return (bits - self.credit_bits) / self.bit_rate
+
+    def cycle_capacity(self, interval_s: float) -> float:
+        """The most bits a cycle of ``interval_s`` carries (see ``capacity_bits``)."""
+        if math.isinf(self.bit_rate):
+            return self.capacity_bits
+        return min(self.capacity_bits, self.bit_rate * max(0.0, interval_s))
 
     def close(self, now_s: float) -> None:
         """A SYNC at ``now_s``: the running cycle ends with what it could carry, the rest
         goes on in the next."""
         carried = 0
-        if self.opened_s is not None:
-            interval = now_s - self.opened_s
-            carried = int(max(0.0, self.bits - self.capacity_bits))
+        if self.opened_s is None:
+            self.credit_bits, self.credit_s = self.capacity_bits, now_s
+        else:
+            interval = max(0.0, now_s - self.opened_s)
+            capacity = self.cycle_capacity(interval)
+            carried = math.ceil(max(0.0, self.bits - capacity))
             kept = self.bits - carried
             self.cycles += 1
             self.total_bits += kept
             self.total_s += interval
             if interval <= self.max_interval_s:
                 self.max_bits = max(self.max_bits, kept)
-        self.opened_s = self.window_s = now_s
-        self.bits = self.window_bits = carried
+                if 0.0 < capacity < math.inf:
+                    self.max_share = max(self.max_share, kept / capacity)
+        self.opened_s = now_s
+        self.bits = carried
+
+
+def _node(msg: can.Message) -> int:
+    """The node-ID in a frame's COB-ID (CiA 301's predefined connection set)."""
+    return msg.arbitration_id & 0x7F
 
 
 @dataclass(slots=True)
 class TxQueue:
-    """Our frames that wait for room on the bus (:data:`TX_QUEUE` at most), and what the
-    wait cost.
+    """Our frames that wait for room on the bus, and what the wait cost.  Each node the
+    process emulates is a device of its own, with its own CAN controller: it holds
+    :data:`TX_QUEUE` frames at most.
 
     Attributes:
-        waiting: the frames, oldest first.
-        delayed: frames that went out in a later cycle than the one they were sent in.
-        lost: frames dropped with the queue full, by the node-ID of their COB-ID.
+        waiting: the frames of every node, oldest first (the bus takes them in order).
+        queued: how many of them each node-ID holds.
+        delayed: frames that waited for room before going out.
+        lost: frames dropped with their node's queue full, by node-ID.
     """
     waiting: deque = field(default_factory=deque)
+    queued: dict = field(default_factory=dict)
     delayed: int = 0
     lost: dict = field(default_factory=dict)
+
+    def put(self, msg: can.Message) -> bool:
+        """Queue ``msg``; False (and counted lost) when its node's queue is full."""
+        node = _node(msg)
+        if self.queued.get(node, 0) >= TX_QUEUE:
+            self.lost[node] = self.lost.get(node, 0) + 1
+            return False
+        self.waiting.append(msg)
+        self.queued[node] = self.queued.get(node, 0) + 1
+        return True
+
+    def take(self) -> can.Message:
+        """The oldest waiting frame, taken off the queue."""
+        msg = self.waiting.popleft()
+        self.queued[_node(msg)] -= 1
+        self.delayed += 1
+        return msg
 
 
 class BusTap(can.BusABC):
     """A python-can bus around ``bus`` that counts (and logs) every frame.
+
+    Frames of ours that wait for room go out from a transmit thread of the tap's own
+    (started with the first that waits), as a CAN controller sends its queue as soon as
+    the bus is free, whether anything else happens on the bus or not.
 
     Args:
         bus: the bus python-can opened (shut down with this one).
@@ -144,6 +215,12 @@ class BusTap(can.BusABC):
         self.load = CycleLoad()
         self.tx = TxQueue()
         self._lock = threading.Lock()
+        self._queued = threading.Condition(self._lock)  # frames wait, or the tap closes
+        # held from deciding that a frame goes out until it went: no frame of ours passes
+        # one the transmit thread has taken from the queue
+        self._sending = threading.Lock()
+        self._transmitter: threading.Thread | None = None
+        self._closed = False
         self._log = can.Logger(log_path) if log_path else None
         self._logged_s = 0.0  # the newest time stamp logged (time.time)
         # the newest arrival the receive thread took, and when it last found the bus
@@ -163,66 +240,80 @@ class BusTap(can.BusABC):
             is_extended_id=msg.is_extended_id, data=msg.data,
             is_remote_frame=msg.is_remote_frame, is_rx=received))
 
-    def _sent(self, msg: can.Message) -> None:
-        """Count (and log) a frame of ours that goes on the bus now (the lock held)."""
-        self.load.add(_WORST[min(len(msg.data), 8)])
+    def _sent(self, msg: can.Message, now_s: float) -> None:
+        """Count (and log) a frame of ours that goes on the bus at ``now_s`` (the lock
+        held)."""
+        self.load.add(_WORST[min(len(msg.data), 8)], now_s)
         if self._log is not None:
             self._write_log(msg, False)
 
-    def _due(self, now_s: float) -> list[can.Message]:
-        """The waiting frames the bus has room for now, oldest first, taken from the
-        queue and counted (the lock held)."""
-        tx, going = self.tx, []
-        while tx.waiting and self.load.room(_WORST[min(len(tx.waiting[0].data), 8)], now_s):
-            msg = tx.waiting.popleft()
-            self._sent(msg)
-            tx.delayed += 1
-            going.append(msg)
-        return going
+    def _transmit(self) -> None:
+        """The transmit thread: the waiting frames, oldest first, each once the bus has
+        room for it."""
+        while True:
+            with self._queued:
+                while not self.tx.waiting and not self._closed:
+                    self._queued.wait()
+                if self._closed:
+                    return
+            msg, wait = None, 0.0
+            with self._sending:
+                with self._lock:
+                    if self.tx.waiting:
+                        now = time.time()
+                        wait = self.load.wait_s(_WORST[min(len(self.tx.waiting[0].data), 8)],
+                                                now)
+                        if wait <= 0.0:
+                            msg = self.tx.take()
+                            self._sent(msg, now)
+                if msg is not None:
+                    self._send_inner(msg)
+            if wait > 0.0:
+                with self._queued:
+                    if not self._closed:
+                        self._queued.wait(wait)
 
-    def _send_inner(self, going: list[can.Message]) -> None:
-        for msg in going:
-            try:
-                self.inner.send(msg)
-            except can.CanError:  # nobody acknowledges: as a send that failed at once
-                continue
+    def _send_inner(self, msg: can.Message, timeout: float | None = None) -> None:
+        try:
+            self.inner.send(msg, timeout)
+        except can.CanError:  # nobody acknowledges: as a send that failed at once
+            pass
 
     def send(self, msg: can.Message, timeout: float | None = None) -> None:
         """Send ``msg`` now if the bus has room for it and nothing of ours waits, else
-        queue it (module docstring); a frame the queue cannot take is lost."""
-        now = time.monotonic()
-        with self._lock:
-            tx = self.tx
-            going = self._due(now) if tx.waiting else []
-            fits = not tx.waiting and self.load.room(_WORST[min(len(msg.data), 8)], now)
+        queue it for the transmit thread (module docstring); a frame its node's queue
+        cannot take is lost."""
+        with self._sending:
+            with self._lock:
+                now = time.time()
+                fits = not self.tx.waiting and self.load.room(_WORST[min(len(msg.data), 8)],
+                                                              now)
+                if fits:
+                    self._sent(msg, now)
+                elif self.tx.put(msg):
+                    if self._transmitter is None:
+                        self._transmitter = threading.Thread(
+                            target=self._transmit, name="can-tap-transmit", daemon=True)
+                        self._transmitter.start()
+                    self._queued.notify()
             if fits:
-                self._sent(msg)
-            elif len(tx.waiting) < TX_QUEUE:
-                tx.waiting.append(msg)
-            else:
-                node = msg.arbitration_id & 0x7F
-                tx.lost[node] = tx.lost.get(node, 0) + 1
-        self._send_inner(going)
-        if fits:
-            self.inner.send(msg, timeout)
+                self._send_inner(msg, timeout)
 
     def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
         # the inner bus's own receive, not its recv(): one filtering and timeout loop (this
         # bus's) per frame is enough, and the receive thread handles every frame
         msg, filtered = self.inner._recv_internal(timeout)
-        now = time.monotonic()
+        now = time.time()
         with self._lock:
             if msg is None:
-                self._drained_s = time.time()
+                self._drained_s = now
             else:
                 if msg.arbitration_id == SYNC_COB_ID:
-                    self.load.close(now)
-                self.load.add(_WORST[min(len(msg.data), 8)])
+                    self.load.close(msg.timestamp)
+                self.load.add(_WORST[min(len(msg.data), 8)], msg.timestamp)
                 self._arrival_s = max(self._arrival_s, msg.timestamp)
                 if self._log is not None:
                     self._write_log(msg, True)
-            going = self._due(now) if self.tx.waiting else []
-        self._send_inner(going)
         return msg, filtered
 
     def bus_time_s(self) -> float:
@@ -234,6 +325,11 @@ class BusTap(can.BusABC):
         return self.inner.fileno()
 
     def shutdown(self) -> None:
+        with self._queued:
+            self._closed = True
+            self._queued.notify()
+        if self._transmitter is not None:
+            self._transmitter.join()
         super().shutdown()
         self.inner.shutdown()
         with self._lock:

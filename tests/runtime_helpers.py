@@ -26,6 +26,12 @@ ARROW = CONFIGS / "arrow500_x.toml"
 #: cycles kept at 2 ms and 4 ms, the speed gain halved for the 4x longer speed cycle
 SLOW_2KHZ = {"pwm_frequency_hz": "2000.0", "kp_v_per_a": "3.0", "position_cycle_ratio": "4",
              "ipo_cycle_ratio": "8", "speed_kp_nms_per_rad": "0.6"}
+#: ... at 1 kHz, for a CAN link whose SYNC comes every tick: one node's CST frames per SYNC
+#: (SYNC, RPDO1, RPDO4 and three TPDOs: 620 bits at the worst) need more than the 500 bits
+#: a 0.5 ms cycle holds at 1 Mbit/s.  Current-loop gain at the technical optimum for the
+#: longer PWM delay (L / (3 T_pwm) = 1.5 V/A); position and IPO cycles kept at 2 and 4 ms.
+SLOW_1KHZ = {**SLOW_2KHZ, "pwm_frequency_hz": "1000.0", "kp_v_per_a": "1.5",
+             "position_cycle_ratio": "2", "ipo_cycle_ratio": "4"}
 #: longest wait for a child's ready line (a cold numba cache compiles for ~10 s)
 READY_S = 120.0
 #: longest wait for a child to finish once it should

@@ -23,6 +23,7 @@ from io_adapters.can_bus_time import (
     plan_cycle,
     worst_frame_bits,
 )
+from io_adapters.can_tap import CycleLoad
 
 
 def stuffed_length(bits: str) -> int:
@@ -86,3 +87,37 @@ def test_per_cycle_is_the_frames_rate():
     heartbeat every 100 ms 0.01 (not a whole frame in every cycle), never 0."""
     assert per_cycle(1e-3, 1e-3) == 1 and per_cycle(0.4e-3, 1e-3) == pytest.approx(2.5)
     assert per_cycle(0.0, 1e-3) == 0.0 and per_cycle(100e-3, 1e-3) == pytest.approx(0.01)
+
+
+def test_the_bus_room_fills_at_the_bit_rate_up_to_one_cycle():
+    """CycleLoad's room, by hand at 1 Mbit/s and a 1 ms cycle (1000 bits): full at the
+    first SYNC; 600 bits later 400 are left; 0.2 ms on, 600 again; never above 1000 however
+    long the bus is idle.  A SYNC every 0.5 ms carries at most 500 bits per cycle: what is
+    beyond counts in the next, and the busiest cycle's share stays at 1."""
+    load = CycleLoad(bit_rate=1e6, capacity_bits=1000.0)
+    load.close(10.0)
+    assert load.room(1000, 10.0) and not load.room(1001, 10.0)
+    load.add(600, 10.0)
+    assert load.room(400, 10.0) and not load.room(401, 10.0)
+    assert load.wait_s(600, 10.0) == pytest.approx(200e-6)
+    assert load.room(599, 10.0002) and not load.room(601, 10.0002)
+    assert not load.room(1001, 11.0)
+    load.bits = 0
+    load.close(11.0)
+    load.add(800, 11.0)
+    load.close(11.0005)
+    assert load.bits == 300 and load.total_bits == 500
+    assert load.max_share == pytest.approx(1.0) and load.max_share <= 1.0
+
+
+def test_a_frame_taken_late_owes_the_room_its_bits_only_within_a_cycle():
+    """A received frame whose arrival stamp is older than the room's last update takes its
+    bits within one cycle of that update; one older than that leaves the room as it is
+    (the room filled to its cap since), though it still counts in the cycle's load."""
+    load = CycleLoad(bit_rate=1e6, capacity_bits=1000.0)
+    load.close(10.0)
+    assert load.room(1000, 10.01)
+    load.add(100, 10.0095)
+    assert load.credit_bits == 900
+    load.add(100, 10.005)
+    assert load.credit_bits == 900 and load.bits == 200

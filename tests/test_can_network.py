@@ -1,6 +1,6 @@
 """Network management and the bus of the CANopen drive, frame by frame on python-can's
 ``virtual`` bus: boot-up, the heartbeat producer (1017h) and the NMT states it reports,
-an NMT start refused for the bus load its PDO configuration would need, and the bus
+an NMT start whose PDO configuration the bus cannot carry, the bus's room, and the bus
 traffic written with python-can's ASC and BLF writers.
 
 References: CiA 301 (boot-up message 700h + node-ID with 00h; heartbeat state bytes 7Fh
@@ -9,6 +9,7 @@ the EMCY layout); the worst-case frame lengths summed by hand (:func:`worst_fram
 of Davis et al., test_can_bus_time.py checks it); python-can's own log readers.
 """
 
+import time
 from pathlib import Path
 
 import can
@@ -76,55 +77,84 @@ def emcys(bus: can.BusABC, quiet_s: float = 0.3) -> list[tuple[int, int, int, in
     return out
 
 
-def cycles(bus: can.BusABC, ep, n: int) -> None:
-    """``n`` SYNCs, the drive's loop answering each (its feedback staged: the next SYNC
-    sends its TPDOs)."""
+def cycles(bus: can.BusABC, ep, n: int, period_s: float = 0.0) -> None:
+    """``n`` SYNCs, ``period_s`` apart at the least (deadline by deadline), the drive's
+    loop answering each (its feedback staged: the next SYNC sends its TPDOs)."""
     sp, fb = Setpoint(), Feedback()
+    deadline = time.monotonic()
     for _ in range(n):
+        deadline += period_s
+        time.sleep(max(0.0, deadline - time.monotonic()))
         bus.send(frame(0x080, ""))
         assert ep.recv_setpoint(sp, 5.0) or ep.taken
         ep.send_feedback(fb)
 
 
+#: CiA 301's 125 kbit/s: the drive's frames take long enough on the bus that the test's
+#: SYNCs, paced at 1006h by sleeping, meet the bus's room as a master at that rate would
+SLOW_BUS = "&bitrate=125000"
+
+
 def test_a_start_the_bus_cannot_carry_starts_says_so_and_loses_frames_as_a_bus_would():
-    """1006h = 250 µs with the default mapping: SYNC (1 byte) and seven PDOs of 3, 8, 4,
-    4, 5, 8 and 8 bytes need 850 bits per cycle at the worst, 340 % of 250 µs at
-    1 Mbit/s.  NMT start starts the node all the same (CiA 301: NMT commands are
-    unconditional) with EMCY FF20h carrying 3400 per mille and 250 µs, and our master
-    stops saying why.  At that SYNC the node's three TPDOs (375 bits) wait for room, the
-    oldest going out after the next SYNC, and with the transmit queue full (10) they are
-    lost: EMCY 8110h "CAN overrun", frames delayed and lost counted, and no cycle holds
-    more than the 250 bits the bus carries.  Started again at 1 ms, the plan fits (85 %):
-    both errors are reset."""
+    """1006h = 2 ms at 125 kbit/s with the default mapping: SYNC (1 byte) and seven PDOs of
+    3, 8, 4, 4, 5, 8 and 8 bytes need 850 bits per cycle at the worst, 340 % of the 250
+    bits a cycle holds.  NMT start starts the node all the same (CiA 301: NMT commands are
+    unconditional) with EMCY FF20h carrying 3400 per mille and 2000 µs, and our master
+    stops saying why.  With a SYNC every 2 ms the node's three TPDOs (375 bits) and the
+    SYNC (65) need 440 bits of the 250 the bus carries: the TPDOs wait for room, and with
+    the transmit queue full (10) they are lost: EMCY 8110h "CAN overrun", frames delayed
+    and lost counted, and no cycle holds more than the 250 bits the bus carries.  Started
+    again at 10 ms, the plan fits (68 %) and the waiting frames go out: both errors are
+    reset."""
     needed = sum(worst_frame_bits(n) for n in (1, 3, 8, 4, 4, 5, 8, 8))
     assert needed == 850
     channel = virtual_channel()
-    url = f"can://virtual/{channel}?{QUERY}"
+    url = f"can://virtual/{channel}?{QUERY}{SLOW_BUS}"
     with can.Bus(interface="virtual", channel=channel) as bus, \
             open_endpoint(url + DEVICE, "device") as ep:
         recv_id(bus, HEARTBEAT)
-        sdo_write_u32(bus, NODE, 0x1006, 0, 250)
+        sdo_write_u32(bus, NODE, 0x1006, 0, 2000)
         with open_endpoint(url, "controller") as master, \
                 pytest.raises(AdapterError, match="node 5's PDO configuration needs 340 % "
-                                                  "of the 250 µs"):
+                                                  "of the 2000 µs"):
             master.recv_feedback(Feedback(), 5.0)  # (it sent NMT start when opened)
         wait_for(lambda: ep.nmt_state == "OPERATIONAL", "OPERATIONAL")
-        assert emcys(bus)[0] == (0xFF20, 0x81, round(needed / 250 * 1000), 250)
+        assert emcys(bus)[0] == (0xFF20, 0x81, round(needed / 250 * 1000), 2000)
         assert ep.stats.starts_over_plan == 1
-        cycles(bus, ep, 30)
+        cycles(bus, ep, 40, 2e-3)
         assert (0x8110, 0x11) in [e[:2] for e in emcys(bus)]
         st = ep.stats
         assert st.frames_delayed > 0 and st.frames_lost > 0, st
         assert 0 < st.bus_load_max <= 1.0 and st.bus_bits_per_cycle_max <= 250, st
         bus.send(frame(0x000, f"80{NODE:02X}"))
         wait_for(lambda: ep.nmt_state == "PRE-OPERATIONAL", "PRE-OPERATIONAL")
-        sdo_write_u32(bus, NODE, 0x1006, 0, 1000)
+        sdo_write_u32(bus, NODE, 0x1006, 0, 10000)
         bus.send(frame(0x000, f"01{NODE:02X}"))
         wait_for(lambda: ep.nmt_state == "OPERATIONAL", "OPERATIONAL")
-        cycles(bus, ep, 20)
+        cycles(bus, ep, 20, 10e-3)
         assert [e[:2] for e in emcys(bus)].count((0, 0)) == 2  # plan and overrun reset
-        assert ep.stats.bus_plan_load == pytest.approx(0.85)
-        assert ep.bus_plan().describe().startswith("85% of the bus: 850 bits per 1 ms")
+        assert ep.stats.bus_plan_load == pytest.approx(0.68)
+        assert ep.bus_plan().describe().startswith("68% of the bus: 850 bits per 10 ms")
+
+
+def test_a_master_whose_sync_outpaces_1006h_gets_no_more_than_the_bus_carries():
+    """The bus's room grows with time at the bit rate, not per SYNC: a master that sends
+    SYNC every 1 ms to a node told 1006h = 10 ms at 125 kbit/s (the plan fits: 850 bits of
+    1250) has only 125 bits per SYNC, so the node's TPDOs wait and are lost, and neither
+    the busiest cycle nor the mean carries more than the bit rate."""
+    channel = virtual_channel()
+    url = f"can://virtual/{channel}?{QUERY}&bitrate=125000"
+    with can.Bus(interface="virtual", channel=channel) as bus, \
+            open_endpoint(url + DEVICE, "device") as ep:
+        recv_id(bus, HEARTBEAT)
+        sdo_write_u32(bus, NODE, 0x1006, 0, 10000)
+        bus.send(frame(0x000, f"01{NODE:02X}"))
+        wait_for(lambda: ep.nmt_state == "OPERATIONAL", "OPERATIONAL")
+        cycles(bus, ep, 40, 1e-3)
+        st = ep.stats
+        assert st.starts_over_plan == 0 and st.bus_plan_load == pytest.approx(0.68)
+        assert st.frames_lost > 0, st
+        assert 0 < st.bus_load_max <= 1.0 and 0 < st.bus_load_mean <= 1.0, st
 
 
 def test_a_heartbeat_counts_at_its_rate_in_the_plan():

@@ -2,8 +2,9 @@
 CANopen CiA 402 over python-can's ``udp_multicast`` bus, running the same part program,
 against the lock-step simulation of that program with the link's one-cycle feedback delay.
 
-Setup: as ``test_loopback.py`` -- the Arrow 500 X at 2 kHz PWM
-(``runtime_helpers.SLOW_2KHZ``), ``programs/demo_moves.nc``, the emulator on the last CPU
+Setup: as ``test_loopback.py`` -- the Arrow 500 X, here at 1 kHz PWM
+(``runtime_helpers.SLOW_1KHZ``: a SYNC every 0.5 ms would need more than the bus carries),
+``programs/demo_moves.nc``, the emulator on the last CPU
 and the controller on the first -- with ``can://udp_multicast/GROUP?node=5&
 rated_current_ma=28000&port=P`` on both sides.  GROUP is a random 239.255.x.y routed over
 the loopback interface for the test (``ip route add GROUP/32 dev lo``, checked with ``ip
@@ -78,7 +79,7 @@ from plant.config import load_machine
 from tests.conftest import ROOT
 from tests.runtime_helpers import (
     EXIT_S,
-    SLOW_2KHZ,
+    SLOW_1KHZ,
     Children,
     machine_variant,
     python_module,
@@ -101,7 +102,7 @@ LOCK_STEP = "&sync_timeout_ms=60000"
 
 @pytest.fixture(scope="module")
 def config(tmp_path_factory) -> Path:
-    return machine_variant(tmp_path_factory.mktemp("cfg") / "arrow_2khz.toml", SLOW_2KHZ)
+    return machine_variant(tmp_path_factory.mktemp("cfg") / "arrow_1khz.toml", SLOW_1KHZ)
 
 
 @pytest.fixture(scope="module")
