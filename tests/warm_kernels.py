@@ -10,9 +10,11 @@ the emulator's compiled UDP loop and the controller's, as ``hil run`` and ``hil
 controller`` build them.  A kernel the suite needs before this has cached it is compiled
 there as before: nothing waits for this process, and it changes no result.
 
-Run: ``python -m tests.warm_kernels`` (prints what it warmed and how long it took).
+Run: ``python -m tests.warm_kernels`` (prints what it warmed and how long it took); one
+machine's: ``python -m tests.warm_kernels MACHINE_FILE``.
 """
 
+import subprocess
 import sys
 import tempfile
 import time
@@ -58,21 +60,29 @@ def warm_machine(config: Path, folder: Path) -> None:
         emulator.endpoint.close()
 
 
-def main() -> int:
+def main(argv: list[str]) -> int:
+    """Every machine of :data:`MACHINES`, each in a process of its own (``argv``: the
+    machine file such a process warms): a process that compiles the kernels of one machine
+    and then another's caches code for the second that is slower than its own process
+    would compile (seen: the five-axis loopback's compiled loops missing ticks after the
+    Arrow's were compiled first in the same process), and ``hil run`` serves one machine."""
+    if argv:
+        with tempfile.TemporaryDirectory(prefix="warm-kernels-") as tmp:
+            warm_machine(Path(argv[0]), Path(tmp))
+        return 0
     from plant._cache import configure
 
     marker = configure() / MARKER
     if marker.exists():
         return 0
     start = time.monotonic()
-    with tempfile.TemporaryDirectory(prefix="warm-kernels-") as tmp:
-        for i, config in enumerate(MACHINES):
-            warm_machine(config, Path(tmp) / str(i))
-            print(f"{config.name}: warm at {time.monotonic() - start:.1f} s", flush=True)
+    for config in MACHINES:
+        subprocess.run([sys.executable, "-m", "tests.warm_kernels", str(config)], check=True)
+        print(f"{config.name}: warm at {time.monotonic() - start:.1f} s", flush=True)
     marker.parent.mkdir(parents=True, exist_ok=True)
     marker.write_text(f"{time.monotonic() - start:.1f} s\n")
     return 0
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(main(sys.argv[1:]))
