@@ -29,8 +29,9 @@
 
 Exit status: 0 on success (``hil validate``: it ran, whatever rows disagree), 1 when
 ``hil validate --strict`` finds a failing verification row or the NC of ``hil sim`` raised
-an alarm, or ``hil report``/``hil export`` stopped at a corrupt batch of the recording
-(what precedes it reported or exported), 2 on bad input (a machine file that does not
+an alarm, ``hil report``'s verdict on the run is FAIL (:mod:`hil.report.run_verdict`), or
+``hil report``/``hil export`` stopped at a corrupt batch of the recording (what precedes
+it reported or exported), 2 on bad input (a machine file that does not
 load, a part program that does not parse, an unknown experiment).
 """
 
@@ -112,14 +113,18 @@ def cmd_bench_loop(args) -> int:
 
 def cmd_report(args) -> int:
     from hil.report.latency import REPORT_MD, report_run
+    from hil.report.run_verdict import judge_run
 
-    report = report_run(Path(args.run), args.cyclictest_seconds if args.cyclictest else None,
+    run = Path(args.run)
+    report = report_run(run, args.cyclictest_seconds if args.cyclictest else None,
                         note=_eprint, controller=args.controller)
-    print((Path(args.run) / REPORT_MD).read_text())
+    print((run / REPORT_MD).read_text())
     if report["corrupt"] is not None:  # the report stops at the batch: not the whole run
         _eprint(f"hil report: {report['corrupt']}")
         return 1
-    return 0
+    verdict, lines = judge_run(run, None if args.controller is None else Path(args.controller))
+    print("\n".join(["## Verdict", "", *(f"- {line}" for line in lines), "", verdict.line()]))
+    return 0 if verdict.passed else 1
 
 
 def cmd_bench_adapters(args) -> int:
@@ -317,7 +322,8 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
                          "wire's frames per second")):
         module(bsub, name, help_, f"hil.bench.{name}", command == "bench" and what == name)
 
-    r = sub.add_parser("report", help="latency and jitter report of a run folder")
+    r = sub.add_parser("report", help="latency and jitter report of a run folder, and its "
+                       "verdict (PASS or FAIL with the reasons)")
     r.add_argument("run", help="run folder of hil run (recording.arrows + report.json)")
     r.add_argument("--cyclictest", action="store_true",
                    help="cyclictest baseline at the run's period (needs rt-tests)")

@@ -305,15 +305,17 @@ def test_the_reserve_is_held_under_no_name_and_goes_with_a_killed_run(killed_gro
 
 
 def test_hil_report_reports_a_run_cut_short(killed_group):
-    """hil report on the killed run (no report.json, no end marker): exit 0, the page
-    says it was cut short (and, where the kill fell inside a write, that the stream was
-    cut off), and its figures are those of the recording's rows (reference: the rows
-    read back, numpy's nearest-rank percentile, the loop's overrun definition lateness +
-    compute > period after the first 0.1 s)."""
+    """hil report on the killed run (no report.json, no end marker): the page says it was
+    cut short (and, where the kill fell inside a write, that the stream was cut off), and
+    its figures are those of the recording's rows (reference: the rows read back, numpy's
+    nearest-rank percentile, the loop's overrun definition lateness + compute > period
+    after the first 0.1 s); the verdict fails it for that (exit 1)."""
     run, _, _ = killed_group
     done = subprocess.run(python_module("hil.cli", "report", run), env=ENV,
                           capture_output=True, text=True, timeout=READY_S)
-    assert done.returncode == 0, done.stderr
+    assert done.returncode == 1, done.stderr
+    assert done.stdout.strip().splitlines()[-1] == (
+        "FAIL: the emulator did not end normally (no report.json): the run was cut short")
     assert "> Cut short: no report.json (the emulator did not end normally)" in done.stdout
     report = json.loads((run / "report_latency.json").read_text())
     rec = Recording(run)

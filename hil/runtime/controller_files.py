@@ -21,6 +21,7 @@ from hil.report.host import host_fingerprint
 from hil.rt.loop import Percentiles
 from hil.runtime.common import EXIT_FAILED, EXIT_OK, scheduling_dict, write_json
 from hil.runtime.sync import Alignment, in_step
+from hil.runtime.timing_quality import TimingQuality
 from hil.sim import TRACE_METADATA, SimResult, servo_trace_columns
 from hil.trace_file import write_trace
 
@@ -136,7 +137,9 @@ def write_outputs(proc, stats, granted, alignment: Alignment) -> dict:
         "injections_sent": [{"at_s": p.at_s, **p.request._asdict()}
                             for p in proc.injections.sent],
         "trace": first["trace"], "host": host_fingerprint(),
+        "start": rc.start_cnc,
     }
+    summary["timing_quality"] = TimingQuality.of_controller(summary).as_dict()
     if multi:
         summary["axes"] = axes
     write_json(rc.out_dir / "summary.json", summary)

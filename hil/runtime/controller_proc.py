@@ -103,6 +103,7 @@ from hil.runtime.controller_files import (
 )
 from hil.runtime.controller_steady import ControllerSteady
 from hil.runtime.sync import U32, DriveNotAnswering, align
+from hil.runtime.timing_quality import TimingQuality
 from io_adapters import AdapterError, Endpoint, open_endpoint
 from io_adapters.messages import axis_records, message_pair
 from plant.errors import ConfigError
@@ -452,6 +453,7 @@ def run_from_args(args: argparse.Namespace) -> int:
           f"{fe_max if fe_max is None else format(fe_max, '.4g')} {u}; round trip p50 "
           f"{rt['p50']:.1f} p99 {rt['p99']:.1f} µs; summary in {rc.out_dir / 'summary.json'}",
           flush=True)
+    print(f"hil controller: {TimingQuality.of_controller(summary).line()}", flush=True)
     if summary["exit_status"] != EXIT_OK:
         eprint(f"hil controller: FAIL: {'; '.join(failure_reasons(summary, proc.drive_faults()))}")
     return summary["exit_status"]

@@ -31,7 +31,6 @@ anything starts).
 
 import argparse
 import json
-import math
 import os
 import selectors
 import signal
@@ -40,21 +39,15 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
-
 from hil.commands import run_sim
 from hil.controller.config import clamp_codes, load_controller
 from hil.controller.program import ProgramError, read_program
 from hil.progress import Progress
-from hil.replay import ReplayError, ReplayResult, replay_run
-from hil.replay.timing import (
-    LOOP_PEAK,
-    SHOWN_RUNS,
-    TimingCost,
-    timing_cost,
-)
+from hil.replay import ReplayResult
+from hil.replay.timing import LOOP_PEAK, SHOWN_RUNS, TimingCost
 from hil.report.baseline import CyclictestBaseline, run_cyclictest_baseline
 from hil.report.latency import build_report, load_run, write_report
+from hil.report.run_verdict import position_scale, replay_or_reason, timing_cost_of
 from hil.report.wakeup import wakeup_rows
 from hil.rt.cyclictest import CyclictestError
 from hil.rt.scheduling import last_cpu
@@ -66,8 +59,7 @@ from hil.runtime.demo_verdict import (
     check_timing,
     timing_budget,
 )
-from hil.runtime.record_reader import Recording
-from plant.config import MachineConfig, load_machine
+from plant.config import load_machine
 from plant.errors import ConfigError
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -228,26 +220,6 @@ def _read_json(path: Path) -> dict | None:
     return json.loads(path.read_text()) if path.exists() else None
 
 
-def _replay(run: Path) -> ReplayResult | str:
-    """The replay of ``run``, or why it could not be made."""
-    try:
-        return replay_run(run)
-    except ReplayError as e:
-        return str(e)
-
-
-def _timing_cost(out: Path, cfg: MachineConfig, lockstep: Path) -> TimingCost | str:
-    """The timing cost of the demo's run (:mod:`hil.replay.timing`), or why it could not
-    be computed."""
-    try:
-        rec = Recording(out / "emulator")
-        with np.load(out / "controller" / "controller.npz") as npz:
-            ctl = {k: npz[k] for k in npz.files}
-        return timing_cost(rec.read(), ctl, lockstep, cfg, rec.period_ns * 1e-9)
-    except (OSError, ValueError, KeyError) as e:  # RecordingError, TimingError, a trace
-        return str(e)
-
-
 def _baseline(period_ns: int, seconds: float) -> tuple[CyclictestBaseline | None, str]:
     """cyclictest at the run's period on the loop's CPU, and a note on what was run."""
     interval_us = max(1, round(period_ns / 1e3))
@@ -284,7 +256,7 @@ def run_demo(config: Path, program: Path, out: Path, realtime: bool,
         return EXIT_FAILED
     controller = _read_json(out / "controller" / "summary.json") or {}
     emulator = _read_json(out / "emulator" / "report.json")
-    replay = _replay(out / "emulator")
+    replay = replay_or_reason(out / "emulator")
     check_replay(verdict, replay)
     check_processes(verdict, emu_status, ctl_status, controller, emulator)
     if emulator is None or not controller:
@@ -293,8 +265,8 @@ def run_demo(config: Path, program: Path, out: Path, realtime: bool,
     sim = run_sim(config, program, out / "lockstep", 0.0, None, None)
     for alarm in sim["alarms"]:
         verdict.fail(f"the lock-step simulation raised {alarm['message']}")
-    cost = _timing_cost(out, cfg, Path(sim["trace"]))
-    k, shown = (1e6, "µm") if cfg.machine.kind != "rotary" else (1e3 * 180 / math.pi, "mdeg")
+    cost = timing_cost_of(out / "emulator", out / "controller", cfg, Path(sim["trace"]))
+    k, shown = position_scale(cfg)
     check_timing(verdict, cost, k, shown)
     baseline, note = (_baseline(controller["period_ns"], cyclictest_s) if cyclictest_s > 0
                       else (None, "no cyclictest (--cyclictest-seconds 0)"))

@@ -149,6 +149,7 @@ from hil.runtime.run_folder import REPORT, RESERVE_BYTES, RunFolder, human_bytes
 from hil.runtime.steady_tick import SteadyTick
 from hil.runtime.streaming_loop import StreamingLoop
 from hil.runtime.sync import ShiftableClock, SyncLock
+from hil.runtime.timing_quality import TimingQuality
 from hil.runtime.watchdog import Watchdog
 from io_adapters import AdapterError, Endpoint, open_endpoint
 from io_adapters.can_url import IN_PROCESS_ONLY, in_process_only
@@ -554,6 +555,7 @@ def run_from_args(args: argparse.Namespace) -> int:
           f"{lat['p999']:.1f} max {lat['max']:.1f} µs; overruns {loop['overruns']}; "
           f"watchdog events {report['watchdog']['events_total']}; run folder {rc.run_dir}",
           flush=True)
+    print(f"hil run: {TimingQuality.of_emulator(report).line()}", flush=True)
     if emulator.recording_failure is not None:
         eprint(f"hil run: {emulator.recording_failure}; the axes were brought to their safe "
                "state")

@@ -15,6 +15,7 @@ from hil.rt.loop import LoopStats
 from hil.rt.scheduling import last_cpu
 from hil.runtime.common import scheduling_dict
 from hil.runtime.run_events import RunEvent
+from hil.runtime.timing_quality import TimingQuality
 from plant import layout as L
 
 
@@ -88,7 +89,7 @@ def run_report(emu, stats: LoopStats, granted, safe: dict, status: int) -> dict:
     """``report.json``: the keys ``hil report`` reads (loop, scheduling, adapter, host)
     and the daemon's own."""
     rc, t, m = emu.rc, emu.timing, emu.machine
-    return {
+    report = {
         "command": "hil run", "machine_file": str(rc.machine_file),
         "machine": m.name, "exit_status": status, "stopped": stop_reason(emu, stats),
         "axes": [{"name": a.name, "machine_file": a.config.path,
@@ -115,3 +116,5 @@ def run_report(emu, stats: LoopStats, granted, safe: dict, status: int) -> dict:
                                                           for c in emu.recorder.specs}},
         "host": host_fingerprint(),
     }
+    report["timing_quality"] = TimingQuality.of_emulator(report).as_dict()
+    return report

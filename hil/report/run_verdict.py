@@ -1,0 +1,149 @@
+"""``hil report``'s verdict on a run: ``PASS`` or ``FAIL: <reasons>``, judged as ``hil
+demo`` judges its own (:mod:`hil.runtime.demo_verdict`), on any run folder.
+
+1. **The replay matches** the recording (:func:`hil.replay.replay_run`).  A run the
+   replay cannot take (``can://``, whose link events it does not model) is said so, not
+   failed.
+2. **No alarm, fault or watchdog trip**: ``report.json``'s exit status, watchdog trips and
+   drive faults; with ``--controller DIR`` that folder's ``summary.json`` too (its exit
+   status and the NC's alarms).  A run without ``report.json`` (cut short) fails here.
+3. **Timing.**  Each side's counts against the limits of
+   :mod:`hil.runtime.timing_quality` (overruns, late and missed messages at most 0.1 % of
+   the ticks, no stall): a run whose timing went wrong fails, whatever it did to the
+   axis.  Where a lock-step reference exists too -- ``--controller DIR`` of one axis, its
+   program and start position known, no fault injected on either side -- the timing
+   cost against it, within the tolerance this run's measured delays allow
+   (:mod:`hil.replay.timing`): a larger difference is something other than timing.
+
+The lock-step trace is written into ``RUN/verdict_lockstep/``, the verdict into
+``RUN/verdict.json``.
+"""
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+
+from hil.replay import ReplayError, ReplayResult, replay_run
+from hil.replay.timing import TimingCost, timing_cost
+from hil.runtime.common import EXIT_OK, write_json
+from hil.runtime.demo_verdict import (
+    Verdict,
+    check_processes,
+    check_replay,
+    check_timing,
+)
+from hil.runtime.record_reader import Recording
+from hil.runtime.timing_quality import TimingQuality
+from plant.config import MachineConfig, load_machine
+from plant.errors import ConfigError
+
+VERDICT_JSON = "verdict.json"
+LOCKSTEP_DIR = "verdict_lockstep"
+
+
+def replay_or_reason(run: Path) -> ReplayResult | str:
+    """The replay of ``run``, or why it could not be made."""
+    try:
+        return replay_run(run)
+    except ReplayError as e:
+        return str(e)
+
+
+def timing_cost_of(run: Path, controller: Path, cfg: MachineConfig,
+                   lockstep: Path) -> TimingCost | str:
+    """The timing cost of ``run`` with ``controller``'s rows against the lock-step trace
+    ``lockstep`` (:mod:`hil.replay.timing`), or why it could not be computed."""
+    try:
+        rec = Recording(run)
+        with np.load(controller / "controller.npz") as npz:
+            ctl = {k: npz[k] for k in npz.files}
+        return timing_cost(rec.read(), ctl, lockstep, cfg, rec.period_ns * 1e-9)
+    except (OSError, ValueError, KeyError) as e:  # RecordingError, TimingError, a trace
+        return str(e)
+
+
+def position_scale(cfg: MachineConfig) -> tuple[float, str]:
+    """The factor and unit positions are shown in: µm, or mdeg on a rotary axis."""
+    return (1e6, "µm") if cfg.machine.kind != "rotary" else (1e3 * 180 / math.pi, "mdeg")
+
+
+def _read(path: Path) -> dict | None:
+    return json.loads(path.read_text()) if path.is_file() else None
+
+
+def _lockstep_refused(report: dict, summary: dict) -> str | None:
+    """Why the run has no lock-step reference, or None when it has one."""
+    if "axes" in summary:
+        return "a machine of several axes"
+    if summary.get("injections_sent") or any(
+            inj["taken"] for inj in report.get("injections", {}).values()):
+        return "faults were injected"
+    if not isinstance(summary.get("start"), (int, float)):
+        return "the controller's summary has no start position (an older hil controller?)"
+    if not Path(summary["program"]).is_file():
+        return f"the program {summary['program']} is not there"
+    return None
+
+
+def _timing(v: Verdict, run: Path, controller: Path | None, report: dict,
+            summary: dict | None) -> list[str]:
+    """Step 3; returns the lines that show what it rests on."""
+    lines = []
+    refused = "no --controller folder" if summary is None else _lockstep_refused(report,
+                                                                                summary)
+    if refused is None:
+        from hil.commands import run_sim
+        try:
+            cfg = load_machine(Path(summary["machine_file"]))
+            sim = run_sim(Path(summary["machine_file"]), Path(summary["program"]),
+                          run / LOCKSTEP_DIR, float(summary["start"]), None, None)
+        except (ConfigError, OSError, ValueError) as e:
+            refused = f"the lock-step simulation could not be run: {e}"
+        else:
+            for alarm in sim["alarms"]:
+                v.fail(f"the lock-step simulation raised {alarm['message']}")
+            cost = timing_cost_of(run, controller, cfg, Path(sim["trace"]))
+            k, unit = position_scale(cfg)
+            check_timing(v, cost, k, unit)
+            lines.append("timing cost against the lock-step simulation: " + (
+                f"not computed ({cost})" if isinstance(cost, str) else
+                f"max {cost.diff_max * k:.2f} {unit} (tolerance "
+                f"{cost.tolerance.value * k:.2f} {unit})"))
+    if refused is not None:
+        lines.append(f"no lock-step reference ({refused})")
+    sides = [TimingQuality.of_emulator(report)]
+    if summary is not None:
+        sides.append(TimingQuality.of_controller(summary))
+    for side in sides:
+        for reason in side.reasons():
+            v.fail(reason)
+    return lines + [f"{side.side}: {side.line()}" for side in sides]
+
+
+def judge_run(run: Path, controller: Path | None = None) -> tuple[Verdict, list[str]]:
+    """The verdict on ``run`` (with ``controller``'s folder when given) and the lines
+    that show what it rests on; also written into ``run/verdict.json``."""
+    v = Verdict()
+    report = _read(run / "report.json")
+    summary = None if controller is None else _read(controller / "summary.json")
+    lines = []
+    if controller is not None and summary is None:
+        v.fail(f"{controller} has no summary.json (hil controller did not end normally)")
+    if report is None:
+        v.fail("the emulator did not end normally (no report.json): the run was cut short")
+    else:
+        replay = replay_or_reason(run)
+        if isinstance(replay, str):
+            lines.append(f"recording = replay: not checked ({replay})")
+        else:
+            lines.append(f"recording = replay: {replay.line()}")
+            check_replay(v, replay)
+        check_processes(v, report["exit_status"],
+                        EXIT_OK if summary is None else summary["exit_status"],
+                        summary or {}, report)
+        lines += _timing(v, run, controller, report, summary)
+    write_json(run / VERDICT_JSON, {"verdict": v.line(), "reasons": v.reasons,
+                                    "rests_on": lines})
+    return v, lines

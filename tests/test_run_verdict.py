@@ -1,0 +1,172 @@
+"""Every run ends with its timing quality, and ``hil report`` gives a verdict.
+
+The counts are the loops' and endpoints' own (``report.json``, ``summary.json``); the
+limits are :mod:`hil.runtime.timing_quality`'s (0.1 % of the ticks each, no stall).  The
+processes' case is the issue's: a run whose timing went wrong (here the emulator stopped
+by SIGSTOP for 0.1 s while the controller went on: a stall of the emulator's loop, the
+controller's ticks without feedback) must say so when it ends, on both sides, and ``hil
+report`` must fail it naming why, though both processes exit 0.
+"""
+
+import json
+import os
+import signal
+import time
+
+import pytest
+
+from hil.cia402 import State
+from hil.runtime.record_reader import Recording
+from hil.runtime.timing_quality import MAX_SHARE, TimingQuality
+from tests.runtime_helpers import (
+    EXIT_S,
+    READY_S,
+    SLOW_2KHZ,
+    Children,
+    machine_variant,
+    python_module,
+    terminate,
+)
+
+#: 8 mm at 0.12 m/min: about 4 s, long enough that the stop falls inside it, slow enough
+#: that the axis stays within contour monitoring (0.2 mm in 0.1 s against 1 mm)
+PROGRAM = "G1 X8 F120\nM30\n"
+#: when the emulator is stopped: this long after its recording first shows the drive in
+#: OPERATION ENABLED (the program then runs)
+STOP_AFTER_ENABLE_S = 1.0
+STOP_S = 0.1
+#: the emulator's watchdog (50 ms at 2 kHz): a stop of that length or more is a stall
+WATCHDOG_CYCLES = 100
+#: the controller's patience without feedback (0.5 s at 2 kHz), beyond the stop
+FEEDBACK_TIMEOUT = 1000
+
+
+def _loop(ticks: int, overruns: int, worst_us: float, stalls: int = 0) -> dict:
+    return {"ticks": ticks, "overruns": overruns, "stalls": stalls, "skipped": 0,
+            "lateness_us": {"p50": 1.0, "p99": 2.0, "p999": 3.0, "max": worst_us}}
+
+
+def test_the_issues_run_is_beyond_the_limits_and_says_why():
+    """The run the issue met: 18 700 overruns in 311 739 ticks, the worst 152.6 ms late."""
+    q = TimingQuality.of_controller({
+        "loop": _loop(311_739, 18_700, 152_621.2),
+        "feedback": {"ticks_without_new": 120, "lag_ticks": {"0": 0, "1": 0, "2+": 400}}})
+    assert not q.within
+    assert q.reasons() == [
+        "controller: 18700 overruns in 311739 ticks (6 %, limit 0.1 %), the worst "
+        "152621.2 µs late",
+        "controller: 400 feedback late in 311739 ticks (0.128 %, limit 0.1 %)"]
+    assert "BEYOND the limits" in q.line() and q.as_dict()["within"] is False
+
+
+def test_counts_at_the_limit_are_within_it_and_a_stall_never_is():
+    ticks = 100_000
+    at_limit = round(MAX_SHARE * ticks)
+    q = TimingQuality.of_emulator({
+        "loop": _loop(ticks, at_limit, 80.0),
+        "adapter": {"stats": {"drained": at_limit, "lost": at_limit}}})
+    assert q.within and q.line().endswith("within the limits")
+    assert (q.late, q.missed, q.messages) == (at_limit, at_limit, "setpoints")
+    stalled = TimingQuality.of_emulator({
+        "loop": _loop(ticks, 0, 60_000.0, stalls=1),
+        "adapter": {"stats": {"drained": 0, "lost": 0}}})
+    assert stalled.reasons() == ["emulator: 1 stall(s) (ticks several periods late; the "
+                                 "worst 60000.0 µs): the process was not running"]
+
+
+def wait_for_enabled(run, ctl) -> None:
+    """Until the run's recording has a row with the drive in OPERATION ENABLED (bounded;
+    fails if the controller ends first)."""
+    end = time.monotonic() + READY_S
+    while time.monotonic() < end:
+        assert ctl.poll() is None, "the controller ended before the drive was enabled"
+        try:
+            state = Recording(run).read(["drive_state"])["drive_state"]
+        except (OSError, ValueError):  # not there yet, or a batch being written
+            state = ()
+        if int(State.OPERATION_ENABLED) in state:
+            return
+        time.sleep(0.1)
+    pytest.fail("the drive was not enabled within READY_S")
+
+
+@pytest.fixture(scope="module")
+def stalled_run(tmp_path_factory):
+    """``hil run`` and ``hil controller`` on the Arrow at 2 kHz, the emulator stopped for
+    STOP_S inside the program (STOP_AFTER_ENABLE_S after its recording, read while it is
+    written, shows the drive enabled): (folder, the controller's stdout, the emulator's
+    stdout)."""
+    folder = tmp_path_factory.mktemp("stalled")
+    config = machine_variant(folder / "arrow_2khz.toml", SLOW_2KHZ)
+    program = folder / "out_and_back.nc"
+    program.write_text(PROGRAM)
+    cpus = sorted(os.sched_getaffinity(0))
+    pin = ["--cpu", cpus[0]] if len(cpus) > 1 else []
+    with Children(folder) as children:
+        emulator, served = children.emulator(config, "udp://127.0.0.1:0", folder / "emulator",
+                                             "--cpu", cpus[-1], "--watchdog-cycles",
+                                             WATCHDOG_CYCLES)
+        ctl = children.start("controller", python_module(
+            "hil.runtime.controller_proc", config, "--adapter", served, "--program", program,
+            "--out", folder / "controller", "--feedback-timeout", FEEDBACK_TIMEOUT, *pin))
+        wait_for_enabled(folder / "emulator", ctl)
+        time.sleep(STOP_AFTER_ENABLE_S)
+        emulator.send_signal(signal.SIGSTOP)
+        time.sleep(STOP_S)
+        emulator.send_signal(signal.SIGCONT)
+        assert ctl.wait(timeout=EXIT_S) == 0, children.log("controller")
+        assert terminate(emulator) == 0
+        emulator_out = emulator.stdout.read()
+    return folder, children.log("controller"), emulator_out
+
+
+def test_both_tools_end_saying_the_timing_was_beyond_the_limits(stalled_run):
+    folder, controller_out, emulator_out = stalled_run
+    summary = json.loads((folder / "controller" / "summary.json").read_text())
+    report = json.loads((folder / "emulator" / "report.json").read_text())
+    assert summary["result"] == "completed"
+    assert "hil run: timing: " in emulator_out and "BEYOND the limits" in emulator_out
+    assert report["timing_quality"]["stalls"] >= 1 and not report["timing_quality"]["within"]
+    missed = summary["timing_quality"]["missed"]
+    assert missed >= 0.5 * STOP_S * 2000, summary["timing_quality"]  # 2 kHz ticks, no answer
+    assert "hil controller: timing: " in controller_out
+    assert "BEYOND the limits" in controller_out
+
+
+def test_hil_report_fails_the_run_naming_the_stall(stalled_run):
+    """Without the controller's folder there is no lock-step reference: the counts are
+    judged against their limits, and the emulator's stall fails the run."""
+    import subprocess
+
+    from tests.runtime_helpers import ENV
+    folder = stalled_run[0]
+    done = subprocess.run(python_module("hil.cli", "report", folder / "emulator"), env=ENV,
+                          capture_output=True, text=True, timeout=READY_S)
+    assert done.returncode == 1, done.stdout + done.stderr
+    last = done.stdout.strip().splitlines()[-1]
+    assert last.startswith("FAIL: ") and "emulator: " in last and "stall(s)" in last, last
+    assert "no lock-step reference (no --controller folder)" in done.stdout
+    verdict = json.loads((folder / "emulator" / "verdict.json").read_text())
+    assert verdict["verdict"] == last
+
+
+def test_hil_report_with_the_controller_prices_the_timing_and_still_fails_the_stall(
+        stalled_run):
+    """With the controller's folder (one axis, no injection) the reference exists: the
+    timing's cost against the lock-step simulation is shown and judged (within the
+    tolerance the stall's own lateness allows), and the counts still fail the run: both
+    sides' stall and ticks without feedback are named."""
+    import subprocess
+
+    from tests.runtime_helpers import ENV
+    folder = stalled_run[0]
+    done = subprocess.run(python_module("hil.cli", "report", folder / "emulator",
+                                        "--controller", folder / "controller"),
+                          env=ENV, capture_output=True, text=True, timeout=READY_S)
+    last = done.stdout.strip().splitlines()[-1]
+    assert "timing cost against the lock-step simulation: max " in done.stdout, done.stdout
+    assert "recording = replay: " in done.stdout
+    assert done.returncode == 1 and last.startswith("FAIL: "), (done.returncode, last)
+    assert "emulator: 1 stall(s)" in last and "controller: " in last and "feedback missed" \
+        in last, last
+    assert (folder / "emulator" / "verdict_lockstep" / "trace.csv").exists()
