@@ -170,3 +170,34 @@ def test_hil_report_with_the_controller_prices_the_timing_and_still_fails_the_st
     assert "emulator: 1 stall(s)" in last and "controller: " in last and "feedback missed" \
         in last, last
     assert (folder / "emulator" / "verdict_lockstep" / "trace.csv").exists()
+
+
+def test_the_traces_state_their_runs_timing_and_identify_warns_on_them(stalled_run):
+    """The controller's trace.csv and ``hil export --to csv`` of the run carry their side's
+    timing in the header; ``hil identify``'s reader finds it beyond the limits and says
+    what to do instead (on a trace within the limits it says nothing)."""
+    import subprocess
+
+    from hil.identify.record import load_record, timing_warning
+    from tests.runtime_helpers import ENV
+    folder = stalled_run[0]
+    ctl = load_record(folder / "controller" / "trace.csv")
+    assert ctl.meta["timing_side"] == "controller"
+    assert ctl.meta["timing_within_limits"] == "no"
+    assert int(ctl.meta["timing_feedback_missed"]) >= 0.5 * STOP_S * 2000
+    why = timing_warning(ctl)
+    assert why is not None and "beyond the limits" in why and "hil identify RUN" in why
+    done = subprocess.run(python_module("hil.cli", "export", folder / "emulator", "--to", "csv",
+                                        "--out", folder / "export"), env=ENV,
+                          capture_output=True, text=True, timeout=EXIT_S)
+    assert done.returncode == 0, done.stderr
+    header = {}  # (the export of a CST run has no position setpoint to load as a record)
+    for line in (folder / "export" / "trace.csv").read_text().splitlines():
+        if not line.startswith("# "):
+            break
+        key, _, value = line[2:].partition(": ")
+        header[key] = value
+    assert header["timing_side"] == "emulator" and header["timing_within_limits"] == "no"
+    assert int(header["timing_stalls"]) >= 1
+    ctl.meta["timing_within_limits"] = "yes"
+    assert timing_warning(ctl) is None

@@ -10,7 +10,7 @@ from hil.identify.diagnosis import summary_lines
 from hil.identify.effects import NAMES
 from hil.identify.fit import Identification, record_errors
 from hil.identify.model import DEFAULT_TOLERANCE, Model
-from hil.identify.record import load_record
+from hil.identify.record import load_record, timing_warning
 from hil.identify.report import EMPS_PUBLISHED, EMPS_REFERENCE_KEYS, write
 from hil.trace_file import TraceFormatError
 
@@ -56,10 +56,13 @@ def validation(ident: Identification, path: Path) -> dict:
 
 
 def identify(trace: Path, config: Path, out: Path, validate: Path | None = None,
-             log=None, **options) -> dict:
-    """Run the whole identification and write the report; returns report.json's content."""
+             log=None, warn=None, **options) -> dict:
+    """Run the whole identification and write the report; returns report.json's content.
+    ``warn`` receives why the trace's timing may spoil it (:func:`timing_warning`)."""
     t0 = time.monotonic()
     rec = load_record(trace)
+    if warn is not None and (why := timing_warning(rec)) is not None:
+        warn(why)
     ident = Identification(config, rec, log=log, **options).fit()
     val = None
     if validate is not None:
@@ -107,6 +110,8 @@ def run_from_args(args) -> int:
         return 2
     try:
         rep = identify(args.trace, args.config, args.out, args.validate, log=log,
+                       warn=lambda why: print(f"hil identify: warning: {why}",
+                                              file=sys.stderr, flush=True),
                        min_explained=args.min_explained, floor_factor=args.floor_factor,
                        max_steps=args.max_steps, refine_nfev=args.refine_nfev,
                        cutoff_hz=args.cutoff_hz, exclude=tuple(args.exclude),

@@ -149,6 +149,23 @@ class Record:
                                    **cut)
 
 
+def timing_warning(rec: Record) -> str | None:
+    """Why ``rec``'s run may show its timing rather than the machine (its header's
+    ``timing_*`` lines, :meth:`hil.runtime.timing_quality.TimingQuality.header`), or None
+    when its timing was within the limits or is not stated."""
+    if rec.meta.get("timing_within_limits") != "no":
+        return None
+    counts = ", ".join(f"{k.removeprefix('timing_').replace('_', ' ')} {v}"
+                       for k, v in rec.meta.items()
+                       if k.startswith("timing_") and k not in ("timing_within_limits",
+                                                                "timing_side"))
+    return (f"{rec.source}: its run's timing was beyond the limits ({rec.meta.get('timing_side')}"
+            f": {counts}); the replay takes every setpoint as on time, so late and missed "
+            "ones show as model error.  A hil run folder (hil identify RUN) replays the "
+            "setpoints the drive applied, when they were, in CSP; or identify a run within "
+            "the limits")
+
+
 def load_record(path: str | Path) -> Record:
     """Read a servo-trace ``.csv``, an EMPS ``.mat`` file or a ``hil run`` recording (its
     run folder or ``recording.arrows``) as a :class:`Record`.

@@ -58,8 +58,9 @@ def _axis_summary(proc, a: int, cols: dict, trace) -> dict:
             "trace": None if trace is None else str(trace)}
 
 
-def _trace(proc, a: int, cols: dict, name: str):
-    """Write the axis's servo trace; its path, or None when no row is due."""
+def _trace(proc, a: int, cols: dict, name: str, timing: dict[str, str]):
+    """Write the axis's servo trace (``timing``: the run's timing for its header); its
+    path, or None when no row is due."""
     rc, ctrl = proc.rc, proc.mctrl.ctrls[a]
     every = ctrl.sec.position_cycle_ratio
     if not np.any(cols["tick"] % every == 0):
@@ -71,7 +72,7 @@ def _trace(proc, a: int, cols: dict, name: str):
     return write_trace(rc.out_dir / name, servo_trace_columns(res, every), {
         "machine": str(rc.machine_file), "program": str(rc.program_file),
         "axis": proc.machine.names[a], "source": f"hil controller over {rc.adapter_url}",
-        **TRACE_METADATA})
+        **TRACE_METADATA, **timing})
 
 
 def nc_summary(mctrl, nc_ns: np.ndarray) -> dict:
@@ -101,16 +102,24 @@ def write_outputs(proc, stats, granted, alignment: Alignment) -> dict:
         saved = dict(per_axis[0])
     np.savez(rc.out_dir / "controller.npz", **saved, **ints, lateness_ns=stats.lateness_ns,
              compute_ns=stats.compute_ns)
-    axes = {}
-    for a, (name, cols) in enumerate(zip(names, per_axis)):
-        trace = _trace(proc, a, cols, f"trace_{name}.csv" if multi else "trace.csv")
-        axes[name] = _axis_summary(proc, a, cols, trace)
-    first = axes[names[0]]
     cols = {**per_axis[0], **ints}
     new = cols["fb_new"] == 1
     lag = cols["lag_ticks"]
     delay = proc.delay_ticks
     drive_clock = getattr(proc.ep, "drive_clock", True)
+    feedback = {"ticks_without_new": int(n - new.sum()),
+                "ticks_in_step": int(in_step(cols, proc.period_s, delay, drive_clock).sum()),
+                "delay_ticks": delay, "drive_clock": drive_clock,
+                "lag_ticks": {"0": int((lag == 0).sum()), "1": int((lag == 1).sum()),
+                              "2+": int((lag >= 2).sum())}}
+    loop = stats.as_dict()
+    quality = TimingQuality.of_controller({"loop": loop, "feedback": feedback})
+    axes = {}
+    for a, (name, cols_a) in enumerate(zip(names, per_axis)):
+        trace = _trace(proc, a, cols_a, f"trace_{name}.csv" if multi else "trace.csv",
+                       quality.header())
+        axes[name] = _axis_summary(proc, a, cols_a, trace)
+    first = axes[names[0]]
     alarms = proc.mctrl.alarm_dicts()
     summary = {
         "command": "hil controller", "result": proc.result,
@@ -121,14 +130,8 @@ def write_outputs(proc, stats, granted, alignment: Alignment) -> dict:
         "period_ns": proc.period_ns, "ticks_recorded": n, "ticks_planned": proc.n_run,
         **{k: v for k, v in first.items() if k != "trace"},
         "round_trip_us": Percentiles.of_ns_in_us(cols["round_trip_ns"][new]).as_dict(),
-        "feedback": {"ticks_without_new": int(n - new.sum()),
-                     "ticks_in_step": int(in_step(cols, proc.period_s, delay,
-                                                  drive_clock).sum()),
-                     "delay_ticks": delay, "drive_clock": drive_clock,
-                     "lag_ticks": {"0": int((lag == 0).sum()), "1": int((lag == 1).sum()),
-                                   "2+": int((lag >= 2).sum())}},
-        "alignment": alignment.as_dict(),
-        "loop": stats.as_dict(), "scheduling": scheduling_dict(granted),
+        "feedback": feedback, "alignment": alignment.as_dict(),
+        "loop": loop, "scheduling": scheduling_dict(granted),
         "cpu_shared_with": proc.cpu_shared_with,
         "nc": nc_summary(proc.mctrl, proc.nc_ns[:n]),
         "compiled_loop": None if proc.steady is None else proc.steady.as_dict(),
@@ -139,7 +142,7 @@ def write_outputs(proc, stats, granted, alignment: Alignment) -> dict:
         "trace": first["trace"], "host": host_fingerprint(),
         "start": rc.start_cnc,
     }
-    summary["timing_quality"] = TimingQuality.of_controller(summary).as_dict()
+    summary["timing_quality"] = quality.as_dict()
     if multi:
         summary["axes"] = axes
     write_json(rc.out_dir / "summary.json", summary)

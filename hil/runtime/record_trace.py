@@ -24,12 +24,16 @@ Rotary tables have ``_deg`` columns.  Counts become table units through the axis
 revolution on a screw axis).
 """
 
+import json
 import math
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
 from hil.runtime.record_reader import Recording, RecordingError
+from hil.runtime.run_folder import REPORT
+from hil.runtime.timing_quality import TimingQuality
 from io_adapters.messages import MODE_CSP, MODE_CST, MODE_CSV
 
 #: the trace columns, in file order, without their unit suffix (see the module docstring)
@@ -110,7 +114,20 @@ class AxisTrace:
                 "machine": rec.meta.get("machine", ""),
                 "machine_file": rec.meta.get("machine_file", ""),
                 "source": f"hil run recording {rec.folder} (adapter {rec.meta.get('adapter')})",
-                **{f"injected_{i + 1}": text for i, text in enumerate(injected)}}
+                **{f"injected_{i + 1}": text for i, text in enumerate(injected)},
+                **run_timing(rec.folder)}
+
+
+def run_timing(folder: Path) -> dict[str, str]:
+    """The run's timing for a trace header (:meth:`TimingQuality.header
+    <hil.runtime.timing_quality.TimingQuality.header>`), from its ``report.json``; says
+    so when there is none (a run cut short)."""
+    try:
+        report = json.loads((folder / REPORT).read_text())
+        return TimingQuality.of_emulator(report).header()
+    except (OSError, ValueError, KeyError):
+        return {"timing_within_limits": f"unknown (no readable {REPORT}: the run was cut "
+                                        "short?)"}
 
 
 def axis_trace(rec: Recording, axis: str | None = None) -> AxisTrace:

@@ -106,6 +106,15 @@ class TimingQuality:
                    "show the timing, not the machine")
         return f"timing: {counts}: {verdict}"
 
+    def header(self) -> dict[str, str]:
+        """The trace header's ``# key: value`` lines for this side's timing (a trace's
+        reader, ``hil identify``, warns on ``timing_within_limits: no``)."""
+        return {"timing_side": self.side, "timing_ticks": str(self.ticks),
+                "timing_overruns": str(self.overruns), "timing_stalls": str(self.stalls),
+                f"timing_{self.messages}_late": str(self.late),
+                f"timing_{self.messages}_missed": str(self.missed),
+                "timing_within_limits": "yes" if self.within else "no"}
+
     def as_dict(self) -> dict:
         return {**asdict(self), "max_share": MAX_SHARE, "within": self.within,
                 "reasons": self.reasons()}
