@@ -11,6 +11,7 @@ the MDF4 file and the servo-trace reader opening the CSV, the recording's own va
 children reaped.
 """
 
+import csv
 import json
 import os
 import resource
@@ -218,7 +219,8 @@ def test_the_mdf4_export_opens_with_asammdf_with_units_and_comments(run_dir, tmp
 def test_the_csv_export_is_a_servo_trace(run_dir, tmp_path):
     """hil export --to csv: the servo-trace reader opens it (uniform time from 0 at the
     run's period); pos_mm is the linear scale (reference: the recording's scale counts
-    times the machine file's resolution); the events are comment lines."""
+    times the machine file's resolution); every number is the shortest text that reads
+    back to its value (Python's repr); the events are rows of events.csv beside it."""
     done = subprocess.run(python_module("hil.cli", "export", run_dir, "--to", "csv", "--out",
                                         tmp_path), env=ENV, capture_output=True, text=True,
                           timeout=EXIT_S)
@@ -232,7 +234,14 @@ def test_the_csv_export_is_a_servo_trace(run_dir, tmp_path):
     csp = rows["sp_mode"] == 8
     assert np.isfinite(trace.data["pos_set_mm"][csp]).all()
     assert np.isnan(trace.data["pos_set_mm"][~csp]).all()
-    assert any("event" in c and "watchdog tripped" in c for c in trace.comments)
+    assert trace.metadata["events"] == "events.csv beside this file"
+    with open(tmp_path / "events.csv", newline="") as f:
+        events = list(csv.DictReader(f))
+    assert any(e["source"] == "watchdog" and e["kind"] == "tripped" for e in events), events
+    lines = (tmp_path / "trace.csv").read_text().splitlines()
+    rows_text = [line for line in lines if line and line[0] not in "#t"][:200]
+    for token in ",".join(rows_text).split(","):
+        assert repr(float(token)) == token, token
 
 
 # --- SIGKILL, a full disk ----------------------------------------------------------------

@@ -199,5 +199,7 @@ def test_the_traces_state_their_runs_timing_and_identify_warns_on_them(stalled_r
         header[key] = value
     assert header["timing_side"] == "emulator" and header["timing_within_limits"] == "no"
     assert int(header["timing_stalls"]) >= 1
+    assert header["modes"] == "CST" and "the position setpoint stays in the controller" in \
+        header["pos_set_note"]  # (hil controller drives the Arrow's current: CST)
     ctl.meta["timing_within_limits"] = "yes"
     assert timing_warning(ctl) is None

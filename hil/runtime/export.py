@@ -5,6 +5,7 @@
     hil export runs/r1 --to mdf4            # runs/r1/recording.mf4
     hil export runs/r1 --to mdf4 --bus out/bus.asc   # and the CAN frames (CANape, asammdf)
     hil export runs/r1 --to csv [--axis X]  # runs/r1/trace.csv (trace_X.csv, ... per axis)
+                                            # and runs/r1/events.csv
 
 * **MDF4** (ASAM MDF 4.10 through asammdf; what ControlDesk, CANape and asammdf's GUI
   open): one channel group ``recording`` with every column of the recording, its unit
@@ -19,8 +20,10 @@
 * **CSV**: the servo-trace format of ``../shared/docs/trace-format.md`` per axis
   (:mod:`hil.runtime.record_trace` says which recording column makes which trace
   column), one row per tick on a uniform time base (a tick without a row -- dropped by
-  the ``skip`` overrun policy, or not recorded -- is a row of NaN), the run's events as
-  ``#`` comments before the header.
+  the ``skip`` overrun policy, or not recorded -- is a row of NaN), every number in the
+  shortest text that reads back exactly; the header says the modes the setpoints were in
+  (no position setpoint outside CSP: it stays in the controller) and the run's timing;
+  the run's events go to ``events.csv`` beside the traces, one row each.
 
 Both are written batch by batch as the recording was (bounded memory, whatever its
 length).  An existing output file is refused unless ``--force``; a run folder whose
@@ -32,6 +35,7 @@ nothing could be checked.
 """
 
 import argparse
+import csv
 import json
 import math
 import tempfile
@@ -43,6 +47,7 @@ from hil.runtime.common import EXIT_BAD_INPUT, EXIT_FAILED, EXIT_OK, eprint
 from hil.runtime.record_reader import Recording, RecordingError
 from hil.runtime.record_trace import AxisTrace, axis_trace
 from hil.runtime.stream_file import FORMAT
+from io_adapters.messages import MODE_CSP, MODE_CST, MODE_CSV
 
 MDF_NAME = "recording.mf4"
 
@@ -57,36 +62,56 @@ def _fresh(path: Path, force: bool) -> Path:
     return path
 
 
-def _event_lines(rec: Recording) -> list[str]:
-    """One comment line per event: time (or 'after the loop'), axis, what and why (up to a
-    corrupt batch)."""
+#: the events file ``hil export --to csv`` writes beside the traces
+EVENTS_CSV = "events.csv"
+EVENT_COLUMNS = ("t_s", "tick", "axis", "source", "kind", "code", "drive_cycle", "reason")
+
+
+def export_events_csv(rec: Recording, out: Path, force: bool = False) -> tuple[Path, int]:
+    """``out``: the run's events, one row each (up to a corrupt batch): the time (empty
+    after the loop), tick (-1 after the loop), axis, source, kind, 603Fh code as hex (empty
+    when none), drive cycle (empty when none) and reason.  Returns (the path, the count)."""
     ev = rec.events(stop_at_corrupt=True)
-    lines = []
-    for i in range(ev["tick"].size):
-        when = (f"t = {ev['t_s'][i]:.6f} s (tick {ev['tick'][i]})" if ev["tick"][i] >= 0
-                else "after the loop")
-        code = f" {ev['code'][i]:04X}h" if ev["code"][i] else ""
-        cycle = f" drive cycle {ev['cycle'][i]}" if ev["cycle"][i] >= 0 else ""
-        axis = f" axis {ev['axis'][i]}" if ev["axis"][i] else ""
-        lines.append(f"# event {when}{axis}: {ev['source'][i]} {ev['kind'][i]}{code}"
-                     f"{cycle}: {ev['reason'][i]}")
-    return lines
+    with open(_fresh(out, force), "w", encoding="utf-8", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(EVENT_COLUMNS)
+        for i in range(ev["tick"].size):
+            w.writerow((repr(float(ev["t_s"][i])) if ev["tick"][i] >= 0 else "",
+                        int(ev["tick"][i]), ev["axis"][i], ev["source"][i], ev["kind"][i],
+                        f"{ev['code'][i]:04X}" if ev["code"][i] else "",
+                        int(ev["cycle"][i]) if ev["cycle"][i] >= 0 else "", ev["reason"][i]))
+    return out, int(ev["tick"].size)
+
+
+def _modes(rec: Recording, trace: AxisTrace) -> str:
+    """Which modes of operation the axis's setpoints were in, by name (``sp_mode``)."""
+    names = {MODE_CSP: "CSP", MODE_CSV: "CSV", MODE_CST: "CST"}
+    seen = set()
+    for rows in rec.batches(["tick", trace.prefix + "sp_mode"], stop_at_corrupt=True):
+        seen.update(np.unique(rows[trace.prefix + "sp_mode"]).tolist())
+    return ", ".join(names.get(m, str(m)) for m in sorted(seen))
 
 
 def export_csv(rec: Recording, out: Path, trace: AxisTrace, force: bool = False) -> Path:
     """``out``: the servo trace of one axis (see the module docstring)."""
     names = trace.names()
+    modes = _modes(rec, trace)
+    header = {**trace.metadata(rec, stop_at_corrupt=True), "modes": modes,
+              "events": f"{EVENTS_CSV} beside this file"}
+    if "CSP" not in modes:
+        header["pos_set_note"] = (f"empty: the drive ran in {modes or 'no mode'}, where the "
+                                  "position setpoint stays in the controller (its own "
+                                  "trace.csv has it)")
     with open(_fresh(out, force), "w", encoding="utf-8") as f:
-        for key, value in trace.metadata(rec, stop_at_corrupt=True).items():
-            f.write(f"# {key}: {value}\n")
-        for line in _event_lines(rec):
-            f.write(line.replace("\n", " ") + "\n")
+        for key, value in header.items():
+            f.write(f"# {key}: {value}".replace("\n", " ") + "\n")
         f.write(",".join(names) + "\n")
         next_tick = 0
         for rows in rec.batches(trace.sources(), stop_at_corrupt=True):
             columns = _every_tick(trace.convert(rows), rows["tick"], next_tick, trace)
-            np.savetxt(f, np.column_stack([columns[n] for n in names]), fmt="%.17g",
-                       delimiter=",")
+            # repr: the shortest text that reads back to the same float
+            lists = [columns[n].tolist() for n in names]
+            f.writelines(",".join(map(repr, row)) + "\n" for row in zip(*lists))
             next_tick = int(rows["tick"][-1]) + 1
     return out
 
@@ -250,6 +275,7 @@ def run_from_args(args: argparse.Namespace) -> int:
             outputs = [export_csv(rec, folder / ("trace.csv" if len(rec.meta["axes"]) == 1
                                                  else f"trace_{name}.csv"),
                                   axis_trace(rec, name), args.force) for name in names]
+            outputs.append(export_events_csv(rec, folder / EVENTS_CSV, args.force)[0])
     except (RecordingError, ExportError, OSError) as e:
         eprint(f"hil export: {e}")
         return EXIT_BAD_INPUT
