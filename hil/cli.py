@@ -273,16 +273,22 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
 
     m = sub.add_parser("measure", help="the controller's step and frequency-response tests")
     m.add_argument("config", help="machine file (TOML)")
-    m.add_argument("kind", choices=("step", "bode"))
-    m.add_argument("loop", choices=("current", "speed", "position"))
+    m.add_argument("kind", choices=("step", "bode"),
+                   help="step: a setpoint step, its rise time and overshoot; bode: a PRBS "
+                        "around --offset, the closed loop's frequency response")
+    m.add_argument("loop", choices=("current", "speed", "position"),
+                   help="the loop whose setpoint is stepped or excited (bode: current or "
+                        "speed)")
     m.add_argument("--amplitude", type=float, required=True,
                    help="step or PRBS amplitude: A, mm/min (deg/min) or mm (deg)")
     m.add_argument("--offset", type=float, default=0.0, help="bode: setpoint offset, same unit")
     m.add_argument("--at", type=float, default=0.0, help="table position, mm (deg)")
     m.add_argument("--order", type=int, default=12, help="bode: PRBS register length")
-    m.add_argument("--periods", type=int, default=4, help="bode: PRBS periods averaged")
+    m.add_argument("--periods", type=int, default=4,
+                   help="bode: PRBS periods averaged (more: less noise, longer run; "
+                        "default %(default)s)")
     m.add_argument("--out", required=True, help="folder for the plot and the CSV")
-    m.add_argument("--json", action="store_true")
+    m.add_argument("--json", action="store_true", help="print the figures as JSON")
     m.set_defaults(func=cmd_measure)
 
     bl = bsub.add_parser("loop", help="hard-timed loop lateness vs cyclictest, same interval")
@@ -355,9 +361,63 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
                    "machines, on Dask", "hil.study.command")
 
     k = sub.add_parser("config-keys", help="every machine-file key with unit and meaning")
-    k.add_argument("--markdown", action="store_true")
+    k.add_argument("--markdown", action="store_true", help="a Markdown table (default: "
+                   "plain columns)")
     k.set_defaults(func=cmd_config_keys)
+    for parent, examples in ((sub, EXAMPLES), (bsub, BENCH_EXAMPLES)):
+        for name, p in parent.choices.items():
+            p.epilog = "example:\n  " + examples[name]
+            p.formatter_class = _ExampleFormatter
     return parser
+
+
+class _ExampleFormatter(argparse.HelpFormatter):
+    """argparse's help, with the example at its end printed as written: a command line
+    wrapped at the terminal's width would not paste."""
+
+    def _fill_text(self, text: str, width: int, indent: str) -> str:
+        if text.startswith("example:"):
+            return "".join(indent + line for line in text.splitlines(keepends=True))
+        return super()._fill_text(text, width, indent)
+
+
+#: one command line per command, shown at the end of its --help
+EXAMPLES = {
+    "validate": "hil validate --only coulomb_hold screw_modes --out validate-out",
+    "bench": "hil bench tick --json",
+    "sim": "hil sim configs/arrow500_x.toml --program programs/demo_moves.nc --out out/sim",
+    "measure": "hil measure configs/arrow500_x.toml bode speed --amplitude 300 --offset 600 "
+               "--at 250 --out out/meas",
+    "report": "hil report out/run --controller out/ctl --cyclictest",
+    "replay": "hil replay out/run --json",
+    "export": "hil export out/run --to mdf4",
+    "soak": "hil soak --minutes 30 --rate 4000 --out soak-out",
+    "run": "hil run configs/arrow500_x.toml --adapter udp://127.0.0.1:5005 --record out/run",
+    "controller": "hil controller configs/arrow500_x.toml --adapter udp://127.0.0.1:5005 "
+                  "--program programs/seed000_moves.nc --out out/ctl",
+    "eds": "hil eds configs/machines/arrow500_xy_2khz.toml --out eds --adapter "
+           "'can://udp_multicast/239.74.163.2?node=5&rated_current_ma=28000'",
+    "demo": "hil demo",
+    "linuxcnc": "hil linuxcnc configs/linuxcnc/arrow500_xyz.ini --program "
+                "programs/linuxcnc_square.ngc --out out/linuxcnc",
+    "identify": "hil identify ../shared/data/EMPS/DATA_EMPS.mat --config configs/emps.toml "
+                "--out out/identify --validate ../shared/data/EMPS/DATA_EMPS_PULSES.mat",
+    "study": "hil study configs/studies/ci_small.toml --out out/study",
+    "config-keys": "hil config-keys --markdown",
+}
+BENCH_EXAMPLES = {
+    "plant": "hil bench plant --config configs/arrow500_x.toml --json",
+    "loop": "hil bench loop --with-plant --adapter udp --config "
+            "configs/machines/geiss_5axis.toml --seconds 60",
+    "adapters": "hil bench adapters --n 5000",
+    "fuzz": "hil bench fuzz --json",
+    "tick": "hil bench tick --json",
+    "can": "hil bench can --json",
+    "identify": "hil bench identify --ci",
+    "study": "hil bench study --json",
+    "controller": "hil bench controller --json",
+    "linuxcnc": "hil bench linuxcnc --json",
+}
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -119,3 +119,26 @@ def test_hil_runs_help_names_every_adapter_scheme_with_its_options():
     for scheme in ("udp://HOST:PORT", "serial://PATH", "can://INTERFACE/CHANNEL"):
         assert scheme in text, scheme
     assert "wire=msgpack|fixed" in text and "node=N&rated_current_ma=MA" in text
+
+
+def test_every_command_ends_its_help_with_an_example_that_parses():
+    """Each command's and benchmark's ``--help`` ends with one example command line, as
+    written (not wrapped), and the example parses with the options its own module adds;
+    ``hil validate --only`` lists the experiments it takes and refuses another name."""
+    import shlex
+
+    from hil.cli import BENCH_EXAMPLES, EXAMPLES, build_parser
+    for example in [*EXAMPLES.values(), *BENCH_EXAMPLES.values()]:
+        argv = shlex.split(example)
+        assert argv[0] == "hil", argv
+        parser = build_parser(argv[1:])
+        args = parser.parse_args(argv[1:])
+        assert callable(args.func), argv
+        chosen = parser._subparsers._group_actions[0].choices[argv[1]]
+        if argv[1] == "bench":
+            chosen = chosen._subparsers._group_actions[0].choices[argv[2]]
+        assert chosen.format_help().rstrip().endswith("example:\n  " + example), argv
+    validate = build_parser(["validate"])._subparsers._group_actions[0].choices["validate"]
+    assert "coulomb_hold" in validate.format_help()
+    with pytest.raises(SystemExit):
+        build_parser(["validate"]).parse_args(["validate", "--only", "no_such_experiment"])

@@ -25,7 +25,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "summary goes to stderr")
     parser.add_argument("--out", default="validate-out", help="folder for the plots")
     parser.add_argument("--no-plots", action="store_true", help="write no plots")
-    parser.add_argument("--only", nargs="*", metavar="NAME", help="run only these experiments")
+    import hil.validate.experiments  # noqa: F401  (registers the experiments: their names)
+    from hil.validate.core import REGISTRY
+    parser.add_argument("--only", nargs="*", metavar="NAME", choices=sorted(REGISTRY),
+                        help="run only these experiments: " + ", ".join(sorted(REGISTRY)))
     parser.add_argument("--strict", action="store_true",
                         help="exit 1 when a verification row disagrees")
 
