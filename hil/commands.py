@@ -31,6 +31,11 @@ PEAK_RANGE_DB = 20.0
 _PARTS = 1000
 
 
+#: the phase that loads the compiled kernels (a cold cache compiles them; measured 26 s
+#: for hil sim on a 2-vCPU VM, 2026-11-29)
+COMPILING = "loading the compiled kernels (a cold cache compiles them: up to 40 s)"
+
+
 def _progress(p: Progress) -> Callable[[float], None]:
     """A fraction-done callback (what LockStep.run and the PRBS runs call) feeding ``p``."""
     return lambda fraction: p.update(round(_PARTS * fraction))
@@ -92,8 +97,9 @@ def run_sim(config: Path, program: Path, out: Path, start: float, axis: str | No
     sec = load_controller(cfg)
     prog = read_program(program, axis=_axis_letter(cfg, axis), start=x0, clamp=clamp_codes(sec))
     profile = plan(prog, axis_limits(cfg, sec))
-    ls = LockStep(cfg, x0, axis=prog.axis, inject=inject)
-    ls.enable()
+    with Progress(COMPILING, ticking=True):  # numba compiles here on a cold cache
+        ls = LockStep(cfg, x0, axis=prog.axis, inject=inject)
+        ls.enable()
     profile = ls.ctrl.run_profile(profile)  # ended before a block beyond the soft limits
     with Progress("simulating", total=_PARTS) as p:
         res = ls.run(profile.duration_s + SETTLE_S, _progress(p))

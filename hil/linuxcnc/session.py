@@ -45,7 +45,7 @@ from hil.runtime.record_reader import Recording, RecordingError
 
 #: the headless display program LinuxCNC runs (in its own Python)
 DISPLAY = Path(__file__).resolve().parent / "display.py"
-#: longest wait for the emulator's ready line (a cold numba cache compiles for ~10 s each
+#: longest wait for the emulator's ready line (a cold numba cache compiles for up to 40 s each
 #: of a few kernels)
 READY_TIMEOUT_S = 180.0
 #: how long LinuxCNC's start and shut-down may take beyond the display's phases, s

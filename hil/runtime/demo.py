@@ -65,7 +65,7 @@ from plant.errors import ConfigError
 ROOT = Path(__file__).resolve().parents[2]
 DEFAULT_CONFIG = ROOT / "configs" / "arrow500_x.toml"
 DEFAULT_PROGRAM = ROOT / "programs" / "demo_moves.nc"
-#: longest wait for the emulator's ready line (a cold numba cache compiles ~10 s)
+#: longest wait for the emulator's ready line (a cold numba cache compiles for up to 40 s)
 READY_TIMEOUT_S = 120.0
 #: longest wait for the controller beyond its program, and for the emulator's stop
 CHILD_TIMEOUT_S = 120.0

@@ -521,7 +521,7 @@ def run_from_args(args: argparse.Namespace) -> int:
             # refused here, before the kernels compile, not when the drives are built
             load_drive(cfg, load_controller(cfg) if cfg.section("controller") else None)
         eprint("hil run: loading the plant's compiled kernels (a cold cache compiles them, "
-               "about 10 s; SIGTERM/SIGINT end the process meanwhile)")
+               "up to 40 s; SIGTERM/SIGINT end the process meanwhile)")
         with signals_end_process():
             Plant(machine.configs[0])  # numba compiles here (or loads its cache)
     except (ConfigError, RuntimeInputError) as e:
