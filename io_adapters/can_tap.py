@@ -247,27 +247,34 @@ class BusTap(can.BusABC):
         if self._log is not None:
             self._write_log(msg, False)
 
+    def _flush(self) -> float:
+        """Send the waiting frames the bus has room for now, oldest first; returns how long
+        until the next has room (0: none waits)."""
+        with self._sending:
+            with self._lock:
+                now, going, wait = time.time(), [], 0.0
+                while self.tx.waiting:
+                    wait = self.load.wait_s(_WORST[min(len(self.tx.waiting[0].data), 8)], now)
+                    if wait > 0.0:
+                        break
+                    msg = self.tx.take()
+                    self._sent(msg, now)
+                    going.append(msg)
+            for msg in going:
+                self._send_inner(msg)
+        return wait
+
     def _transmit(self) -> None:
-        """The transmit thread: the waiting frames, oldest first, each once the bus has
-        room for it."""
+        """The transmit thread: the waiting frames, each once the bus has room for it
+        (sooner when a frame on the bus gives the receive thread the chance,
+        :meth:`_recv_internal`)."""
         while True:
             with self._queued:
                 while not self.tx.waiting and not self._closed:
                     self._queued.wait()
                 if self._closed:
                     return
-            msg, wait = None, 0.0
-            with self._sending:
-                with self._lock:
-                    if self.tx.waiting:
-                        now = time.time()
-                        wait = self.load.wait_s(_WORST[min(len(self.tx.waiting[0].data), 8)],
-                                                now)
-                        if wait <= 0.0:
-                            msg = self.tx.take()
-                            self._sent(msg, now)
-                if msg is not None:
-                    self._send_inner(msg)
+            wait = self._flush()
             if wait > 0.0:
                 with self._queued:
                     if not self._closed:
@@ -314,6 +321,9 @@ class BusTap(can.BusABC):
                 self._arrival_s = max(self._arrival_s, msg.timestamp)
                 if self._log is not None:
                     self._write_log(msg, True)
+            waiting = bool(self.tx.waiting)
+        if waiting:  # the frames that have room now go without waiting for the thread
+            self._flush()
         return msg, filtered
 
     def bus_time_s(self) -> float:

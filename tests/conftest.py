@@ -22,8 +22,10 @@ def pytest_collection_finish(session):
     """A whole suite's session starts ``tests/warm_kernels.py`` beside it (at nice 10: it
     takes the core the suite leaves idle); the process exits at once where the cache is
     warm already, and is stopped with the session.  Its output goes to
-    ``<tmp>/feeddrive-warm-kernels.log``."""
-    if len(session.items) < WARM_KERNELS_FROM or session.config.option.collectonly:
+    ``<tmp>/feeddrive-warm-kernels.log``.  ``HIL_TESTS_NO_WARMER=1`` leaves it out (to
+    time the suite without it)."""
+    if (len(session.items) < WARM_KERNELS_FROM or session.config.option.collectonly
+            or os.environ.get("HIL_TESTS_NO_WARMER") == "1"):
         return
     log = open(Path(tempfile.gettempdir()) / "feeddrive-warm-kernels.log", "w")  # noqa: SIM115
     session.config.stash[_WARMER] = subprocess.Popen(
