@@ -1,11 +1,8 @@
 """Shared test fixtures: paths of the repository, its configs and the shared data."""
 
-import os
 import secrets
 import shutil
 import subprocess
-import sys
-import tempfile
 from pathlib import Path
 
 import pytest
@@ -13,33 +10,6 @@ import pytest
 ROOT = Path(__file__).resolve().parent.parent
 CONFIGS = ROOT / "configs"
 SHARED = ROOT.parent / "shared"
-#: a session of at least this many tests fills numba's cache from a second process
-WARM_KERNELS_FROM = 200
-_WARMER = pytest.StashKey[subprocess.Popen]()
-
-
-def pytest_collection_finish(session):
-    """A whole suite's session starts ``tests/warm_kernels.py`` beside it (at nice 10: it
-    takes the core the suite leaves idle); the process exits at once where the cache is
-    warm already, and is stopped with the session.  Its output goes to
-    ``<tmp>/feeddrive-warm-kernels.log``.  ``HIL_TESTS_NO_WARMER=1`` leaves it out (to
-    time the suite without it)."""
-    if (len(session.items) < WARM_KERNELS_FROM or session.config.option.collectonly
-            or os.environ.get("HIL_TESTS_NO_WARMER") == "1"):
-        return
-    log = open(Path(tempfile.gettempdir()) / "feeddrive-warm-kernels.log", "w")  # noqa: SIM115
-    session.config.stash[_WARMER] = subprocess.Popen(
-        [sys.executable, "-m", "tests.warm_kernels"], cwd=ROOT, stdout=log,
-        stderr=subprocess.STDOUT, preexec_fn=lambda: os.nice(10))
-    log.close()
-
-
-def pytest_sessionfinish(session):
-    warmer = session.config.stash.get(_WARMER, None)
-    if warmer is not None and warmer.poll() is None:
-        warmer.terminate()
-        warmer.wait(timeout=10)
-
 
 
 @pytest.fixture(scope="session")
