@@ -109,7 +109,10 @@ class CycleLoad:
         if self.opened_s is not None and (
                 at_s >= self.credit_s - self.capacity_bits / self.bit_rate):
             self._refill(at_s)
-            self.credit_bits -= bits
+            # at most one cycle owed: frames stamped closer together than the bit rate
+            # allows (a virtual bus, a flood) cannot stop ours for longer than a real bus
+            # that carried them would
+            self.credit_bits = max(self.credit_bits - bits, -self.capacity_bits)
 
     def room(self, bits: int, now_s: float) -> bool:
         """The bus has room for a frame of ``bits`` at ``now_s`` (any before the first

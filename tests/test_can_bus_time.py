@@ -121,3 +121,15 @@ def test_a_frame_taken_late_owes_the_room_its_bits_only_within_a_cycle():
     assert load.credit_bits == 900
     load.add(100, 10.005)
     assert load.credit_bits == 900 and load.bits == 200
+
+
+def test_a_flood_owes_the_room_one_cycle_at_most():
+    """Frames stamped closer than the bit rate allows (a fuzzer on a virtual bus) leave the
+    room at most one cycle in debt: a frame of ours waits two cycles at the most, as on a
+    bus that had carried them."""
+    load = CycleLoad(bit_rate=1e6, capacity_bits=1000.0)
+    load.close(10.0)
+    for _ in range(1000):
+        load.add(135, 10.0)
+    assert load.credit_bits == -1000.0
+    assert load.wait_s(135, 10.0) == pytest.approx(1135e-6)
