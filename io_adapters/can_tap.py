@@ -156,6 +156,11 @@ class CycleLoad:
         self.bits = carried
 
 
+def _bits(msg: can.Message) -> int:
+    """A frame's length on the bus at the worst (module docstring)."""
+    return _WORST[min(len(msg.data), 8)]
+
+
 def _node(msg: can.Message) -> int:
     """The node-ID in a frame's COB-ID (CiA 301's predefined connection set)."""
     return msg.arbitration_id & 0x7F
@@ -246,7 +251,7 @@ class BusTap(can.BusABC):
     def _sent(self, msg: can.Message, now_s: float) -> None:
         """Count (and log) a frame of ours that goes on the bus at ``now_s`` (the lock
         held)."""
-        self.load.add(_WORST[min(len(msg.data), 8)], now_s)
+        self.load.add(_bits(msg), now_s)
         if self._log is not None:
             self._write_log(msg, False)
 
@@ -257,7 +262,7 @@ class BusTap(can.BusABC):
             with self._lock:
                 now, going, wait = time.time(), [], 0.0
                 while self.tx.waiting:
-                    wait = self.load.wait_s(_WORST[min(len(self.tx.waiting[0].data), 8)], now)
+                    wait = self.load.wait_s(_bits(self.tx.waiting[0]), now)
                     if wait > 0.0:
                         break
                     msg = self.tx.take()
@@ -296,7 +301,7 @@ class BusTap(can.BusABC):
         with self._sending:
             with self._lock:
                 now = time.time()
-                fits = not self.tx.waiting and self.load.room(_WORST[min(len(msg.data), 8)],
+                fits = not self.tx.waiting and self.load.room(_bits(msg),
                                                               now)
                 if fits:
                     self._sent(msg, now)
@@ -320,7 +325,7 @@ class BusTap(can.BusABC):
             else:
                 if msg.arbitration_id == SYNC_COB_ID:
                     self.load.close(msg.timestamp)
-                self.load.add(_WORST[min(len(msg.data), 8)], msg.timestamp)
+                self.load.add(_bits(msg), msg.timestamp)
                 self._arrival_s = max(self._arrival_s, msg.timestamp)
                 if self._log is not None:
                     self._write_log(msg, True)

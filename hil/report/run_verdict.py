@@ -25,6 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
+from hil.commands import run_sim
 from hil.replay import ReplayError, ReplayResult, replay_run
 from hil.replay.timing import TimingCost, timing_cost
 from hil.runtime.common import EXIT_OK, write_json
@@ -35,6 +36,7 @@ from hil.runtime.demo_verdict import (
     check_timing,
 )
 from hil.runtime.record_reader import Recording
+from hil.runtime.run_folder import REPORT
 from hil.runtime.timing_quality import TimingQuality
 from plant.config import MachineConfig, load_machine
 from plant.errors import ConfigError
@@ -69,8 +71,27 @@ def position_scale(cfg: MachineConfig) -> tuple[float, str]:
     return (1e6, "µm") if cfg.machine.kind != "rotary" else (1e3 * 180 / math.pi, "mdeg")
 
 
-def _read(path: Path) -> dict | None:
+def read_json(path: Path) -> dict | None:
+    """A run's JSON file (``report.json``, ``summary.json``), or None when it is not there."""
     return json.loads(path.read_text()) if path.is_file() else None
+
+
+def judge_lockstep_timing(v: Verdict, machine_file: Path, program: Path, start: float,
+                          run: Path, controller: Path, out: Path
+                          ) -> tuple[TimingCost | str, tuple[float, str]]:
+    """Step 3's lock-step part: ``program`` simulated in lock-step on ``machine_file``
+    from ``start`` (mm or deg) into ``out``, its alarms and the run's timing cost against
+    it judged into ``v``; returns the cost (or why there is none) and the positions' scale
+    (:func:`position_scale`).  Raises ConfigError, OSError or ValueError when the
+    simulation cannot be run."""
+    cfg = load_machine(machine_file)
+    sim = run_sim(machine_file, program, out, start, None, None)
+    for alarm in sim["alarms"]:
+        v.fail(f"the lock-step simulation raised {alarm['message']}")
+    cost = timing_cost_of(run, controller, cfg, Path(sim["trace"]))
+    scale = position_scale(cfg)
+    check_timing(v, cost, *scale)
+    return cost, scale
 
 
 def _lockstep_refused(report: dict, summary: dict) -> str | None:
@@ -94,19 +115,13 @@ def _timing(v: Verdict, run: Path, controller: Path | None, report: dict,
     refused = "no --controller folder" if summary is None else _lockstep_refused(report,
                                                                                 summary)
     if refused is None:
-        from hil.commands import run_sim
         try:
-            cfg = load_machine(Path(summary["machine_file"]))
-            sim = run_sim(Path(summary["machine_file"]), Path(summary["program"]),
-                          run / LOCKSTEP_DIR, float(summary["start"]), None, None)
+            cost, (k, unit) = judge_lockstep_timing(
+                v, Path(summary["machine_file"]), Path(summary["program"]),
+                float(summary["start"]), run, controller, run / LOCKSTEP_DIR)
         except (ConfigError, OSError, ValueError) as e:
             refused = f"the lock-step simulation could not be run: {e}"
         else:
-            for alarm in sim["alarms"]:
-                v.fail(f"the lock-step simulation raised {alarm['message']}")
-            cost = timing_cost_of(run, controller, cfg, Path(sim["trace"]))
-            k, unit = position_scale(cfg)
-            check_timing(v, cost, k, unit)
             lines.append("timing cost against the lock-step simulation: " + (
                 f"not computed ({cost})" if isinstance(cost, str) else
                 f"max {cost.diff_max * k:.2f} {unit} (tolerance "
@@ -126,8 +141,8 @@ def judge_run(run: Path, controller: Path | None = None) -> tuple[Verdict, list[
     """The verdict on ``run`` (with ``controller``'s folder when given) and the lines
     that show what it rests on; also written into ``run/verdict.json``."""
     v = Verdict()
-    report = _read(run / "report.json")
-    summary = None if controller is None else _read(controller / "summary.json")
+    report = read_json(run / REPORT)
+    summary = None if controller is None else read_json(controller / "summary.json")
     lines = []
     if controller is not None and summary is None:
         v.fail(f"{controller} has no summary.json (hil controller did not end normally)")

@@ -30,7 +30,6 @@ anything starts).
 """
 
 import argparse
-import json
 import os
 import selectors
 import signal
@@ -39,7 +38,6 @@ import sys
 import time
 from pathlib import Path
 
-from hil.commands import run_sim
 from hil.controller.config import clamp_codes, load_controller
 from hil.controller.program import ProgramError, read_program
 from hil.progress import Progress
@@ -47,7 +45,7 @@ from hil.replay import ReplayResult
 from hil.replay.timing import LOOP_PEAK, SHOWN_RUNS, TimingCost
 from hil.report.baseline import CyclictestBaseline, run_cyclictest_baseline
 from hil.report.latency import build_report, load_run, write_report
-from hil.report.run_verdict import position_scale, replay_or_reason, timing_cost_of
+from hil.report.run_verdict import judge_lockstep_timing, read_json, replay_or_reason
 from hil.report.wakeup import wakeup_rows
 from hil.rt.cyclictest import CyclictestError
 from hil.rt.scheduling import last_cpu
@@ -56,7 +54,6 @@ from hil.runtime.demo_verdict import (
     Verdict,
     check_processes,
     check_replay,
-    check_timing,
     timing_budget,
 )
 from plant.config import load_machine
@@ -216,10 +213,6 @@ def summary_lines(replay: ReplayResult | str, cost: TimingCost | str,
     ]
 
 
-def _read_json(path: Path) -> dict | None:
-    return json.loads(path.read_text()) if path.exists() else None
-
-
 def _baseline(period_ns: int, seconds: float) -> tuple[CyclictestBaseline | None, str]:
     """cyclictest at the run's period on the loop's CPU, and a note on what was run."""
     interval_us = max(1, round(period_ns / 1e3))
@@ -254,20 +247,16 @@ def run_demo(config: Path, program: Path, out: Path, realtime: bool,
         verdict.fail(f"{e}; logs in {out}")
         print(verdict.line())
         return EXIT_FAILED
-    controller = _read_json(out / "controller" / "summary.json") or {}
-    emulator = _read_json(out / "emulator" / "report.json")
+    controller = read_json(out / "controller" / "summary.json") or {}
+    emulator = read_json(out / "emulator" / "report.json")
     replay = replay_or_reason(out / "emulator")
     check_replay(verdict, replay)
     check_processes(verdict, emu_status, ctl_status, controller, emulator)
     if emulator is None or not controller:
         print(verdict.line())
         return EXIT_FAILED
-    sim = run_sim(config, program, out / "lockstep", 0.0, None, None)
-    for alarm in sim["alarms"]:
-        verdict.fail(f"the lock-step simulation raised {alarm['message']}")
-    cost = timing_cost_of(out / "emulator", out / "controller", cfg, Path(sim["trace"]))
-    k, shown = position_scale(cfg)
-    check_timing(verdict, cost, k, shown)
+    cost, (k, shown) = judge_lockstep_timing(verdict, config, program, 0.0, out / "emulator",
+                                             out / "controller", out / "lockstep")
     baseline, note = (_baseline(controller["period_ns"], cyclictest_s) if cyclictest_s > 0
                       else (None, "no cyclictest (--cyclictest-seconds 0)"))
     run = load_run(out / "emulator", controller=out / "controller")
