@@ -32,7 +32,8 @@ Exit status: 0 on success (``hil validate``: it ran, whatever rows disagree), 1 
 an alarm, ``hil report``'s verdict on the run is FAIL (:mod:`hil.report.run_verdict`), or
 ``hil report``/``hil export`` stopped at a corrupt batch of the recording (what precedes
 it reported or exported), 2 on bad input (a machine file that does not
-load, a part program that does not parse, an unknown experiment).
+load, a part program that does not parse, an unknown experiment) and when the command
+needs an optional extra that is not installed (:mod:`hil.extras`: the message names it).
 """
 
 import argparse
@@ -42,6 +43,7 @@ import sys
 from pathlib import Path
 
 from hil.controller.program import ProgramError
+from hil.extras import missing_extra
 from hil.inject import INJECT_HELP
 from hil.report.latency import ReportError
 from plant.errors import ConfigError
@@ -421,11 +423,22 @@ BENCH_EXAMPLES = {
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser(argv).parse_args(argv)
+    words = sys.argv[1:] if argv is None else argv
     try:
+        args = build_parser(argv).parse_args(argv)
         return args.func(args)
     except (ConfigError, KeyError, ProgramError, ReportError, FileNotFoundError) as exc:
         _eprint(f"hil: {exc}")
+        return 2
+    except ModuleNotFoundError as exc:
+        # a command module is imported when chosen and its optional packages when it
+        # needs them, so an extra that is not installed shows up here and nowhere else
+        command, what = _chosen(words)
+        named = f"hil {command} {what}" if command == "bench" else f"hil {command}"
+        message = missing_extra(exc, named)
+        if message is None:
+            raise
+        _eprint(message)
         return 2
 
 

@@ -14,10 +14,14 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pyarrow as pa
 
 from hil.cia402 import EnableSequencer, State, statusword_state
+from hil.extras import EXTRA_OF_MODULE
 from hil.runtime.demo import wait_ready
 from hil.runtime.record_reader import Recording
+from hil.runtime.run_folder import EVENTS, RECORDING
+from hil.runtime.stream_file import META_KEY, UNCHECKED_FORMAT
 from tests.conftest import CONFIGS, ROOT
 
 ARROW = CONFIGS / "arrow500_x.toml"
@@ -57,6 +61,11 @@ def python_module(module: str, *args) -> list[str]:
 
 ENV = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, (
     str(ROOT), os.environ.get("PYTHONPATH"))))}
+#: ENV as a core-only install (``pip install -e .``, the README's first command) sees it:
+#: the optional extras' modules are missing (tests/core_only/sitecustomize.py)
+CORE_ONLY_ENV = {**ENV, "PYTHONPATH": os.pathsep.join((str(ROOT / "tests" / "core_only"),
+                                                       ENV["PYTHONPATH"])),
+                 "HIL_TESTS_WITHOUT": ",".join(EXTRA_OF_MODULE)}
 
 
 class Children:
@@ -79,11 +88,11 @@ class Children:
         assert all(p.returncode is not None for p in self.procs), "a child is still running"
 
     def start(self, name: str, argv: list[str], ready: bool = False,
-              group: bool = False) -> subprocess.Popen:
+              group: bool = False, env: dict[str, str] = ENV) -> subprocess.Popen:
         """Start ``argv`` with stderr (and stdout unless ``ready``) to ``<name>.log``; in
-        a process group of its own (with its children) if ``group``."""
+        a process group of its own (with its children) if ``group``; in ``env``."""
         with open(self.log_dir / f"{name}.log", "w") as log:
-            proc = subprocess.Popen(argv, cwd=ROOT, env=ENV, text=True, stderr=log,
+            proc = subprocess.Popen(argv, cwd=ROOT, env=env, text=True, stderr=log,
                                     stdout=subprocess.PIPE if ready else log,
                                     start_new_session=group)
         self.procs.append(proc)
@@ -124,6 +133,21 @@ def reserve_held(pid: int) -> int:
         except FileNotFoundError:  # closed meanwhile
             continue
     return held
+
+
+def write_unchecked_recording(folder: Path, rows: int = 50) -> Path:
+    """``folder`` as a run folder of format 'hil-recording 1' (no CRC anywhere, pyarrow's
+    plain writer), written without a run: ``rows`` ticks of one column ``x_m`` rising from 0
+    to 1 and no events; returns ``folder``."""
+    meta = b'{"format": "%s", "period_ns": 125000, "axes": []}' % UNCHECKED_FORMAT.encode()
+    table = pa.table({"tick": np.arange(rows), "x_m": np.linspace(0, 1, rows)})
+    for name in (RECORDING, EVENTS):
+        columns = table if name == RECORDING else pa.table({"tick": pa.array([], pa.int64())})
+        schema = columns.schema.with_metadata({META_KEY: meta})
+        with pa.ipc.new_stream(str(folder / name), schema) as w:
+            for batch in columns.cast(schema).to_batches(max_chunksize=20):
+                w.write_batch(batch)
+    return folder
 
 
 def batch_messages(path: Path) -> list[tuple[int, int, int]]:

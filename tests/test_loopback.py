@@ -51,6 +51,7 @@ from hil.trace_file import read_trace, write_trace
 from plant.config import load_machine
 from tests.conftest import ROOT
 from tests.runtime_helpers import (
+    CORE_ONLY_ENV,
     EXIT_S,
     SLOW_2KHZ,
     Children,
@@ -185,7 +186,8 @@ def test_demo_runs_both_processes_and_prints_the_comparison(tmp_path):
     """``hil demo`` (the README's main job): both processes at the default 8 kHz over UDP.
     The cyclictest baseline (5 s by default), set beside the latency figures and no part of
     the comparison or the verdict, for 1 s.  The folder holds an earlier demo's recording,
-    as when a user runs it again: it is replaced."""
+    as when a user runs it again: it is replaced.  As the README's first command installs
+    it: without the optional extras (Dask, asammdf, ...: tests/test_extras.py)."""
     earlier = tmp_path / "out" / "emulator"
     earlier.mkdir(parents=True)
     for name in ("recording.arrows", "events.arrows"):
@@ -193,7 +195,8 @@ def test_demo_runs_both_processes_and_prints_the_comparison(tmp_path):
     with Children(tmp_path) as children:
         demo = children.start("demo", python_module("hil.runtime.demo", "--out",
                                                      tmp_path / "out",
-                                                     "--cyclictest-seconds", "1"))
+                                                     "--cyclictest-seconds", "1"),
+                              env=CORE_ONLY_ENV)
         assert demo.wait(timeout=300) == 0, children.log("demo")
         out = children.log("demo")
     assert "following error" in out and "round trip" in out and "lateness" in out

@@ -38,14 +38,14 @@ from hil.runtime.run_folder import (
     RunFolder,
     RunFolderError,
 )
-from hil.runtime.stream_file import CRC_KEY, END_OF_STREAM, META_KEY, UNCHECKED_FORMAT
+from hil.runtime.stream_file import CRC_KEY, END_OF_STREAM
 from hil.runtime.streaming_loop import StreamingLoop
 from hil.runtime.watchdog import Watchdog
 from hil.trace_file import read_trace
 from io_adapters.messages import message_pair
 from plant import OUTPUTS, Plant, load_machine
 from tests.conftest import CONFIGS
-from tests.runtime_helpers import batch_messages, reserve_held
+from tests.runtime_helpers import batch_messages, reserve_held, write_unchecked_recording
 
 ARROW = CONFIGS / "arrow500_x.toml"
 PERIOD_NS = 125_000
@@ -275,15 +275,7 @@ def test_a_changed_byte_in_the_schema_is_refused(written, tmp_path):
 def test_a_recording_of_the_format_before_the_checksums_reads_unchecked(tmp_path, capsys):
     """A recording of format 'hil-recording 1' (no CRC anywhere, pyarrow's plain writer)
     reads whole, says it has no checksums, and hil export says so on stderr."""
-    meta = b'{"format": "%s", "period_ns": 125000, "axes": []}' % UNCHECKED_FORMAT.encode()
-    table = pa.table({"tick": np.arange(50), "x_m": np.linspace(0, 1, 50)})
-    for name in (RECORDING, EVENTS):
-        columns = table if name == RECORDING else pa.table({"tick": pa.array([], pa.int64())})
-        schema = columns.schema.with_metadata({META_KEY: meta})
-        with pa.ipc.new_stream(str(tmp_path / name), schema) as w:
-            for batch in columns.cast(schema).to_batches(max_chunksize=20):
-                w.write_batch(batch)
-    rec = Recording(tmp_path)
+    rec = Recording(write_unchecked_recording(tmp_path, rows=50))
     assert not rec.checksums and rec.read(["tick"])["tick"].tolist() == list(range(50))
     parser = argparse.ArgumentParser()
     export.add_arguments(parser)  # hil export's own options, whatever they become

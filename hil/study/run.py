@@ -104,7 +104,8 @@ def dask_client(scheduler: str | None, workers: int,
     try:
         link = client.dashboard_link
         if importlib.util.find_spec("bokeh") is None:
-            link += ("  (its graphs need bokeh >= 3.1 here: pip install 'bokeh>=3.1'; "
+            link += ("  (its graphs need bokeh, of the 'study' extra: pip install "
+                     "'feeddrive-hil[study]'; "
                      f"{link.replace('/status', '/info/main/workers.html')} works without)")
         note(f"dask: {client.scheduler.address}, "
              f"{len(client.scheduler_info()['workers'])} workers, dashboard {link}")
