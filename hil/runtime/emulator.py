@@ -309,7 +309,9 @@ class Emulator:
         served)."""
         self.writer = RecordingWriter(self.folder, self.recorder, self.events,
                                       metadata(self), self.timing.period_ns,
-                                      self._recording_failed)
+                                      self._recording_failed,
+                                      status_grace_ticks=(self.timing.grace_ticks
+                                                          if self.rc.status_line else None))
 
     def _recording_failed(self, message: str) -> None:
         """From the recording's answer thread: stop the loop (flags only); the safe state

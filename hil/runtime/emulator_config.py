@@ -51,6 +51,8 @@ class RuntimeConfig:
         rx_share: the share of a period a tick may spend reading datagrams, (0, 1]: a
             ``udp://`` adapter reads at most that many datagrams' worth a tick and leaves
             the rest queued (:func:`io_adapters.udp.rx_budget_for`).
+        status_line: show the run's status on stderr while it goes on
+            (:mod:`hil.runtime.run_status`; ``hil run`` does unless ``--no-status``).
     """
     machine_file: Path
     adapter_url: str
@@ -68,6 +70,7 @@ class RuntimeConfig:
     inject: tuple[str, ...] = ()
     steady_tick: bool = True
     rx_share: float = DEFAULT_RX_SHARE
+    status_line: bool = False
 
     def __post_init__(self):
         positive = {"--duration (s)": self.duration_s, "--rate (Hz)": self.rate_hz}
@@ -97,7 +100,8 @@ class RuntimeConfig:
                    watchdog_cycles=args.watchdog_cycles, overrun=args.overrun,
                    stop_after=args.stop_after, realtime=not args.no_rt, cpu=args.cpu,
                    priority=args.priority, start_cnc=args.start,
-                   inject=tuple(args.inject or ()), rx_share=args.rx_share)
+                   inject=tuple(args.inject or ()), rx_share=args.rx_share,
+                   status_line=not args.no_status)
 
 
 @dataclass(frozen=True)
@@ -161,6 +165,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="with --overrun stop: stop at the Nth overrun (default %(default)s)")
     p.add_argument("--no-rt", action="store_true",
                    help="no SCHED_FIFO, pinning or memory locking")
+    p.add_argument("--no-status", action="store_true",
+                   help="no status line on stderr while the run goes on (by default: "
+                        "time, the controller's link, each axis's state, mode, fault and "
+                        "position, overruns; rewritten in place on a terminal, a line every "
+                        "10 s when stderr is a pipe or a file)")
     p.add_argument("--cpu", type=int, help="CPU to run the loop on (default: the last)")
     p.add_argument("--priority", type=int, default=80, help="SCHED_FIFO priority (default 80)")
     p.add_argument("--start", type=start_arg, default=0.0,

@@ -14,7 +14,9 @@ Protocol: JSON lines.  On stdin, first the set-up (:func:`main`), then any of
 ``{"avoid_cpu": N}``, ``{"events": [...]}`` (events of the emulator's process, written
 with the next flush), ``{"flush": true}`` (flush now, answered ``{"flushed": ok}``),
 ``{"stop": true, "events": [...]}`` (last flush, the streams ended and closed, answered
-``{"summary": {...}}``).  On stdout: ``{"ready": true}`` once the streams' schemas are on
+``{"summary": {...}}``).  With ``"status": {"grace_ticks": N}`` in the set-up it writes ``hil run``'s
+status line on stderr from the rows it writes (:mod:`hil.runtime.run_status`).  On
+stdout: ``{"ready": true}`` once the streams' schemas are on
 disk and pyarrow is warm (or ``{"error": "..."}`` and exit 1), and ``{"failed": "..."}``
 as soon as a write fails.  The end of stdin (the emulator gone, even by SIGKILL) counts
 as a stop: what the ring still holds is written and the streams closed.  SIGINT and
@@ -35,6 +37,7 @@ from hil.runtime.arrow import pa
 from hil.runtime.log_histogram import LogHistogram
 from hil.runtime.ring import RingLayout, SharedRing
 from hil.runtime.run_events import EVENT_COLUMNS, Overruns, RunEvent
+from hil.runtime.run_status import RunStatus
 from hil.runtime.stream_file import COMPRESSION, ArrowStream, schema_of
 
 
@@ -46,10 +49,11 @@ class StreamWriter:
         ring: the emulator's ring, mapped here.
         samples, event_stream: the two streams, their schemas already written.
         period_ns: the loop's period (overruns, event times).
+        status: the run's status line, fed every chunk written; None: no line.
     """
 
     def __init__(self, ring: SharedRing, samples: ArrowStream, event_stream: ArrowStream,
-                 period_ns: int):
+                 period_ns: int, status: RunStatus | None = None):
         self.ring, self.samples, self.event_stream = ring, samples, event_stream
         self.period_s = period_ns * 1e-9
         self.overruns = Overruns(period_ns)
@@ -59,6 +63,7 @@ class StreamWriter:
         self.n_events = 0
         self.failed: str | None = None
         self.pending_events: list[RunEvent] = []
+        self.status = status
 
     def warm_up(self) -> None:
         """Convert and compress a batch of each schema into memory: pyarrow's first use
@@ -99,6 +104,7 @@ class StreamWriter:
                 self.overruns.scan(columns["tick"], columns["lateness_ns"],
                                    columns["compute_ns"], found)
                 self._write_events(found)
+                self._status(columns)
                 ring.release(end)
                 self.rows += end - start
                 start = end
@@ -110,6 +116,17 @@ class StreamWriter:
                            f"holds the {self.rows} ticks written before")
             return False
         return True
+
+    def _status(self, columns: dict[str, np.ndarray]) -> None:
+        """Feed the status line; a fault of it ends the line, never the recording."""
+        if self.status is None:
+            return
+        try:
+            self.status.add(columns)
+        except Exception as e:  # noqa: BLE001 -- the line is a view; the rows must go on
+            self.status = None
+            print(f"hil run: the status line stopped ({type(e).__name__}: {e}); the "
+                  "recording goes on", file=sys.stderr, flush=True)
 
     def _write_events(self, events: list[RunEvent]) -> None:
         events, self.pending_events = events + self.pending_events, []
@@ -124,6 +141,8 @@ class StreamWriter:
         Returns the summary (JSON-ready)."""
         self.pending_events.extend(final_events)
         self.flush()
+        if self.status is not None:
+            self.status.show(final=True)
         streams = [self.samples, self.event_stream]
         try:
             if self.failed is not None:
@@ -153,7 +172,12 @@ def _setup(msg: dict) -> StreamWriter:
     samples = ArrowStream(msg["samples_fd"], msg["samples_path"],
                           schema_of(msg["specs"], blob))
     events = ArrowStream(msg["events_fd"], msg["events_path"], schema_of(event_specs, blob))
-    writer = StreamWriter(ring, samples, events, msg["period_ns"])
+    names = [axis["name"] for axis in msg["meta"].get("axes", [])]
+    status = (RunStatus(msg["period_ns"], {name: unit for name, _, unit, _ in msg["specs"]},
+                        single_axis=names[0] if len(names) == 1 else "axis",
+                        grace_ticks=msg["status"]["grace_ticks"])
+              if msg.get("status") else None)
+    writer = StreamWriter(ring, samples, events, msg["period_ns"], status)
     writer.warm_up()
     return writer
 
@@ -211,6 +235,8 @@ def serve(channel: _Channel, writer: StreamWriter, flush_s: float) -> None:
         if time.monotonic() >= due:
             writer.flush()
             due = time.monotonic() + flush_s
+            if writer.status is not None:
+                writer.status.show()
         if writer.failed and not reported:
             channel.send({"failed": writer.failed})
             reported = True

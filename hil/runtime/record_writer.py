@@ -75,11 +75,14 @@ class RecordingWriter:
             fails or the writer process ends early; it must only set flags (the
             emulator's stops the loop).
         flush_s: how often the rows are taken, s.
+        status_grace_ticks: the writer process shows ``hil run``'s status line on this
+            process's stderr (:mod:`hil.runtime.run_status`), not counting the overruns
+            of this many first ticks (the loop's grace period); None: no line.
     """
 
     def __init__(self, folder: RunFolder, recorder: Recorder, events: EventCollector,
                  meta: dict, period_ns: int, on_failure: Callable[[str], None],
-                 flush_s: float = FLUSH_S):
+                 flush_s: float = FLUSH_S, status_grace_ticks: int | None = None):
         self.folder, self.recorder, self.events = folder, recorder, events
         self.on_failure = on_failure
         self.flush_s = flush_s
@@ -108,7 +111,9 @@ class RecordingWriter:
                     "events_fd": fds[1], "events_path": str(folder.path / EVENTS),
                     "specs": [[c.name, c.dtype, c.unit, c.doc] for c in recorder.specs],
                     "meta": {"format": FORMAT, **meta}, "period_ns": period_ns,
-                    "flush_s": flush_s})
+                    "flush_s": flush_s,
+                    "status": None if status_grace_ticks is None
+                    else {"grace_ticks": status_grace_ticks}})
         answer = self._answer("ready")
         self._live = "ready" in answer
         if not self._live:
