@@ -45,6 +45,9 @@ from hil.commands import SETTLE_S
 from hil.controller.config import axis_limits, load_controller
 from hil.controller.interpolator import plan
 from hil.controller.program import read_program
+from hil.runtime.export import export_csv
+from hil.runtime.record_reader import Recording
+from hil.runtime.record_trace import ControllerSetpoints, axis_trace
 from hil.runtime.sync import settled_rows
 from hil.sim import LockStep, servo_trace_columns
 from hil.trace_file import read_trace, write_trace
@@ -204,3 +207,31 @@ def test_demo_runs_both_processes_and_prints_the_comparison(tmp_path):
                  "controller/summary.json", "lockstep/trace.csv", "demo.json"):
         assert (tmp_path / "out" / name).stat().st_size > 0, name
     assert (earlier / "recording.arrows").read_bytes() != b"an earlier run"
+    _check_controller_setpoints(tmp_path / "out", tmp_path / "export")
+
+
+def _check_controller_setpoints(demo: Path, export: Path) -> None:
+    """hil export --to csv --controller of the demo's CST run: each tick's position
+    setpoint is the controller's of the setpoint the tick applied.  Checked through the
+    current setpoint, which the recording has too: the drive's ``sp_iq_ref_a`` is the
+    controller's ``iq_set`` of ``current_delay_cycles`` ticks before (hil.controller.nc),
+    bit for bit, on every tick found; and the trace's ``pos_set_mm`` is the found
+    ``x_set`` in mm on those ticks."""
+    rec = Recording(demo / "emulator")
+    trace = axis_trace(rec)
+    ctl = ControllerSetpoints.load(demo / "controller", trace.name)
+    rows = rec.read(["tick", "sp_seq", "sp_iq_ref_a"])
+    x_set, _ = ctl.at(rows["sp_seq"])
+    i = np.searchsorted(ctl.k, (rows["sp_seq"].astype(np.int64) - ctl.seq_minus_k) % 2**32)
+    summary = json.loads((demo / "controller" / "summary.json").read_text())
+    delay = load_controller(load_machine(summary["machine_file"])).current_delay_cycles
+    found = ~np.isnan(x_set) & (i >= delay)
+    assert found.sum() > 0.5 * ctl.k.size, (found.sum(), ctl.k.size)
+    with np.load(demo / "controller" / "controller.npz") as npz:
+        iq_set = npz["iq_set"]
+    assert np.array_equal(rows["sp_iq_ref_a"][found], iq_set[i[found] - delay])
+    export.mkdir()
+    out = export_csv(rec, export / "trace.csv", trace, controller=ctl)
+    assert "controller.npz" in out.read_text().split("\nt_s,")[0]
+    pos_set = read_trace(out).column("pos_set_mm")
+    assert np.array_equal(pos_set[rows["tick"][found]], x_set[found] * 1e3)

@@ -101,7 +101,7 @@ def write_outputs(proc, stats, granted, alignment: Alignment) -> dict:
     else:
         saved = dict(per_axis[0])
     np.savez(rc.out_dir / "controller.npz", **saved, **ints, lateness_ns=stats.lateness_ns,
-             compute_ns=stats.compute_ns)
+             compute_ns=stats.compute_ns, seq_minus_k=np.uint32(proc.seq_minus_k))
     cols = {**per_axis[0], **ints}
     new = cols["fb_new"] == 1
     lag = cols["lag_ticks"]

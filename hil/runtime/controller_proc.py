@@ -38,7 +38,8 @@ by a :class:`~hil.rt.loop.RealTimeLoop` instead of back to back with the drive:
 5. send disable voltage, close, write ``trace.csv`` (servo-trace format, one row per
    position-control cycle, :func:`hil.sim.servo_trace_columns`), ``controller.npz`` (every
    recorded tick: :data:`FLOAT_COLUMNS`, :data:`INT_COLUMNS`, and the loop's
-   ``lateness_ns``/``compute_ns`` per deadline) and ``summary.json``
+   ``lateness_ns``/``compute_ns`` per deadline; ``seq_minus_k``, the sequence number of
+   tick k's setpoint less k, mod 2**32) and ``summary.json``
    (:mod:`hil.runtime.controller_files`).
 
 **Several axes**: the machine file may be a manifest (:mod:`plant.machines`); then one
@@ -225,6 +226,7 @@ class ControllerProcess:
         self.rows = 0
         self.running = False
         self.profile_start_s = 0.0
+        self.seq_minus_k = 0
         self.silent = 0
         self.adapter_errors = 0
         #: other processes' real-time threads pinned to the loop's CPU at its start
@@ -324,6 +326,9 @@ class ControllerProcess:
                     return
             mctrl.run_profiles(self.profiles)
             self.profile_start_s = self.ctrl.t
+            # every tick sends one setpoint, the compiled ones too: the sequence number
+            # of tick k's is k plus this (hil export --controller finds a row by it)
+            self.seq_minus_k = (self.sp.seq - k) & U32
             self.running = True
 
     def drive_faults(self) -> list[str]:

@@ -22,7 +22,8 @@
   column), one row per tick on a uniform time base (a tick without a row -- dropped by
   the ``skip`` overrun policy, or not recorded -- is a row of NaN), every number in the
   shortest text that reads back exactly; the header says the modes the setpoints were in
-  (no position setpoint outside CSP: it stays in the controller) and the run's timing;
+  (no position setpoint outside CSP: it stays in the controller, and ``--controller DIR``
+  takes it from ``hil controller``'s folder of the same run) and the run's timing;
   the run's events go to ``events.csv`` beside the traces, one row each.
 
 Both are written batch by batch as the recording was (bounded memory, whatever its
@@ -45,7 +46,7 @@ import numpy as np
 
 from hil.runtime.common import EXIT_BAD_INPUT, EXIT_FAILED, EXIT_OK, eprint
 from hil.runtime.record_reader import Recording, RecordingError
-from hil.runtime.record_trace import AxisTrace, axis_trace
+from hil.runtime.record_trace import AxisTrace, ControllerSetpoints, axis_trace
 from hil.runtime.stream_file import FORMAT
 from io_adapters.messages import MODE_CSP, MODE_CST, MODE_CSV
 
@@ -92,23 +93,38 @@ def _modes(rec: Recording, trace: AxisTrace) -> str:
     return ", ".join(names.get(m, str(m)) for m in sorted(seen))
 
 
-def export_csv(rec: Recording, out: Path, trace: AxisTrace, force: bool = False) -> Path:
-    """``out``: the servo trace of one axis (see the module docstring)."""
+def export_csv(rec: Recording, out: Path, trace: AxisTrace, force: bool = False,
+               controller: ControllerSetpoints | None = None) -> Path:
+    """``out``: the servo trace of one axis (see the module docstring); the setpoints the
+    recording lacks (outside CSP) from ``controller``, where given."""
     names = trace.names()
     modes = _modes(rec, trace)
     header = {**trace.metadata(rec, stop_at_corrupt=True), "modes": modes,
               "events": f"{EVENTS_CSV} beside this file"}
-    if "CSP" not in modes:
+    if controller is not None:
+        header["pos_set_note"] = (f"outside CSP from the controller's {controller.source}, "
+                                  "the setpoint each tick applied found by its sequence "
+                                  "number; empty where the controller recorded none")
+    elif "CSP" not in modes:
         header["pos_set_note"] = (f"empty: the drive ran in {modes or 'no mode'}, where the "
-                                  "position setpoint stays in the controller (its own "
-                                  "trace.csv has it)")
+                                  "position setpoint stays in the controller (hil export "
+                                  "--controller DIR takes it from hil controller's folder)")
+    pos_set, vel_set = names[1], names[3]
+    sources = [*trace.sources(), "sp_seq"]
     with open(_fresh(out, force), "w", encoding="utf-8") as f:
         for key, value in header.items():
             f.write(f"# {key}: {value}".replace("\n", " ") + "\n")
         f.write(",".join(names) + "\n")
         next_tick = 0
-        for rows in rec.batches(trace.sources(), stop_at_corrupt=True):
-            columns = _every_tick(trace.convert(rows), rows["tick"], next_tick, trace)
+        for rows in rec.batches(sources, stop_at_corrupt=True):
+            converted = trace.convert(rows)
+            if controller is not None:
+                x_set, v_set = controller.at(rows["sp_seq"])
+                for name, values in ((pos_set, x_set * trace.k),
+                                     (vel_set, v_set * trace.k * 60.0)):
+                    converted[name] = np.where(np.isnan(converted[name]), values,
+                                               converted[name])
+            columns = _every_tick(converted, rows["tick"], next_tick, trace)
             # repr: the shortest text that reads back to the same float
             lists = [columns[n].tolist() for n in names]
             f.writelines(",".join(map(repr, row)) + "\n" for row in zip(*lists))
@@ -257,6 +273,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--bus", action="append", default=[], metavar="LOG",
                    help="mdf4: add a CAN run's bus log (hil run's log=FILE: .asc, .blf or "
                    ".mf4) as MDF4 bus logging on the run's time (repeatable)")
+    p.add_argument("--controller", metavar="DIR",
+                   help="csv: hil controller's folder of the same run; the position "
+                   "setpoint of a CST or CSV run (and the velocity setpoint of a CST run), "
+                   "which stay in the controller, come from its controller.npz")
     p.add_argument("--force", action="store_true", help="replace existing output files")
 
 
@@ -265,6 +285,9 @@ def run_from_args(args: argparse.Namespace) -> int:
     run = Path(args.run)
     try:
         rec = Recording(run)
+        if args.controller and args.to != "csv":
+            raise ExportError("--controller is for --to csv: an MDF4 file holds the "
+                              "recording as the drive saw it")
         if args.to == "mdf4":
             outputs = [export_mdf4(rec, Path(args.out or run / MDF_NAME), args.force,
                                    tuple(Path(b) for b in args.bus))]
@@ -274,7 +297,9 @@ def run_from_args(args: argparse.Namespace) -> int:
             folder.mkdir(parents=True, exist_ok=True)
             outputs = [export_csv(rec, folder / ("trace.csv" if len(rec.meta["axes"]) == 1
                                                  else f"trace_{name}.csv"),
-                                  axis_trace(rec, name), args.force) for name in names]
+                                  axis_trace(rec, name), args.force,
+                                  ControllerSetpoints.load(Path(args.controller), name)
+                                  if args.controller else None) for name in names]
             outputs.append(export_events_csv(rec, folder / EVENTS_CSV, args.force)[0])
     except (RecordingError, ExportError, OSError) as e:
         eprint(f"hil export: {e}")

@@ -19,6 +19,10 @@ trace column         from the recording
 ``motor_pos_mm``     the motor encoder in table units
 ===================  ==========================================================================
 
+A CST or CSV run's position setpoint (and a CST run's velocity setpoint) stays in the
+controller; :class:`ControllerSetpoints` takes them from ``hil controller``'s
+``controller.npz``, for the setpoint each tick applied (``hil export --controller DIR``).
+
 Rotary tables have ``_deg`` columns.  Counts become table units through the axis's
 ``table_per_count`` in the recording's metadata (the lead over the counts per
 revolution on a screw axis).
@@ -116,6 +120,60 @@ class AxisTrace:
                 "source": f"hil run recording {rec.folder} (adapter {rec.meta.get('adapter')})",
                 **{f"injected_{i + 1}": text for i, text in enumerate(injected)},
                 **run_timing(rec.folder)}
+
+
+@dataclass(frozen=True)
+class ControllerSetpoints:
+    """One axis's position and velocity setpoints as ``hil controller`` computed them
+    (its ``controller.npz``), found for each drive tick by the sequence number of the
+    setpoint the tick applied (``sp_seq``): tick k of the controller sent sequence number
+    ``k + seq_minus_k`` (mod 2**32).
+
+    Attributes:
+        source: the file, for the trace's header.
+        k: the controller ticks recorded, ascending.
+        x_set: the position setpoint of each, m (rad on a rotary table).
+        v_set: the velocity setpoint (the NC's feed-forward) of each, m/s (rad/s).
+        seq_minus_k: the sequence number of tick k's setpoint less k.
+    """
+    source: Path
+    k: np.ndarray
+    x_set: np.ndarray
+    v_set: np.ndarray
+    seq_minus_k: int
+
+    @classmethod
+    def load(cls, folder: Path, axis: str) -> "ControllerSetpoints":
+        """``axis``'s setpoints from ``folder/controller.npz``.
+
+        Raises:
+            RecordingError: no such file, no such axis in it, or a file of a version
+                before the sequence numbers were kept.
+        """
+        path = folder / "controller.npz"
+        try:
+            with np.load(path) as npz:
+                files = set(npz.files)
+                prefix = "" if "x_set" in files else f"{axis}_"
+                if f"{prefix}x_set" not in files:
+                    raise RecordingError(f"{path}: no setpoints of axis {axis}")
+                if "seq_minus_k" not in files:
+                    raise RecordingError(f"{path}: written by a hil controller that did not "
+                                         "keep its setpoints' sequence numbers; run it again")
+                return cls(path, npz["k"].astype(np.int64), npz[f"{prefix}x_set"],
+                           npz[f"{prefix}v_set"], int(npz["seq_minus_k"]))
+        except (OSError, ValueError) as e:
+            raise RecordingError(f"{path}: cannot read it: {e}") from e
+
+    def at(self, sp_seq: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(position, velocity) setpoints of the setpoints numbered ``sp_seq`` (SI); NaN
+        where the controller recorded no such tick (before its program, after it)."""
+        if self.k.size == 0:
+            return np.full(sp_seq.shape, np.nan), np.full(sp_seq.shape, np.nan)
+        k = (sp_seq.astype(np.int64) - self.seq_minus_k) % (1 << 32)
+        i = np.clip(np.searchsorted(self.k, k), 0, self.k.size - 1)
+        found = self.k[i] == k
+        return np.where(found, self.x_set[i], np.nan), np.where(found, self.v_set[i], np.nan)
 
 
 def run_timing(folder: Path) -> dict[str, str]:
