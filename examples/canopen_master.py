@@ -1,5 +1,5 @@
 """Commission the drives ``hil run`` serves over CAN with python ``canopen``'s CiA 402 master,
-in a process of its own, as a CANopen user would: the README's CAN section runs this.
+in a process of its own, as a CANopen user would: the README and docs/canopen.md run this.
 
 ::
 

@@ -260,7 +260,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "and the two-axis Arrow 500 XY)")
     parser.add_argument("--seconds", type=float, default=2.0,
                         help="run per config, s (default %(default)s: 16 000 ticks at 8 kHz, "
-                        "a quick look; the README's figures took 10)")
+                        "a quick look; docs/benchmarks.md's figures took 10)")
     parser.add_argument("--python-drive", action="store_true",
                         help="every drive cycle in Python (the reference)")
     parser.add_argument("--json", action="store_true")

@@ -335,7 +335,7 @@ class Emulator:
                                                  self.endpoint.rated_current_a, self.injectors)
         if getattr(self.endpoint, "exposed", False):
             self._log(f"WARNING: {url} is reachable from the network; this bench tool has no "
-                      "authentication (README: who may talk to the drive)")
+                      "authentication (docs/drive.md: who may talk to it)")
         if hasattr(self.endpoint, "last_sync_ns"):  # the cycle follows SYNC
             clock = ShiftableClock(self.loop.clock)
             self.loop.clock = clock

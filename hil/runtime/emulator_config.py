@@ -141,7 +141,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "printed); serial://PATH or serial://fd/N [?baud=N&wire=msgpack|fixed]; "
                    "can://INTERFACE/CHANNEL?node=N&rated_current_ma=MA (python-can, e.g. "
                    "udp_multicast or socketcan; a CiA 402 node per axis); each scheme's "
-                   "options: the README")
+                   "options: docs/realtime.md")
     p.add_argument("--duration", type=float, metavar="S",
                    help="run S seconds (default: until SIGTERM/SIGINT); bounded by the disk "
                         "(the recording streams to it), checked before the start")
