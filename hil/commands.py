@@ -161,7 +161,9 @@ def run_step(config: Path, loop: str, amplitude: float, at: float, out: Path) ->
 def run_bode(config: Path, loop: str, amplitude: float, offset: float, order: int,
              periods: int, at: float, out: Path) -> dict:
     """Frequency response of the current loop (A) or the speed loop (mm/min or deg/min at
-    the table); writes bode_<loop>.png and .csv."""
+    the table); writes bode_<loop>.png (magnitude with the -3 dB bandwidth and the peaks
+    it reports marked, phase, coherence) and bode_<loop>.csv (freq_hz, magnitude_db,
+    phase_deg, coherence)."""
     cfg = load_machine(config)
     k, _ = cnc_unit(cfg)
     if loop == "speed":
@@ -170,15 +172,16 @@ def run_bode(config: Path, loop: str, amplitude: float, offset: float, order: in
     with Progress(f"{loop}-loop PRBS", total=_PARTS) as p:
         m = bode(cfg, loop, amplitude, offset, order=order, periods=periods, x0=at / k,
                  progress=_progress(p))
-    out.mkdir(parents=True, exist_ok=True)
-    bode_plot(m.response, out / f"bode_{loop}.png",
-              f"{cfg.machine.name}: {loop}-loop frequency response")
-    write_csv(out / f"bode_{loop}.csv", m.response)
     fr = m.response
     # resonances a person cares about, not noise ripple near Nyquist far below the pass band
     floor_db = fr.magnitude_db[0] - PEAK_RANGE_DB
+    shown = tuple(p for p in peaks(fr) if p.magnitude_db > floor_db)
+    out.mkdir(parents=True, exist_ok=True)
+    bode_plot(fr, out / f"bode_{loop}.png",
+              f"{cfg.machine.name}: {loop}-loop frequency response", marked_peaks=shown)
+    write_csv(out / f"bode_{loop}.csv", fr)
     return {"loop": loop, "bandwidth_hz": bandwidth_hz(fr),
-            "peaks_hz": [round(p.freq_hz, 1) for p in peaks(fr) if p.magnitude_db > floor_db],
+            "peaks_hz": [round(p.freq_hz, 1) for p in shown],
             "alarms": [a.message() for a in m.sim.alarms], "plot": str(out / f"bode_{loop}.png")}
 
 

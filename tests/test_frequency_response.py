@@ -166,6 +166,40 @@ def test_noise_free_coherence_is_one_and_noise_lowers_it():
     assert np.median(noisy.coherence) < 0.8
 
 
+def test_coherence_follows_the_signal_to_noise_ratio():
+    """y = H u + white noise of σ = 0.2 on the 50 Hz low-pass, 40 periods of a PRBS of
+    order 8: γ² = |H|² S_uu / (|H|² S_uu + N σ²) per bin (S_uu = |U|² of one period of N
+    samples, N σ² the noise's), near 1 at low frequency and well below where |H| has
+    fallen into the noise; the estimate within 0.06 of it averaged over 16 bins."""
+    system, sigma = SYSTEMS["low_pass_50hz"], 0.2
+    exc = prbs(8, 1.0, DT_S, periods=41)
+    _, y = signal.dlsim(system, exc.signal[:, None])
+    y = y.ravel() + sigma * np.random.default_rng(5).standard_normal(y.size)
+    fr = F.estimate(exc.signal, y, DT_S, period=exc.period_samples)
+    n = exc.period_samples
+    suu = np.abs(np.fft.rfft(exc.signal[:n])) ** 2
+    suu = suu[np.rint(fr.freq_hz * n * DT_S).astype(int)]
+    gain2 = np.abs(exact(system, fr.freq_hz)) ** 2
+    expected = gain2 * suu / (gain2 * suu + n * sigma ** 2)
+    assert expected[0] > 0.95 and expected[-1] < 0.45
+    bands = fr.coherence.size // 16 * 16
+    got, want = (c[:bands].reshape(-1, 16).mean(axis=1) for c in (fr.coherence, expected))
+    assert np.abs(got - want).max() < 0.06
+
+
+def test_phase_starts_within_half_a_turn_and_unwraps_beyond():
+    """A 3-sample delay: -1080 f T deg, continued past -180 deg rather than wrapped, from
+    a first point in (-180, 180]; a response whose first point is -1 with a negative zero
+    imaginary part (np.angle: -180 deg) starts at +180 deg, the whole curve one turn up."""
+    fr, _ = prbs_response(SYSTEMS["delay_3"])
+    assert -180.0 < fr.phase_deg[0] <= 180.0
+    np.testing.assert_allclose(fr.phase_deg, -1080.0 * fr.freq_hz * DT_S, atol=PHASE_TOL_DEG)
+    h = np.array([complex(-1.0, -0.0), 1j, 1.0, -1j, -1.0])  # -180, -270, -360, -450, -540
+    np.testing.assert_allclose(F.FrequencyResponse.from_h(np.arange(1.0, 6.0), h,
+                                                          np.ones(5)).phase_deg,
+                               [180.0, 90.0, 0.0, -90.0, -180.0])
+
+
 def test_bandwidth_of_first_order_low_pass():
     """|H|² = (1-a)² / (1 - 2a cos ωT + a²) = 1/2 at cos ωT = (1 + a² - 2(1-a)²) / (2a):
     the measured -3 dB frequency is within one frequency bin of it."""
@@ -220,6 +254,49 @@ def test_csv_bad_row_named_with_its_line(tmp_path):
     path.write_text("freq_hz,magnitude_db,phase_deg,coherence\n1.0,0.0,0.0,1.0\n2.0,-1,5\n")
     with pytest.raises(F.EstimateError, match=f"{path}:3: need 4 numbers"):
         F.read_csv(path)
+
+
+def test_bode_figure_marks_bandwidth_peaks_and_coherence():
+    """The resonance's Bode figure: three panels (magnitude, phase, coherence); the
+    bandwidth marker stands at bandwidth_hz on each; the resonance peaks() finds is
+    annotated with its frequency and height; the coherence panel draws the estimate's γ²
+    and the MIN_COHERENCE line."""
+    fr, _ = prbs_response(SYSTEMS["resonance_60hz"])
+    bw = F.bandwidth_hz(fr)
+    assert bw is not None
+    mag_ax, phase_ax, coh_ax = F.bode_figure(fr).axes
+    for ax in (mag_ax, phase_ax, coh_ax):
+        marks = [line for line in ax.get_lines() if line.get_color() == "C2"]
+        assert [line.get_xdata()[0] for line in marks] == [bw]
+    assert f"−3 dB bandwidth {bw:.1f} Hz" in mag_ax.get_legend_handles_labels()[1]
+    (peak,) = F.peaks(fr)
+    assert [t.get_text() for t in mag_ax.texts] == [
+        f"{peak.freq_hz:.0f} Hz\n{peak.magnitude_db:+.1f} dB"]
+    assert mag_ax.texts[0].xy == (peak.freq_hz, peak.magnitude_db)
+    coherence = [line for line in coh_ax.get_lines() if line.get_label() == "coherence γ²"]
+    np.testing.assert_array_equal(coherence[0].get_ydata(), fr.coherence)
+    assert any(np.all(np.asarray(line.get_ydata()) == F.MIN_COHERENCE)
+               for line in coh_ax.get_lines())
+
+
+def test_bode_figure_greys_incoherent_bins_and_says_so():
+    """The 50 Hz low-pass with noise of σ = 0.2 (its γ² falls below 0.9 at high
+    frequency): the solid magnitude curve leaves those bins out, a grey one holds them,
+    and the legend names the threshold; with the pass band's gain never 3 dB down the
+    legend says there is no crossing instead of a bandwidth."""
+    exc = prbs(8, 1.0, DT_S, periods=41)
+    _, y = signal.dlsim(SYSTEMS["low_pass_50hz"], exc.signal[:, None])
+    y = y.ravel() + 0.2 * np.random.default_rng(5).standard_normal(y.size)
+    fr = F.estimate(exc.signal, y, DT_S, period=exc.period_samples)
+    poor = fr.coherence < F.MIN_COHERENCE
+    assert poor.any() and not poor.all()
+    mag_ax = F.bode_figure(fr).axes[0]
+    solid = next(line for line in mag_ax.get_lines() if line.get_label().startswith("measured"))
+    np.testing.assert_array_equal(np.ma.getmaskarray(solid.get_ydata()), poor)
+    assert any(label.startswith("γ² < 0.9") for label in mag_ax.get_legend_handles_labels()[1])
+    flat, _ = prbs_response(SYSTEMS["delay_3"])
+    legend = F.bode_figure(flat).axes[0].get_legend()
+    assert "no −3 dB crossing measured" in [t.get_text() for t in legend.get_texts()]
 
 
 def test_bode_plot_writes_a_png(tmp_path):

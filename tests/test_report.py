@@ -190,10 +190,78 @@ def test_cyclictest_baseline_sits_beside_the_lateness():
     r = build_report(synthetic_run(), base)
     assert r["cyclictest"] == {"interval_us": 100, "samples": 1000, "overflows": 2, "latency_us": {
         "min": 5.0, "p50": 5.0, "p99": 6.0, "p999": 250.0, "max": 250.0}}
-    hist = r["histogram"]
-    assert len(hist["edges_us"]) == len(hist["lateness_counts"]) + 1
-    assert sum(hist["lateness_counts"]) == 1000 and sum(hist["cyclictest_counts"]) == 998
     assert r["host_source"] == "run"
+
+
+def test_histogram_counts_each_quantity_on_both_sides():
+    """The synthetic run at 100 µs spins 40 µs: its 900 ticks later than 1 µs after the
+    spin have a known wake-up latency (40 µs + lateness, all above 40 µs), the other 100
+    are hidden by the spin; cyclictest's 998 binned wake-ups (5, 6, 9 µs, all within the
+    spin) imply a lateness after the spin of 0 (the first bin)."""
+    r = build_report(synthetic_run(), CyclictestBaseline.from_histogram(HISTOGRAM, 100))
+    hist = r["histogram"]
+    edges = np.array(hist["edges_us"])
+    for key in ("lateness_counts", "wakeup_counts", "cyclictest_wakeup_counts",
+                "cyclictest_lateness_counts"):
+        assert len(hist[key]) == edges.size - 1, key
+    assert hist["spin_us"] == 40.0
+    assert sum(hist["lateness_counts"]) == 1000
+    assert (sum(hist["wakeup_counts"]), hist["wakeup_hidden"]) == (900, 100)
+    assert sum(np.array(hist["wakeup_counts"])[edges[1:] <= 40.0]) == 0
+    assert sum(hist["cyclictest_wakeup_counts"]) == 998
+    assert hist["cyclictest_lateness_counts"][0] == 998
+
+
+def _stair_labels(ax) -> list[str]:
+    return [p.get_label() for p in ax.patches if type(p).__name__ == "StepPatch"]
+
+
+def test_histogram_panels_set_like_beside_like():
+    """Each panel of latency_hist.png holds one quantity, the loop's and cyclictest's: the
+    top one the wake-up latency, the bottom one the lateness after the spin; each series'
+    dashed line stands at the p99.9 of the matching row of the report's wakeup table and
+    its legend quotes it (the old figure set the loop's lateness beside cyclictest's
+    wake-up latency)."""
+    from hil.report.render import histogram_figure
+
+    r = build_report(synthetic_run(), CyclictestBaseline.from_histogram(HISTOGRAM, 100))
+    w = r["wakeup"]
+    top, bottom = histogram_figure(r).axes
+    for ax, quantity, key in ((top, "wake-up latency, ", "wakeup_us"),
+                              (bottom, "lateness after the spin, ", "lateness_us")):
+        labels = _stair_labels(ax)
+        assert len(labels) == 2 and all(label.startswith(quantity) for label in labels), labels
+        rows = (w["loop"][key]["p999"], w["cyclictest"][key]["p999"])
+        for label, side, p999 in zip(labels, ("loop", "cyclictest 100 µs"), rows):
+            assert label.startswith(quantity + side) and f"p99.9 {p999:.3g} µs" in label, label
+        dashed = sorted(line.get_xdata()[0] for line in ax.get_lines())
+        assert dashed == sorted(rows)
+    assert top.get_xscale() == "log" and top.get_yscale() == "log"
+
+
+def test_histogram_without_cyclictest_shows_the_loop_alone():
+    from hil.report.render import histogram_figure
+
+    top, bottom = histogram_figure(build_report(synthetic_run())).axes
+    assert [len(_stair_labels(ax)) for ax in (top, bottom)] == [1, 1]
+
+
+def test_timeline_reads_microsecond_jitter_and_a_long_stall():
+    """latency_time.png: one tick 150 ms late among ticks 0.05 µs late and one 3 µs late:
+    symmetric-log axes whose range holds all of them (a linear axis to 150 000 µs made
+    the µs invisible), and legend markers large enough to see (the plot's are 1.5 pt)."""
+    from hil.report.render import timeline_figure
+
+    lateness = np.full(1000, 50, dtype=np.int64)
+    lateness[100], lateness[500] = 3_000, 150_000_000
+    compute = np.full(1000, 20_000, dtype=np.int64)
+    late_ax, compute_ax = timeline_figure(lateness, compute, PERIOD_NS).axes
+    for ax, values in ((late_ax, lateness / 1e3), (compute_ax, (lateness + compute) / 1e3)):
+        assert ax.get_yscale() == "symlog"
+        low, high = ax.get_ylim()
+        assert low <= values.min() and values.max() <= high
+    markers = [h for h in compute_ax.get_legend().legend_handles if h.get_marker() == "o"]
+    assert len(markers) == 2 and all(h.get_markersize() >= 5 for h in markers)
 
 
 def test_host_is_taken_now_when_the_run_recorded_none():
@@ -220,7 +288,8 @@ def test_written_report_has_json_markdown_with_units_and_pngs(tmp_path):
                  "| 50.000 µs | 54.900 µs | 59.800 µs | 59.900 µs | 59.900 µs |",  # transport
                  "Period 100.000 µs (10000 Hz); 1000 ticks run; 1 overruns; 1 missed ticks",
                  "| fifo | yes | SCHED_FIFO priority 80 |", "| lost | 0 |", "PREEMPT_RT",
-                 "![tick lateness histogram](latency_hist.png)",
+                 ("![wake-up latency and lateness after the spin, beside cyclictest]"
+                  "(latency_hist.png)"),
                  "![lateness and compute time over the run](latency_time.png)"):
         assert text in md, text
     for png in paths[2:]:

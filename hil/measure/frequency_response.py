@@ -30,6 +30,11 @@ from scipy.signal import find_peaks, get_window
 
 #: Bins whose input power is below this fraction of the largest are not excited.
 MIN_RELATIVE_POWER = 1e-10
+#: γ² below which a bin is taken for noise or nonlinearity: no peak is found there
+#: (:func:`peaks`) and the Bode plot draws it grey
+MIN_COHERENCE = 0.9
+#: the drop from the lowest frequency's gain that defines the bandwidth, dB
+BANDWIDTH_DROP_DB = 3.0
 CSV_COLUMNS = ("freq_hz", "magnitude_db", "phase_deg", "coherence")
 
 
@@ -42,7 +47,8 @@ class FrequencyResponse:
     """A measured frequency response; all arrays have shape (m,).
 
     ``h`` is the complex response y/u (unit of y per unit of u), ``magnitude_db`` is
-    20·log10|h|, ``phase_deg`` the unwrapped phase of h, ``coherence`` γ² in [0, 1];
+    20·log10|h|, ``phase_deg`` the phase of h unwrapped from the lowest frequency, which
+    lies in (-180, 180] (:func:`unwrapped_phase_deg`), ``coherence`` γ² in [0, 1];
     ``averages`` the number of segments averaged (0: not known, as read from a file).
     """
 
@@ -60,13 +66,24 @@ class FrequencyResponse:
         with np.errstate(divide="ignore"):
             magnitude_db = 20.0 * np.log10(np.abs(h))
         return cls(freq_hz=np.asarray(freq_hz, dtype=float), h=h, magnitude_db=magnitude_db,
-                   phase_deg=np.degrees(np.unwrap(np.angle(h))),
+                   phase_deg=unwrapped_phase_deg(h),
                    coherence=np.asarray(coherence, dtype=float), averages=averages)
 
     @property
     def resolution_hz(self) -> float:
         """Spacing of the frequency points (1 / segment duration)."""
         return float(self.freq_hz[1] - self.freq_hz[0]) if self.freq_hz.size > 1 else math.nan
+
+
+def unwrapped_phase_deg(h: np.ndarray) -> np.ndarray:
+    """Phase of ``h`` (shape (m,), in order of frequency), deg: unwrapped from the first
+    point, then shifted by a whole number of turns so that the first lies in (-180, 180]
+    (a closed loop starts near 0 deg; the phase lag beyond -180 deg is then the loop's,
+    not the unwrapping's)."""
+    phase = np.degrees(np.unwrap(np.angle(h)))
+    if phase.size:
+        phase -= 360.0 * math.ceil((phase[0] - 180.0) / 360.0)
+    return phase
 
 
 @dataclass(frozen=True)
@@ -143,7 +160,7 @@ def _h1(uf: np.ndarray, yf: np.ndarray, freq: np.ndarray) -> FrequencyResponse:
     return FrequencyResponse.from_h(freq[keep], suy / suu, coherence, uf.shape[0])
 
 
-def bandwidth_hz(fr: FrequencyResponse, drop_db: float = 3.0) -> float | None:
+def bandwidth_hz(fr: FrequencyResponse, drop_db: float = BANDWIDTH_DROP_DB) -> float | None:
     """First frequency where the magnitude falls ``drop_db`` below its value at the lowest
     frequency point, interpolated linearly over log frequency; None when it never does."""
     level = fr.magnitude_db[0] - drop_db
@@ -157,7 +174,7 @@ def bandwidth_hz(fr: FrequencyResponse, drop_db: float = 3.0) -> float | None:
 
 
 def peaks(fr: FrequencyResponse, threshold_db: float = 6.0,
-          min_coherence: float = 0.9) -> tuple[Peak, ...]:
+          min_coherence: float = MIN_COHERENCE) -> tuple[Peak, ...]:
     """Resonance peaks: local maxima of the magnitude standing at least ``threshold_db``
     above the higher of the minima that separate them from higher ground on either side
     (topographic prominence), measured with coherence of at least ``min_coherence`` (so
@@ -202,29 +219,87 @@ def read_csv(path: str | Path) -> FrequencyResponse:
                              coherence=coh, averages=0)
 
 
-def bode_plot(fr: FrequencyResponse, path: str | Path, title: str = "",
-              reference: FrequencyResponse | None = None) -> Path:
-    """Bode diagram as PNG: magnitude (dB) and phase (deg) over log frequency, with an
-    optional reference response (for example the analytic one) drawn dashed."""
+def bode_figure(fr: FrequencyResponse, title: str = "",
+                reference: FrequencyResponse | None = None,
+                marked_peaks: tuple[Peak, ...] | None = None):
+    """Bode diagram with its coherence, over log frequency: magnitude (dB) with the -3 dB
+    level and :func:`bandwidth_hz` marked and the resonance peaks annotated; phase (deg,
+    unwrapped from the lowest frequency); coherence γ² with :data:`MIN_COHERENCE`.  Bins
+    below it are drawn grey in magnitude and phase.  ``marked_peaks``: the peaks to
+    annotate (None: :func:`peaks` of ``fr``); ``reference``: a response drawn dashed (for
+    example the analytic one).  Returns the matplotlib Figure."""
     from matplotlib.figure import Figure
+    from matplotlib.lines import Line2D
+    from matplotlib.ticker import MultipleLocator
 
-    fig = Figure(figsize=(7.0, 6.0))
-    mag_ax, phase_ax = fig.subplots(2, 1, sharex=True)
-    mag_ax.semilogx(fr.freq_hz, fr.magnitude_db, label="measured")
-    phase_ax.semilogx(fr.freq_hz, fr.phase_deg)
+    fig = Figure(figsize=(8.0, 8.5))
+    mag_ax, phase_ax, coh_ax = fig.subplots(
+        3, 1, sharex=True, gridspec_kw={"height_ratios": (3, 2.2, 1.3)})
+    poor = fr.coherence < MIN_COHERENCE
+    grey = {"color": "0.7", "linewidth": 0.8}
+    for ax, values in ((mag_ax, fr.magnitude_db), (phase_ax, fr.phase_deg)):
+        ax.semilogx(fr.freq_hz, values, **grey,
+                    label=f"γ² < {MIN_COHERENCE:g}: noise or nonlinearity dominates"
+                    if poor.any() else None)
+        ax.semilogx(fr.freq_hz, np.ma.masked_where(poor, values), color="C0",
+                    label=f"measured, γ² ≥ {MIN_COHERENCE:g}")
     if reference is not None:
-        mag_ax.semilogx(reference.freq_hz, reference.magnitude_db, "--", label="reference")
-        phase_ax.semilogx(reference.freq_hz, reference.phase_deg, "--")
-        mag_ax.legend()
+        mag_ax.semilogx(reference.freq_hz, reference.magnitude_db, "k--", linewidth=0.9,
+                        label="reference")
+        phase_ax.semilogx(reference.freq_hz, reference.phase_deg, "k--", linewidth=0.9)
+    _mark_bandwidth(fr, (mag_ax, phase_ax, coh_ax))
+    marked = peaks(fr) if marked_peaks is None else marked_peaks
+    if marked:  # room above the highest for its label
+        finite = fr.magnitude_db[np.isfinite(fr.magnitude_db)]
+        mag_ax.set_ylim(top=max(float(finite.max()), max(p.magnitude_db for p in marked)) + 12.0)
+    for p in marked:
+        mag_ax.annotate(f"{p.freq_hz:.0f} Hz\n{p.magnitude_db:+.1f} dB",
+                        xy=(p.freq_hz, p.magnitude_db), xytext=(0, 14),
+                        textcoords="offset points", ha="center", va="bottom", fontsize=8,
+                        arrowprops={"arrowstyle": "-|>", "color": "C3", "linewidth": 0.8})
+    coh_ax.semilogx(fr.freq_hz, fr.coherence, color="C0", linewidth=0.8, label="coherence γ²")
+    coh_ax.axhline(MIN_COHERENCE, color="C3", linestyle="--", linewidth=0.9,
+                   label=f"γ² = {MIN_COHERENCE:g}: peaks need at least this")
+    coh_ax.set_ylim(0.0, 1.05)
+    span = np.ptp(fr.phase_deg) if fr.phase_deg.size else 0.0
+    phase_ax.yaxis.set_major_locator(MultipleLocator(90.0 if span <= 720.0 else 180.0))
     mag_ax.set_ylabel("magnitude / dB")
-    phase_ax.set_ylabel("phase / deg")
-    phase_ax.set_xlabel("frequency / Hz")
-    for ax in (mag_ax, phase_ax):
+    phase_ax.set_ylabel("phase / deg\n(unwrapped from the lowest frequency)", fontsize=9)
+    coh_ax.set_ylabel("coherence γ²")
+    coh_ax.set_xlabel("frequency / Hz")
+    handles, labels = mag_ax.get_legend_handles_labels()
+    if not any(label.startswith("−3 dB bandwidth") for label in labels):
+        handles.append(Line2D([], [], linestyle="none"))
+        labels.append("no −3 dB crossing measured")
+    mag_ax.legend(handles, labels, fontsize=8, loc="lower left")
+    coh_ax.legend(fontsize=8, loc="lower left")
+    for ax in (mag_ax, phase_ax, coh_ax):
         ax.grid(True, which="both", alpha=0.3)
     if title:
         fig.suptitle(title)
+    fig.tight_layout()
+    return fig
+
+
+def _mark_bandwidth(fr: FrequencyResponse, axes) -> None:
+    """The -3 dB level on the magnitude (the first of ``axes``) and the bandwidth, when
+    the magnitude crosses it, on every one of ``axes``."""
+    level = fr.magnitude_db[0] - BANDWIDTH_DROP_DB
+    bw = bandwidth_hz(fr)
+    axes[0].axhline(level, color="0.4", linestyle=":", linewidth=0.9,
+                    label=f"−3 dB of the gain at {fr.freq_hz[0]:.3g} Hz")
+    if bw is None:
+        return
+    for ax in axes:
+        ax.axvline(bw, color="C2", linestyle="--", linewidth=0.9,
+                   label=f"−3 dB bandwidth {bw:.1f} Hz" if ax is axes[0] else None)
+
+
+def bode_plot(fr: FrequencyResponse, path: str | Path, title: str = "",
+              reference: FrequencyResponse | None = None,
+              marked_peaks: tuple[Peak, ...] | None = None) -> Path:
+    """:func:`bode_figure` as a PNG at ``path`` (its folder made when missing)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    bode_figure(fr, title, reference, marked_peaks).savefig(path, dpi=110)
     return path

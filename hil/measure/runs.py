@@ -132,7 +132,9 @@ def bode(cfg: MachineConfig, loop: str, amplitude: float, offset: float = 0.0,
          progress=None) -> BodeMeasurement:
     """Closed-loop frequency response of the current loop (amplitude and offset in A) or the
     speed loop (rad/s at the motor, m/s for linear motors) with a PRBS of ``order``,
-    ``hold`` samples per bit and ``periods`` periods (the first is discarded)."""
+    ``hold`` samples per bit and ``periods`` periods (the first is discarded).  The
+    response's coherence is from the spectra averaged over those ``periods`` periods: 1 by
+    construction with one, biased toward 1 with few."""
     if loop not in LOOPS:
         raise ValueError(f"loop must be one of {', '.join(LOOPS)}, not {loop!r}")
     ls = _session(cfg, x0)

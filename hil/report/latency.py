@@ -3,7 +3,8 @@
 :func:`load_run` reads a run folder into a :class:`RunData`, pairing its round trips with
 the controller's recording when given one; :func:`build_report` reduces it to a JSON-ready
 dict; :func:`write_report` writes ``report_latency.json``, ``report.md``,
-``latency_hist.png`` and, given the run, ``latency_time.png`` (lateness and compute time
+``latency_hist.png`` (wake-up latency and lateness after the spin, each in its own panel
+beside cyclictest's) and, given the run, ``latency_time.png`` (lateness and compute time
 over the run) into a folder.  :func:`report_run` does all of it, with an optional
 cyclictest baseline at the run's period (:mod:`hil.report.baseline`).  The loop's
 wake-up latency and its lateness after the spin are each set beside cyclictest's
@@ -117,7 +118,12 @@ import numpy as np
 
 from hil.report.baseline import CyclictestBaseline, run_cyclictest_baseline
 from hil.report.host import host_fingerprint
-from hil.report.wakeup import wakeup_report
+from hil.report.wakeup import (
+    lateness_after_spin_us,
+    loop_wakeup_known_ns,
+    spin_ns,
+    wakeup_report,
+)
 from hil.rt.cyclictest import CyclictestError
 from hil.rt.loop import SKIPPED, Percentiles
 from hil.rt.scheduling import last_cpu
@@ -141,7 +147,7 @@ STAMP_KEYS = ("tick_start_ns", "sp_t_ns", "sp_rx_ns", "fb_t_ns", "fb_rx_ns")
 #: the stamps a recording holds (``fb_rx_ns`` is the controller's)
 RECORDED_STAMPS = STAMP_KEYS[:4]
 PERCENTILE_DEFINITION = "nearest rank: the ceil(p/100 * n)-th smallest of n samples"
-#: lateness histogram: log-spaced bins from HIST_LOW_US up, HIST_BINS_PER_DECADE per decade
+#: the histograms: log-spaced bins from HIST_LOW_US up, HIST_BINS_PER_DECADE per decade
 HIST_LOW_US = 0.1
 #: a run's report.json is a few kilobytes; larger is refused unread, bytes
 MAX_REPORT_BYTES = 10_000_000
@@ -511,23 +517,39 @@ def _round_trip_summary(run: RunData) -> dict | None:
             "wait_us": summary_us(rt.wait_ns[has]), "compute_us": summary_us(rt.compute_ns[has])}
 
 
-def _histogram(lateness_ns: np.ndarray, cyclictest: CyclictestBaseline | None) -> dict:
-    """Counts of lateness and of cyclictest's wake-ups on shared log-spaced bins (µs);
-    a cyclictest bin counts at its centre (value + 0.5 µs), its overflows not at all,
-    lateness below the first edge in the first bin."""
-    top_us = max(float(lateness_ns.max()) / 1e3 if lateness_ns.size else 0.0, 1.0)
+def _histogram(lateness_ns: np.ndarray, period_ns: int,
+               cyclictest: CyclictestBaseline | None) -> dict:
+    """Counts on shared log-spaced bins (µs) of the two quantities both sides have
+    (:mod:`hil.report.wakeup`): the wake-up latency (the loop's where known, the count of
+    the ticks the spin hides beside it; cyclictest's own) and the lateness after the spin
+    (the loop's recording; cyclictest's ``max(0, latency - spin)``).  A cyclictest bin
+    counts at its centre (value + 0.5 µs), its overflows not at all; a value below the
+    first edge counts in the first bin."""
+    spin_us = spin_ns(period_ns) / 1e3
+    lateness_us = lateness_ns / 1e3
+    wakeup_us = loop_wakeup_known_ns(lateness_ns, period_ns) / 1e3
+    top_us = max(float(np.max(wakeup_us, initial=0.0)), float(np.max(lateness_us, initial=0.0)),
+                 1.0)
     if cyclictest is not None and cyclictest.counts.any():
         top_us = max(top_us, float(cyclictest.bins_us[cyclictest.counts > 0][-1]) + 1.0)
     n_bins = HIST_BINS_PER_DECADE * max(1, math.ceil(math.log10(top_us / HIST_LOW_US)))
     edges_us = HIST_LOW_US * 10.0 ** (np.arange(n_bins + 1) / HIST_BINS_PER_DECADE)
-    clip = (edges_us[0], edges_us[-1])
-    lateness_counts = np.histogram(np.clip(lateness_ns / 1e3, *clip), edges_us)[0]
-    cyclictest_counts = None
+
+    def counts(values_us: np.ndarray, weights: np.ndarray | None = None) -> list[int]:
+        clipped = np.clip(values_us, edges_us[0], edges_us[-1])
+        return np.histogram(clipped, edges_us, weights=weights)[0].astype(np.int64).tolist()
+
+    cyclictest_wakeup = cyclictest_lateness = None
     if cyclictest is not None:
-        cyclictest_counts = np.histogram(np.clip(cyclictest.bins_us + 0.5, *clip), edges_us,
-                                         weights=cyclictest.counts)[0].astype(np.int64).tolist()
-    return {"edges_us": edges_us.tolist(), "lateness_counts": lateness_counts.tolist(),
-            "cyclictest_counts": cyclictest_counts}
+        centre_us = cyclictest.bins_us + 0.5
+        cyclictest_wakeup = counts(centre_us, cyclictest.counts)
+        cyclictest_lateness = counts(lateness_after_spin_us(centre_us, spin_us),
+                                     cyclictest.counts)
+    return {"edges_us": edges_us.tolist(), "spin_us": spin_us,
+            "lateness_counts": counts(lateness_us), "wakeup_counts": counts(wakeup_us),
+            "wakeup_hidden": int(lateness_ns.size - wakeup_us.size),
+            "cyclictest_wakeup_counts": cyclictest_wakeup,
+            "cyclictest_lateness_counts": cyclictest_lateness}
 
 
 def build_report(run: RunData, cyclictest: CyclictestBaseline | None = None) -> dict:
@@ -542,7 +564,10 @@ def build_report(run: RunData, cyclictest: CyclictestBaseline | None = None) -> 
          "adapter": {"name", "stats"} or null, "scheduling", "host", "host_source",
          "cyclictest": {"interval_us", "samples", "overflows", "latency_us"} or null,
          "wakeup": hil.report.wakeup.wakeup_report(...),
-         "histogram": {"edges_us", "lateness_counts", "cyclictest_counts"},
+         "histogram": {"edges_us", "spin_us", "lateness_counts", "wakeup_counts",
+                       "wakeup_hidden", "cyclictest_wakeup_counts",
+                       "cyclictest_lateness_counts"} (:func:`_histogram`; cyclictest's
+                       null without a baseline),
          "percentiles", "notes": [str, ...], "corrupt": str or null}
 
     Slack is ``period - compute - lateness`` per tick: the time from the end of the step to
@@ -573,7 +598,7 @@ def build_report(run: RunData, cyclictest: CyclictestBaseline | None = None) -> 
         "host_source": "run" if run.host is not None else "report",
         "cyclictest": baseline,
         "wakeup": wakeup_report(lateness, run.period_ns, cyclictest),
-        "histogram": _histogram(lateness, cyclictest),
+        "histogram": _histogram(lateness, run.period_ns, cyclictest),
         "percentiles": PERCENTILE_DEFINITION,
         "notes": list(run.notes), "corrupt": run.corrupt,
     }

@@ -1,5 +1,6 @@
-"""The latency report for people: a Markdown page, a lateness histogram and a plot of
-lateness and compute time over the run (PNG).
+"""The latency report for people: a Markdown page, histograms of the wake-up latency and
+of the lateness after the spin, each beside cyclictest's, and a plot of lateness and
+compute time over the run (PNG).
 
 The page and the histogram read only the dict :func:`hil.report.latency.build_report`
 returns; the plot over time takes the per-tick arrays.  Every figure in the Markdown
@@ -180,75 +181,148 @@ def markdown(report: dict, title: str, histogram_png: str,
     lines += [summary, ""]
     lines += _timing(report) + _round_trip(report) + _adapter(report)
     lines += _scheduling(report) + _host(report)
-    lines += [f"![tick lateness histogram]({histogram_png})", ""]
+    alt = "wake-up latency and lateness after the spin, beside cyclictest"
+    lines += [f"![{alt}]({histogram_png})", ""]
     if timeline_png is not None:
         lines += [f"![lateness and compute time over the run]({timeline_png})", ""]
     return "\n".join(lines)
 
 
-def plot_histogram(report: dict, path: Path) -> Path:
-    """Tick lateness counts on log-spaced bins, log count axis, with cyclictest's wake-ups
-    on the same bins when the report has them, each p99.9 marked."""
-    import matplotlib
+def _p999_text(value: float | None, hidden: str) -> str:
+    return hidden if value is None else f"{value:.3g} µs"
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+
+def _hist_series(report: dict) -> list[tuple[str, list[tuple]]]:
+    """The histogram's two panels, each (title, series), a series (label, counts, p99.9
+    in µs or None, colour); each label names its panel's quantity and its side, its
+    p99.9 the matching row of the report's ``wakeup`` table."""
+    hist, w = report["histogram"], report["wakeup"]
+    spin, loop, cyc = w["spin_us"], w["loop"], w["cyclictest"]
+    hidden = f"≤ {spin:.0f} µs"
+    loop_wakeup = (f"wake-up latency, loop: {sum(hist['wakeup_counts'])} known, "
+                   f"{hist['wakeup_hidden']} {hidden} hidden by the spin; p99.9 "
+                   f"{_p999_text(loop['wakeup_us']['p999'], hidden)}")
+    loop_lateness = (f"lateness after the spin, loop: n = {sum(hist['lateness_counts'])}, "
+                     f"p99.9 {_p999_text(loop['lateness_us']['p999'], '—')}")
+    wakeup = [(loop_wakeup, hist["wakeup_counts"], loop["wakeup_us"]["p999"], "C0")]
+    lateness = [(loop_lateness, hist["lateness_counts"], loop["lateness_us"]["p999"], "C0")]
+    if cyc is not None and hist["cyclictest_wakeup_counts"] is not None:
+        name = f"cyclictest {cyc['interval_us']} µs (whole µs)"
+        cyc_wakeup = (f"wake-up latency, {name}: n = {sum(hist['cyclictest_wakeup_counts'])}, "
+                      f"p99.9 {_p999_text(cyc['wakeup_us']['p999'], '—')}")
+        cyc_lateness = (f"lateness after the spin, {name}: max(0, latency − {spin:.0f} µs); "
+                        f"n = {sum(hist['cyclictest_lateness_counts'])}, p99.9 "
+                        f"{_p999_text(cyc['lateness_us']['p999'], '—')}")
+        wakeup.append((cyc_wakeup, hist["cyclictest_wakeup_counts"],
+                       cyc["wakeup_us"]["p999"], "C1"))
+        lateness.append((cyc_lateness, hist["cyclictest_lateness_counts"],
+                         cyc["lateness_us"]["p999"], "C1"))
+    lateness_title = (f"Lateness after the {spin:.0f} µs spin: wake-up − deadline (what the "
+                      f"recording holds)")
+    return [("Wake-up latency: how late the sleep returned (what cyclictest measures)", wakeup),
+            (lateness_title, lateness)]
+
+
+def histogram_figure(report: dict):
+    """The loop's wake-up latency beside cyclictest's (top) and its lateness after the
+    spin beside what cyclictest's wake-ups imply (bottom): counts on the report's shared
+    log-spaced bins, log axes, each series' p99.9 dashed and quoted in its legend entry;
+    the span the spin hides shaded.  Returns the matplotlib Figure."""
+    from matplotlib.figure import Figure
+    from matplotlib.lines import Line2D
 
     hist = report["histogram"]
     edges = hist["edges_us"]
-    fig, ax = plt.subplots(figsize=(8, 4.5))
-    series = [("tick lateness", hist["lateness_counts"], report["lateness_us"], "C0")]
-    base = report["cyclictest"]
-    if base is not None and hist["cyclictest_counts"] is not None:
-        series.append((f"cyclictest, {base['interval_us']} µs", hist["cyclictest_counts"],
-                       base["latency_us"], "C1"))
-    for label, counts, summary, color in series:
-        ax.stairs(counts, edges, color=color, label=f"{label} (n = {sum(counts)})")
-        if summary is not None:
-            ax.axvline(summary["p999"], color=color, linestyle="--",
-                       label=f"{label} p99.9 = {summary['p999']:.3g} µs")
-    ax.set_xscale("log")
-    if any(c > 0 for _, counts, _, _ in series for c in counts):
-        ax.set_yscale("log")
-    ax.set_xlabel(f"lateness (µs; the first bin holds everything below {edges[1]:.2g} µs)")
-    ax.set_ylabel("wake-ups per bin")
-    ax.set_title(f"Tick lateness, period {report['period_us']:.3f} µs")
-    ax.grid(alpha=0.3, which="both")
-    ax.legend(fontsize=8)
+    fig = Figure(figsize=(9, 7.5))
+    axes = fig.subplots(2, 1, sharex=True)
+    for ax, (title, series) in zip(axes, _hist_series(report)):
+        for label, counts, p999, color in series:
+            ax.stairs(counts, edges, color=color, label=label)
+            if p999 is not None and p999 > edges[0]:
+                ax.axvline(p999, color=color, linestyle="--", linewidth=1)
+        top = max((c for _, counts, _, _ in series for c in counts), default=0)
+        if top > 0:
+            ax.set_yscale("log")
+            # room above the bars for the legend: about 0.6 decades per entry
+            ax.set_ylim(0.5, top * 10 ** (0.6 * (len(series) + 2)))
+        ax.set_title(title, fontsize=10)
+        ax.set_ylabel("wake-ups per bin")
+        ax.grid(alpha=0.3, which="both")
+    axes[0].axvspan(edges[0], hist["spin_us"], color="0.85", zorder=0,
+                    label=f"the loop's spin: its wake-ups up to {hist['spin_us']:.0f} µs "
+                          f"are not seen")
+    for ax in axes:
+        handles, labels = ax.get_legend_handles_labels()
+        handles.append(Line2D([], [], color="0.3", linestyle="--", linewidth=1))
+        labels.append("dashed: each series' p99.9")
+        ax.legend(handles, labels, fontsize=7.5, loc="upper right")
+    axes[0].set_xscale("log")
+    axes[1].set_xlabel(f"µs (log; the first bin holds everything below {edges[1]:.2g} µs)")
+    head = f"Tick timing, period {report['period_us']:.3f} µs"
+    fig.suptitle(f"{head}: the loop (blue) beside cyclictest (orange)"
+                 if report["cyclictest"] is not None else
+                 f"{head} (no cyclictest baseline: hil report RUN --cyclictest)")
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    return fig
+
+
+def plot_histogram(report: dict, path: Path) -> Path:
+    """:func:`histogram_figure` of ``report`` as a PNG at ``path``."""
+    histogram_figure(report).savefig(path, dpi=110)
     return path
 
 
-def plot_timeline(lateness_ns: np.ndarray, compute_ns: np.ndarray, period_ns: int,
-                  path: Path) -> Path:
-    """Lateness and compute time of every tick over the run (µs, one slot per deadline,
-    ``hil.report.latency.NO_VALUE`` where a tick did not run), the period marked on the
-    compute time and lateness + compute (an overrun above it)."""
-    import matplotlib
+#: the plot over time: linear below this, log above (µs), so a tick's sub-µs spin
+#: precision, µs jitter and a stall of many ms are all readable
+TIMELINE_LINEAR_US = 1.0
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+
+def timeline_figure(lateness_ns: np.ndarray, compute_ns: np.ndarray, period_ns: int):
+    """Lateness and compute time of every tick over the run (µs, one slot per deadline,
+    ``hil.report.latency.NO_VALUE`` where a tick did not run), on symmetric-log axes
+    (linear below :data:`TIMELINE_LINEAR_US`), the period marked on the compute time
+    and lateness + compute (an overrun above it).  Returns the matplotlib Figure."""
+    from matplotlib.figure import Figure
+    from matplotlib.lines import Line2D
+    from matplotlib.ticker import FuncFormatter
 
     from hil.report.latency import NO_VALUE
 
     ran = np.flatnonzero(lateness_ns != NO_VALUE)
     t_s = ran * period_ns * 1e-9
     late, comp = lateness_ns[ran] / 1e3, compute_ns[ran] / 1e3
-    fig, (ax1, ax2) = plt.subplots(2, 1, figsize=(9, 5.5), sharex=True)
-    ax1.plot(t_s, late, ",", color="C0")
+    fig = Figure(figsize=(9, 6))
+    ax1, ax2 = fig.subplots(2, 1, sharex=True)
+    dots = {"marker": ".", "markersize": 1.5, "linestyle": "none"}
+    ax1.plot(t_s, late, color="C0", **dots)
     ax1.set_ylabel("lateness after the spin (µs)")
-    ax1.set_title(f"Every tick of the run, period {period_ns / 1e3:.3f} µs")
-    ax2.plot(t_s, comp, ",", color="C2", label="compute time")
-    ax2.plot(t_s, late + comp, ",", color="C3", alpha=0.4, label="lateness + compute")
-    ax2.axhline(period_ns / 1e3, color="k", linestyle="--", label="period (overrun above)")
+    ax1.set_title(f"Every tick of the run, period {period_ns / 1e3:.3f} µs (axes linear "
+                  f"below {TIMELINE_LINEAR_US:g} µs, log above)", fontsize=10)
+    ax2.plot(t_s, late + comp, color="C3", alpha=0.5, **dots)
+    ax2.plot(t_s, comp, color="C2", **dots)
+    ax2.axhline(period_ns / 1e3, color="k", linestyle="--")
     ax2.set_ylabel("µs")
     ax2.set_xlabel("time since the loop started (s)")
-    for ax in (ax1, ax2):
-        ax.grid(alpha=0.3)
-    ax2.legend(fontsize=8, markerscale=20, loc="upper right")
+    for ax, values in ((ax1, late), (ax2, late + comp)):
+        ax.set_yscale("symlog", linthresh=TIMELINE_LINEAR_US, linscale=0.5)
+        ax.grid(alpha=0.3, which="both")
+        ax.yaxis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}"))
+        if values.size:  # the symlog's own margins reach far below 0 and cut the top
+            ax.set_ylim(min(-0.2 * TIMELINE_LINEAR_US, 2.0 * float(values.min())),
+                        2.0 * max(float(values.max()), period_ns / 1e3))
+    # the legend's markers drawn large: the plotted dots are too small to show in it
+    big = {"marker": "o", "markersize": 6, "linestyle": "none"}
+    ax2.legend([Line2D([], [], color="C2", **big), Line2D([], [], color="C3", alpha=0.5, **big),
+                Line2D([], [], color="k", linestyle="--")],
+               ["compute time", "lateness + compute",
+                f"period {period_ns / 1e3:g} µs (overrun above)"],
+               fontsize=8, loc="lower left", bbox_to_anchor=(0.0, 1.0), ncol=3, frameon=False)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    return fig
+
+
+def plot_timeline(lateness_ns: np.ndarray, compute_ns: np.ndarray, period_ns: int,
+                  path: Path) -> Path:
+    """:func:`timeline_figure` of the run's arrays as a PNG at ``path``."""
+    timeline_figure(lateness_ns, compute_ns, period_ns).savefig(path, dpi=110)
     return path

@@ -44,6 +44,24 @@ def spin_ns(period_ns: int) -> int:
     return MonotonicClock.for_period(period_ns).spin_ns
 
 
+def overshot(lateness_ns: np.ndarray) -> np.ndarray:
+    """Which ticks' sleep overshot the spin margin (bool, shape of ``lateness_ns``): a
+    lateness above :data:`OVERSHOOT_NS`; the others' wake-up latency is hidden by the spin."""
+    return lateness_ns > OVERSHOOT_NS
+
+
+def loop_wakeup_known_ns(lateness_ns: np.ndarray, period_ns: int) -> np.ndarray:
+    """The loop's wake-up latencies that are known, ns: spin + lateness of the ticks whose
+    sleep overshot the margin (:func:`overshot`), in their order; shape (k,), k <= n."""
+    return lateness_ns[overshot(lateness_ns)] + spin_ns(period_ns)
+
+
+def lateness_after_spin_us(latency_us, spin_us: float):
+    """The lateness after a spin of ``spin_us`` that wake-ups ``latency_us`` late imply,
+    µs: ``max(0, latency - spin)``, elementwise (a float or an array of any shape)."""
+    return np.maximum(0.0, np.asarray(latency_us, dtype=float) - spin_us)
+
+
 def loop_wakeup(lateness_ns: np.ndarray, period_ns: int) -> dict:
     """The loop's wake-up latency and lateness after the spin (µs; see the module
     docstring), from the lateness of every tick that ran.  Spin + lateness is monotone in
@@ -56,7 +74,7 @@ def loop_wakeup(lateness_ns: np.ndarray, period_ns: int) -> dict:
     lateness = Percentiles.of_ns_in_us(lateness_ns).as_dict()
     wakeup = {k: v + spin_us if v * 1e3 > OVERSHOOT_NS else None for k, v in lateness.items()}
     return {"samples": int(lateness_ns.size), "wakeup_us": wakeup, "lateness_us": lateness,
-            "beyond_spin": float((lateness_ns > OVERSHOOT_NS).mean())}
+            "beyond_spin": float(overshot(lateness_ns).mean())}
 
 
 def cyclictest_wakeup(base: CyclictestBaseline, period_ns: int) -> dict:
@@ -69,7 +87,8 @@ def cyclictest_wakeup(base: CyclictestBaseline, period_ns: int) -> dict:
     n = base.samples
     beyond = (int(base.counts[base.bins_us >= spin_us].sum()) + base.overflows) / n if n else None
     return {"interval_us": base.interval_us, "samples": n, "wakeup_us": wakeup,
-            "lateness_us": {k: max(0.0, v - spin_us) for k, v in wakeup.items()},
+            "lateness_us": {k: float(lateness_after_spin_us(v, spin_us))
+                            for k, v in wakeup.items()},
             "beyond_spin": beyond}
 
 
