@@ -6,7 +6,7 @@ References: asammdf reading the file back (raw values and its own conversions), 
 recording's own values, hil.cia402's State, ModeOfOperation and STATUSWORD_BITS (the
 project's one definition of the names), the run's metadata (the scale factors), an
 uncompressed save of the same file by asammdf, and the MDF4 block id of a compressed data
-block (``##DZ``, ASAM MDF 4.1 §6.21).  The real run's export: test_recording_processes.py.
+block (``##DZ``, ASAM MDF 4).  The real run's export: test_recording_processes.py.
 """
 
 import json

@@ -33,7 +33,7 @@ from hil.runtime.record_reader import Recording
 from hil.runtime.record_trace import AxisTrace, axis_trace
 
 #: the unit string of every channel without a unit (a count of things, a flag, a CiA 402
-#: word, a text): none.  Not "1": the SI brochure (9th ed., 2.3.3) says the unit one is
+#: word, a text): none.  Not "1": the SI brochure (9th edition) says the unit one is
 #: generally not written, and MDF tools (asammdf's GUI, CANape) print the unit beside every
 #: value and plot axis, where "1" reads as a unit.  The recording marks such columns "1"
 #: (dimensionless) or "-" (a CiA 402 word) so that an empty unit there means "forgotten"
