@@ -30,6 +30,8 @@ from enum import IntEnum
 from types import MappingProxyType
 from typing import NamedTuple
 
+from io_adapters.messages import MODE_VOLTAGE
+
 
 class Cia402Error(ValueError):
     """A statusword that matches no state, or a drive option this module does not offer."""
@@ -55,6 +57,16 @@ class ModeOfOperation(IntEnum):
     CSP = 8   # cyclic synchronous position
     CSV = 9   # cyclic synchronous velocity
     CST = 10  # cyclic synchronous torque
+    VOLTAGE = MODE_VOLTAGE  # manufacturer-specific (a negative value): d-q voltage setpoints
+
+
+def mode_name(mode: int) -> str:
+    """The name of mode of operation ``mode`` (``"CSP"``), or its number as text when it is
+    none this drive knows."""
+    try:
+        return ModeOfOperation(mode).name
+    except ValueError:
+        return str(mode)
 
 
 class FaultReactionOption(IntEnum):
@@ -110,6 +122,24 @@ SW_SPEED_ZERO = 1 << 12         # PV: the speed is zero
 SW_HOMING_ATTAINED = 1 << 12    # homing: the home position was found
 SW_FOLLOWING_ERROR = 1 << 13    # CSP, PP: the following error is beyond its window (6065h)
 SW_HOMING_ERROR = 1 << 13       # homing: it failed
+#: each statusword bit's name as CiA 402-2 gives it (6041h); bits 12 and 13 mean what the
+#: mode of operation makes them, so their names list the meaning in each mode
+STATUSWORD_BITS = MappingProxyType({
+    SW_READY_TO_SWITCH_ON: "Ready to switch on",
+    SW_SWITCHED_ON: "Switched on",
+    SW_OPERATION_ENABLED: "Operation enabled",
+    SW_FAULT: "Fault",
+    SW_VOLTAGE_ENABLED: "Voltage enabled",
+    SW_QUICK_STOP: "Quick stop",
+    SW_SWITCH_ON_DISABLED: "Switch on disabled",
+    SW_WARNING: "Warning",
+    SW_REMOTE: "Remote",
+    SW_TARGET_REACHED: "Target reached",
+    SW_INTERNAL_LIMIT_ACTIVE: "Internal limit active",
+    SW_FOLLOWS_COMMAND: "Drive follows the command value (CSP/CSV/CST), set-point "
+                        "acknowledge (PP), speed 0 (PV), homing attained (homing)",
+    SW_FOLLOWING_ERROR: "Following error (CSP/PP), homing error (homing)",
+})
 #: the statusword bits a caller of DriveStateMachine.update may set
 SW_CALLER_BITS = (SW_WARNING | SW_TARGET_REACHED | SW_INTERNAL_LIMIT_ACTIVE
                   | SW_FOLLOWS_COMMAND | SW_FOLLOWING_ERROR)

@@ -193,8 +193,10 @@ def test_hil_identify_reads_the_csp_stretch(run_dir):
 
 def test_the_mdf4_export_opens_with_asammdf_with_units_and_comments(run_dir, tmp_path):
     """hil export --to mdf4: asammdf opens it; every channel has the recording's values,
-    unit and meaning, on the time tick * period; the events are a channel group; the
-    machine file is attached."""
+    unit and meaning, on the time tick * period; the statusword reads as its bits' names;
+    the CSP target (the soak master's counts) has its twin in m, on the table's position
+    while enabled, within the drive's following (reference: the plant's position); the events
+    are a channel group; the machine file is attached."""
     from asammdf import MDF
 
     out = tmp_path / "run.mf4"
@@ -203,14 +205,22 @@ def test_the_mdf4_export_opens_with_asammdf_with_units_and_comments(run_dir, tmp
                           timeout=EXIT_S)
     assert done.returncode == 0, done.stderr
     rec = Recording(run_dir)
-    rows = rec.read(["tick", "plant_table_pos", "lateness_ns", "fb_statusword"])
+    rows = rec.read(["tick", "plant_table_pos", "lateness_ns", "fb_statusword", "sp_mode",
+                     "drive_state"])
     with MDF(out) as mdf:
         pos = mdf.get("plant_table_pos")
         assert pos.unit == "m" and pos.comment == rec.docs["plant_table_pos"]
         np.testing.assert_array_equal(pos.samples, rows["plant_table_pos"])
         np.testing.assert_allclose(pos.timestamps, rows["tick"] * 5e-4)
         assert mdf.get("lateness_ns").unit == "ns"
-        np.testing.assert_array_equal(mdf.get("fb_statusword").samples, rows["fb_statusword"])
+        np.testing.assert_array_equal(mdf.get("fb_statusword", raw=True).samples,
+                                      rows["fb_statusword"])
+        assert any(b"Operation enabled" in w for w in mdf.get("fb_statusword").samples)
+        csp = (rows["sp_mode"] == 8) & (rows["drive_state"] == State.OPERATION_ENABLED)
+        target = mdf.get("sp_target_position")  # the soak master's counts, in m
+        assert target.unit == "m" and csp.sum() > 1000
+        np.testing.assert_allclose(target.samples[csp], rows["plant_table_pos"][csp],
+                                   atol=1e-3)
         reasons = mdf.get("reason").samples
         assert any(b"SIGTERM" in r for r in reasons)
         assert len(mdf.attachments) == 1

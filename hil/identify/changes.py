@@ -16,7 +16,8 @@ from hil.identify.model import Model
 def declared_changes(model: Model) -> list[dict]:
     """One row per declared coefficient still in the model: ``parameter`` (the machine-file
     key, or ``effect[j]`` for a multi-coefficient term), ``declared``, ``identified``,
-    ``sigma`` (standard uncertainty, NaN when unknown), ``change_pct``, ``tolerance_pct``,
+    ``sigma`` (standard uncertainty, NaN when unknown), ``change_pct`` (infinite from a
+    declared 0, which has no per cent), ``tolerance_pct``,
     ``beyond_tolerance`` and ``significant`` (the change exceeds twice its uncertainty)."""
     rows = []
     for t in model.terms:
@@ -37,8 +38,21 @@ def declared_changes(model: Model) -> list[dict]:
             rows.append({
                 "parameter": label, "effect": t.effect.name, "declared": before,
                 "identified": after, "sigma": sigma,
-                "change_pct": 100.0 * change / abs(before) if before else math.inf,
+                "change_pct": (100.0 * change / abs(before) if before
+                               else 0.0 if change == 0 else math.inf),
                 "tolerance_pct": 100.0 * tol,
                 "beyond_tolerance": abs(change) > tol * abs(before),
                 "significant": None if math.isnan(sigma) else bool(abs(change) > 2.0 * sigma)})
     return rows
+
+
+def change_text(row: dict) -> str:
+    """A row of :func:`declared_changes` (or of report.json, where an infinite change is
+    None) as words: "unchanged", "+12.5 %", or "n/a (declared 0)" where a per cent of the
+    declared value does not exist."""
+    before, after = row["declared"], row["identified"]
+    if after == before:
+        return "unchanged"
+    if before == 0:
+        return "n/a (declared 0)"
+    return f"{100.0 * (after - before) / abs(before):+.3g} %"

@@ -125,6 +125,6 @@ def run_from_args(args) -> int:
     else:
         print(f"effects added: {', '.join(rep['effects_added']) or 'none'}; report in "
               f"{args.out / 'report.md'}")
-        for line in summary_lines(rep["faults"]):
+        for line in summary_lines(rep["faults"], rep["effects_added"]):
             print(line)
     return 0

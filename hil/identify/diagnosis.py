@@ -30,6 +30,7 @@ from dataclasses import asdict, dataclass, replace
 
 import numpy as np
 
+from hil.identify.changes import change_text
 from hil.identify.effects import FORCE
 from hil.identify.effects.drivetrain import contact_side, transmitted_force
 from hil.identify.motion import motion
@@ -106,7 +107,7 @@ def force_side(ident) -> list[Fault]:
         return []
     coulomb = rows.get("coulomb_n")
     lead = coulomb if coulomb in grown else grown[0]
-    listed = ", ".join(f"{r['parameter']} {r['change_pct']:+.1f} %" for r in grown)
+    listed = ", ".join(f"{r['parameter']} {change_text(r)}" for r in grown)
     f_fric = 1.0 + lead["change_pct"] / 100.0
     score = abs(lead["change_pct"]) / lead["tolerance_pct"]
     if mass is not None and mass["beyond_tolerance"] and mass["change_pct"] > 0:
@@ -115,7 +116,7 @@ def force_side(ident) -> list[Fault]:
             return [_named(
                 "torque_constant_loss", 100.0 * (1.0 - 1.0 / f_mass),
                 min(score, mass["change_pct"] / mass["tolerance_pct"]),
-                f"inertia {mass['change_pct']:+.1f} % and friction ({listed}) up by about "
+                f"inertia {change_text(mass)} and friction ({listed}) up by about "
                 "one factor 1/(1 - loss): the torque per ampere dropped",
                 "a gain error of the current measurement that reads high on every phase "
                 "(ours, on phase a only, would also ripple at 2x the electrical frequency)",
@@ -123,7 +124,7 @@ def force_side(ident) -> list[Fault]:
     return [_named(
         "friction_growth", lead["change_pct"], score,
         f"friction beyond its tolerance ({listed}), inertia "
-        f"{mass['change_pct'] if mass else 0.0:+.1f} % (as declared)",
+        + (change_text(mass) if mass else "as declared"),
         "a changed load or lubrication state; viscous friction lumps in the motor's and "
         "bearings' drag, which the growth leaves alone, so it grows less", {})]
 
@@ -367,11 +368,22 @@ def as_json(faults: list[Fault]) -> list[dict]:
     return [asdict(f) for f in faults]
 
 
-def faults_markdown(faults: list[dict]) -> list[str]:
-    """report.md's "Faults" section from report.json's ``faults``."""
+def no_fault(effects_added: list[str]) -> str:
+    """What a diagnosis that named no fault says, after identification added
+    ``effects_added`` to the model: those effects are what the record showed, so "no
+    fault" alone would read as "nothing found"."""
+    if not effects_added:
+        return "no fault found"
+    return ("no fault of the catalog found beyond the effects added to the model ("
+            + ", ".join(effects_added) + ")")
+
+
+def faults_markdown(faults: list[dict], effects_added: list[str]) -> list[str]:
+    """report.md's "Faults" section from report.json's ``faults`` and ``effects_added``."""
     lines = ["## Faults", ""]
     if not faults:
-        return lines + ["No fault found.", ""]
+        text = no_fault(effects_added)
+        return lines + [text[0].upper() + text[1:] + ".", ""]
     lines += ["| fault | level | evidence | could also be |", "|---|---|---|---|"]
     for f in faults:
         lines.append(f"| `{f['name']}` | {f['level_key']} ≈ {f['level']:.3g} {f['unit']} | "
@@ -379,9 +391,9 @@ def faults_markdown(faults: list[dict]) -> list[str]:
     return lines + [""]
 
 
-def summary_lines(faults: list[dict]) -> list[str]:
-    """One line per fault for the command's output ("no fault found" when none)."""
+def summary_lines(faults: list[dict], effects_added: list[str]) -> list[str]:
+    """One line per fault for the command's output (:func:`no_fault` when none)."""
     if not faults:
-        return ["no fault found"]
+        return [no_fault(effects_added)]
     return [f"fault: {f['name']} {f['level_key']} ~ {f['level']:.3g} {f['unit']}"
             for f in faults]

@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from hil.identify.candidates import Candidate, CandidatePool, Setting
-from hil.identify.changes import declared_changes
+from hil.identify.changes import change_text, declared_changes
 from hil.identify.conventions import read_conventions
 from hil.identify.effects import FORCE, LIBRARY, POSITION, REPLAY, Context, Term
 from hil.identify.effects.base import correlation
@@ -168,7 +168,7 @@ class Identification:
         self.declared_changes = declared_changes(self.model)
         for row in self.declared_changes:
             if row["beyond_tolerance"]:
-                self._say(f"declared {row['parameter']} moved {row['change_pct']:+.1f} % "
+                self._say(f"declared {row['parameter']} moved {change_text(row)} "
                           f"(± {row['sigma']:.3g}), beyond its {row['tolerance_pct']:g} %")
         self._say("done")
         return self

@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
+from hil.identify.changes import change_text
 from hil.identify.config_out import write_config
 from hil.identify.diagnosis import as_json, diagnose, faults_markdown
 from hil.identify.effects import FORCE
@@ -92,8 +93,7 @@ def summary(ident: Identification, validation: dict | None, elapsed_s: float,
 
 
 def _row(err: dict, keys) -> list[str]:
-    return [f"{err[k]:.4g}" if isinstance(err.get(k), float) else str(err.get(k, "-"))
-            for k in keys]
+    return [_fmt(err[k]) if k in err else "-" for k in keys]
 
 
 def markdown(rep: dict) -> str:
@@ -110,7 +110,7 @@ def markdown(rep: dict) -> str:
              f"Method: {rep['method']}", "",
              "Effects added, in order: " + (", ".join(f"`{e}`" for e in rep["effects_added"])
                                             or "none"), "",
-             *faults_markdown(rep.get("faults", [])),
+             *faults_markdown(rep.get("faults", []), rep["effects_added"]),
              "## Errors (closed-loop replay, from sample 50; relerr = 100 ||y - y^|| / ||y||)",
              "", "| record | model | " + " | ".join(keys) + " |",
              "|---" * (len(keys) + 2) + "|"]
@@ -160,7 +160,7 @@ def markdown(rep: dict) -> str:
             if c["significant"] is False:
                 flag = (flag + " " if flag else "") + "within its uncertainty"
             lines.append(f"| {c['parameter']} | {_fmt(c['declared'])} | "
-                         f"{_fmt(c['identified'])} | {_fmt(c['change_pct'])} % | "
+                         f"{_fmt(c['identified'])} | {change_text(c)} | "
                          f"{_fmt(c['sigma'])} | {c['tolerance_pct']:g} % | {flag} |")
     lines += ["", "Noise floor of the replay channels: " + ", ".join(
         f"{k} {_fmt(v)}" for k, v in rep["replay_noise_floor"].items())
@@ -208,8 +208,12 @@ def markdown(rep: dict) -> str:
 
 
 def _fmt(v) -> str:
+    """A number of the report in 4 digits; -0 as 0 (a sign that says nothing); None (a
+    value report.json could not hold, or none) as n/a."""
+    if v is None:
+        return "n/a"
     if isinstance(v, float):
-        return f"{v:.4g}"
+        return f"{v + 0.0:.4g}"  # + 0.0: -0.0 becomes 0.0
     if isinstance(v, list):
         return "[" + ", ".join(_fmt(x) for x in v) + "]"
     return str(v)

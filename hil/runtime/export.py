@@ -8,8 +8,10 @@
                                             # and runs/r1/events.csv
 
 * **MDF4** (ASAM MDF 4.10 through asammdf; what ControlDesk, CANape and asammdf's GUI
-  open): one channel group ``recording`` with every column of the recording, its unit
-  and its meaning as the channel comment, on the master time ``t = tick * period``; a
+  open; compressed): one channel group ``recording`` with every column of the recording,
+  its unit and its meaning as the channel comment, on the master time ``t = tick *
+  period``: the CiA 402 state, mode, 603Fh code and statusword bits read as text, counts
+  as integers with a twin in table units (:mod:`hil.runtime.mdf_channels`); a
   channel group ``events`` (time, axis, source, kind, 603Fh code, drive cycle, reason);
   the machine file(s) attached, the run's metadata in the file comment; the file's start
   time is the wall-clock time of tick 0.  With ``--bus LOG`` (a CAN run's ``log=``:
@@ -44,13 +46,18 @@ from pathlib import Path
 
 import numpy as np
 
+from hil.cia402 import mode_name
+from hil.runtime import mdf_channels
 from hil.runtime.common import EXIT_BAD_INPUT, EXIT_FAILED, EXIT_OK, eprint
 from hil.runtime.record_reader import Recording, RecordingError
 from hil.runtime.record_trace import AxisTrace, ControllerSetpoints, axis_trace
 from hil.runtime.stream_file import FORMAT
-from io_adapters.messages import MODE_CSP, MODE_CST, MODE_CSV
 
 MDF_NAME = "recording.mf4"
+#: the MDF4 file's data blocks: transposed deflate (asammdf's 2), the smallest that MDF 4.10
+#: allows (zstd and lz4 need 4.30, which fewer tools read); a recording's slowly changing
+#: columns shrink to a fraction
+COMPRESSION = 2
 
 
 class ExportError(ValueError):
@@ -86,11 +93,10 @@ def export_events_csv(rec: Recording, out: Path, force: bool = False) -> tuple[P
 
 def _modes(rec: Recording, trace: AxisTrace) -> str:
     """Which modes of operation the axis's setpoints were in, by name (``sp_mode``)."""
-    names = {MODE_CSP: "CSP", MODE_CSV: "CSV", MODE_CST: "CST"}
     seen = set()
     for rows in rec.batches(["tick", trace.prefix + "sp_mode"], stop_at_corrupt=True):
         seen.update(np.unique(rows[trace.prefix + "sp_mode"]).tolist())
-    return ", ".join(names.get(m, str(m)) for m in sorted(seen))
+    return ", ".join(mode_name(m) for m in sorted(seen))
 
 
 def export_csv(rec: Recording, out: Path, trace: AxisTrace, force: bool = False,
@@ -207,6 +213,7 @@ def export_mdf4(rec: Recording, out: Path, force: bool = False,
     for path, text in rec.meta.get("machine_files", {}).items():
         mdf.attach(text.encode(), file_name=Path(path).name, comment=f"machine file {path}",
                    embedded=True)
+    channels = mdf_channels.channels(rec)
     group, t0_ns = None, None
     for rows in rec.batches(stop_at_corrupt=True):
         t = rows["tick"] * period_s
@@ -214,12 +221,14 @@ def export_mdf4(rec: Recording, out: Path, force: bool = False,
             t0_ns = tick0_unix_ns(rec, rows)
             if t0_ns is not None:
                 mdf.header.start_time = datetime.fromtimestamp(t0_ns / 1e9, timezone.utc)
+        samples = [rows[c.source].astype(c.dtype, copy=False) for c in channels]
         if group is None:
-            group = mdf.append([Signal(rows[n], t, unit=rec.units[n], name=n,
-                                       comment=rec.docs[n]) for n in rec.names],
+            group = mdf.append([Signal(x, t, name=c.name, unit=c.unit, comment=c.comment,
+                                       conversion=c.conversion)
+                                for c, x in zip(channels, samples)],
                                acq_name="recording", comment="hil run, one row per tick")
         else:
-            mdf.extend(group, [(t, None), *((rows[n], None) for n in rec.names)])
+            mdf.extend(group, [(t, None), *((x, None) for x in samples)])
     ev = rec.events(stop_at_corrupt=True)
     if ev["tick"].size:
         end = (rows["tick"][-1] + 1) * period_s if group is not None else 0.0
@@ -234,8 +243,11 @@ def export_mdf4(rec: Recording, out: Path, force: bool = False,
         mdf.append([text("axis", "axis letter (empty: all)"),
                     text("source", "who logged it"), text("kind", "what happened"),
                     Signal(ev["code"].astype(np.uint16), t, name="code",
-                           comment="the drive's error code 603Fh (0: none)"),
-                    Signal(ev["cycle"], t, name="cycle", comment="drive cycle (-1: none)"),
+                           unit=mdf_channels.NO_UNIT,
+                           comment="the drive's error code 603Fh (0: none)",
+                           conversion=mdf_channels.value_to_text(mdf_channels.fault_names())),
+                    Signal(ev["cycle"], t, name="cycle", unit=mdf_channels.NO_UNIT,
+                           comment="drive cycle (-1: none)"),
                     text("reason", "why")],
                    acq_name="events", comment="events of the run; after the loop: at the end")
     if bus:
@@ -254,10 +266,10 @@ def export_mdf4(rec: Recording, out: Path, force: bool = False,
             mdf.close()
             for log in logs:
                 log.close()
-            stacked.save(_fresh(out, force), overwrite=True)
+            stacked.save(_fresh(out, force), overwrite=True, compression=COMPRESSION)
             stacked.close()
         return out
-    mdf.save(_fresh(out, force), overwrite=True)
+    mdf.save(_fresh(out, force), overwrite=True, compression=COMPRESSION)
     mdf.close()
     return out
 

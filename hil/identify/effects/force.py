@@ -41,9 +41,15 @@ class Inertia(Effect):
         term = _linear_term(self, ctx, residual, ev)
         base = model.term(self.name)
         term.coef = term.coef + (base.coef if base is not None else 0.0)
+        what, unit = ("inertia", "kg m²") if _rotary(ctx) else ("mass", "kg")
+        change = term.coef[0] - ctx.drive.mass
+        # the fit only adds (bounds from 0): no change is a clipped fit, said as such
+        moved = (f"moved {what} unchanged at {ctx.drive.mass:.4g} {unit} (the residual asks "
+                 "for no more)" if change == 0 else
+                 f"moved {what} off by {change:+.4g} {unit} "
+                 f"({100.0 * change / ctx.drive.mass:+.3g} % of {ctx.drive.mass:.4g})")
         ev["text"] = (f"residual correlates with acceleration (r = {ev['corr_with_a']:.2f}): "
-                      f"moved {'inertia' if _rotary(ctx) else 'mass'} off by "
-                      f"{term.coef[0] - ctx.drive.mass:+.4g}")
+                      + moved)
         return term
 
     def columns(self, ctx, shape):
