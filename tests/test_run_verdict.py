@@ -16,6 +16,8 @@ import time
 import pytest
 
 from hil.cia402 import State
+from hil.report.run_verdict import judge_timing_counts
+from hil.runtime.demo_verdict import Verdict
 from hil.runtime.record_reader import Recording
 from hil.runtime.timing_quality import MAX_SHARE, TimingQuality
 from tests.runtime_helpers import (
@@ -72,6 +74,22 @@ def test_counts_at_the_limit_are_within_it_and_a_stall_never_is():
         "adapter": {"stats": {"drained": 0, "lost": 0}}})
     assert stalled.reasons() == ["emulator: 1 stall(s) (ticks several periods late; the "
                                  "worst 60000.0 µs): the process was not running"]
+
+
+def test_a_priced_run_fails_on_a_stall_alone_an_unpriced_one_on_every_count():
+    """judge_timing_counts, the rule hil report and hil demo share: with a lock-step
+    reference (priced) 5 % overruns are the timing cost's to judge and only a stall fails;
+    without one the overruns fail too."""
+    report = {"loop": _loop(10_000, 500, 900.0), "adapter": {"stats": {"drained": 0,
+                                                                        "lost": 0}}}
+    priced, unpriced = Verdict(), Verdict()
+    judge_timing_counts(priced, report, None, priced=True)
+    judge_timing_counts(unpriced, report, None, priced=False)
+    assert priced.passed and unpriced.reasons == [
+        "emulator: 500 overruns in 10000 ticks (5 %, limit 0.1 %), the worst 900.0 µs late"]
+    stalled = {**report, "loop": _loop(10_000, 500, 90_000.0, stalls=1)}
+    judge_timing_counts(priced, stalled, None, priced=True)
+    assert [r.split(" (")[0] for r in priced.reasons] == ["emulator: 1 stall(s)"]
 
 
 def wait_for_enabled(run, ctl) -> None:
@@ -154,8 +172,8 @@ def test_hil_report_with_the_controller_prices_the_timing_and_still_fails_the_st
         stalled_run):
     """With the controller's folder (one axis, no injection) the reference exists: the
     timing's cost against the lock-step simulation is shown and judged (within the
-    tolerance the stall's own lateness allows), and the counts still fail the run: both
-    sides' stall and ticks without feedback are named."""
+    tolerance the stall's own lateness allows), the counts are shown but priced by it,
+    as hil demo judges, and the emulator's stall still fails the run."""
     import subprocess
 
     from tests.runtime_helpers import ENV
@@ -167,8 +185,10 @@ def test_hil_report_with_the_controller_prices_the_timing_and_still_fails_the_st
     assert "timing cost against the lock-step simulation: max " in done.stdout, done.stdout
     assert "recording = replay: " in done.stdout
     assert done.returncode == 1 and last.startswith("FAIL: "), (done.returncode, last)
-    assert "emulator: 1 stall(s)" in last and "controller: " in last and "feedback missed" \
-        in last, last
+    # the counts are not reasons (a loaded machine may add a stall of the controller's)
+    assert "emulator: " in last and "stall(s)" in last, last
+    assert "feedback missed" not in last and "overruns in" not in last, last
+    assert "controller: timing: " in done.stdout and "feedback late" in done.stdout
     assert (folder / "emulator" / "verdict_lockstep" / "trace.csv").exists()
 
 

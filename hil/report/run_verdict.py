@@ -7,13 +7,15 @@ demo`` judges its own (:mod:`hil.runtime.demo_verdict`), on any run folder.
 2. **No alarm, fault or watchdog trip**: ``report.json``'s exit status, watchdog trips and
    drive faults; with ``--controller DIR`` that folder's ``summary.json`` too (its exit
    status and the NC's alarms).  A run without ``report.json`` (cut short) fails here.
-3. **Timing.**  Each side's counts against the limits of
-   :mod:`hil.runtime.timing_quality` (overruns, late and missed messages at most 0.1 % of
-   the ticks, no stall): a run whose timing went wrong fails, whatever it did to the
-   axis.  Where a lock-step reference exists too -- ``--controller DIR`` of one axis, its
-   program and start position known, no fault injected on either side -- the timing
+3. **Timing.**  Where a lock-step reference exists -- ``--controller DIR`` of one axis,
+   its program and start position known, no fault injected on either side -- the timing
    cost against it, within the tolerance this run's measured delays allow
    (:mod:`hil.replay.timing`): a larger difference is something other than timing.
+   Without one, each side's counts against the limits of
+   :mod:`hil.runtime.timing_quality` (overruns, late and missed messages at most 0.1 % of
+   the ticks).  A stall (a loop that did not run for the watchdog's length) fails either
+   way: no tolerance prices a loop that was not running.  :func:`judge_timing_counts`
+   is the one rule, ``hil demo``'s too.
 
 The lock-step trace is written into ``RUN/verdict_lockstep/``, the verdict into
 ``RUN/verdict.json``.
@@ -128,13 +130,23 @@ def _timing(v: Verdict, run: Path, controller: Path | None, report: dict,
                 f"{cost.tolerance.value * k:.2f} {unit})"))
     if refused is not None:
         lines.append(f"no lock-step reference ({refused})")
+    sides = judge_timing_counts(v, report, summary, priced=refused is None
+                                and not isinstance(cost, str))
+    return lines + [f"{side.side}: {side.line()}" for side in sides]
+
+
+def judge_timing_counts(v: Verdict, report: dict, summary: dict | None,
+                        priced: bool) -> list[TimingQuality]:
+    """Step 3's counts of the emulator's ``report`` and the controller's ``summary`` (when
+    given) into ``v``: stalls always, overruns and late or missed messages only when the
+    lock-step reference did not price the timing (``priced``); returns the sides."""
     sides = [TimingQuality.of_emulator(report)]
     if summary is not None:
         sides.append(TimingQuality.of_controller(summary))
     for side in sides:
-        for reason in side.reasons():
+        for reason in side.reasons(counts=not priced):
             v.fail(reason)
-    return lines + [f"{side.side}: {side.line()}" for side in sides]
+    return sides
 
 
 def judge_run(run: Path, controller: Path | None = None) -> tuple[Verdict, list[str]]:

@@ -45,7 +45,12 @@ from hil.replay import ReplayResult
 from hil.replay.timing import LOOP_PEAK, SHOWN_RUNS, TimingCost
 from hil.report.baseline import CyclictestBaseline, run_cyclictest_baseline
 from hil.report.latency import build_report, load_run, write_report
-from hil.report.run_verdict import judge_lockstep_timing, read_json, replay_or_reason
+from hil.report.run_verdict import (
+    judge_lockstep_timing,
+    judge_timing_counts,
+    read_json,
+    replay_or_reason,
+)
 from hil.report.wakeup import wakeup_rows
 from hil.rt.cyclictest import CyclictestError
 from hil.rt.scheduling import last_cpu
@@ -257,6 +262,7 @@ def run_demo(config: Path, program: Path, out: Path, realtime: bool,
         return EXIT_FAILED
     cost, (k, shown) = judge_lockstep_timing(verdict, config, program, 0.0, out / "emulator",
                                              out / "controller", out / "lockstep")
+    judge_timing_counts(verdict, emulator, controller, priced=not isinstance(cost, str))
     baseline, note = (_baseline(controller["period_ns"], cyclictest_s) if cyclictest_s > 0
                       else (None, "no cyclictest (--cyclictest-seconds 0)"))
     run = load_run(out / "emulator", controller=out / "controller")

@@ -12,7 +12,9 @@ A demo run passes when all of these hold, and fails naming each that does not:
 3. **The timing cost is within its tolerance**: max |FE_replay - FE_lockstep| on the
    program's servo-trace rows is within what this run's measured transport delay and
    jitter and the two loops' lateness can cause (:mod:`hil.replay.timing`, where the
-   tolerance is derived): a larger difference is something other than timing.
+   tolerance is derived): a larger difference is something other than timing.  And no
+   loop stalled (:func:`hil.report.run_verdict.judge_timing_counts`, ``hil report``'s
+   rule too: a loop that did not run for the watchdog's length fails whatever it cost).
 
 A step that could not be made (a child that did not start, a replay refused) is a reason
 of its own; the steps after it that need its files are not judged.

@@ -74,10 +74,11 @@ class TimingQuality:
     def _share(self, n: int) -> str:
         return f"{100 * n / max(1, self.ticks):.3g} %"
 
-    def reasons(self) -> list[str]:
-        """What exceeds the limits, one phrase each (empty: within them)."""
+    def reasons(self, counts: bool = True) -> list[str]:
+        """What exceeds the limits, one phrase each (empty: within them); without
+        ``counts`` the stalls alone (a lock-step reference prices the rest)."""
         out, limit = [], f"limit {100 * MAX_SHARE:g} %"
-        if self.overruns > MAX_SHARE * self.ticks:
+        if counts and self.overruns > MAX_SHARE * self.ticks:
             out.append(f"{self.side}: {self.overruns} overruns in {self.ticks} ticks "
                        f"({self._share(self.overruns)}, {limit}), the worst "
                        f"{self.worst_lateness_us:.1f} µs late")
@@ -86,7 +87,7 @@ class TimingQuality:
                        f"the worst {self.worst_lateness_us:.1f} µs): the process was not "
                        "running")
         for what, n in (("late", self.late), ("missed", self.missed)):
-            if n > MAX_SHARE * self.ticks:
+            if counts and n > MAX_SHARE * self.ticks:
                 out.append(f"{self.side}: {n} {self.messages} {what} in {self.ticks} ticks "
                            f"({self._share(n)}, {limit})")
         return out
