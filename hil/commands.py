@@ -18,7 +18,7 @@ from hil.measure.frequency_response import bandwidth_hz, bode_plot, peaks, write
 from hil.measure.runs import bode, current_step, position_step, speed_step, write_step_csv
 from hil.measure.trace import TraceConfigError, TraceRecorder, Trigger
 from hil.progress import Progress
-from hil.sim import TRACE_METADATA, LockStep, servo_trace_columns
+from hil.sim import TRACE_METADATA, LockStep, mean_columns_note, servo_trace_columns
 from hil.trace_file import write_trace
 from plant.assemble import transmission_ratio
 from plant.config import MachineConfig, load_machine
@@ -110,7 +110,8 @@ def run_sim(config: Path, program: Path, out: Path, start: float, axis: str | No
                for i, inj in enumerate(ls.injectors[0].injections)}}
     every = every or ls.ctrl.sec.position_cycle_ratio
     columns = servo_trace_columns(res, every)
-    write_trace(out / "trace.csv", columns, meta)
+    notes = [mean_columns_note(res)]
+    write_trace(out / "trace.csv", columns, meta, notes)
     plot_sim(res, out / "sim.png", f"{cfg.machine.name}: {program.name}")
     summary = {}
     if trig is not None:
@@ -119,7 +120,8 @@ def run_sim(config: Path, program: Path, out: Path, start: float, axis: str | No
             summary["triggered"] = f"trigger {trigger!r} did not complete a recording"
         else:
             write_trace(out / "triggered.csv", recording, {**meta, "trigger": trigger,
-                                                             "pre_trigger_samples": pre})
+                                                             "pre_trigger_samples": pre},
+                        notes)
             summary["triggered"] = str(out / "triggered.csv")
     fe = res["following_error"] * k
     return {**summary, "duration_s": float(res["t_s"][-1] - res["t_s"][0]),

@@ -63,6 +63,9 @@ class SimResult:
         meta: text metadata (machine file, program, ...).
         alarms: the axis's alarms (:class:`~hil.controller.alarms.Alarm`) when the run
             ended.
+        position_cycle_ticks: ticks per position-control cycle, the period of the ripple
+            the position cycle leaves on the currents (:func:`position_cycle_mean`);
+            None where unknown (a recording rebuilt from files).
     """
     signals: dict
     kind: str
@@ -70,6 +73,7 @@ class SimResult:
     period_s: float
     meta: dict = field(default_factory=dict)
     alarms: tuple[Alarm, ...] = ()
+    position_cycle_ticks: int | None = None
 
     def __getitem__(self, name: str) -> np.ndarray:
         return self.signals[name]
@@ -275,7 +279,8 @@ class AxisRecording:
 
     def result(self, cfg: MachineConfig) -> SimResult:
         return SimResult(self.rec, cfg.machine.kind, self.ctrl.ratio, self.plant.pwm_period,
-                         {"machine": cfg.path}, tuple(self.ctrl.alarms.alarms))
+                         {"machine": cfg.path}, tuple(self.ctrl.alarms.alarms),
+                         self.ctrl.sec.position_cycle_ratio)
 
 
 class MachineLockStep(_Stepper):
@@ -344,12 +349,44 @@ def warm(machine: MachineSet) -> None:
         ls.run(WARM_S)
 
 
+def position_cycle_mean(x: np.ndarray, ticks: int) -> np.ndarray:
+    """The mean of ``x`` (shape (n,), one sample per tick) over ``ticks`` consecutive
+    samples centred on each one (``ticks // 2`` before it, the rest after), shape (n,).
+    With ``ticks`` the position cycle, the ripple the position cycle leaves on the
+    currents averages out exactly: the speed command changes once per position cycle (the
+    position loop's output, and the feed-forward with ``feedforward_interpolation =
+    "hold"``), so while the axis accelerates i_q saw-tooths at the position-cycle
+    frequency (500 Hz on a 2 ms cycle) and one sample per cycle sees the same phase of it.
+    Within half a window of either end the mean is over the samples there are; a NaN
+    spoils only the windows that hold it."""
+    if ticks < 1:
+        raise ValueError(f"position_cycle_mean: ticks must be >= 1, got {ticks}")
+    x = np.asarray(x, dtype=float)
+    window = np.ones(ticks)
+    # "full" convolution: entry e sums x[e - ticks + 1 .. e]; sample i's window ends at
+    # e = i - ticks // 2 + ticks - 1, and the same convolution of ones counts its samples
+    ends = np.arange(x.size) - ticks // 2 + ticks - 1
+    sums = np.convolve(x, window)[ends]
+    counts = np.convolve(np.ones(x.size), window)[ends]
+    return sums / counts
+
+
+def ripple_hz(res: SimResult) -> float:
+    """The frequency of the position cycle's ripple on the currents: one over the
+    position-control cycle, Hz."""
+    if res.position_cycle_ticks is None:
+        raise ValueError("the recording does not know its position-control cycle")
+    return 1.0 / (res.position_cycle_ticks * res.period_s)
+
+
 #: servo-trace column (trace-format.md, linear-axis names) -> SimResult signal
 TRACE_COLUMNS = {
     "pos_set_mm": "x_set", "pos_mm": "x_act", "vel_set_mm_min": "v_set",
     "vel_mm_min": "v_act", "iq_set_a": "iq_set", "iq_a": "iq_meas",
     "motor_pos_mm": "motor_pos_meas",
 }
+#: servo-trace column of a current's mean over the position cycle -> SimResult signal
+MEAN_COLUMNS = {"iq_set_mean_a": "iq_set", "iq_mean_a": "iq_meas"}
 #: what this module's servo traces carry in their header besides the caller's keys
 TRACE_METADATA = {"vel_set_column": "feedforward"}
 #: the same columns on a rotary table
@@ -365,7 +402,11 @@ def servo_trace_columns(res: SimResult, every: int) -> dict[str, np.ndarray]:
     feed-forward, the interpolator's velocity (trace-format.md; the speed command is the
     position controller's output plus the feed-forward factor times it): the header's
     ``vel_set_column`` (:data:`TRACE_METADATA`) says so; the motor position is converted
-    to table travel through the lead."""
+    to table travel through the lead.  Where the recording knows its position cycle, the
+    columns :data:`MEAN_COLUMNS` follow, last: the currents' :func:`position_cycle_mean`
+    at each row (rows one position cycle apart all see the same phase of the currents'
+    position-cycle ripple, so ``iq_set_a`` and ``iq_a`` alone can look far apart while the
+    axis accelerates; :func:`mean_columns_note` says so in words)."""
     rows = np.flatnonzero(res["tick"] % every == 0)
     cols = {"t_s": res["t_s"][rows] - res["t_s"][rows[0]]}
     for name, sig in TRACE_COLUMNS.items():
@@ -374,4 +415,17 @@ def servo_trace_columns(res: SimResult, every: int) -> dict[str, np.ndarray]:
             name = ROTARY_NAMES.get(name, name)
         factor, _ = si_factor(name)
         cols[name] = values[rows] / factor
+    if res.position_cycle_ticks is not None:
+        for name, sig in MEAN_COLUMNS.items():
+            cols[name] = position_cycle_mean(res[sig], res.position_cycle_ticks)[rows]
     return cols
+
+
+def mean_columns_note(res: SimResult) -> str:
+    """A comment line for a servo trace with :data:`MEAN_COLUMNS`: what they are and why."""
+    cycle_ms = res.position_cycle_ticks * res.period_s * 1e3
+    return (f"iq_set_mean_a and iq_mean_a are iq_set_a and iq_a averaged over the "
+            f"{cycle_ms:g} ms position cycle centred on the row; while the axis "
+            f"accelerates the currents ripple at {ripple_hz(res):g} Hz (the speed command "
+            f"changes once per position cycle), and rows a whole number of cycles apart "
+            f"all see the same phase of it")

@@ -128,7 +128,8 @@ def test_small_study_same_numbers_on_local_cluster_and_separate_dask_processes(t
     cfg = load_machine(ARROW, {"table": {"mass_kg": reference["table.mass_kg"][k].as_py()},
                                "motor": {"torque_constant_nm_per_a": reference[
                                    "motor.torque_constant_nm_per_a"][k].as_py()}})
-    res = position_step(cfg, 0.25, 0.0005, 0.15)
+    window_s = load_study(CI_SMALL).experiments[0].opts.duration_s
+    res = position_step(cfg, 0.25, 0.0005, window_s)
     post = res.t_s >= 0.0
     m = step_metrics(res.t_s[post], res.response[post], 0.25, 0.0005, 2.0)
     assert reference["lag_50pct_s"][k].as_py() == m.lag_50pct_s
