@@ -42,11 +42,8 @@ import json
 import sys
 from pathlib import Path
 
-from hil.controller.program import ProgramError
 from hil.extras import missing_extra
 from hil.inject import INJECT_HELP
-from hil.report.latency import ReportError
-from plant.errors import ConfigError
 
 CONFIG_DIR = Path(__file__).resolve().parent.parent / "configs"
 
@@ -427,9 +424,6 @@ def main(argv: list[str] | None = None) -> int:
     try:
         args = build_parser(argv).parse_args(argv)
         return args.func(args)
-    except (ConfigError, KeyError, ProgramError, ReportError, FileNotFoundError) as exc:
-        _eprint(f"hil: {exc}")
-        return 2
     except ModuleNotFoundError as exc:
         # a command module is imported when chosen and its optional packages when it
         # needs them, so an extra that is not installed shows up here and nowhere else
@@ -440,6 +434,21 @@ def main(argv: list[str] | None = None) -> int:
             raise
         _eprint(message)
         return 2
+    except Exception as exc:
+        if not isinstance(exc, _bad_input()):
+            raise
+        _eprint(f"hil: {exc}")
+        return 2
+
+
+def _bad_input() -> tuple[type[Exception], ...]:
+    """The errors :func:`main` reports as bad input (exit 2).  Imported only once one was
+    raised: their modules load the plant (numba, scipy: 0.4 s), which ``hil --help`` and
+    the commands that do not simulate never need."""
+    from hil.controller.program import ProgramError
+    from hil.report.latency import ReportError
+    from plant.errors import ConfigError
+    return ConfigError, KeyError, ProgramError, ReportError, FileNotFoundError
 
 
 if __name__ == "__main__":
