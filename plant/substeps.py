@@ -10,7 +10,7 @@ call that never ends in practice).  So the count is bounded twice:
   simulation runs far slower than real time;
 * by ``hil run``, for real time (:func:`realtime_limit`): a sub-step costs the compiled
   kernel at most :data:`SUBSTEP_COST_S` (the plant benchmark's goal; about 0.08 µs
-  measured on the Arrow 500 X since issue 12 part 7, README), and the kernel gets
+  measured on the Arrow 500 X since issue 12 part 7, docs/benchmarks.md), and the kernel gets
   :data:`KERNEL_SHARE` of each period, the rest being the drive's, the adapter's and the
   recording's.
 

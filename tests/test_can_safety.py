@@ -319,7 +319,7 @@ def test_udp_multicast_takes_no_frame_from_another_host(remote_host):
 
 
 def test_loopback_bus_talks_to_python_cans_own_bus_over_lo(multicast_group):
-    """A peer on python-can's own bus with the group routed over lo (the README's one
+    """A peer on python-can's own bus with the group routed over lo (docs/canopen.md's one
     setting) reaches the drive's bus, and the other way round; the drive's bus never
     receives its own frames."""
     group, port = multicast_group

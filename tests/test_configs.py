@@ -199,7 +199,7 @@ def test_config_keys_tables_hold_together():
     """`hil config-keys --markdown` is a table every row of which has the header's seven
     cells when split as GitHub's tables split them (on pipes not escaped: a choice list
     "screw | linear | rotary" inside a cell is escaped), and the plain listing has the
-    range column the README promises."""
+    range column docs/machine-files.md promises."""
     import re
     import subprocess
     import sys

@@ -105,7 +105,7 @@ def test_field_weakening_constant_solves_seed001_eq9(omega, m_set):
 
 
 def test_automatic_substep_bounds_omega_dt():
-    """The sub-step rule (README, plant.assemble): omega_max * dt <= 0.5 with omega_max the
+    """The sub-step rule (docs/model.md, plant.assemble): omega_max * dt <= 0.5 with omega_max the
     highest eigenfrequency of the linearised mechanics, and the PWM period a whole number
     of sub-steps."""
     cfg = load_machine(CONFIGS / "arrow500_x.toml")

@@ -265,7 +265,7 @@ SHIPPED = {f"{f.name}:{a.name}": a.config
 @pytest.mark.parametrize("cfg", list(SHIPPED.values()), ids=list(SHIPPED))
 def test_automatic_stops_keep_every_shipped_configs_substeps(cfg):
     """The sub-step of the chains alone (highest natural frequency over the travel, the
-    README's rule n = ceil(T_pwm omega_max / max_omega_dt)) is the plant's: the automatic
+    docs/model.md's rule n = ceil(T_pwm omega_max / max_omega_dt)) is the plant's: the automatic
     stops add no sub-step, and their contact stays within omega dt <= max_omega_dt."""
     period = 1.0 / cfg.motor.pwm_frequency_hz
     if cfg.mechanics.model == "screw":

@@ -94,7 +94,7 @@ def test_emps_with_the_whole_library_finds_the_papers_asymmetric_friction(emps):
     assert fr.viscous_ns_per_m - fr.viscous_asymmetry_ns_per_m == pytest.approx(240.4, rel=0.1)
     assert fr.coulomb_n == pytest.approx(0.5 * (20.14 + 20.63), rel=0.06)
     beats_the_published_reference(rep)
-    # the README's figure (issue 13: at or below 8.45 % on the validation record)
+    # docs/identify.md's figure (issue 13: at or below 8.45 % on the validation record)
     assert rep["validation"]["error_after"]["force_relerr_pct"] < 8.455
 
 

@@ -54,7 +54,7 @@ def _session(out, *extra) -> tuple[subprocess.CompletedProcess, dict]:
 #: sessions the program fixture may take: LinuxCNC's servo thread is an ordinary thread
 #: here (POSIX non-real-time, no PREEMPT_RT), and a stall of it of several milliseconds on
 #: a VM trips its own following-error check now and then (once in a quiet suite's run of
-#: this VM, 2026-11-28), which the README says; a second session judges the product again
+#: this VM, 2026-11-28), which docs/benchmarks.md says; a second session judges the product again
 ATTEMPTS = 2
 
 

@@ -1,5 +1,5 @@
 """``hil study`` on real Dask clusters: a two-worker LocalCluster, a ``dask scheduler`` and
-``dask worker`` started as separate processes (as the README says), a study killed
+``dask worker`` started as separate processes (as docs/study.md says), a study killed
 halfway and resumed, the Ishigami function's Sobol indices (analytic) and tuning studies
 with known optima through the same pipeline, and a tuned machine file that loads.
 

@@ -383,7 +383,7 @@ def test_every_shipped_study_file_loads(path):
 
 
 def test_the_speed_tuning_reference_runs_on_the_tunings_own_machines():
-    """README: the machine file's own speed-loop settings are measured on the machines the
+    """docs/study.md: the machine file's own speed-loop settings are measured on the machines the
     tuning runs every trial on (arrow500_speed_as_written.toml's samples are
     arrow500_speed_tuning.toml's robust sample)."""
     tuning = load_study(STUDIES / "arrow500_speed_tuning.toml")

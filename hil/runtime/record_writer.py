@@ -52,7 +52,7 @@ FLUSH_S = 0.25
 #: the ring holds this long of rows, s: the most of a run in memory
 RING_S = 1.0
 #: compressed size over raw size of the recording of moving axes, for the space check:
-#: measured 0.33 on one Arrow 500 X axis at 8 kHz, 0.42 on five at 2 kHz (README), at
+#: measured 0.33 on one Arrow 500 X axis at 8 kHz, 0.42 on five at 2 kHz (docs/benchmarks.md), at
 #: rest 0.14-0.16
 ESTIMATED_SHARE = 0.45
 #: longest wait for the writer process to start (imports, pyarrow warmed), for an

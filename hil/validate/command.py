@@ -99,7 +99,7 @@ def _reference(r: Result) -> str:
 
 
 def table(rows: list[Result]) -> str:
-    """Markdown table of the rows (what README shows): the reference value with its ± where
+    """Markdown table of the rows (what docs/validation.md shows): the reference value with its ± where
     it has one, kind, verdict and the note."""
     lines = [("| experiment | kind | reference value | model | unit | verdict | reference | "
               "tolerance | note |"),
