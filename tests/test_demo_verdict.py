@@ -34,6 +34,16 @@ def test_a_clean_run_passes():
     assert v.line() == "PASS"
 
 
+def test_a_failed_runs_line_adds_each_loops_worst_overrun_a_passed_one_does_not():
+    """The context (each side's worst overrun, what kept it) follows the reasons of a
+    FAIL line, so that a failure under load names its stall; PASS stays PASS."""
+    v = Verdict(context=["controller's worst overrun: tick 9 ..."])
+    assert v.line() == "PASS"
+    v.fail("the controller raised alarm 25050")
+    assert v.line() == ("FAIL: the controller raised alarm 25050 | controller's worst "
+                        "overrun: tick 9 ...")
+
+
 def test_a_watchdog_trip_and_a_drive_fault_each_fail_the_run():
     v = Verdict()
     report = emulator_report(

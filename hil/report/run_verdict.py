@@ -139,13 +139,16 @@ def judge_timing_counts(v: Verdict, report: dict, summary: dict | None,
                         priced: bool) -> list[TimingQuality]:
     """Step 3's counts of the emulator's ``report`` and the controller's ``summary`` (when
     given) into ``v``: stalls always, overruns and late or missed messages only when the
-    lock-step reference did not price the timing (``priced``); returns the sides."""
+    lock-step reference did not price the timing (``priced``); each side's worst overrun
+    as the verdict's context (shown if it fails); returns the sides."""
     sides = [TimingQuality.of_emulator(report)]
     if summary is not None:
         sides.append(TimingQuality.of_controller(summary))
     for side in sides:
         for reason in side.reasons(counts=not priced):
             v.fail(reason)
+        if side.worst_overrun:
+            v.context.append(side.worst_text())
     return sides
 
 

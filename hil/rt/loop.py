@@ -33,6 +33,14 @@ ticks back to back would run them on inputs that stopped arriving with the stall
 drive's setpoint watchdog would count them as the controller's silence.  It is an overrun
 too.
 
+Every overrun after the grace period reads what kept the loop from its deadline
+(:mod:`hil.rt.causes`: preemption, page faults, garbage collection, numba compiling,
+counted since the previous run of overruns; read at the first overrun of a run only, so
+the ticks that catch up after it cost nothing more, and nothing is read while the loop
+keeps its time):
+``overrun_causes`` sums them over the run and ``worst_overrun`` names the latest tick's
+(where it ran: ``"compiled"`` in a burst, ``"python"`` in ``step``).
+
 Overruns in the first ``grace_ticks`` ticks (start-up: caches, first page touches) are
 counted apart and never stop the loop.  :meth:`RealTimeLoop.request_stop` only sets a
 flag, checked before every tick: it is what a signal handler should call.
@@ -45,6 +53,7 @@ from typing import Literal
 
 import numpy as np
 
+from hil.rt.causes import Cause, Causes
 from hil.rt.clock import Clock, MonotonicClock
 
 #: the value of a dropped tick's slot in ``lateness_ns`` and ``compute_ns``
@@ -141,6 +150,11 @@ class LoopStats:
         stalls: ticks that ended ``resume_after`` or more deadlines late.
         stopped_by: ``"completed"``, ``"overruns"`` (the ``"stop"`` policy) or ``"stop_flag"``.
         wall_s, cpu_s: elapsed real time and the process's CPU time over the run (s).
+        overrun_causes: what the overruns after the grace period found, summed
+            (:class:`~hil.rt.causes.Cause` as a dict; None: there were none).
+        worst_overrun: the one that ended latest: ``tick``, ``behind_us`` (after the
+            next deadline), ``where`` ("compiled" or "python") and ``cause`` (what moved
+            since the overrun before it); None: none.
         lateness_us, compute_us: percentiles over the ticks run.
     """
     period_ns: int
@@ -154,6 +168,8 @@ class LoopStats:
     stopped_by: StopReason
     wall_s: float
     cpu_s: float
+    overrun_causes: dict | None
+    worst_overrun: dict | None
     lateness_us: Percentiles
     compute_us: Percentiles
 
@@ -168,6 +184,7 @@ class LoopStats:
                 "grace_overruns": self.grace_overruns, "skipped": self.skipped,
                 "stalls": self.stalls, "stopped_by": self.stopped_by, "wall_s": self.wall_s,
                 "cpu_s": self.cpu_s, "cpu_fraction": self.cpu_fraction,
+                "overrun_causes": self.overrun_causes, "worst_overrun": self.worst_overrun,
                 "lateness_us": self.lateness_us.as_dict(),
                 "compute_us": self.compute_us.as_dict()}
 
@@ -183,6 +200,8 @@ class TickCounts:
     stopped_by: StopReason
     wall_s: float
     cpu_s: float
+    overrun_causes: dict | None
+    worst_overrun: dict | None
 
 
 def run_ticks(loop, end_tick: Callable[[int, int, int], None], n: int) -> TickCounts:
@@ -209,6 +228,11 @@ def run_ticks(loop, end_tick: Callable[[int, int, int], None], n: int) -> TickCo
     stall_log = loop.stall_log
     ticks = overruns = grace_overruns = skipped = stalls = 0
     stopped_by: StopReason = "completed"
+    causes = Causes()
+    total: Cause | None = None
+    worst: dict | None = None
+    episode: Cause | None = None  # what the first overrun of the present run of them read
+    on_time = True  # the tick before ended in time
 
     wall0, cpu0 = time.monotonic_ns(), time.process_time_ns()
     t0 = now_ns() + period
@@ -225,6 +249,7 @@ def run_ticks(loop, end_tick: Callable[[int, int, int], None], n: int) -> TickCo
             ticks += ran
             k += ran - 1  # the last tick run; the ones before it ended on time
             deadline = t0 + k * period
+            on_time = on_time or ran > 1
         else:
             deadline = t0 + k * period
             wake = woke if woke is not None else sleep_until(deadline)
@@ -235,14 +260,23 @@ def run_ticks(loop, end_tick: Callable[[int, int, int], None], n: int) -> TickCo
             ticks += 1
         if end <= deadline + period:
             k += 1
+            on_time = True
             continue
         if k < grace:
             grace_overruns += 1
         else:
             overruns += 1
+            if on_time or episode is None:  # ticks catching up inherit its cause
+                episode = causes.since_last()
+                total = episode if total is None else total + episode
+            behind = end - deadline - period
+            if worst is None or behind > worst["behind_ns"]:
+                worst = {"tick": k, "behind_ns": behind,
+                         "where": "compiled" if ran else "python", "cause": episode}
             if overruns == stop_after:
                 stopped_by = "overruns"
                 break
+        on_time = False
         missed = (end - t0) // period - k
         if missed >= resume_after:
             stalls += 1
@@ -251,9 +285,13 @@ def run_ticks(loop, end_tick: Callable[[int, int, int], None], n: int) -> TickCo
         k_next = min(k + missed + 1, n) if skip or missed >= resume_after else k + 1
         skipped += k_next - k - 1
         k = k_next
+    if worst is not None:
+        worst = {"tick": worst["tick"], "behind_us": worst["behind_ns"] * 1e-3,
+                 "where": worst["where"], "cause": worst["cause"].as_dict()}
     return TickCounts(ticks, overruns, grace_overruns, skipped, stalls, stopped_by,
                       (time.monotonic_ns() - wall0) * 1e-9,
-                      (time.process_time_ns() - cpu0) * 1e-9)
+                      (time.process_time_ns() - cpu0) * 1e-9,
+                      None if total is None else total.as_dict(), worst)
 
 
 class RealTimeLoop:

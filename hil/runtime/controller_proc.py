@@ -458,9 +458,15 @@ def run_from_args(args: argparse.Namespace) -> int:
           f"{fe_max if fe_max is None else format(fe_max, '.4g')} {u}; round trip p50 "
           f"{rt['p50']:.1f} p99 {rt['p99']:.1f} µs; summary in {rc.out_dir / 'summary.json'}",
           flush=True)
-    print(f"hil controller: {TimingQuality.of_controller(summary).line()}", flush=True)
+    quality = TimingQuality.of_controller(summary)
+    print(f"hil controller: {quality.line()}", flush=True)
+    if quality.worst_overrun:
+        print(f"hil controller: {quality.worst_text()}", flush=True)
     if summary["exit_status"] != EXIT_OK:
-        eprint(f"hil controller: FAIL: {'; '.join(failure_reasons(summary, proc.drive_faults()))}")
+        reasons = failure_reasons(summary, proc.drive_faults())
+        if quality.worst_overrun:  # a failure under load: name the stall with it
+            reasons.append(quality.worst_text())
+        eprint(f"hil controller: FAIL: {'; '.join(reasons)}")
     return summary["exit_status"]
 
 

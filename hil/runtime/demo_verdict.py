@@ -33,16 +33,22 @@ class Verdict:
 
     Attributes:
         reasons: one phrase each, in the order checked.
+        context: what a failed run's line adds after its reasons: each loop's worst
+            overrun and what kept it (:meth:`hil.runtime.timing_quality.TimingQuality.
+            worst_text`), so that a failure under load names its stall.
     """
     reasons: list[str] = field(default_factory=list)
+    context: list[str] = field(default_factory=list)
 
     @property
     def passed(self) -> bool:
         return not self.reasons
 
     def line(self) -> str:
-        """``PASS`` or ``FAIL: reason; reason``."""
-        return "PASS" if self.passed else "FAIL: " + "; ".join(self.reasons)
+        """``PASS`` or ``FAIL: reason; reason`` (and the context: ``| context; ...``)."""
+        if self.passed:
+            return "PASS"
+        return "FAIL: " + "; ".join(self.reasons) + "".join(f" | {c}" for c in self.context)
 
     def fail(self, reason: str) -> None:
         self.reasons.append(reason)

@@ -557,7 +557,10 @@ def run_from_args(args: argparse.Namespace) -> int:
           f"{lat['p999']:.1f} max {lat['max']:.1f} µs; overruns {loop['overruns']}; "
           f"watchdog events {report['watchdog']['events_total']}; run folder {rc.run_dir}",
           flush=True)
-    print(f"hil run: {TimingQuality.of_emulator(report).line()}", flush=True)
+    quality = TimingQuality.of_emulator(report)
+    print(f"hil run: {quality.line()}", flush=True)
+    if quality.worst_overrun:
+        print(f"hil run: {quality.worst_text()}", flush=True)
     if emulator.recording_failure is not None:
         eprint(f"hil run: {emulator.recording_failure}; the axes were brought to their safe "
                "state")

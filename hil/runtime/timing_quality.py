@@ -26,6 +26,8 @@ results are trusted.
 
 from dataclasses import asdict, dataclass
 
+from hil.rt.causes import Cause
+
 #: overruns, late and missed messages each at most this share of the ticks
 MAX_SHARE = 1e-3
 
@@ -44,6 +46,9 @@ class TimingQuality:
         messages: what ``late`` and ``missed`` count (``"setpoints"``, ``"feedback"``).
         late: messages that came after their tick.
         missed: messages that never came (or ticks without one).
+        worst_overrun: the loop's overrun that ended latest, and what kept it
+            (:attr:`hil.rt.loop.LoopStats.worst_overrun`); None: none.
+        period_s: the loop's period, s (the worst overrun's time).
     """
     side: str
     ticks: int
@@ -54,6 +59,8 @@ class TimingQuality:
     messages: str
     late: int
     missed: int
+    worst_overrun: dict | None = None
+    period_s: float = 0.0
 
     @classmethod
     def of_emulator(cls, report: dict) -> "TimingQuality":
@@ -61,7 +68,8 @@ class TimingQuality:
         loop, stats = report["loop"], report["adapter"]["stats"]
         return cls("emulator", loop["ticks"], loop["overruns"], loop["lateness_us"]["max"],
                    loop["stalls"], loop["skipped"], "setpoints", stats.get("drained", 0),
-                   stats.get("lost", 0))
+                   stats.get("lost", 0), loop.get("worst_overrun"),
+                   loop.get("period_ns", 0) * 1e-9)
 
     @classmethod
     def of_controller(cls, summary: dict) -> "TimingQuality":
@@ -69,7 +77,8 @@ class TimingQuality:
         loop, fb = summary["loop"], summary["feedback"]
         return cls("controller", loop["ticks"], loop["overruns"], loop["lateness_us"]["max"],
                    loop["stalls"], loop["skipped"], "feedback", fb["lag_ticks"]["2+"],
-                   fb["ticks_without_new"])
+                   fb["ticks_without_new"], loop.get("worst_overrun"),
+                   loop.get("period_ns", 0) * 1e-9)
 
     def _share(self, n: int) -> str:
         return f"{100 * n / max(1, self.ticks):.3g} %"
@@ -106,6 +115,17 @@ class TimingQuality:
                    + f"{100 * MAX_SHARE:g} % of ticks each, no stall): the results may "
                    "show the timing, not the machine")
         return f"timing: {counts}: {verdict}"
+
+    def worst_text(self) -> str:
+        """The worst overrun: when, how far behind, where it ran and what kept it (empty
+        when the loop had none)."""
+        w = self.worst_overrun
+        if not w:
+            return ""
+        return (f"{self.side}'s worst overrun: tick {w['tick']} (t = "
+                f"{w['tick'] * self.period_s:.4f} s), {w['behind_us']:.1f} µs after the next "
+                f"deadline, in a {w['where']} tick; since the overrun before it: "
+                f"{Cause.from_dict(w['cause']).text()}")
 
     def header(self) -> dict[str, str]:
         """The trace header's ``# key: value`` lines for this side's timing (a trace's
