@@ -16,7 +16,7 @@ allocation in the tick), so what moved is what happened.
 import gc
 import resource
 import time
-from dataclasses import asdict, astuple, dataclass
+from typing import NamedTuple
 
 #: the collector's and the compiler's totals in this process, updated by their callbacks
 _TOTALS = {"gc_collections": 0, "gc_ns": 0, "compile_ns": 0}
@@ -59,8 +59,7 @@ def _install() -> None:
     event.register("numba:compile", CompileTime())
 
 
-@dataclass(frozen=True)
-class Cause:
+class Cause(NamedTuple):
     """What changed between two reads of the counters (see the module docstring).
 
     Attributes:
@@ -94,11 +93,15 @@ class Cause:
         return "; ".join(parts) or ("nothing the loop counts (no preemption, page fault, "
                                     "collection or compile: a system call that blocked?)")
 
-    def __add__(self, other: "Cause") -> "Cause":
-        return Cause(*(a + b for a, b in zip(astuple(self), astuple(other))))
+    def plus(self, other: "Cause") -> "Cause":
+        """The two summed, field by field."""
+        return Cause(self.preempted + other.preempted, self.page_faults + other.page_faults,
+                     self.major_faults + other.major_faults,
+                     self.gc_collections + other.gc_collections,
+                     self.gc_ms + other.gc_ms, self.compile_ms + other.compile_ms)
 
     def as_dict(self) -> dict:
-        return asdict(self)
+        return self._asdict()
 
     @classmethod
     def from_dict(cls, d: dict) -> "Cause":
@@ -121,7 +124,7 @@ class Causes:
 
     def since_last(self) -> Cause:
         """What moved since the previous call (or since this was built)."""
-        now = self._read()
-        d = [a - b for a, b in zip(now, self.last)]
+        now, last = self._read(), self.last
         self.last = now
-        return Cause(d[0], d[1], d[2], d[3], d[4] * 1e-6, d[5] * 1e-6)
+        return Cause(now[0] - last[0], now[1] - last[1], now[2] - last[2], now[3] - last[3],
+                     (now[4] - last[4]) * 1e-6, (now[5] - last[5]) * 1e-6)

@@ -268,7 +268,7 @@ def run_ticks(loop, end_tick: Callable[[int, int, int], None], n: int) -> TickCo
             overruns += 1
             if on_time or episode is None:  # ticks catching up inherit its cause
                 episode = causes.since_last()
-                total = episode if total is None else total + episode
+                total = episode if total is None else total.plus(episode)
             behind = end - deadline - period
             if worst is None or behind > worst["behind_ns"]:
                 worst = {"tick": k, "behind_ns": behind,
