@@ -121,8 +121,8 @@ def test_the_declared_encoder_step_gives_the_position_floor(tmp_path):
     rec = _printed_trace(tmp_path, STEP)
     assert replay_floor(rec, cfg)["pos_rms_um"] == STEP / math.sqrt(12) * 1e6
     assert floor_origins(rec, cfg)["pos_rms_um"] == (
-        "the declared motor encoder step 76.29 nm (encoder_counts_per_rev of the machine "
-        "file, through the lead) / sqrt(12)")
+        "the declared motor encoder step 76.29 nm / sqrt(12), encoder_counts_per_rev of the "
+        "machine file through the lead")
     coarse = _printed_trace(tmp_path, 4 * STEP, "# encoder_counts_per_rev: 32768\n")
     assert replay_floor(coarse, cfg)["pos_rms_um"] == 4 * STEP / math.sqrt(12) * 1e6
     assert "encoder_counts_per_rev of the header" in floor_origins(coarse, cfg)["pos_rms_um"]

@@ -64,7 +64,7 @@ def _declared_steps(rec: Record, cfg: MachineConfig) -> dict:
     else:
         motor = (2.0 * math.pi * transmission_ratio(cfg) / sen.encoder_counts_per_rev,
                  "motor encoder", where("encoder_counts_per_rev")
-                 + (", through the lead" if cfg.machine.kind == "screw" else ""))
+                 + (" through the lead" if cfg.machine.kind == "screw" else ""))
     scale = None
     if cfg.machine.kind != "rotary" and sen.scale_resolution_m > 0.0:
         scale = (sen.scale_resolution_m, "scale", where("scale_resolution_m"))
@@ -89,7 +89,7 @@ def _sensor(x: np.ndarray, declared: tuple | None, rotary: bool) -> tuple[float,
         q, sensor, key = declared
         if on_grid(x, q):
             return q / math.sqrt(12.0), (f"the declared {sensor} step "
-                                         f"{_length(q, rotary)} ({key}) / sqrt(12)")
+                                         f"{_length(q, rotary)} / sqrt(12), {key}")
     q = quantum(x)
     off = (f"; the declared {declared[1]} step {_length(declared[0], rotary)} does not fit "
            "the record's changes" if declared is not None else "")
