@@ -103,15 +103,19 @@ def test_identify_cli_refuses_a_bad_header_in_one_line(tmp_path):
     assert "position_loop_sample_time_s" in done.stderr and "Traceback" not in done.stderr
 
 
-def _open_loop(sec_over: dict, ticks: int = 400):
+def _open_loop(sec_over: dict, ticks: int = 400, rows=None, compiled: bool = True,
+               turns_rad: float = 30.0):
     """The base Controller and a TraceController with ``sec_over``, both fed the same
     feedback sequence (a motor turning at a varying speed, counts of the config's
-    encoder) and the same setpoint ramp; returns per tick (w_act, w_set, iq_ref) of each."""
+    encoder, ``turns_rad`` its amplitude) and the same setpoint ramp; the TraceController
+    with the feed-forward ``rows`` = (values, ticks per row) when given.  Returns per tick (w_act, w_set,
+    iq_ref, tick, v_set, ticks since the first position cycle of the points) of each."""
     cfg = load_machine(BASE)
     sec = load_controller(cfg)
     pwm = 1.0 / cfg.motor.pwm_frequency_hz
-    base = Controller(cfg, pwm, 0.0, section=sec)
-    mine = TraceController(cfg, pwm, 0.0, dataclasses.replace(sec, **sec_over))
+    base = Controller(cfg, pwm, 0.0, section=sec, compiled=compiled)
+    mine = TraceController(cfg, pwm, 0.0, dataclasses.replace(sec, **sec_over),
+                           compiled=compiled)
     n_ipo = ticks // sec.ipo_cycle_ratio + 2
     t = np.arange(n_ipo) * pwm * sec.ipo_cycle_ratio
     v = 0.05 * np.sin(2 * np.pi * 20 * t)
@@ -124,19 +128,20 @@ def _open_loop(sec_over: dict, ticks: int = 400):
         while not ctrl.enabled:  # a real drive enables; the feedback is synthetic after
             ctrl.tick(fb, sp)
             drive.cycle(sp, fb)
-        if name == "mine":  # 0.01 m/s times the number of the position cycle under way
-            n_pos = sec.position_cycle_ratio
-            first = -(-ctrl.tick_count // n_pos)
-            ctrl.follow_feed_forward(0.01 * (np.arange(ticks // n_pos + 2) + first - 1))
+        if name == "mine" and rows is not None:
+            ctrl.follow_feed_forward(*rows)
+        n_pos = sec.position_cycle_ratio
+        first = -(-ctrl.tick_count // n_pos) * n_pos
         ctrl.run_points(ipo)
-        rows = []
+        samples = []
         for k in range(ticks):
-            theta = 30.0 * np.sin(2 * np.pi * 7 * k * pwm)
+            theta = turns_rad * np.sin(2 * np.pi * 7 * k * pwm)
             fb.encoder_counts = float(np.floor(theta * counts_per_rad))
             fb.scale_counts = float(np.floor(theta * 0.01 / (2 * np.pi) / 5e-8))
             ctrl.tick(fb, sp)
-            rows.append((ctrl.w_act, ctrl.w_set, sp.iq_ref_a, ctrl.tick_count - 1))
-        out[name] = np.array(rows)
+            samples.append((ctrl.w_act, ctrl.w_set, sp.iq_ref_a, ctrl.tick_count - 1,
+                            ctrl.v_set, ctrl.tick_count - 1 - first))
+        out[name] = np.array(samples)
     return out, sec, pwm
 
 
@@ -159,17 +164,34 @@ def test_current_delay_shifts_the_current_setpoint_by_whole_pwm_periods():
     assert np.all(out["mine"][:2, 2] == 0.0)
 
 
-def test_linear_feed_forward_interpolates_between_position_cycles():
-    """Between position cycles the speed setpoint moves linearly from this cycle's
-    feed-forward towards the next one's (given by follow_feed_forward); the P part is
-    held: w_set - w_ff is constant within a position cycle."""
-    out, sec, _ = _open_loop({"feedforward_interpolation": "linear"})
+@pytest.mark.parametrize("mode", ["hold", "linear"])
+@pytest.mark.parametrize("compiled", [True, False])
+def test_feed_forward_follows_the_trace_rows_at_every_speed_cycle(mode, compiled):
+    """trace-format.md: the speed loop takes ``vel_set`` per record row, held or linearly
+    interpolated between the rows that bracket each speed sample, whatever the position
+    cycle (4 PWM periods here; the rows every 2, each a step off its neighbours).  Against
+    the base Controller fed the same feedback and setpoints (the same P part), the speed
+    setpoint differs by the feed-forward factor times (the rows' value by np.interp or by
+    index - the fine interpolator's held one) at every speed cycle from the points' first
+    position cycle on; before it, not at all."""
+    every = 2
+    steps = np.where(np.arange(300) % 3 == 1, 0.02, -0.01)  # steps on odd and even rows
+    # small turns: the speed command stays within the velocity limit
+    out, sec, _ = _open_loop({"feedforward_interpolation": mode}, rows=(steps, every),
+                             compiled=compiled, turns_rad=0.3)
     mine, base = out["mine"], out["base"]
-    n = sec.position_cycle_ratio
-    ticks = mine[:, 3].astype(int)
-    on_cycle = ticks % n == 0
-    np.testing.assert_array_equal(mine[on_cycle, 1], base[on_cycle, 1])
-    assert not np.allclose(mine[~on_cycle, 1], base[~on_cycle, 1])
+    since = mine[:, 5].astype(int)
+    started = since >= 0
+    np.testing.assert_array_equal(mine[~started, 1], base[~started, 1])
+    s = since[started]
+    if mode == "linear":
+        expected = np.interp(s, np.arange(steps.size) * every, steps)
+    else:
+        expected = steps[s // every]
+    ratio = load_machine(BASE).mechanics.lead_m / (2 * np.pi)
+    w_ff = sec.speed_ff_weight
+    np.testing.assert_allclose((mine[started, 1] - base[started, 1]) * ratio,
+                               w_ff * (expected - base[started, 4]), rtol=0, atol=1e-12)
 
 
 def test_pi_antiwindup_modes_by_hand():

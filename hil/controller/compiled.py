@@ -5,12 +5,12 @@ In position control with the drive enabled, no alarm and no test mode, a tick of
 :class:`hil.controller.nc.Controller` is arithmetic on some hundred numbers: the feedback
 checked and measured (the speed every speed cycle through ``speed_actual_filter_s``), the
 drive's state watched, the enable sequence holding, the feed-forward finely interpolated
-between position cycles (``feedforward_interpolation = "linear"``), every position cycle
-the fine interpolator, the axis monitoring (contour model, standstill and clamping
-checks) and the position loop, every speed cycle the speed loop (its filters,
-``speed_antiwindup``, D part) and the contour model's, the current setpoint delayed by
-``current_delay_cycles``, with ``plant_input = "voltage"`` the current loop, and the loop
-state checked finite.  :func:`nc_cycle` does exactly that on flat arrays, in the same
+between position cycles (``feedforward_interpolation = "linear"``) or a trace's given at
+every speed cycle, every position cycle the fine interpolator, the axis monitoring
+(contour model, standstill and clamping checks) and the position loop, every speed cycle
+the speed loop (its filters, ``speed_antiwindup``, D part) and the contour model's, the
+current setpoint delayed by ``current_delay_cycles``, with ``plant_input = "voltage"``
+the current loop, and the loop state checked finite.  :func:`nc_cycle` does exactly that on flat arrays, in the same
 floating-point order as the Python path (no fused multiply-add; Python's ``max`` and
 ``min`` with their order of NaN and signed zeros), so both give the same bits.
 
@@ -38,8 +38,8 @@ Array layouts (module constants, compile-time indices):
   the mode sent (``Y_*``);
 * ``pts`` float64[3, n]: the fine interpolator's IPO points (position, velocity,
   acceleration);
-* ``ffa`` float64[m]: the feed-forward of each position cycle a trace-fed controller
-  runs its linear fine interpolation towards (:mod:`hil.identify.trace_controller`;
+* ``ffa`` float64[m]: a trace-fed controller's speed feed-forward of every speed cycle
+  from the first position cycle of its points (:mod:`hil.identify.trace_controller`;
   unused with ``M_TRACE_FF`` 0);
 * ``ring`` float64[max(1, d)]: the current setpoints in the computation delay (d =
   ``current_delay_cycles``), the oldest at ``ist[J_DELAY_HEAD]``.
@@ -70,7 +70,7 @@ EXIT_FEEDBACK = 1
 EXIT_DRIVE = 2
 #: a clamp or unclamp block is reached (the Python path clamps or unclamps)
 EXIT_CLAMP = 3
-#: the trace's feed-forward ends before the position cycle (the Python path's IndexError)
+#: the trace's feed-forward ends before the speed cycle (the Python path's IndexError)
 EXIT_FEED_FORWARD = 4
 #: a loop state or output is not finite (alarm 1000)
 EXIT_NONFINITE = 5
@@ -248,12 +248,8 @@ def _measure(prm, w, wi, m, fio, k):
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def _next_feed_forward(w, wi, m, pts, ffa):
-    """The next position cycle's feed-forward (Controller._next_feed_forward, or the
-    trace's); NaN when the trace has none that far."""
-    if m[M_TRACE_FF]:
-        j = wi[J_FINE_CYCLES]
-        return ffa[j] if j < ffa.size else math.nan
+def _next_feed_forward(w, wi, m, pts):
+    """The next position cycle's feed-forward (Controller._next_feed_forward)."""
     if not m[M_FINE]:
         return w[F_V_SET]
     k, last = wi[J_FINE_K], pts.shape[1] - 1
@@ -407,12 +403,10 @@ def nc_compute(prm, fst, ist, pts, ffa, ring):
     _measure(prm, w, wi, m, fio, k)
     wi[J_ENABLE_CYCLES] += 1
     n_pos, n_speed = m[M_N_POS], m[M_N_SPEED]
-    if m[M_FF_LINEAR] and k % n_pos and k % n_speed == 0:
+    if m[M_FF_LINEAR] and not m[M_TRACE_FF] and k % n_pos and k % n_speed == 0:
         # Controller._interpolate_feed_forward: the P part held, the feed-forward on the
         # line towards the next position cycle's
-        v_next = _next_feed_forward(w, wi, m, pts, ffa)
-        if m[M_TRACE_FF] and math.isnan(v_next):
-            return EXIT_FEED_FORWARD
+        v_next = _next_feed_forward(w, wi, m, pts)
         v_ff = w[F_V_SET] + (v_next - w[F_V_SET]) * ((k % n_pos) / n_pos)
         w[F_V_CMD] = _position_command(prm, R_POS, w, F_POS, v_ff)
         w[F_W_SET] = w[F_V_CMD] / prm[R_RATIO]
@@ -421,6 +415,14 @@ def nc_compute(prm, fst, ist, pts, ffa, ring):
         if status != DONE:
             return status
     if k % n_speed == 0:
+        if m[M_TRACE_FF]:
+            # Controller._given_feed_forward: the trace's feed-forward of this speed cycle
+            j = (wi[J_FINE_CYCLES] - 1) * (n_pos // n_speed) + (k % n_pos) // n_speed
+            if j >= ffa.size:
+                return EXIT_FEED_FORWARD
+            if j >= 0:
+                w[F_V_CMD] = _position_command(prm, R_POS, w, F_POS, ffa[j])
+                w[F_W_SET] = w[F_V_CMD] / prm[R_RATIO]
         w[F_IQ_SET] = _speed_step(prm, R_SPEED, w, F_SPEED, w[F_W_SET], w[F_W_ACT], w[F_I_FF])
         if wi[J_MONITOR_ACTIVE]:
             _model_speed_cycle(prm, w)

@@ -13,7 +13,8 @@ Per tick, in the order a SINUMERIK 840D with SINAMICS runs them:
   encoder (difference over the speed cycle, through the first-order filter of
   ``speed_actual_filter_s``); with ``feedforward_interpolation = "linear"`` the speed
   feed-forward between position cycles moved linearly towards the next cycle's (the P
-  part held);
+  part held); a trace-fed controller (:meth:`Controller.trace_feed_forward`) takes the
+  trace's feed-forward of every speed cycle instead;
 * the current setpoint delayed by ``current_delay_cycles`` PWM periods (the drive's
   computation delay);
 * every tick, when the plant takes voltage, the current loop;
@@ -172,9 +173,10 @@ class Controller:
             self.compiled.leave()
 
     def trace_feed_forward(self):
-        """The feed-forward of each position cycle a linear fine interpolation runs towards
-        when a trace gives it (:class:`hil.identify.trace_controller.TraceController`),
-        else None: the fine interpolator's."""
+        """The speed feed-forward (m/s or rad/s) of every speed cycle from the first
+        position cycle of the points followed, when a trace gives it
+        (:class:`hil.identify.trace_controller.TraceController`), shape (n,); else None:
+        the fine interpolator's."""
 
     def reset(self, x0: float) -> None:
         """At rest at table position ``x0``, drive disabled, program cleared."""
@@ -454,8 +456,9 @@ class Controller:
         sec = self.sec
         if self.mode == "current" and k % sec.speed_cycle_ratio == 0:
             self._guard_current_mode()
-        if (self.ff_linear and self.mode == "position" and k % sec.position_cycle_ratio
-                and k % sec.speed_cycle_ratio == 0):
+        trace = self.trace_feed_forward() if self.mode == "position" else None
+        if (trace is None and self.ff_linear and self.mode == "position"
+                and k % sec.position_cycle_ratio and k % sec.speed_cycle_ratio == 0):
             self._interpolate_feed_forward(k)
         due = sec.speed_cycle_ratio if self.mode == "speed" else sec.position_cycle_ratio
         if k % due == 0:
@@ -463,6 +466,8 @@ class Controller:
             if self.phase is not Phase.RUN:
                 return
         if k % sec.speed_cycle_ratio == 0:
+            if trace is not None:
+                self._given_feed_forward(trace, k)
             if self.mode == "current":
                 self.iq_set = self.source(self.t)
                 if self.excitation is not None:
@@ -479,6 +484,18 @@ class Controller:
         frac = (k % n_pos) / n_pos
         v_ff = self.v_set + (self._next_feed_forward() - self.v_set) * frac
         self.v_cmd = self.pos_loop.command(v_ff)
+        self.w_set = self.v_cmd / self.ratio
+
+    def _given_feed_forward(self, trace, k: int) -> None:
+        """A speed cycle of a trace-fed controller: the speed command of the P part of the
+        last position cycle with the trace's feed-forward of this speed cycle (none before
+        the points' first position cycle; IndexError past the trace's end)."""
+        sec = self.sec
+        n_pos, n_speed = sec.position_cycle_ratio, sec.speed_cycle_ratio
+        j = (self._fine_cycles - 1) * (n_pos // n_speed) + (k % n_pos) // n_speed
+        if j < 0:
+            return
+        self.v_cmd = self.pos_loop.command(float(trace[j]))
         self.w_set = self.v_cmd / self.ratio
 
     def _next_feed_forward(self) -> float:

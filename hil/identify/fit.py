@@ -35,7 +35,7 @@ from hil.identify.changes import change_text, declared_changes
 from hil.identify.conventions import read_conventions
 from hil.identify.effects import FORCE, LIBRARY, POSITION, REPLAY, Context, Term
 from hil.identify.effects.base import correlation
-from hil.identify.floor import judge, normalised_cost, replay_floor
+from hil.identify.floor import floor_origins, judge, normalised_cost, replay_floor
 from hil.identify.model import Model
 from hil.identify.motion import Drive, motion
 from hil.identify.record import Record
@@ -96,7 +96,7 @@ class Identification:
     After :meth:`fit`: ``steps`` (the effects added, in order), ``rejected`` and
     ``skipped`` (effect -> why), ``proposals`` (every step tried, kept or not, with its
     parameters, errors before and after and the reason), ``floor`` (the replay channels'
-    noise floors), ``refinement``, ``error_before``/``error_after`` (replay
+    noise floors) and ``floor_origins`` (how each was found), ``refinement``, ``error_before``/``error_after`` (replay
     errors), ``residual_before``/``residual_after`` (domain -> residual, shape (n,)),
     ``replay_before``/``replay_after``, ``friction_before``/``friction_after`` (v -> force),
     ``unexplained`` (the signature of what is left), ``rounds`` (every round's candidates
@@ -141,10 +141,13 @@ class Identification:
         self.residual_before = {d: self.model.residual(d) for d in self.domains()}
         self.friction_before = friction_curve(self.model)
         self.model_before_inertia = float(self.model.term("inertia").coef[0])
-        self.floor = replay_floor(self.rec)
+        self.floor = replay_floor(self.rec, cfg)
+        self.floor_origins = floor_origins(self.rec, cfg)
         # independent samples: the inverse model's band, 2 f_c per second
         self.n_eff = self.rec.n * 2.0 * self.motion.cutoff_hz * self.rec.dt
-        self._say(f"error before: {_fmt(self.error_before)}; noise floor {_fmt(self.floor)}")
+        self._say(f"error before: {_fmt(self.error_before)}; noise floor "
+                  + ", ".join(f"{k} {v:.4g} ({self.floor_origins[k]})"
+                              for k, v in self.floor.items()))
         err = self.error_before
         setting = Setting(str(self.config), self.rec, self.cutoff_hz, self.floor, self.n_eff,
                           self.tolerance)

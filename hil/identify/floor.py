@@ -9,7 +9,12 @@ measurement's own noise, per channel (the keys of :func:`hil.identify.replay.err
   and the median absolute deviation ignores the steps), and the ADC's step over sqrt(12)
   where the record is on a grid;
 * each position (``pos_rms_um``/``pos_rms_urad``, ``motor_pos_rms_um``): the sensor's step
-  over sqrt(12), the step being the record's quantum (or the MAD estimate off a grid).
+  over sqrt(12).  The step is the one the machine file or the record's header declares
+  (``encoder_counts_per_rev`` through the lead, ``encoder_resolution_m``,
+  ``scale_resolution_m``) where the record's changes are whole multiples of it; else the
+  step fitted to the record's changes (:func:`~hil.identify.effects.base.quantum`, which
+  tolerates the round-off of printed values); off any grid, the MAD estimate.
+  :func:`floor_origins` says per channel which it was.
 
 A step of the search is judged by the normalised cost J = sum over channels of
 (error / floor)^2: a channel at its floor weighs about 1 whatever its units, so a channel
@@ -24,9 +29,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from hil.identify.effects.base import quantum
+from hil.identify.conventions import apply_conventions, read_conventions
+from hil.identify.effects.base import on_grid, quantum
 from hil.identify.record import Record
 from hil.identify.replay import Replay
+from plant.assemble import transmission_ratio
+from plant.config import MachineConfig
 
 #: 1.4826 MAD is the standard deviation of Gaussian data
 MAD_TO_SIGMA = 1.4826
@@ -40,25 +48,89 @@ def white_noise(x: np.ndarray) -> float:
     return float(MAD_TO_SIGMA * np.median(np.abs(d2 - np.median(d2))) / math.sqrt(6.0))
 
 
-def _sensor(x: np.ndarray) -> float:
-    """rms quantisation (or white) noise of a position signal, same unit as ``x``."""
+def _declared_steps(rec: Record, cfg: MachineConfig) -> dict:
+    """The position sensors' steps ``cfg`` (with ``rec``'s header keys applied) declares,
+    in table units (m or rad): {"pos": ..., "motor_pos": ...} as (step, sensor, the key
+    that declares it), a sensor without a declared step left out."""
+    conv = read_conventions(rec, cfg)
+    cfg = apply_conventions(cfg, conv)
+    sen = cfg.sensors
+
+    def where(key: str) -> str:
+        return f"{key} of the {'header' if key in conv.given else 'machine file'}"
+
+    if cfg.machine.kind == "linear":
+        motor = (sen.encoder_resolution_m, "motor encoder", where("encoder_resolution_m"))
+    else:
+        motor = (2.0 * math.pi * transmission_ratio(cfg) / sen.encoder_counts_per_rev,
+                 "motor encoder", where("encoder_counts_per_rev")
+                 + (" through the lead" if cfg.machine.kind == "screw" else ""))
+    scale = None
+    if cfg.machine.kind != "rotary" and sen.scale_resolution_m > 0.0:
+        scale = (sen.scale_resolution_m, "scale", where("scale_resolution_m"))
+    two_sensors = rec.motor_pos is not None and not np.array_equal(rec.motor_pos, rec.pos)
+    # one position column is what the position loop read: the scale where it closes it
+    by_scale = two_sensors or cfg.section("controller").get("feedback") == "scale"
+    out = {"motor_pos": motor}
+    pos = scale if by_scale else motor
+    if pos is not None:
+        out["pos"] = pos
+    return out
+
+
+def _length(q: float, rotary: bool) -> str:
+    return f"{q * 1e6:.4g} µrad" if rotary else f"{q * 1e9:.4g} nm"
+
+
+def _sensor(x: np.ndarray, declared: tuple | None, rotary: bool) -> tuple[float, str]:
+    """rms quantisation (or white) noise of a position signal, same unit as ``x``, and how
+    it was found."""
+    if declared is not None:
+        q, sensor, key = declared
+        if on_grid(x, q):
+            return q / math.sqrt(12.0), (f"the declared {sensor} step "
+                                         f"{_length(q, rotary)} / sqrt(12), {key}")
     q = quantum(x)
-    return q / math.sqrt(12.0) if q > 0 else white_noise(x)
+    off = (f"; the declared {declared[1]} step {_length(declared[0], rotary)} does not fit "
+           "the record's changes" if declared is not None else "")
+    if q > 0:
+        return q / math.sqrt(12.0), (f"grid fit: the record's step {_length(q, rotary)} / "
+                                     f"sqrt(12){off}")
+    return white_noise(x), f"white noise of the record's second difference (no grid){off}"
 
 
-def replay_floor(rec: Record) -> dict:
-    """The noise floor of every replay error channel of ``rec``, in the units of
-    :func:`hil.identify.replay.errors` (µm, µrad, A, N)."""
+def _floors(rec: Record, cfg: MachineConfig | None) -> dict:
+    """{channel: (floor, how it was found)} (module docstring)."""
     effort = "iq_rms_a" if rec.effort_kind == "iq" else "force_rms_n"
     lsb = quantum(rec.effort)
     noise = white_noise(rec.effort)
     # the MAD of a signal on a grid already holds part of its rounding: add what is missing
-    out = {effort: math.hypot(noise, lsb / math.sqrt(12.0)) if noise < lsb else noise}
+    if noise < lsb:
+        out = {effort: (math.hypot(noise, lsb / math.sqrt(12.0)),
+                        f"white noise of the record's second difference with the grid "
+                        f"fit's step {lsb:.4g} / sqrt(12)")}
+    else:
+        out = {effort: (noise, "white noise of the record's second difference")}
+    declared = _declared_steps(rec, cfg) if cfg is not None else {}
     pos = "pos_rms_urad" if rec.rotary else "pos_rms_um"
-    out[pos] = _sensor(rec.pos) * 1e6
+    value, how = _sensor(rec.pos, declared.get("pos"), rec.rotary)
+    out[pos] = (value * 1e6, how)
     if rec.motor_pos is not None and not np.array_equal(rec.motor_pos, rec.pos):
-        out["motor_pos_rms_um"] = _sensor(rec.motor_pos) * 1e6
+        value, how = _sensor(rec.motor_pos, declared.get("motor_pos"), rec.rotary)
+        out["motor_pos_rms_um"] = (value * 1e6, how)
     return out
+
+
+def replay_floor(rec: Record, cfg: MachineConfig | None = None) -> dict:
+    """The noise floor of every replay error channel of ``rec``, in the units of
+    :func:`hil.identify.replay.errors` (µm, µrad, A, N); the positions' steps as ``cfg``
+    (the machine file) or the record's header declare them, where they do."""
+    return {k: v for k, (v, _) in _floors(rec, cfg).items()}
+
+
+def floor_origins(rec: Record, cfg: MachineConfig | None = None) -> dict:
+    """How :func:`replay_floor` found each channel's floor, in words."""
+    return {k: how for k, (_, how) in _floors(rec, cfg).items()}
 
 
 @dataclass(frozen=True)

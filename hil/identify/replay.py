@@ -23,15 +23,19 @@ to the measurement) and keeps every quantisation (encoder, scale, current LSB).
   lock step (:class:`hil.sim.LockStep`: the NC's and the drive's compiled steady states
   in compiled blocks, as ``hil sim`` runs them; no fault injected).  The position cycle
   and the record's sample time are whole multiples of one another: the record's
-  setpoints are fed once per position cycle (every m-th sample when the cycle is m
-  samples) or, when a sample spans several cycles, linearly fine-interpolated between
+  position setpoints are fed once per position cycle (every m-th sample when the cycle is
+  m samples) or, when a sample spans several cycles, linearly fine-interpolated between
   samples.  The drive is enabled at the first setpoint and, with a header
   ``preroll_s``, held there at rest that long before t = 0.  The speed feed-forward is the
-  ``vel_set`` column (trace-format.md); where the header says the column is the whole speed
-  command, it is recovered exactly, v_ff = (v_cmd - K_v e) / w_ff with e the record's own
-  position-loop error; without the column, the central difference of the position setpoint
-  stands in (a few µm of following error on jerk-limited moves).  The acceleration for the
-  torque feed-forward is the central difference of v_ff.  The signals are taken where the
+  ``vel_set`` column (trace-format.md), taken per record row whatever the position cycle:
+  every speed cycle gets the rows' value at its instant, linearly interpolated between the
+  rows that bracket it or the last row held (``feedforward_interpolation``;
+  :class:`~hil.identify.trace_controller.TraceController`).  Where the header says the
+  column is the whole speed command, the feed-forward is recovered exactly, v_ff = (v_cmd -
+  K_v e) / w_ff with e the record's own position-loop error; without the column, the
+  central difference of the position setpoint stands in (a few µm of following error on
+  jerk-limited moves).  The acceleration for the torque feed-forward is the central
+  difference of v_ff over the rows.  The signals are taken where the
   trace takes them (:func:`hil.sim.servo_trace_columns`): the position and motor encoder
   the controller read and the current measured at the start of the sample's PWM period.
 """
@@ -230,10 +234,10 @@ def _feed_forward(rec: Record, conv: Conventions, loop: PositionLoop, step: int)
 
     ``vel_set`` is that feed-forward (trace-format.md) unless the header says it is the
     whole speed command (``vel_set_column: speed_command``); then it is recovered exactly
-    where the command is below the velocity limit (a clipped command hides it),
-    v_ff = (v_cmd - K_v e) / w_ff with e the record's own position-loop error at every
-    ``step``-th sample (the position cycles).  Without the column, the setpoint's central
-    difference stands in."""
+    at every row where the command is below the velocity limit (a clipped command hides
+    it), v_ff = (v_cmd - K_v e) / w_ff with e the record's own position-loop error of the
+    last position cycle (every ``step``-th sample; the P part is held between them).
+    Without the column, the setpoint's central difference stands in."""
     v_est = np.gradient(rec.pos_set, rec.dt)
     if rec.vel_set is None:
         return v_est
@@ -243,8 +247,9 @@ def _feed_forward(rec: Record, conv: Conventions, loop: PositionLoop, step: int)
         return v_est
     v_ff = v_est.copy()
     loop.reset(float(rec.pos[0]))
-    for k in range(0, rec.n, step):
-        loop.step(float(rec.pos_set[k]), 0.0, float(rec.pos[k]))
+    for k in range(rec.n):
+        if k % step == 0:
+            loop.step(float(rec.pos_set[k]), 0.0, float(rec.pos[k]))
         v_ff[k] = (rec.vel_set[k] - loop.kv * loop.error) / loop.ff
     clipped = np.abs(rec.vel_set) >= loop.v_lim * (1.0 - CLIP_TOLERANCE)
     v_ff[clipped] = v_est[clipped]
@@ -285,18 +290,17 @@ def _replay_nc(cfg: MachineConfig, rec: Record, progress, compiled: bool = True)
         raise RuntimeError(f"{cfg.path}: drive not enabled: {ctrl.enable.reason}") from None
     preroll_ticks = round(conv.preroll_s / ctrl.period)
     if preroll_ticks > 0:
-        ctrl.follow_feed_forward(np.zeros(preroll_ticks // n_pos + 2))
+        ctrl.follow_feed_forward(np.zeros(preroll_ticks // grid.every + 2), grid.every)
         ctrl.run_points(_preroll_points(ctrl, x0, preroll_ticks))
         ls.run_ticks(preroll_ticks)
     v_lim = axis_limits(cfg, sec).velocity
     v_set = _feed_forward(rec, conv, PositionLoop(sec, period_pos, v_lim), grid.step)
+    # the speed loop takes the feed-forward of every row (trace-format.md); the position
+    # loop only the setpoints of its cycles
+    ctrl.follow_feed_forward(v_set, grid.every)
     fed = slice(0, rec.n, grid.step)
-    v_fed = v_set[fed]
-    # the feed-forward of each position cycle, for a linear fine interpolation
-    ctrl.follow_feed_forward(np.interp(np.arange(rec.n * grid.every // n_pos + 2) * period_pos,
-                                       rec.t[fed], v_fed))
-    ctrl.run_points(ProfileSamples(rec.t[fed], rec.pos_set[fed], v_fed,
-                                   np.gradient(v_fed, rec.dt * grid.step)))
+    ctrl.run_points(ProfileSamples(rec.t[fed], rec.pos_set[fed], v_set[fed],
+                                   np.gradient(v_set, rec.dt)[fed]))
     # the record's t = 0 is the first position cycle
     first = -(-ctrl.tick_count // n_pos) * n_pos
     out = AxisRecording(rec.n, ctrl, plant)

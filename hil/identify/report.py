@@ -70,6 +70,7 @@ def summary(ident: Identification, validation: dict | None, elapsed_s: float,
         "validation": validation or {},
         "noise_floor": {d: ident.noise_floor(d) for d in ident.domains()},
         "replay_noise_floor": ident.floor,
+        "replay_noise_floor_origin": ident.floor_origins,
         "error_before_over_floor": over_floor(ident.error_before, ident.floor),
         "error_after_over_floor": over_floor(ident.error_after, ident.floor),
         "proposals": ident.proposals, "rounds": ident.rounds,
@@ -162,8 +163,10 @@ def markdown(rep: dict) -> str:
             lines.append(f"| {c['parameter']} | {_fmt(c['declared'])} | "
                          f"{_fmt(c['identified'])} | {change_text(c)} | "
                          f"{_fmt(c['sigma'])} | {c['tolerance_pct']:g} % | {flag} |")
+    origin = rep.get("replay_noise_floor_origin", {})
     lines += ["", "Noise floor of the replay channels: " + ", ".join(
-        f"{k} {_fmt(v)}" for k, v in rep["replay_noise_floor"].items())
+        f"{k} {_fmt(v)}" + (f" ({origin[k]})" if k in origin else "")
+        for k, v in rep["replay_noise_floor"].items())
         + "; error over it before: " + ", ".join(
         f"{k} {v:.3g}" for k, v in rep["error_before_over_floor"].items())
         + "; after: " + ", ".join(f"{k} {v:.3g}" for k, v in rep["error_after_over_floor"].items())]

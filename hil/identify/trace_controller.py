@@ -2,10 +2,14 @@
 controllers.
 
 The NC (:class:`hil.controller.nc.Controller`) honours every convention of ``[controller]``
-itself (``feedforward_interpolation``, ``speed_actual_filter_s``, ``speed_antiwindup``,
-``current_delay_cycles``); what the replay adds is where a linear fine interpolation of the
-speed feed-forward runs to: the record's feed-forward at the next position cycle rather than
-the fine interpolator's.
+itself (``speed_actual_filter_s``, ``speed_antiwindup``, ``current_delay_cycles``); what the
+replay adds is the speed feed-forward as ``docs/trace-format.md`` (shared docs) defines it:
+the record's ``vel_set`` per record row, not per position cycle.  At every speed cycle the
+speed command is the P part of the last position cycle plus the feed-forward factor times
+the feed-forward of that instant: with ``feedforward_interpolation = "linear"`` the linear
+interpolation between the two record rows that bracket it, with ``"hold"`` the last row at
+or before it -- whatever the position cycle, so a feed-forward step on a row between two
+position cycles reaches the speed loop when the row says.
 """
 
 import numpy as np
@@ -16,8 +20,8 @@ from plant.config import MachineConfig
 
 
 class TraceController(Controller):
-    """:class:`~hil.controller.nc.Controller` whose feed-forward at each position cycle is
-    given by the replay (:meth:`follow_feed_forward`).
+    """:class:`~hil.controller.nc.Controller` whose speed feed-forward at each speed cycle
+    comes from the record's rows (:meth:`follow_feed_forward`).
 
     Args:
         cfg, period_s, x0, section: as for the base class (``section`` from
@@ -31,17 +35,26 @@ class TraceController(Controller):
         self._feed_forward: np.ndarray | None = None
         super().__init__(cfg, period_s, x0, section=section, compiled=compiled)
 
-    def follow_feed_forward(self, v_pos: np.ndarray) -> None:
-        """The feed-forward (m/s or rad/s) of the position cycles of the points followed
-        next (:meth:`run_points`), shape (n,): ``v_pos[j]`` is that of position cycle j,
-        towards which a linear fine interpolation runs during cycle j - 1."""
+    def follow_feed_forward(self, v_rows: np.ndarray, ticks_per_row: int) -> None:
+        """The feed-forward (m/s or rad/s) of the record rows of the points followed next
+        (:meth:`run_points`), shape (n,): row r stands ``r * ticks_per_row`` PWM periods
+        after the points' first position cycle.  Every speed cycle from there takes the
+        rows' value at its instant (module docstring); past the last row, the last one."""
+        if ticks_per_row < 1:
+            raise ValueError(f"ticks_per_row {ticks_per_row} must be >= 1")
+        v = np.asarray(v_rows, dtype=np.float64)
+        if v.ndim != 1 or v.size == 0:
+            raise ValueError(f"v_rows has shape {v.shape}, needs (n,) with n >= 1")
         self.settle()
-        self._feed_forward = np.ascontiguousarray(v_pos, dtype=np.float64)
+        n_speed = self.sec.speed_cycle_ratio
+        ticks = np.arange(-(-v.size * ticks_per_row // n_speed) + 1) * n_speed
+        row, within = np.divmod(ticks, ticks_per_row)
+        last = v.size - 1
+        here = v[np.minimum(row, last)]
+        if self.sec.feedforward_interpolation == "linear":
+            ahead = v[np.minimum(row + 1, last)]
+            here = here + (ahead - here) * (within / ticks_per_row)
+        self._feed_forward = np.ascontiguousarray(here)
 
     def trace_feed_forward(self) -> np.ndarray | None:
         return self._feed_forward
-
-    def _next_feed_forward(self) -> float:
-        if self._feed_forward is None:
-            return super()._next_feed_forward()
-        return float(self._feed_forward[self._fine_cycles])

@@ -10,10 +10,12 @@ Per PWM period (the basic clock) k, in this order:
 * every position cycle: e = x_set' - x_meas with x_set' the setpoint through a first-order
   lag of ``speedctrl_equiv_time_s``; v_P = K_v e;
 * every speed cycle: the speed from the encoder's difference over the cycle, through the
-  first-order filter of ``speed_actual_filter_s``; the feed-forward v_ff held over the
-  position cycle or, with ``feedforward_interpolation = "linear"``, moved linearly toward
-  the next cycle's; w_set = clip(v_P + w_ff v_ff) / r; the PI (``speed_antiwindup``) gives
-  the torque, / K_t the current setpoint, limited;
+  first-order filter of ``speed_actual_filter_s``; the feed-forward v_ff as trace-format.md
+  defines it, per record row whatever the position cycle: the row's ``vel_set`` (the
+  setpoint's velocity at the row plus any excitation given for it) held until the next
+  row or, with ``feedforward_interpolation = "linear"``, interpolated linearly between the
+  two rows that bracket the speed sample; w_set = clip(v_P + w_ff v_ff) / r; the PI
+  (``speed_antiwindup``) gives the torque, / K_t the current setpoint, limited;
 * the setpoint applied ``current_delay_cycles`` periods later, held over the period while
   the axis is integrated.
 
@@ -117,7 +119,8 @@ def _conventions(cfg: MachineConfig, sec: ControllerSection, dt_rec: float,
 
 
 def simulate(truth: str | Path, traj: Trajectory, *, record_every: int, preroll_s: float,
-             adc_bits: int, seed: int, rtol: float = RTOL, progress=None) -> Recording:
+             adc_bits: int, seed: int, rtol: float = RTOL, progress=None,
+             excitation: np.ndarray | None = None) -> Recording:
     """Run ``traj`` on the machine file ``truth`` (its ``[controller]`` with the
     conventions of the module docstring) and record every ``record_every`` PWM periods.
 
@@ -132,6 +135,9 @@ def simulate(truth: str | Path, traj: Trajectory, *, record_every: int, preroll_
         rtol: the integration's relative tolerance (the bench's repeat uses ten times
             RTOL: a trace that changes with it cannot be followed closer by any model).
         progress: optional callable(fraction).
+        excitation: added to the speed feed-forward of each record row (m/s or rad/s),
+            shape (n,) with n at least the number of rows (traj.duration_s over the sample
+            time, plus one); the trace's ``vel_set`` holds it.
     """
     cfg = load_machine(truth)
     sec = load_controller(cfg)
@@ -169,12 +175,19 @@ def simulate(truth: str | Path, traj: Trajectory, *, record_every: int, preroll_
 
     pre_ticks = round(preroll_s / t_pos) * n_pos
     n_rec = int(traj.duration_s / (record_every * pwm)) + 1
+    # each row's feed-forward (one row past the last, for the interpolation toward it)
+    v_rows = traj.at(np.arange(n_rec + 1) * record_every * pwm)[1]
+    if excitation is not None:
+        if np.ndim(excitation) != 1 or len(excitation) < n_rec:
+            raise ValueError(f"excitation has shape {np.shape(excitation)}; the trace has "
+                             f"{n_rec} rows")
+        v_rows[:n_rec] += np.asarray(excitation[:n_rec], dtype=float)
+        v_rows[n_rec] = v_rows[n_rec - 1]
     n_ticks = pre_ticks + n_rec * record_every
     rec = {k: np.empty(n_rec) for k in ("t", "x_set", "v_ff", "x", "v", "iq_set", "iq",
                                         "motor", "x_true", "motor_true", "iq_true")}
     x_sym = float(x_start[0])
     v_p = 0.0
-    v_ff_now = v_ff_next = 0.0
     theta_prev = None
     w_act = 0.0
     i_set = 0.0
@@ -193,9 +206,7 @@ def simulate(truth: str | Path, traj: Trajectory, *, record_every: int, preroll_
         motor_meas = counts * enc_step_table
         x_meas = x_scale if feedback_scale else motor_meas
         if k % n_pos == 0:
-            pos, vel = traj.at([max(t, 0.0), max(t, 0.0) + t_pos])
-            x_set = float(pos[0])
-            v_ff_now, v_ff_next = (float(vel[0]), float(vel[1])) if t >= 0 else (0.0, 0.0)
+            x_set = float(traj.at(max(t, 0.0))[0][0])
             x_sym = x_set + (x_sym - x_set) * a_sym
             v_p = kv * (x_sym - x_meas)
         if k % n_spd == 0:
@@ -204,8 +215,14 @@ def simulate(truth: str | Path, traj: Trajectory, *, record_every: int, preroll_
                 w_raw = (theta - theta_prev) / (n_spd * pwm)
                 w_act = w_raw + (w_act - w_raw) * a_filt
             theta_prev = theta
-            frac = (k % n_pos) / n_pos if linear_ff else 0.0
-            v_cmd = v_p + w_ff * (v_ff_now + (v_ff_next - v_ff_now) * frac)
+            v_ff = 0.0  # at rest before the first row
+            if t >= 0:
+                r, within = divmod(k - pre_ticks, record_every)
+                r = min(r, n_rec)
+                v_ff = v_rows[r]
+                if linear_ff and r < n_rec:
+                    v_ff += (v_rows[r + 1] - v_ff) * (within / record_every)
+            v_cmd = v_p + w_ff * v_ff
             v_cmd = max(-lim.velocity, min(lim.velocity, v_cmd))
             i_set = max(-p.i_max, min(p.i_max, pi(v_cmd / p.ratio - w_act) / kt))
         delay_q.append(i_set)
@@ -213,7 +230,7 @@ def simulate(truth: str | Path, traj: Trajectory, *, record_every: int, preroll_
         if t >= 0 and (k - pre_ticks) % record_every == 0 and row < n_rec:
             rec["t"][row] = t
             rec["x_set"][row] = float(traj.at(t)[0][0])
-            rec["v_ff"][row] = float(traj.at(t)[1][0])
+            rec["v_ff"][row] = v_rows[row]
             rec["x"][row] = x_meas
             rec["v"][row] = w_act * p.ratio
             rec["iq_set"][row] = i_set

@@ -19,6 +19,7 @@ returns regressor columns, and :mod:`hil.identify.fit` solves every active effec
 domain jointly by bounded linear least squares.
 """
 
+import math
 from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
 
@@ -148,17 +149,57 @@ class Effect(ABC):
         gives the other terms where a key depends on them."""
 
 
-def quantum(x: np.ndarray) -> float:
-    """The step of a quantized signal (shape (n,)): the smallest change between samples
-    when nearly every change is a whole multiple of it, else 0 (not on a grid)."""
+#: a signal is on a grid of step q when more than this share of its changes are whole
+#: multiples of q ...
+ON_GRID_SHARE = 0.9
+#: ... each to within this fraction of q
+ON_GRID_TOLERANCE = 0.01
+#: multiples of the smallest change the step's first refinement uses: the smallest change
+#: is off by the round-off of two printed values, and a change of n steps by n times that
+FIRST_FIT_MULTIPLES = 100
+#: most steps the smallest change of a quantised signal may span
+MAX_STEPS_IN_SMALLEST = 4
+
+
+def _changes(x: np.ndarray) -> np.ndarray:
     steps = np.abs(np.diff(x))
-    steps = steps[steps > 0]
+    return steps[steps > 0]
+
+
+def on_grid(x: np.ndarray, q: float) -> bool:
+    """Whether nearly every change of ``x`` (n,) is a whole multiple of ``q`` (same unit)."""
+    steps = _changes(x)
+    if steps.size == 0 or not q > 0.0:
+        return False
+    ratio = steps / q
+    return bool(np.mean(np.abs(ratio - np.round(ratio)) < ON_GRID_TOLERANCE) > ON_GRID_SHARE)
+
+
+def quantum(x: np.ndarray) -> float:
+    """The step of a quantized signal (shape (n,)), fitted to its changes, else 0 (not on
+    a grid).
+
+    The smallest change is the first guess; a file that prints the values rounded (a
+    76.29 nm encoder step in mm to 8 decimals) makes it off by up to twice the print's
+    resolution, which a change of a thousand steps multiplies by a thousand.  The step
+    is therefore refitted by least squares, q = sum(n s) / sum(n^2) over the changes s of
+    n = round(s / q) steps, first on the changes of up to :data:`FIRST_FIT_MULTIPLES`
+    steps, then on all; the signal is on the grid when :func:`on_grid` says so (else the
+    smallest change is tried as two, three, ... :data:`MAX_STEPS_IN_SMALLEST` steps)."""
+    steps = _changes(x)
     if steps.size == 0:
         return 0.0
-    q = float(steps.min())
-    ratio = steps / q
-    on_grid = np.abs(ratio - np.round(ratio)) < 0.01
-    return q if np.mean(on_grid) > 0.9 else 0.0
+    smallest = float(steps.min())
+    # a signal that never changed by one step has its smallest change a few steps wide
+    for divisor in range(1, MAX_STEPS_IN_SMALLEST + 1):
+        q = smallest / divisor
+        for limit in (FIRST_FIT_MULTIPLES, math.inf):
+            n = np.round(steps / q)
+            use = n <= limit
+            q = float(steps[use] @ n[use] / (n[use] @ n[use]))
+        if on_grid(x, q):
+            return q
+    return 0.0
 
 
 def explained(residual: np.ndarray, fitted: np.ndarray, mask: np.ndarray) -> float:

@@ -164,7 +164,7 @@ class Compliance(Effect):
         """The damping ratio of ZETAS whose replay has the smallest floor-normalised cost."""
         from hil.identify.fit import record_errors
         from hil.identify.floor import normalised_cost, replay_floor
-        floor = replay_floor(ctx.rec)
+        floor = replay_floor(ctx.rec, ctx.cfg)
         best, best_cost = self.ZETAS[0], math.inf
         for zeta in self.ZETAS:
             rep = model.replay(extra=self.overrides(ctx, {"zeta": zeta}, coef, model))
