@@ -17,7 +17,7 @@ from hil.figures import plot_sim, plot_step
 from hil.measure.frequency_response import bandwidth_hz, bode_plot, peaks, write_csv
 from hil.measure.runs import bode, current_step, position_step, speed_step, write_step_csv
 from hil.measure.trace import TraceConfigError, TraceRecorder, Trigger
-from hil.progress import Progress
+from hil.progress import COMPILING, Progress
 from hil.sim import TRACE_METADATA, LockStep, mean_columns_note, servo_trace_columns
 from hil.trace_file import write_trace
 from plant.assemble import transmission_ratio
@@ -31,9 +31,6 @@ PEAK_RANGE_DB = 20.0
 _PARTS = 1000
 
 
-#: the phase that loads the compiled kernels (a cold cache compiles them; measured 26 s
-#: for hil sim on a 2-vCPU VM, 2026-11-29)
-COMPILING = "loading the compiled kernels (a cold cache compiles them: up to 40 s)"
 
 
 def _progress(p: Progress) -> Callable[[float], None]:

@@ -78,3 +78,27 @@ def test_a_ticking_phase_shows_its_time_while_the_caller_blocks():
         time.sleep(0.01)
     p.close()
     assert out.getvalue().splitlines() == ["compiling: 3 s", "compiling: done in 3.0 s"]
+
+
+def test_hil_controller_says_it_waits_for_a_drive_that_does_not_answer():
+    """hil controller at a UDP port nobody serves, --connect-timeout 3: a wait over two
+    seconds shows as a progress line naming the drive's address and the limit, then the
+    refusal names the drive (a real process, stderr piped)."""
+    import socket
+    import subprocess
+
+    from tests.conftest import CONFIGS, ROOT
+    from tests.runtime_helpers import ENV, python_module
+
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))  # a port of our own that nothing answers on
+        port = s.getsockname()[1]
+        done = subprocess.run(python_module(
+            "hil.cli", "controller", CONFIGS / "arrow500_x.toml", "--adapter",
+            f"udp://127.0.0.1:{port}", "--program", ROOT / "programs" / "demo_moves.nc",
+            "--out", ROOT / "out" / "test-progress-ctl", "--no-rt", "--connect-timeout", "3"),
+            cwd=ROOT, env=ENV, capture_output=True, text=True, timeout=180)
+    assert done.returncode == 1, done.stderr  # the run failed (no drive), not bad input
+    waiting = f"waiting for the drive at udp://127.0.0.1:{port} (up to 3 s)"
+    assert f"{waiting}: 2 s" in done.stderr and f"{waiting}: done in 3.0 s" in done.stderr
+    assert f"drive 127.0.0.1:{port}> within 3 s" in done.stderr.splitlines()[-1]

@@ -78,6 +78,7 @@ from hil.controller.program import ProgramError, read_program
 from hil.drive.faults import ERROR_CODE, TEXT
 from hil.inject import INJECT_HELP
 from hil.inject.sender import InjectionSender
+from hil.progress import COMPILING, Progress
 from hil.rt.clock import MonotonicClock
 from hil.rt.loop import OverrunPolicy, RealTimeLoop
 from hil.runtime.common import (
@@ -187,7 +188,8 @@ class ControllerProcess:
         self.period_s = self.period_ns * 1e-9
         self.mctrl = MachineController(m, self.period_s, self.x0)
         self.ctrl = self.mctrl.ctrls[0]
-        warm()  # the NC's compiled tick, loaded now rather than at the loop's first steady tick
+        with Progress(COMPILING, ticking=True):
+            warm()  # the NC's compiled tick, now rather than at the loop's first steady tick
         if m.multi_axis:
             self.program = read_path_program(rc.program_file, m.names, self.x0,
                                              clamp=self.mctrl.clamp_codes)
@@ -350,7 +352,8 @@ class ControllerProcess:
         self.lag_is_age = getattr(self.ep, "lag_is_age", False)
         self.steady = ControllerSteady.for_process(self)
         if self.steady is not None:
-            self.steady.warm()
+            with Progress(COMPILING.replace("kernels", "loop"), ticking=True):
+                self.steady.warm()
             self.loop.burst = self.steady.burst
         neighbours, warning = shared_cpu(rc.realtime, rc.cpu, rc.priority)
         self.cpu_shared_with = [n.describe() for n in neighbours]
@@ -358,8 +361,10 @@ class ControllerProcess:
             eprint(f"hil controller: {warning}")
         try:
             with scheduling(rc.realtime, rc.cpu, rc.priority) as granted:
-                alignment = align(self.ep, self.sp, self.fb, self.period_ns,
-                                  rc.connect_timeout_s)
+                with Progress(f"waiting for the drive at {self.url} (up to "
+                              f"{rc.connect_timeout_s:g} s)", ticking=True):
+                    alignment = align(self.ep, self.sp, self.fb, self.period_ns,
+                                      rc.connect_timeout_s)
                 clock = MonotonicClock.for_period(self.period_ns)
                 t0 = alignment.first_deadline(self.period_ns, clock.now_ns() + self.period_ns)
                 clock.sleep_until(t0 - self.period_ns)  # run() places tick 0 one period on
