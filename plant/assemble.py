@@ -424,6 +424,9 @@ def build(cfg: MachineConfig) -> Built:
     p[L.P_SCALE_RES] = se.scale_resolution_m
     p[L.P_I_NOISE] = se.current_noise_a
     p[L.P_I_LSB] = se.current_lsb_a
+    p[L.P_I_FULL_SCALE] = se.current_full_scale_a
+    p[L.P_ENC_ROUND] = 1.0 if se.encoder_rounding == "round" else 0.0
+    p[L.P_ENC_ZERO] = 1.0 if se.encoder_zero_at_start else 0.0
     p[L.P_SEED] = se.seed
     n_delay = delay_periods(cfg)
     p[L.P_DELAY_N] = n_delay

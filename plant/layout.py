@@ -137,6 +137,11 @@ P_SEED = next(_p)  # noise generator seed
 N_DELAY_MAX = 32  # longest measurement delay in PWM periods
 P_DELAY_N = next(_p)  # measurement delay in whole PWM periods (0: none)
 P_INDEX_PERIOD = next(_p)  # rad (m on linear motors) between encoder index marks; 0: 2 pi
+P_ENC_ROUND = next(_p)  # 1: encoder and scale counts round to the nearest count; 0: floor
+P_ENC_ZERO = next(_p)  # 1: every encoder's grid starts at its reset position (count 0 there)
+P_ENC_ORIGIN = next(_p)  # rad (m), motor position of the encoder's count 0 (set at reset)
+P_SCALE_ORIGIN = next(_p)  # m (rad), table position of the scale's count 0 (likewise)
+P_I_FULL_SCALE = next(_p)  # A, the current ADC clips the measured currents to +-this; 0: never
 
 # chain layout (offsets into params and state; counts)
 P_N_ROT = next(_p)  # number of torsional nodes (motor is node 0)

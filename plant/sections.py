@@ -19,6 +19,8 @@ KINDS = ("screw", "linear", "rotary")
 DIAMETERS = ("root", "nominal")
 #: [motor] modulation: space-vector or sine PWM (plant.assemble.voltage_limit)
 MODULATIONS = ("svpwm", "spwm")
+#: [sensors] encoder_rounding: the count below the position, or the nearest one
+ROUNDINGS = ("floor", "round")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -300,6 +302,16 @@ class SensorsSection:
                                  0.0, ge=0.0, le=100.0)
     current_lsb_a: float = key("A", "Current ADC quantization step (0: none).", 0.0, ge=0.0,
                                le=10.0)
+    current_full_scale_a: float = key("A", "Current ADC full scale: the measured currents "
+                                      "clip at +- this, after noise and quantization.", 0.0,
+                                      ge=0.01, le=1e4, zero="no clipping")
+    encoder_rounding: str = key("-", "Count shown at a position of x counts (encoder and "
+                                "scale): floor (floor(x), an edge counter) or round "
+                                "(floor(x + 1/2), the nearest count).", "floor",
+                                choices=ROUNDINGS)
+    encoder_zero_at_start: bool = key("-", "Every encoder (motor encoder, scale) counts from "
+                                      "the position at reset, 0 there: count = q((x - x_0) "
+                                      "per unit); false: from position 0.", False)
     seed: int = key("1", "Seed of the measurement-noise generator.", 1, ge=0, le=2 ** 32 - 1)
     delay_s: float = key("s", "Measurement delay of the encoder and scale counts and the "
                          "measured currents (the true states are not delayed); a whole "
