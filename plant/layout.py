@@ -113,6 +113,7 @@ P_FR_STATIC = next(_p)  # N, breakaway force F_H
 P_FR_STRIBECK_V = next(_p)  # m/s, Stribeck velocity (0: no Stribeck curve)
 P_FR_DV = next(_p)  # m/s, Karnopp zero-velocity band half-width
 P_FR_VISC_ASYM = next(_p)  # N·s/m: viscous is P_FR_VISCOUS +- this, moving + / moving -
+P_FR_REVERSAL_STOP = next(_p)  # 1: a sub-step that would reverse the velocity stops the body
 P_PRE_ENABLED = next(_p)  # 1: presliding nonlinear spring (seed 004 eq. 1)
 P_PRE_K1 = next(_p)  # N/m, initial presliding stiffness T1 (table units)
 P_PRE_X1 = next(_p)  # m, x1
@@ -161,6 +162,7 @@ P_NUT_LOAD_FR = next(_p)  # 1, Coulomb torque per nut-force torque F lead/2pi
 
 # voltage limit of the current controller (issue 14 part 5)
 P_U_MAX = next(_p)  # V, largest d-q voltage vector: U_dc/sqrt(3) SVPWM, U_dc/2 sine PWM
+P_U_Q_ONLY = next(_p)  # 1: only |u_q| is limited to P_U_MAX, u_d is not; 0: the d-q vector
 
 # fault terms (issue 14 part 6, plant.effects.faults): 0 after assembly; the run-time
 # injector writes them between drive cycles

@@ -19,8 +19,12 @@ KINDS = ("screw", "linear", "rotary")
 DIAMETERS = ("root", "nominal")
 #: [motor] modulation: space-vector or sine PWM (plant.assemble.voltage_limit)
 MODULATIONS = ("svpwm", "spwm")
+#: [motor] voltage_limit: the d-q vector's length, or u_q alone (plant.effects.pmsm)
+VOLTAGE_LIMITS = ("vector", "q")
 #: [sensors] encoder_rounding: the count below the position, or the nearest one
 ROUNDINGS = ("floor", "round")
+#: [friction] karnopp_reversal: what a sub-step that would reverse the velocity does
+REVERSALS = ("breakaway", "stop")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -69,6 +73,11 @@ class MotorSection:
                           "vector: svpwm (space-vector PWM, or sine PWM with third-harmonic "
                           "injection, as most drives have): U_dc/sqrt(3); spwm (sine PWM): "
                           "U_dc/2.", "svpwm", choices=MODULATIONS, only="model=dq")
+    voltage_limit: str = key("-", "What the current controller limits to that voltage: "
+                             "vector (|(u_d, u_q)|, u_d served first, as drives do) or q "
+                             "(|u_q| alone, u_d not limited: a simulator's q-voltage clamp); "
+                             "a voltage set in voltage mode is limited as a vector either way.",
+                             "vector", choices=VOLTAGE_LIMITS, only="model=dq")
     pwm_frequency_hz: float = key("Hz", "PWM and current-controller frequency; the "
                                   "inverter applies each voltage one period late.", ge=500.0,
                                   le=1e5)
@@ -264,6 +273,11 @@ class FrictionSection:
                                        0.0, ge=0.0, le=1.0, only="kind=screw|linear")
     zero_velocity_band_m_s: float = key("m/s", "Karnopp zero-velocity band DV.", 0.0, ge=0.0,
                                         le=0.1, only="kind=screw|linear")
+    karnopp_reversal: str = key("-", "A sub-step that would reverse the table's velocity: "
+                                "breakaway (it sticks while the applied force is <= F_H, "
+                                "else it reverses within the step) or stop (it ends at rest "
+                                "whatever the force; the next step breaks away above F_H).",
+                                "breakaway", choices=REVERSALS)
     viscous_nms_per_rad: float = key("N*m*s/rad", "Viscous coefficient.", 0.0, ge=0.0, le=1e5,
                                      only="kind=rotary")
     viscous_asymmetry_nms_per_rad: float = key("N*m*s/rad", "Viscous coefficient's "
