@@ -124,7 +124,8 @@ class CoggingSection:
 @dataclass(frozen=True, kw_only=True)
 class MechanicsSection:
     """Which mechanical model and solver."""
-    model: str = key("-", "rigid: one inertia; two_mass: motor-coupling-load; screw: "
+    model: str = key("-", "rigid: one inertia (on a screw axis a rigid screw, the table at "
+                     "lead theta / 2pi); two_mass: motor-coupling-load; screw: "
                      "distributed ball screw with moving nut and table.",
                      choices=("rigid", "two_mass", "screw"))
     solver: str = key("-", "Solver of the screw chains.", "lumped", choices=("lumped", "tlm"))

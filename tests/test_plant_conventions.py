@@ -1,15 +1,18 @@
 """The machine-file keys for another simulator's conventions (issue 30 item 4), each against
 an analytic case: encoder rounding and zero at the start, the current ADC's full scale, the
-voltage-limit form and the Karnopp reversal.  Each key's default is
+voltage-limit form, the Karnopp reversal and the rigid screw.  Each key's default is
 today's behaviour, which the other plant tests hold bit for bit."""
 
 import math
+import tomllib
 
 import numpy as np
 import pytest
 
 from plant import ConfigError, Plant
 from plant import layout as L
+from plant.assemble import natural_frequencies
+from plant.config import parse_machine
 from plant.effects.friction import karnopp_friction
 from plant.effects.pmsm import dq_current_control
 from plant.effects.sensors import counts, measure_current
@@ -209,3 +212,24 @@ def test_table_reversal_stops_it_for_one_sub_step():
     assert stop.output("table_vel") == 0.0
     stop.step(1)
     assert stop.output("table_vel") == pytest.approx(-dt * 70.0 / mass, rel=1e-9)
+
+
+def test_rigid_screw_follows_the_motor_through_the_lead():
+    """Analytic: a screw axis with [mechanics] model = "rigid" (the Arrow's motor, lead and
+    table friction; no [coupling] or [screw]) is one body: the table stands at
+    x = lead theta / 2pi at every sample of a move, and the mechanics have no elastic
+    mode (the only natural frequency is the rigid body's 0)."""
+    raw = tomllib.loads(ARROW.read_text())
+    raw["mechanics"]["model"] = "rigid"
+    raw.pop("pitch_error", None)
+    del raw["coupling"], raw["screw"]
+    plant = Plant(parse_machine(raw, "rigid screw"), 0.1)
+    lead = plant.config.mechanics.lead_m
+    assert natural_frequencies(plant.config).tolist() == [0.0]
+    plant.set_input(iq_ref_a=5.0)
+    run = plant.run(400, plant.sub_per_pwm)
+    assert run["table_pos"][-1] - 0.1 > 1e-3  # it moved a millimetre and more
+    np.testing.assert_allclose(run["table_pos"], lead * run["motor_pos"] / (2.0 * math.pi),
+                               rtol=1e-15, atol=0.0)
+    np.testing.assert_allclose(run["table_vel"], lead * run["motor_vel"] / (2.0 * math.pi),
+                               rtol=1e-15, atol=0.0)
