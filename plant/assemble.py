@@ -367,6 +367,7 @@ def build(cfg: MachineConfig) -> Built:
     p[L.P_PSI] = kt / (1.5 * pole)
     p[L.P_UDC] = mo.dc_link_v
     p[L.P_U_MAX] = voltage_limit(cfg)
+    p[L.P_U_Q_ONLY] = 1.0 if mo.model == "dq" and mo.voltage_limit == "q" else 0.0
     p[L.P_I_MAX] = mo.current_max_a
     p[L.P_KP_I] = cl.kp_v_per_a
     p[L.P_KI_I] = cl.kp_v_per_a / cl.ti_s if cl.ti_s > 0 else 0.0
@@ -424,6 +425,9 @@ def build(cfg: MachineConfig) -> Built:
     p[L.P_SCALE_RES] = se.scale_resolution_m
     p[L.P_I_NOISE] = se.current_noise_a
     p[L.P_I_LSB] = se.current_lsb_a
+    p[L.P_I_FULL_SCALE] = se.current_full_scale_a
+    p[L.P_ENC_ROUND] = 1.0 if se.encoder_rounding == "round" else 0.0
+    p[L.P_ENC_ZERO] = 1.0 if se.encoder_zero_at_start else 0.0
     p[L.P_SEED] = se.seed
     n_delay = delay_periods(cfg)
     p[L.P_DELAY_N] = n_delay
@@ -481,6 +485,7 @@ def _friction(cfg: MachineConfig, p: np.ndarray) -> None:
     p[L.P_FR_STRIBECK_V] = v_s
     p[L.P_FR_DV] = dv
     p[L.P_FR_VISC_ASYM] = asym
+    p[L.P_FR_REVERSAL_STOP] = 1.0 if fr.karnopp_reversal == "stop" else 0.0
     p[L.P_PRE_ENABLED] = 1.0 if pre.enabled else 0.0
     p[L.P_PRE_K1] = pre.stiffness_n_per_m
     p[L.P_PRE_X1] = pre.x1_m

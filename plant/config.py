@@ -382,6 +382,10 @@ def _check_physics(cfg: MachineConfig) -> None:
         raise ConfigError(f"{cfg.path}: [friction] |viscous_asymmetry{sfx}| = {abs(db):g} "
                           f"{unit} must be <= viscous{sfx} = {b:g} {unit} (friction would push)")
     pre = cfg.presliding
+    if fr.karnopp_reversal == "stop" and (pre.enabled or not max(f_h, f_c)):
+        why = "[presliding] replaces it" if pre.enabled else "no Coulomb or breakaway level"
+        raise ConfigError(f"{cfg.path}: [friction] karnopp_reversal = 'stop' needs Karnopp "
+                          f"stick-slip friction, and this machine has none ({why})")
     if pre.enabled:
         _require(cfg, "presliding", "stiffness_n_per_m", "presliding friction")
         _require(cfg, "presliding", "x1_m", "presliding friction")

@@ -113,6 +113,7 @@ P_FR_STATIC = next(_p)  # N, breakaway force F_H
 P_FR_STRIBECK_V = next(_p)  # m/s, Stribeck velocity (0: no Stribeck curve)
 P_FR_DV = next(_p)  # m/s, Karnopp zero-velocity band half-width
 P_FR_VISC_ASYM = next(_p)  # N·s/m: viscous is P_FR_VISCOUS +- this, moving + / moving -
+P_FR_REVERSAL_STOP = next(_p)  # 1: a sub-step that would reverse the velocity stops the body
 P_PRE_ENABLED = next(_p)  # 1: presliding nonlinear spring (seed 004 eq. 1)
 P_PRE_K1 = next(_p)  # N/m, initial presliding stiffness T1 (table units)
 P_PRE_X1 = next(_p)  # m, x1
@@ -137,6 +138,11 @@ P_SEED = next(_p)  # noise generator seed
 N_DELAY_MAX = 32  # longest measurement delay in PWM periods
 P_DELAY_N = next(_p)  # measurement delay in whole PWM periods (0: none)
 P_INDEX_PERIOD = next(_p)  # rad (m on linear motors) between encoder index marks; 0: 2 pi
+P_ENC_ROUND = next(_p)  # 1: encoder and scale counts round to the nearest count; 0: floor
+P_ENC_ZERO = next(_p)  # 1: every encoder's grid starts at its reset position (count 0 there)
+P_ENC_ORIGIN = next(_p)  # rad (m), motor position of the encoder's count 0 (set at reset)
+P_SCALE_ORIGIN = next(_p)  # m (rad), table position of the scale's count 0 (likewise)
+P_I_FULL_SCALE = next(_p)  # A, the current ADC clips the measured currents to +-this; 0: never
 
 # chain layout (offsets into params and state; counts)
 P_N_ROT = next(_p)  # number of torsional nodes (motor is node 0)
@@ -156,6 +162,7 @@ P_NUT_LOAD_FR = next(_p)  # 1, Coulomb torque per nut-force torque F lead/2pi
 
 # voltage limit of the current controller (issue 14 part 5)
 P_U_MAX = next(_p)  # V, largest d-q voltage vector: U_dc/sqrt(3) SVPWM, U_dc/2 sine PWM
+P_U_Q_ONLY = next(_p)  # 1: only |u_q| is limited to P_U_MAX, u_d is not; 0: the d-q vector
 
 # fault terms (issue 14 part 6, plant.effects.faults): 0 after assembly; the run-time
 # injector writes them between drive cycles

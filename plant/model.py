@@ -106,7 +106,8 @@ class Plant:
         """Rest state with the table at ``table_pos`` (m, or rad for rotary tables),
         springs relaxed, inputs cleared and the power stage enabled.  With a pitch error
         the screw turns to the angle that puts the table there; the measurement-delay
-        ring holds the rest state's measured signals."""
+        ring holds the rest state's measured signals.  With [sensors]
+        encoder_zero_at_start every encoder counts from here (its count 0)."""
         s = self.state
         s[:] = 0.0
         p = self.params
@@ -117,6 +118,9 @@ class Plant:
         s[L.S_PRE_XREV] = table_pos
         s[L.S_PRE_DIR] = 1.0
         s[L.S_KM] = p[L.P_KT]
+        if p[L.P_ENC_ZERO] > 0.0:  # [sensors] encoder_zero_at_start: count 0 here
+            p[L.P_ENC_ORIGIN] = s[ro]
+            p[L.P_SCALE_ORIGIN] = table_pos
         if p[L.P_SOLVER] == L.SOLVER_TLM:
             tlm_init(p, int(p[L.P_OFF_ROT]), s, ro, nr, self.dt)
             tlm_init(p, int(p[L.P_OFF_AX]), s, int(p[L.P_SOFF_AX]), int(p[L.P_N_AX]), self.dt)

@@ -19,6 +19,12 @@ KINDS = ("screw", "linear", "rotary")
 DIAMETERS = ("root", "nominal")
 #: [motor] modulation: space-vector or sine PWM (plant.assemble.voltage_limit)
 MODULATIONS = ("svpwm", "spwm")
+#: [motor] voltage_limit: the d-q vector's length, or u_q alone (plant.effects.pmsm)
+VOLTAGE_LIMITS = ("vector", "q")
+#: [sensors] encoder_rounding: the count below the position, or the nearest one
+ROUNDINGS = ("floor", "round")
+#: [friction] karnopp_reversal: what a sub-step that would reverse the velocity does
+REVERSALS = ("breakaway", "stop")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -67,6 +73,11 @@ class MotorSection:
                           "vector: svpwm (space-vector PWM, or sine PWM with third-harmonic "
                           "injection, as most drives have): U_dc/sqrt(3); spwm (sine PWM): "
                           "U_dc/2.", "svpwm", choices=MODULATIONS, only="model=dq")
+    voltage_limit: str = key("-", "What the current controller limits to that voltage: "
+                             "vector (|(u_d, u_q)|, u_d served first, as drives do) or q "
+                             "(|u_q| alone, u_d not limited: a simulator's q-voltage clamp); "
+                             "a voltage set in voltage mode is limited as a vector either way.",
+                             "vector", choices=VOLTAGE_LIMITS, only="model=dq")
     pwm_frequency_hz: float = key("Hz", "PWM and current-controller frequency; the "
                                   "inverter applies each voltage one period late.", ge=500.0,
                                   le=1e5)
@@ -113,7 +124,8 @@ class CoggingSection:
 @dataclass(frozen=True, kw_only=True)
 class MechanicsSection:
     """Which mechanical model and solver."""
-    model: str = key("-", "rigid: one inertia; two_mass: motor-coupling-load; screw: "
+    model: str = key("-", "rigid: one inertia (on a screw axis a rigid screw, the table at "
+                     "lead theta / 2pi); two_mass: motor-coupling-load; screw: "
                      "distributed ball screw with moving nut and table.",
                      choices=("rigid", "two_mass", "screw"))
     solver: str = key("-", "Solver of the screw chains.", "lumped", choices=("lumped", "tlm"))
@@ -262,6 +274,11 @@ class FrictionSection:
                                        0.0, ge=0.0, le=1.0, only="kind=screw|linear")
     zero_velocity_band_m_s: float = key("m/s", "Karnopp zero-velocity band DV.", 0.0, ge=0.0,
                                         le=0.1, only="kind=screw|linear")
+    karnopp_reversal: str = key("-", "A sub-step that would reverse the table's velocity: "
+                                "breakaway (it sticks while the applied force is <= F_H, "
+                                "else it reverses within the step) or stop (it ends at rest "
+                                "whatever the force; the next step breaks away above F_H).",
+                                "breakaway", choices=REVERSALS)
     viscous_nms_per_rad: float = key("N*m*s/rad", "Viscous coefficient.", 0.0, ge=0.0, le=1e5,
                                      only="kind=rotary")
     viscous_asymmetry_nms_per_rad: float = key("N*m*s/rad", "Viscous coefficient's "
@@ -300,6 +317,16 @@ class SensorsSection:
                                  0.0, ge=0.0, le=100.0)
     current_lsb_a: float = key("A", "Current ADC quantization step (0: none).", 0.0, ge=0.0,
                                le=10.0)
+    current_full_scale_a: float = key("A", "Current ADC full scale: the measured currents "
+                                      "clip at +- this, after noise and quantization.", 0.0,
+                                      ge=0.01, le=1e4, zero="no clipping")
+    encoder_rounding: str = key("-", "Count shown at a position of x counts (encoder and "
+                                "scale): floor (floor(x), an edge counter) or round "
+                                "(floor(x + 1/2), the nearest count).", "floor",
+                                choices=ROUNDINGS)
+    encoder_zero_at_start: bool = key("-", "Every encoder (motor encoder, scale) counts from "
+                                      "the position at reset, 0 there: count = q((x - x_0) "
+                                      "per unit); false: from position 0.", False)
     seed: int = key("1", "Seed of the measurement-noise generator.", 1, ge=0, le=2 ** 32 - 1)
     delay_s: float = key("s", "Measurement delay of the encoder and scale counts and the "
                          "measured currents (the true states are not delayed); a whole "

@@ -22,7 +22,10 @@ from plant.effects.sensors import counts
 from plant.layout import (
     P_DELAY_N,
     P_ENC_COUNTS_PER_RAD,
+    P_ENC_ORIGIN,
+    P_ENC_ROUND,
     P_FAULTS,
+    P_SCALE_ORIGIN,
     P_SCALE_RES,
     P_SOFF_DELAY,
     P_SOFF_ROT,
@@ -43,12 +46,14 @@ def ring_size(n_periods: int) -> int:
 @njit(cache=True, error_model="numpy")
 def measured_now(p, s):
     """The undelayed measured signals: (encoder counts, scale counts, i_d, i_q in A)."""
+    motor = s[int(p[P_SOFF_ROT])] - p[P_ENC_ORIGIN]
     if p[P_FAULTS] > 0.0:
-        enc = encoder_reading(p, s, s[int(p[P_SOFF_ROT])])
+        enc = encoder_reading(p, s, motor)
     else:
-        enc = counts(s[int(p[P_SOFF_ROT])], p[P_ENC_COUNTS_PER_RAD])
+        enc = counts(motor, p[P_ENC_COUNTS_PER_RAD], p[P_ENC_ROUND])
     res = p[P_SCALE_RES]
-    scale = counts(s[S_TABLE_X], 1.0 / res) if res > 0.0 else 0.0
+    scale = (counts(s[S_TABLE_X] - p[P_SCALE_ORIGIN], 1.0 / res, p[P_ENC_ROUND])
+             if res > 0.0 else 0.0)
     return enc, scale, s[S_ID_MEAS], s[S_IQ_MEAS]
 
 

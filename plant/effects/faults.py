@@ -32,17 +32,18 @@ Park transform ``i_a = i_d cos(theta_e) - i_q sin(theta_e)``.
 
 import math
 
-import numpy as np
 from numba import njit
 
 from plant.effects.pmsm import clamp
 from plant.effects.rng import gaussian, uniform
-from plant.effects.sensors import counts
+from plant.effects.sensors import counts, whole_counts
 from plant.layout import (
     MOTOR_COMMUTATION,
     P_ENC_COUNTS_PER_RAD,
     P_ENC_LOST,
     P_ENC_NOISE,
+    P_ENC_ORIGIN,
+    P_ENC_ROUND,
     P_I_GAIN_ERR,
     P_I_MAX,
     P_I_OFFSET,
@@ -137,14 +138,16 @@ def ripple_factor(p, theta_e):
 @njit(cache=True, error_model="numpy")
 def encoder_mark(p, s):
     """PWM event: the true encoder count the period's lost-count draw measures from."""
-    s[S_ENC_PREV] = counts(s[int(p[P_SOFF_ROT])], p[P_ENC_COUNTS_PER_RAD])
+    s[S_ENC_PREV] = counts(s[int(p[P_SOFF_ROT])] - p[P_ENC_ORIGIN],
+                           p[P_ENC_COUNTS_PER_RAD], p[P_ENC_ROUND])
 
 
 @njit(cache=True, error_model="numpy")
 def encoder_sample(p, s):
     """End of a PWM period: the lost-count draw over the counts travelled in it and the
     noise of this sample (each from the axis's noise stream, only when configured)."""
-    dn = counts(s[int(p[P_SOFF_ROT])], p[P_ENC_COUNTS_PER_RAD]) - s[S_ENC_PREV]
+    dn = (counts(s[int(p[P_SOFF_ROT])] - p[P_ENC_ORIGIN], p[P_ENC_COUNTS_PER_RAD],
+                 p[P_ENC_ROUND]) - s[S_ENC_PREV])
     if p[P_ENC_LOST] > 0.0 and dn != 0.0:
         u = uniform(p[P_SEED], s[S_RNG_COUNTER])
         s[S_RNG_COUNTER] += 1.0
@@ -159,9 +162,9 @@ def encoder_sample(p, s):
 
 @njit(cache=True, error_model="numpy")
 def encoder_reading(p, s, position):
-    """Counts the faulty encoder shows at ``position`` (rad, or m on linear motors): the
-    held noise before the floor, the lost counts after it."""
+    """Counts the faulty encoder shows at ``position`` (rad, or m on linear motors, from its
+    count 0): the held noise before the floor (or rounding), the lost counts after it."""
     per_unit = p[P_ENC_COUNTS_PER_RAD]
     if per_unit <= 0.0:
         return 0.0
-    return np.floor(position * per_unit + s[S_ENC_NOISE]) + s[S_ENC_LOST]
+    return whole_counts(position * per_unit + s[S_ENC_NOISE], p[P_ENC_ROUND]) + s[S_ENC_LOST]

@@ -12,6 +12,7 @@ from numba import njit
 from plant.layout import (
     P_FR_COULOMB,
     P_FR_DV,
+    P_FR_REVERSAL_STOP,
     P_FR_STATIC,
     P_FR_STRIBECK_V,
     P_FR_VISC_ASYM,
@@ -66,7 +67,10 @@ def karnopp_friction(p, v, f_app, mass, dt):
     Returns (friction force, stuck).  Inside the zero-velocity band, or when
     the velocity would cross zero within this sub-step, the body sticks while
     |f_app| <= F_H: friction cancels f_app and the caller sets v = 0.  Above
-    F_H it breaks away against F_H.  Outside the band it slides.
+    F_H it breaks away against F_H (in the band) or reverses within the step (a crossing);
+    with P_FR_REVERSAL_STOP ([friction] karnopp_reversal = "stop") a crossing stops it
+    whatever f_app, and the next sub-step, in the band at v = 0, decides on breakaway.
+    Outside the band it slides.
     """
     f_h = p[P_FR_STATIC]
     if abs(v) <= p[P_FR_DV]:
@@ -75,7 +79,7 @@ def karnopp_friction(p, v, f_app, mass, dt):
         return (-f_h if f_app > 0.0 else f_h), False
     ff = sliding_friction(p, v)
     v_new = v + dt * (f_app + ff) / mass
-    if v_new * v <= 0.0 and abs(f_app) <= f_h:
+    if v_new * v <= 0.0 and (abs(f_app) <= f_h or p[P_FR_REVERSAL_STOP] > 0.0):
         return -f_app, True
     return ff, False
 

@@ -11,7 +11,8 @@ one sub-step: exact for a locked rotor with the voltage held by the PWM, and
 stable for any sub-step.  The current controller runs once per PWM period: it
 samples the measured currents, runs two PI loops and limits the voltage
 vector to P_U_MAX (U_dc/sqrt(3) with space-vector PWM, U_dc/2 with sine PWM:
-:func:`plant.assemble.voltage_limit`); the inverter applies that voltage during the
+:func:`plant.assemble.voltage_limit`; or u_q alone, [motor] voltage_limit = "q"); the
+inverter applies that voltage during the
 *next* period
 (one period of computation/PWM delay, seed 001 eq. 3).
 """
@@ -35,6 +36,7 @@ from plant.layout import (
     P_R,
     P_SUB_PER_PWM,
     P_U_MAX,
+    P_U_Q_ONLY,
     S_ID,
     S_ID_MEAS,
     S_INT_D,
@@ -80,7 +82,8 @@ def dq_current_control(p, s, id_ref, iq_ref, omega_m):
     from the speed ``omega_m`` (rad/s; m/s for linear motors), so the PI only
     has to correct what the model of the motor misses.  The voltage vector is
     limited to P_U_MAX with the d axis served first (the flux-producing current
-    keeps priority, as drives do).
+    keeps priority, as drives do); with P_U_Q_ONLY ([motor] voltage_limit = "q") only
+    |u_q| is limited to P_U_MAX and u_d is not limited at all (a simulator's q clamp).
     """
     period = p[P_DT] * p[P_SUB_PER_PWM]
     imax = p[P_I_MAX]
@@ -93,9 +96,10 @@ def dq_current_control(p, s, id_ref, iq_ref, omega_m):
         we = p[P_POLE_PAIRS] * omega_m
         ff_d = -we * p[P_LQ] * s[S_IQ_MEAS]
         ff_q = we * (p[P_PSI] + p[P_LD] * s[S_ID_MEAS])
+    q_only = p[P_U_Q_ONLY] > 0.0
     ud, s[S_INT_D] = pi_step(id_ref - s[S_ID_MEAS], s[S_INT_D], p[P_KP_I], p[P_KI_I],
-                             period, ff_d, umax)
-    uq_max = math.sqrt(max(umax * umax - ud * ud, 0.0))
+                             period, ff_d, math.inf if q_only else umax)
+    uq_max = umax if q_only else math.sqrt(max(umax * umax - ud * ud, 0.0))
     uq, s[S_INT_Q] = pi_step(iq_ref - s[S_IQ_MEAS], s[S_INT_Q], p[P_KP_I], p[P_KI_I],
                              period, ff_q, uq_max)
     s[S_UD_NEXT] = ud
