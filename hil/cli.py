@@ -20,6 +20,7 @@
     hil report RUN [--cyclictest] [--controller DIR]
     hil replay RUN [--tolerance REL] [--json]
     hil export RUN --to mdf4|csv [--axis X] [--out PATH] [--force]
+    hil scope RUN [--port N]
     hil soak [--minutes N] [--rate HZ] [--no-rt] [--out DIR]
     hil config-keys [--markdown]
     hil identify TRACE --config CONFIG --out DIR [--validate TRACE2]
@@ -342,6 +343,8 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
                    "compare it with its recording", "hil.replay.command")
     command_module("export", "a run's recording as MDF4 or servo-trace CSV",
                    "hil.runtime.export")
+    command_module("scope", "a run's status, events and signals live in a browser, with a "
+                   "trigger; a finished run's whole length", "hil.scope.command")
     command_module("soak", "emulator and controller for minutes or hours: memory, lateness "
                    "and overruns per minute, a plot", "hil.runtime.soak")
     command_module("run", "the emulator daemon: the plant behind an adapter, in real time",
@@ -390,6 +393,7 @@ EXAMPLES = {
     "report": "hil report out/run --controller out/ctl --cyclictest",
     "replay": "hil replay out/run --json",
     "export": "hil export out/run --to mdf4",
+    "scope": "hil scope out/run --port 5006",
     "soak": "hil soak --minutes 30 --rate 4000 --out soak-out",
     "run": "hil run configs/arrow500_x.toml --adapter udp://127.0.0.1:5005 --record out/run",
     "controller": "hil controller configs/arrow500_x.toml --adapter udp://127.0.0.1:5005 "
