@@ -14,6 +14,7 @@
     hil bench study [--samples N] [--seconds S] [--json]
     hil bench controller [--config FILE --program FILE ...] [--no-rt] [--json]
     hil bench linuxcnc [--ini FILE] [--program FILE.ngc] [--out DIR] [--no-rt] [--json]
+    hil bench scope [--config FILE] [--seconds S] [--segments N] [--no-rt] [--json]
     hil bench identify [--ci] [--cases NAME ...] [--out DIR] [--workers N] [--json]
     hil eds CONFIG --adapter can://... [--out DIR]
     hil study SPEC.toml [--out DIR] [--workers N | --scheduler tcp://HOST:8786] [--fresh]
@@ -325,7 +326,9 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
             ("controller", "hil controller's tick against hil run over UDP, one axis and "
                            "five: p50, p99.9, the NC's part"),
             ("linuxcnc", "LinuxCNC's servo-thread jitter beside cyclictest, and the fixed "
-                         "wire's frames per second")):
+                         "wire's frames per second"),
+            ("scope", "hil run's loop lateness with hil scope's page open and closed in turn, "
+                      "in one run")):
         module(bsub, name, help_, f"hil.bench.{name}", command == "bench" and what == name)
 
     r = sub.add_parser("report", help="latency and jitter report of a run folder, and its "
@@ -420,6 +423,7 @@ BENCH_EXAMPLES = {
     "study": "hil bench study --json",
     "controller": "hil bench controller --json",
     "linuxcnc": "hil bench linuxcnc --json",
+    "scope": "hil bench scope --seconds 30 --segments 4",
 }
 
 

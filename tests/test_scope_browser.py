@@ -13,13 +13,13 @@ installs the Debian packages, the ``test`` extra Selenium).
 
 import importlib.util
 import os
-import shutil
 import time
 
 import numpy as np
 import pytest
 
 from hil.runtime.record_reader import Recording
+from hil.scope import browser
 from tests.runtime_helpers import (
     EXIT_S,
     SLOW_1KHZ,
@@ -30,12 +30,8 @@ from tests.runtime_helpers import (
     wait_for_enabled,
 )
 
-_MISSING = [what for what, there in (
-    ("bokeh (pip install -e '.[scope]')", importlib.util.find_spec("bokeh")),
-    ("selenium (pip install -e '.[test]')", importlib.util.find_spec("selenium")),
-    ("chromium (.ci/test-deps)", shutil.which("chromium")),
-    ("chromedriver (chromium-driver, .ci/test-deps)", shutil.which("chromedriver")))
-    if not there]
+_MISSING = browser.missing() + (
+    [] if importlib.util.find_spec("bokeh") else ["bokeh (pip install -e '.[scope]')"])
 pytestmark = pytest.mark.skipif(bool(_MISSING), reason="hil scope's browser tests need "
                                 + ", ".join(_MISSING))
 
@@ -54,44 +50,8 @@ PAGE_S = 20.0
 PATIENCE_TICKS = 1000
 
 
-def _driver(screens):
-    from selenium import webdriver
-    from selenium.webdriver.chrome.service import Service
-
-    options = webdriver.ChromeOptions()
-    options.binary_location = shutil.which("chromium")
-    for arg in ("--headless=new", "--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage",
-                "--window-size=1700,1200"):
-        options.add_argument(arg)
-    driver = webdriver.Chrome(service=Service(shutil.which("chromedriver")), options=options)
-    driver.set_page_load_timeout(PAGE_S)
-    driver.screens = screens
-    return driver
-
-
-#: the value of a model of the page's Bokeh document: arguments[0] its name,
-#: arguments[1] the property; a data source's columns as plain arrays
-_READ = """
-const docs = window.Bokeh ? window.Bokeh.documents : [];
-if (!docs.length) return null;
-const m = docs[0].get_model_by_name(arguments[0]);
-if (m == null) return null;
-const v = m[arguments[1]];
-if (arguments[1] !== 'data') return v;
-const out = {};
-for (const [k, col] of (v instanceof Map ? v.entries() : Object.entries(v)))
-  out[k] = Array.from(col, x => (x == null || Number.isNaN(x)) ? null : x);
-return out;
-"""
-#: set a widget's value as a user's choice would (synchronised to the server)
-_SET = """
-const m = window.Bokeh.documents[0].get_model_by_name(arguments[0]);
-m[arguments[1]] = arguments[2];
-"""
-
-
 def _read(driver, name: str, prop: str = "text"):
-    return driver.execute_script(_READ, name, prop)
+    return browser.read_model(driver, name, prop)
 
 
 def _until(driver, what: str, check, timeout: float = PAGE_S):
@@ -142,7 +102,8 @@ def live(tmp_path_factory):
         # the browser starts once both loops run: its start-up is the machine's busiest
         wait_for_enabled(run_dir, ctl)
         url = _scope(children, run_dir, "scope")
-        driver = _driver(screens)
+        driver = browser.headless_chromium(PAGE_S)
+        driver.screens = screens
         try:
             driver.get(url)
             yield driver, run_dir, children, ctl, emulator, url
@@ -183,9 +144,9 @@ def test_a_trigger_on_the_position_step_fires_when_the_recording_crossed_the_lev
     trigger time is the first rising crossing in the recording after it was armed, within
     one flush."""
     driver, run_dir = live[0], live[1]
-    driver.execute_script(_SET, "scope_trig_level", "value", LEVEL_M)
-    driver.execute_script(_SET, "scope_window", "value", 2.0)
-    driver.execute_script(_SET, "scope_trig_channel", "value", "plant_table_pos")
+    browser.set_model(driver, "scope_trig_level", "value", LEVEL_M)
+    browser.set_model(driver, "scope_window", "value", 2.0)
+    browser.set_model(driver, "scope_trig_channel", "value", "plant_table_pos")
     fired = _until(driver, "a trigger", lambda: (
         (d := _read(driver, "scope_trigger", "data")) and d.get("t_s") and d), timeout=15)
     at, armed = fired["t_s"][0], fired["armed_after_s"][0]
@@ -200,7 +161,7 @@ def test_a_trigger_on_the_position_step_fires_when_the_recording_crossed_the_lev
     times = [t for t in data["t_s"] if t is not None]
     assert min(times) < at < max(times)  # the capture holds the trigger, pre and post
     driver.save_screenshot(str(driver.screens / "2_triggered.png"))
-    driver.execute_script(_SET, "scope_trig_channel", "value", "(free running)")
+    browser.set_model(driver, "scope_trig_channel", "value", "(free running)")
 
 
 def test_stopping_the_controller_shows_it_silent_then_the_watchdog(live):

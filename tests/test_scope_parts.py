@@ -20,7 +20,7 @@ from hil.runtime.run_status import RunStatus
 from hil.runtime.stream_file import END_OF_STREAM, FORMAT, ArrowStream, schema_of
 from hil.scope.envelope import Envelope
 from hil.scope.trigger import Trigger
-from hil.scope.view import KEEP_S, ScopeView
+from hil.scope.view import KEEP_S, STOPPED_AFTER_S, ScopeView
 
 PERIOD_NS = 1_000_000
 #: table metres per encoder count of the synthetic axis
@@ -204,3 +204,26 @@ def test_the_view_keeps_a_bounded_buffer_and_draws_the_same_curve_from_it_or_the
     whole = view.whole()
     pixel_s = (end + 1e-3) / 500
     assert whole.t_s.min() < pixel_s and whole.t_s.max() > end - pixel_s
+
+
+def test_a_run_cut_short_reads_up_to_its_last_whole_batch_and_shows_as_stopped(tmp_path):
+    """A recording without its end marker whose last batch is half written (SIGKILL): the
+    view reads the whole batches, says live while the file may still grow, and stopped
+    once it has not grown for STOPPED_AFTER_S (a clock of the test's)."""
+    stream, schema = _stream(tmp_path, 3)
+    _write(stream, schema, 3)
+    path = tmp_path / "recording.arrows"
+    path.write_bytes(path.read_bytes()[:-100])  # the 4th batch cut, no end marker
+    now = [0.0]
+    view = ScopeView(tmp_path, pixels=100, clock=lambda: now[0])
+    view.choose(["plant_table_pos"], None)
+    while view.update():
+        pass
+    assert view.state() == "live"
+    now[0] = STOPPED_AFTER_S + 0.5
+    view.update()
+    assert view.state() == "stopped"
+    assert view.status.last_tick == 3 * ROWS_PER_BATCH - 1
+    end_s = view.end_s
+    pixel_s = (end_s + 1e-3) / 100
+    assert view.whole().t_s.max() > end_s - pixel_s  # the last whole batch's rows drawn

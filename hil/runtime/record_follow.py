@@ -38,7 +38,7 @@ from hil.runtime.stream_file import END_OF_STREAM
 MAX_BATCHES = 200
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, slots=True)
 class Span:
     """One record batch of the stream.
 

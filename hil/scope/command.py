@@ -2,12 +2,15 @@
 
 A Bokeh server on 127.0.0.1 in this process, apart from the emulator's: it reads the run
 folder's files (the recording, flushed every 0.25 s, and the events), never the loop's
-process or memory.  Each browser tab gets its own page (:mod:`hil.scope.page`).  It prints
+process or memory, and keeps off the loop's CPU where it may run elsewhere (as the
+recording's writer does).  Each browser tab gets its own page (:mod:`hil.scope.page`).  It
+prints
 ``hil scope: http://127.0.0.1:PORT/`` once it serves, and runs until Ctrl-C (SIGINT) or
 SIGTERM.
 """
 
 import argparse
+import os
 import signal
 import socket
 import sys
@@ -22,6 +25,20 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "finished)")
     p.add_argument("--port", type=int, default=5006,
                    help="TCP port on 127.0.0.1 (default %(default)s; 0: any free one)")
+
+
+def _keep_off_the_loop(meta: dict) -> None:
+    """Run on the CPUs but the run's loop's (``--cpu``, by default the last one when it runs
+    in real time), where there are others."""
+    from hil.rt.scheduling import last_cpu
+
+    runtime = meta.get("runtime", {})
+    loop_cpu = runtime.get("cpu")
+    if loop_cpu is None and runtime.get("realtime"):
+        loop_cpu = last_cpu()
+    others = os.sched_getaffinity(0) - {loop_cpu}
+    if loop_cpu is not None and others:
+        os.sched_setaffinity(0, others)
 
 
 def _free_port() -> int:
@@ -45,7 +62,7 @@ def run_from_args(args: argparse.Namespace) -> int:
     from hil.runtime.record_reader import Recording
     from hil.scope.page import make_app
 
-    Recording(folder)  # an unreadable recording says so here, not in the browser
+    _keep_off_the_loop(Recording(folder).meta)  # and an unreadable recording says so here
     port = args.port or _free_port()
     # the page's websocket comes from the address the browser was given, either name
     server = Server({"/": Application(FunctionHandler(make_app(folder)))},

@@ -46,8 +46,9 @@ from hil.runtime.run_status import mode_text, state_text
 from hil.scope.trigger import MODES, SLOPES, Trigger
 from hil.scope.view import WINDOW_MAX_S, WINDOW_MIN_S, ScopeView
 
-#: the page's update period, s
-UPDATE_S = 0.5
+#: the page's update period, s: a recording flushed every 0.25 s is on the page within
+#: about a second, at a bounded cost a second
+UPDATE_S = 1.0
 #: the plot's size, pixels (its width is the curve's bins)
 WIDTH, HEIGHT = 1200, 420
 #: the trigger channel's choice that means "free running"
@@ -133,20 +134,20 @@ class ScopePage:
         default = [n for n in (f"{prefix}plant_table_pos", f"{prefix}plant_iq_meas_a")
                    if n in rec.names]
         options = [(n, label) for n, label in self.label.items()]
-        self.channels = MultiChoice(name="scope_channels", title="channels", value=default, options=options,
-                                    width=520)
-        self.window = Spinner(name="scope_window", title="time window, s", low=WINDOW_MIN_S, high=WINDOW_MAX_S,
-                              step=0.1, value=5.0, width=120)
+        self.channels = MultiChoice(name="scope_channels", title="channels", value=default,
+                                    options=options, width=520)
+        self.window = Spinner(name="scope_window", title="time window, s", low=WINDOW_MIN_S,
+                              high=WINDOW_MAX_S, step=0.1, value=5.0, width=120)
         self.pause = Toggle(name="scope_pause", label="pause", width=90)
         self.trig_channel = Select(name="scope_trig_channel", title="trigger on", value=FREE,
                                    options=[FREE, *[(n, lab) for n, lab in options]],
                                    width=260)
-        self.trig_level = Spinner(name="scope_trig_level", title="level (channel's unit)", value=0.0, step=0.001,
-                                  width=150)
-        self.trig_slope = Select(name="scope_trig_slope", title="slope", value=SLOPES[0], options=list(SLOPES),
-                                 width=100)
-        self.trig_pre = Slider(name="scope_trig_pre", title="pre-trigger, % of the window", start=0, end=100,
-                               step=5, value=20, width=200)
+        self.trig_level = Spinner(name="scope_trig_level", title="level (channel's unit)",
+                                  value=0.0, step=0.001, width=150)
+        self.trig_slope = Select(name="scope_trig_slope", title="slope", value=SLOPES[0],
+                                 options=list(SLOPES), width=100)
+        self.trig_pre = Slider(name="scope_trig_pre", title="pre-trigger, % of the window",
+                               start=0, end=100, step=5, value=20, width=200)
         self.trig_mode = RadioButtonGroup(name="scope_trig_mode", labels=list(MODES), active=0)
         self.arm = Button(name="scope_arm", label="arm", width=80)
         self.trig_info = Div(name="scope_trig_info", text="", width=700)
@@ -303,8 +304,8 @@ class ScopePage:
                                    f"{trig.level:g} {trig.slope}")
         else:
             t = self.trigger_source.data["t_s"][0]
-            self.trig_info.text = (f"triggered at t = {t:.4f} s ({trig.mode}"
-                                   f"{': press arm for the next' if trig.mode == 'single' else ''})")
+            more = ": press arm for the next" if trig.mode == "single" else ""
+            self.trig_info.text = f"triggered at t = {t:.4f} s ({trig.mode}{more})"
 
     def _draw(self, t0_s: float, t1_s: float, keep_range: bool = False) -> None:
         if not self.view.channels or not t1_s > t0_s:
