@@ -6,6 +6,7 @@ view of a run (hil/scope/view.py), each against values computed here from the ro
 
 import json
 import os
+import subprocess
 
 import numpy as np
 import pyarrow as pa
@@ -21,6 +22,7 @@ from hil.runtime.stream_file import END_OF_STREAM, FORMAT, ArrowStream, schema_o
 from hil.scope.envelope import Envelope
 from hil.scope.trigger import Trigger
 from hil.scope.view import KEEP_S, STOPPED_AFTER_S, ScopeView
+from tests.runtime_helpers import ENV, EXIT_S, python_module
 
 PERIOD_NS = 1_000_000
 #: table metres per encoder count of the synthetic axis
@@ -227,3 +229,11 @@ def test_a_run_cut_short_reads_up_to_its_last_whole_batch_and_shows_as_stopped(t
     end_s = view.end_s
     pixel_s = (end_s + 1e-3) / 100
     assert view.whole().t_s.max() > end_s - pixel_s  # the last whole batch's rows drawn
+
+
+def test_hil_scope_refuses_a_folder_without_a_recording(tmp_path):
+    """Bad input: exit status 2 and a line naming the folder, before any server starts."""
+    done = subprocess.run(python_module("hil.cli", "scope", tmp_path), env=ENV,
+                          capture_output=True, text=True, timeout=EXIT_S)
+    assert done.returncode == 2, done.stderr
+    assert f"{tmp_path}: no recording.arrows" in done.stderr

@@ -21,8 +21,8 @@ from hil.runtime.run_folder import RECORDING
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     """The options of ``hil scope``."""
-    p.add_argument("run", help="run folder of hil run --record DIR or hil soak (live or "
-                   "finished)")
+    p.add_argument("run", help="run folder of hil run --record DIR (live or finished), or "
+                   "the --out folder of hil soak or hil demo")
     p.add_argument("--port", type=int, default=5006,
                    help="TCP port on 127.0.0.1 (default %(default)s; 0: any free one)")
 
@@ -50,6 +50,8 @@ def _free_port() -> int:
 
 def run_from_args(args: argparse.Namespace) -> int:
     folder = Path(args.run)
+    if not (folder / RECORDING).is_file() and (folder / "emulator" / RECORDING).is_file():
+        folder = folder / "emulator"  # hil soak's --out, hil demo's: the run is in there
     if not (folder / RECORDING).is_file():
         raise FileNotFoundError(f"{folder}: no {RECORDING}: not a run folder, or the run "
                                 "has not started recording yet")
@@ -59,15 +61,24 @@ def run_from_args(args: argparse.Namespace) -> int:
     from bokeh.application.handlers import FunctionHandler
     from bokeh.server.server import Server
 
-    from hil.runtime.record_reader import Recording
+    from hil.runtime.record_reader import Recording, RecordingError
     from hil.scope.page import make_app
 
-    _keep_off_the_loop(Recording(folder).meta)  # and an unreadable recording says so here
+    try:
+        _keep_off_the_loop(Recording(folder).meta)  # an unreadable recording says so here
+    except RecordingError as e:
+        print(f"hil scope: {e}", file=sys.stderr)
+        return 2
     port = args.port or _free_port()
-    # the page's websocket comes from the address the browser was given, either name
-    server = Server({"/": Application(FunctionHandler(make_app(folder)))},
-                    address="127.0.0.1", port=port, num_procs=1,
-                    allow_websocket_origin=[f"127.0.0.1:{port}", f"localhost:{port}"])
+    try:
+        # the page's websocket comes from the address the browser was given, either name
+        server = Server({"/": Application(FunctionHandler(make_app(folder)))},
+                        address="127.0.0.1", port=port, num_procs=1,
+                        allow_websocket_origin=[f"127.0.0.1:{port}", f"localhost:{port}"])
+    except OSError as e:  # the port is taken
+        print(f"hil scope: cannot serve on 127.0.0.1:{port}: {e} (another --port?)",
+              file=sys.stderr)
+        return 2
     server.start()
     print(f"hil scope: http://127.0.0.1:{server.port}/ ({folder})", flush=True)
 

@@ -254,6 +254,8 @@ class ScopePage:
         self.setting_range = True
         try:
             self.x_range.start, self.x_range.end = t0_s, t1_s
+            # the reset tool goes back to what the page last showed, not to the first range
+            self.x_range.reset_start, self.x_range.reset_end = t0_s, t1_s
         finally:
             self.setting_range = False
 
