@@ -191,7 +191,15 @@ def test_the_view_keeps_a_bounded_buffer_and_draws_the_same_curve_from_it_or_the
     stream, _ = _stream(tmp_path, n_batches)
     stream.close()
     view = ScopeView(tmp_path, pixels=500)
-    view.choose(["plant_table_pos", "plant_iq_meas_a"], None)
+    both = ["plant_table_pos", "plant_iq_meas_a"]
+    view.choose(both, None)
+    view.update()
+    assert view.samples.full  # more batches wait: a channel dropped and added meanwhile
+    view.choose(["plant_table_pos"], None)
+    assert set(view.buffer) == {"tick", "plant_table_pos"} and view.update()
+    view.choose(both, None)  # read back from the recording
+    assert set(view.buffer) == {"tick", *both}
+    assert view.buffer["plant_iq_meas_a"].size == view.buffer["tick"].size
     while view.update():
         pass
     assert view.state() == "ended"

@@ -105,8 +105,9 @@ class ScopeView:
         if unknown:
             raise ValueError(f"no column {', '.join(unknown)} in {self.rec.path}")
         self.channels, self.trigger = list(channels), trigger
-        missing = [n for n in self.watched() if n not in self.buffer]
-        if missing:
+        kept = {"tick", *self.watched()}
+        self.buffer = {n: v for n, v in self.buffer.items() if n in kept}
+        if kept - self.buffer.keys():
             self._refill()
 
     def _refill(self) -> None:
