@@ -120,11 +120,21 @@ class _Page:
         self.proc = subprocess.Popen(_python("hil.cli", "scope", run_dir, "--port", 0),
                                      stdout=subprocess.PIPE, stderr=self.log, text=True,
                                      env=env)
-        line = self.proc.stdout.readline()
-        if not line.startswith("hil scope: http://"):
-            raise RuntimeError(f"hil scope did not start (see {folder / 'scope.log'})")
-        self.driver = headless_chromium()
-        self.driver.get(line.split()[2])
+        try:
+            line = self.proc.stdout.readline()
+            if not line.startswith("hil scope: http://"):
+                raise RuntimeError(f"hil scope did not start (see {folder / 'scope.log'})")
+            self.driver = headless_chromium()
+            try:
+                self.driver.get(line.split()[2])
+            except BaseException:
+                self.driver.quit()
+                raise
+        except BaseException:  # no browser page: no server left behind either
+            self.proc.kill()
+            self.proc.wait()
+            self.log.close()
+            raise
 
     def updates(self) -> bool:
         """The page shows a curve (its data source has rows)."""
