@@ -37,7 +37,7 @@ from pathlib import Path
 import numpy as np
 
 from hil.cia402 import State
-from hil.runtime.demo import wait_ready
+from hil.runtime.demo import DemoError, wait_ready
 
 ROOT = Path(__file__).resolve().parents[2]
 CONFIG = ROOT / "configs" / "arrow500_x.toml"
@@ -90,12 +90,17 @@ class _Pair:
                     "--record", self.run_dir, "--start", START_MM, "--cpu", cpus[-1], *rt),
             stdout=subprocess.PIPE, stderr=self.logs[0], text=True, env=self.env)
         self.controller = None
-        url = wait_ready(self.emulator, START_S)
-        pin = ["--cpu", cpus[0]] if len(cpus) > 1 else []
-        self.controller = subprocess.Popen(
-            _python("hil.runtime.controller_proc", config, "--adapter", url, "--program",
-                    program, "--out", folder / "controller", "--start", START_MM, *pin, *rt),
-            stdout=self.logs[1], stderr=subprocess.STDOUT, env=self.env)
+        try:
+            url = wait_ready(self.emulator, START_S)
+            pin = ["--cpu", cpus[0]] if len(cpus) > 1 else []
+            self.controller = subprocess.Popen(
+                _python("hil.runtime.controller_proc", config, "--adapter", url, "--program",
+                        program, "--out", folder / "controller", "--start", START_MM, *pin,
+                        *rt),
+                stdout=self.logs[1], stderr=subprocess.STDOUT, env=self.env)
+        except BaseException:
+            self.stop()
+            raise
 
     def stop(self) -> None:
         for proc in (self.controller, self.emulator):
@@ -262,7 +267,7 @@ def run_from_args(args: argparse.Namespace) -> int:
         try:
             result = measure(args.config, args.seconds, args.segments, not args.no_rt,
                              Path(tmp))
-        except (RuntimeError, OSError, WebDriverException) as e:  # the browser's: one line
+        except (RuntimeError, OSError, DemoError, WebDriverException) as e:  # one line each
             print(f"hil bench scope: {e}", file=sys.stderr)
             return 1
     print(json.dumps(result, indent=1) if args.json else text(result))
