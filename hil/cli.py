@@ -14,12 +14,14 @@
     hil bench study [--samples N] [--seconds S] [--json]
     hil bench controller [--config FILE --program FILE ...] [--no-rt] [--json]
     hil bench linuxcnc [--ini FILE] [--program FILE.ngc] [--out DIR] [--no-rt] [--json]
+    hil bench scope [--config FILE] [--seconds S] [--segments N] [--no-rt] [--json]
     hil bench identify [--ci] [--cases NAME ...] [--out DIR] [--workers N] [--json]
     hil eds CONFIG --adapter can://... [--out DIR]
     hil study SPEC.toml [--out DIR] [--workers N | --scheduler tcp://HOST:8786] [--fresh]
     hil report RUN [--cyclictest] [--controller DIR]
     hil replay RUN [--tolerance REL] [--json]
     hil export RUN --to mdf4|csv [--axis X] [--out PATH] [--force]
+    hil scope RUN [--port N]
     hil soak [--minutes N] [--rate HZ] [--no-rt] [--out DIR]
     hil config-keys [--markdown]
     hil identify TRACE --config CONFIG --out DIR [--validate TRACE2]
@@ -324,7 +326,9 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
             ("controller", "hil controller's tick against hil run over UDP, one axis and "
                            "five: p50, p99.9, the NC's part"),
             ("linuxcnc", "LinuxCNC's servo-thread jitter beside cyclictest, and the fixed "
-                         "wire's frames per second")):
+                         "wire's frames per second"),
+            ("scope", "hil run's loop lateness with hil scope's page open and closed in turn, "
+                      "in one run")):
         module(bsub, name, help_, f"hil.bench.{name}", command == "bench" and what == name)
 
     r = sub.add_parser("report", help="latency and jitter report of a run folder, and its "
@@ -342,6 +346,8 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
                    "compare it with its recording", "hil.replay.command")
     command_module("export", "a run's recording as MDF4 or servo-trace CSV",
                    "hil.runtime.export")
+    command_module("scope", "a run's status, events and signals live in a browser, with a "
+                   "trigger; a finished run's whole length", "hil.scope.command")
     command_module("soak", "emulator and controller for minutes or hours: memory, lateness "
                    "and overruns per minute, a plot", "hil.runtime.soak")
     command_module("run", "the emulator daemon: the plant behind an adapter, in real time",
@@ -390,6 +396,7 @@ EXAMPLES = {
     "report": "hil report out/run --controller out/ctl --cyclictest",
     "replay": "hil replay out/run --json",
     "export": "hil export out/run --to mdf4",
+    "scope": "hil scope out/run --port 5006",
     "soak": "hil soak --minutes 30 --rate 4000 --out soak-out",
     "run": "hil run configs/arrow500_x.toml --adapter udp://127.0.0.1:5005 --record out/run",
     "controller": "hil controller configs/arrow500_x.toml --adapter udp://127.0.0.1:5005 "
@@ -416,6 +423,7 @@ BENCH_EXAMPLES = {
     "study": "hil bench study --json",
     "controller": "hil bench controller --json",
     "linuxcnc": "hil bench linuxcnc --json",
+    "scope": "hil bench scope --seconds 30 --segments 4",
 }
 
 

@@ -11,10 +11,12 @@ import re
 import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
 import pyarrow as pa
+import pytest
 
 from hil.cia402 import EnableSequencer, State, statusword_state
 from hil.extras import EXTRA_OF_MODULE
@@ -316,3 +318,19 @@ def check_recording(run_dir: Path) -> tuple[dict, dict]:
     over = table.end_stop_overtravel_m + end_stop_reach(drive, 10.0 * drive.monitor.standstill())
     assert -over < x.min() and x.max() < table.travel_m + over, (x.min(), x.max(), over)
     return report, rec
+
+
+def wait_for_enabled(run, ctl) -> None:
+    """Until the run's recording has a row with the drive in OPERATION ENABLED (bounded;
+    fails if the controller ends first)."""
+    end = time.monotonic() + READY_S
+    while time.monotonic() < end:
+        assert ctl.poll() is None, "the controller ended before the drive was enabled"
+        try:
+            state = Recording(run).read(["drive_state"])["drive_state"]
+        except (OSError, ValueError):  # not there yet, or a batch being written
+            state = ()
+        if int(State.OPERATION_ENABLED) in state:
+            return
+        time.sleep(0.1)
+    pytest.fail("the drive was not enabled within READY_S")

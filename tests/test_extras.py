@@ -61,7 +61,8 @@ def test_the_core_commands_run_without_the_extras(tmp_path):
 
 
 def test_a_command_that_needs_a_missing_extra_names_it(tmp_path):
-    """hil study, hil bench study (Dask) and hil export --to mdf4 (asammdf) in a core-only
+    """hil study, hil bench study (Dask), hil export --to mdf4 (asammdf) and hil scope
+    (Bokeh) in a core-only
     process end with exit status 2 and the pip command of their extra, not a traceback."""
     run = tmp_path / "run"
     run.mkdir()
@@ -70,7 +71,8 @@ def test_a_command_that_needs_a_missing_extra_names_it(tmp_path):
             (["study", str(CONFIGS / "studies" / "ci_small.toml"), "--out",
               str(tmp_path / "study")], "study"),
             (["bench", "study", "--json"], "study"),
-            (["export", str(run), "--to", "mdf4"], "mdf")):
+            (["export", str(run), "--to", "mdf4"], "mdf"),
+            (["scope", str(run)], "scope")):
         done = _core_only(*argv)
         named = f"hil {argv[0]} {argv[1]}" if argv[0] == "bench" else f"hil {argv[0]}"
         assert done.returncode == 2, (argv, done.stderr)

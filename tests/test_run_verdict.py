@@ -15,10 +15,8 @@ import time
 
 import pytest
 
-from hil.cia402 import State
 from hil.report.run_verdict import judge_timing_counts
 from hil.runtime.demo_verdict import Verdict
-from hil.runtime.record_reader import Recording
 from hil.runtime.timing_quality import MAX_SHARE, TimingQuality
 from tests.runtime_helpers import (
     EXIT_S,
@@ -28,6 +26,7 @@ from tests.runtime_helpers import (
     machine_variant,
     python_module,
     terminate,
+    wait_for_enabled,
 )
 
 #: 8 mm at 0.12 m/min: about 4 s, long enough that the stop falls inside it, slow enough
@@ -90,22 +89,6 @@ def test_a_priced_run_fails_on_a_stall_alone_an_unpriced_one_on_every_count():
     stalled = {**report, "loop": _loop(10_000, 500, 90_000.0, stalls=1)}
     judge_timing_counts(priced, stalled, None, priced=True)
     assert [r.split(" (")[0] for r in priced.reasons] == ["emulator: 1 stall(s)"]
-
-
-def wait_for_enabled(run, ctl) -> None:
-    """Until the run's recording has a row with the drive in OPERATION ENABLED (bounded;
-    fails if the controller ends first)."""
-    end = time.monotonic() + READY_S
-    while time.monotonic() < end:
-        assert ctl.poll() is None, "the controller ended before the drive was enabled"
-        try:
-            state = Recording(run).read(["drive_state"])["drive_state"]
-        except (OSError, ValueError):  # not there yet, or a batch being written
-            state = ()
-        if int(State.OPERATION_ENABLED) in state:
-            return
-        time.sleep(0.1)
-    pytest.fail("the drive was not enabled within READY_S")
 
 
 @pytest.fixture(scope="module")

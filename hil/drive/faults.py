@@ -98,6 +98,12 @@ LINK = Cause.WATCHDOG | Cause.HEARTBEAT | Cause.NMT
 OVERSPEED_FACTOR = 1.1
 
 
+def fault_text(code: int) -> str:
+    """A drive's error code 603Fh in words (:data:`TEXT`)."""
+    texts = [TEXT[cause] for cause, c in ERROR_CODE.items() if c == code]
+    return " or ".join(texts) if texts else "a code this emulator does not use"
+
+
 def first_cause(mask: int) -> Cause:
     """The lowest cause bit of a non-zero ``mask``."""
     return Cause(mask & -mask)

@@ -75,7 +75,7 @@ from hil.controller.interpolator import SETTLE_S, plan
 from hil.controller.machine import MachineController
 from hil.controller.path import read_path_program
 from hil.controller.program import ProgramError, read_program
-from hil.drive.faults import ERROR_CODE, TEXT
+from hil.drive.faults import fault_text
 from hil.inject import INJECT_HELP
 from hil.inject.sender import InjectionSender
 from hil.progress import COMPILING, Progress
@@ -390,12 +390,6 @@ class ControllerProcess:
             except AdapterError:
                 self.adapter_errors += 1
             time.sleep(self.period_s)
-
-
-def fault_text(code: int) -> str:
-    """A drive's error code 603Fh in words (:data:`hil.drive.faults.TEXT`)."""
-    texts = [TEXT[cause] for cause, c in ERROR_CODE.items() if c == code]
-    return " or ".join(texts) if texts else "a code this emulator does not use"
 
 
 def failure_reasons(summary: dict, drive_faults: list[str]) -> list[str]:

@@ -226,9 +226,8 @@ class Recording:
             else:
                 reason = _crc_mismatch(batch, custom) if checked else None
             if reason is not None:
-                after = "" if last_tick is None else (
-                    f" (ticks up to {last_tick}, t = {last_tick * self.period_ns * 1e-9:.6f} s)")
-                error = CorruptBatchError(path, index, offset, rows, reason, after)
+                error = CorruptBatchError(path, index, offset, rows, reason,
+                                          self.ticks_before(last_tick))
                 if not stop_at_corrupt:
                     raise error
                 self.corrupt[path.name] = error
@@ -239,6 +238,12 @@ class Recording:
                 if path == self.path and "tick" in self.names:
                     last_tick = batch.column("tick")[-1].as_py()
                 yield batch
+
+    def ticks_before(self, last_tick: int | None) -> str:
+        """How a corrupt batch's message names the rows before it, whose last tick is
+        ``last_tick`` (None: not known)."""
+        return "" if last_tick is None else (
+            f" (ticks up to {last_tick}, t = {last_tick * self.period_ns * 1e-9:.6f} s)")
 
     @staticmethod
     def _cut_off(path: Path, offset: int) -> bool:
