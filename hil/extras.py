@@ -4,8 +4,9 @@ The core (``hil run``, ``hil controller``, ``hil demo``, ``hil sim`` and every o
 command not named here) needs only the project's dependencies.  Studies need Dask, SALib,
 Optuna, uvloop (the workers' event loop) and Bokeh (Dask's dashboard graphs); the MDF4
 export needs asammdf; ``hil scope`` needs Bokeh (its own extra, ``scope``, so that a
-commissioning machine need not install Dask for it; ``study`` lists it too).  ``pip install -e '.[all]'`` brings them all, and the README's test
-command does too (the ``test`` extra includes ``all``).
+commissioning machine need not install Dask for it; ``study`` lists it too).  ``pip
+install -e '.[all]'`` brings them all, and the README's test command does too (the
+``test`` extra includes ``all``).
 
 A command that imports a missing one ends with :func:`missing_extra`'s message, from
 :func:`hil.cli.main`, the one place that catches it."""
