@@ -67,4 +67,4 @@ def test_the_worst_overrun_names_the_tick_how_late_and_what_ran():
 def test_a_loop_on_time_has_no_worst_overrun_and_an_empty_cause_says_so():
     stats = RealTimeLoop(P, lambda k: None, n_ticks=50, clock=SimulatedClock()).run()
     assert stats.worst_overrun is None and stats.overrun_causes is None
-    assert "a system call that blocked?" in Cause(0, 0, 0, 0, 0.0, 0.0).text()
+    assert "woken late, the CPU busy elsewhere" in Cause(0, 0, 0, 0, 0.0, 0.0).text()

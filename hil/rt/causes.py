@@ -1,7 +1,9 @@
 """What kept a loop from its deadline: counters read only when a tick overran.
 
 A real-time loop that falls behind is either not running (another thread or process had
-its CPU: *involuntary context switches*), or running something it should not (the
+its CPU: *involuntary context switches*; a wake-up the scheduler delayed while the loop
+slept counts in no counter here, and the text says so), or running something it should
+not (the
 interpreter's *garbage collection*, numba *compiling* a kernel, *page faults* on memory
 touched for the first time).  The kernel counts the first and the last per thread
 (``getrusage(RUSAGE_THREAD)``); the interpreter's collector and numba's compiler report to
@@ -90,8 +92,11 @@ class Cause(NamedTuple):
             parts.append(f"{self.gc_collections} garbage collection(s), {self.gc_ms:.2f} ms")
         if self.compile_ms:
             parts.append(f"numba compiling, {self.compile_ms:.1f} ms")
-        return "; ".join(parts) or ("nothing the loop counts (no preemption, page fault, "
-                                    "collection or compile: a system call that blocked?)")
+        # a wake-up the scheduler delayed (the CPU busy with other work or interrupts
+        # while the loop slept) counts in none of them: the thread was not runnable yet
+        return "; ".join(parts) or ("nothing the loop counts while it runs (no preemption, "
+                                    "page fault, collection or compile): woken late, the "
+                                    "CPU busy elsewhere, or a system call that blocked")
 
     def plus(self, other: "Cause") -> "Cause":
         """The two summed, field by field."""
