@@ -26,7 +26,11 @@ from hil.controller.interpolator import ProfileSamples, plan
 from hil.controller.nc import Controller
 from hil.controller.program import parse_program
 from hil.drive import EmulatedDrive
-from hil.identify.conventions import ConventionError, read_conventions
+from hil.identify.conventions import (
+    ConventionError,
+    apply_conventions,
+    read_conventions,
+)
 from hil.identify.record import Record, load_record
 from hil.identify.replay import replay
 from hil.identify.trace_controller import TraceController
@@ -34,11 +38,13 @@ from hil.sim import LockStep
 from hil.trace_file import write_trace
 from io_adapters.messages import Feedback, Setpoint
 from plant import Plant
+from plant import layout as L
 from plant.config import load_machine
 from tests.test_identify_replay import trace_columns
 
 DATA = Path(__file__).parent / "data"
 BASE = DATA / "ident_screw.toml"
+ARROW = Path(__file__).parents[1] / "configs" / "arrow500_x.toml"
 
 
 def _record(meta: dict) -> Record:
@@ -49,7 +55,8 @@ def _record(meta: dict) -> Record:
 
 def test_header_keys_become_machine_file_keys():
     """trace-format.md's keys: cycle times in whole PWM periods (4 kHz here), the ADC's
-    step 2 FS / 2^bits, the feed-forward factor as weight, the rest by name."""
+    step 2 FS / 2^bits and its clipping at FS, the feed-forward factor as weight, the rest
+    by name (``encoder_zero_at_start``'s true/false as a boolean)."""
     cfg = load_machine(BASE)
     conv = read_conventions(_record({
         "position_loop_sample_time_s": "0.002", "speed_loop_sample_time_s": "0.0005",
@@ -57,15 +64,27 @@ def test_header_keys_become_machine_file_keys():
         "velocity_feedforward_factor": "0.8", "speed_actual_filter_s": "0.0008",
         "speed_antiwindup": "clamp", "current_delay_cycles": "1", "current_adc_bits": "12",
         "current_adc_full_scale_a": "20", "encoder_counts_per_rev": "4096",
-        "scale_resolution_m": "1e-6", "preroll_s": "0.5", "vel_set_column": "speed_command"}),
+        "scale_resolution_m": "1e-6", "preroll_s": "0.5", "vel_set_column": "speed_command",
+        "encoder_rounding": "round", "encoder_zero_at_start": "true",
+        "voltage_limit": "vector", "karnopp_reversal": "stop"}),
         cfg)
     assert conv.overrides == {
         "controller": {"position_cycle_ratio": 8, "ipo_cycle_ratio": 8, "speed_cycle_ratio": 2,
                        "feedforward_interpolation": "linear", "speed_ff": True,
                        "speed_ff_weight": 0.8, "speed_actual_filter_s": 0.0008,
                        "speed_antiwindup": "clamp", "current_delay_cycles": 1},
-        "sensors": {"current_lsb_a": 40.0 / 4096, "encoder_counts_per_rev": 4096,
-                    "scale_resolution_m": 1e-6}}
+        "sensors": {"current_lsb_a": 40.0 / 4096, "current_full_scale_a": 20.0,
+                    "encoder_counts_per_rev": 4096, "scale_resolution_m": 1e-6,
+                    "encoder_rounding": "round", "encoder_zero_at_start": True},
+        "motor": {"voltage_limit": "vector"}, "friction": {"karnopp_reversal": "stop"}}
+    applied = apply_conventions(cfg, conv)
+    assert (applied.sensors.current_full_scale_a, applied.sensors.encoder_zero_at_start,
+            applied.motor.voltage_limit, applied.friction.karnopp_reversal) == (
+        20.0, True, "vector", "stop")
+    assert read_conventions(_record({"encoder_zero_at_start": "false"}), cfg).overrides == {
+        "sensors": {"encoder_zero_at_start": False}}
+    dq = read_conventions(_record({"voltage_limit": "q"}), load_machine(ARROW))
+    assert dq.overrides == {"motor": {"voltage_limit": "q"}}
     assert conv.preroll_s == 0.5 and conv.vel_set_column == "speed_command"
     plain = read_conventions(_record({"machine": "x.toml"}), cfg)
     assert plain.overrides == {} and plain.preroll_s == 0.0
@@ -84,10 +103,44 @@ def test_header_keys_become_machine_file_keys():
     ({"current_adc_bits": "12.5", "current_adc_full_scale_a": "20"}, "must be a whole number"),
     ({"preroll_s": "soon"}, "preroll_s = 'soon'"),
     ({"vel_set_column": "command"}, "vel_set_column = 'command'"),
+    ({"encoder_rounding": "nearest"}, ("encoder_rounding = 'nearest': must be one of "
+                                       "'floor', 'round'")),
+    ({"encoder_zero_at_start": "yes"}, ("encoder_zero_at_start = 'yes': must be one of "
+                                        "'true', 'false'")),
+    ({"current_adc_bits": "12", "current_adc_full_scale_a": "0"},
+     "current_adc_full_scale_a = '0': must be a number >= 0.01"),
+    ({"voltage_limit": "d"}, "voltage_limit = 'd': must be one of 'vector', 'q'"),
+    ({"voltage_limit": "q"}, "ident_screw.toml has \\[motor\\] model = 'first_order'"),
+    ({"karnopp_reversal": "slip"}, ("karnopp_reversal = 'slip': must be one of "
+                                    "'breakaway', 'stop'")),
 ])
 def test_a_convention_the_replay_cannot_honour_is_refused_naming_the_key(meta, match):
-    with pytest.raises(ConventionError, match=match):
+    with pytest.raises(ConventionError, match=match) as err:
         read_conventions(_record(meta), load_machine(BASE))
+    assert str(err.value).startswith("trace.csv: ")  # the record's file
+
+
+def test_plant_keys_of_the_header_reach_the_plants_kernel():
+    """The header's voltage_limit and karnopp_reversal, applied to the machine file, set
+    the kernel parameters the machine-file keys set (tests/test_plant_conventions.py
+    checks those against analytic cases); without them the defaults (0) stay."""
+    cfg = load_machine(ARROW)
+    conv = read_conventions(_record({"voltage_limit": "q", "karnopp_reversal": "stop"}), cfg)
+    params = Plant(apply_conventions(cfg, conv)).params
+    assert params[L.P_U_Q_ONLY] == 1.0 and params[L.P_FR_REVERSAL_STOP] == 1.0
+    plain = Plant(apply_conventions(cfg, read_conventions(_record({}), cfg))).params
+    assert plain[L.P_U_Q_ONLY] == 0.0 and plain[L.P_FR_REVERSAL_STOP] == 0.0
+
+
+def test_karnopp_reversal_stop_is_refused_without_karnopp_friction():
+    """As the machine-file key is: 'stop' needs a Coulomb or breakaway level and no
+    presliding model; 'breakaway' (the default) is accepted on any file."""
+    frictionless = load_machine(BASE, {"friction": {"coulomb_n": 0.0}})
+    with pytest.raises(ConventionError, match="karnopp_reversal = 'stop' needs Karnopp "
+                                              "stick-slip friction.*no Coulomb"):
+        read_conventions(_record({"karnopp_reversal": "stop"}), frictionless)
+    assert read_conventions(_record({"karnopp_reversal": "breakaway"}), frictionless) \
+        .overrides == {"friction": {"karnopp_reversal": "breakaway"}}
 
 
 def test_identify_cli_refuses_a_bad_header_in_one_line(tmp_path):

@@ -53,12 +53,12 @@ def _prbs(traj, every_s: float, amplitude: float, seed: int = 3) -> np.ndarray:
 
 
 def _trace(tmp_path, axis, truth: dict, *, every: int = EVERY, preroll_s: float = 0.1,
-           adc_bits: int = 12, excitation: float = 0.005):
-    """The generator's trace of ``axis`` + ``truth`` (PRBS on the feed-forward), read back;
-    and its noise floor."""
+           adc_bits: int = 12, excitation: float = 0.005, start: float = 0.1):
+    """The generator's trace of ``axis`` + ``truth`` (PRBS on the feed-forward; the moves
+    from ``start``), read back; and its noise floor."""
     path = tmp_path / "truth.toml"
     path.write_text(patch_config(axis.read_text(), truth, "truth"))
-    traj = _moves(0.1)
+    traj = _moves(start)
     dt = every / load_machine(axis).motor.pwm_frequency_hz
     rec = simulate(path, traj, record_every=every, preroll_s=preroll_s, adc_bits=adc_bits,
                    seed=5, excitation=_prbs(traj, dt, excitation))
@@ -87,9 +87,15 @@ def test_feed_forward_steps_on_rows_between_position_cycles_replay_at_the_floor(
     assert max(got.values()) <= FLOOR_GOAL, got
 
 
+#: a pitch error whose value at x = 0 (4 um) is the motor encoder's offset between counting
+#: from 0 and counting from a start at 0
+PITCH_AT_ZERO = {"periods_m": [0.025], "amplitudes_m": [4e-6], "phases_deg": [90.0]}
+#: sections of a truth that the declared file has too (the key's effect needs them)
+SHARED = ("table", "pitch_error")
 #: per trace-format.md header key: (axis, truth's machine-file keys (the replay's declared
-#: file has the axis's), the header keys replay-tested, generator options, whether the
-#: trace shows the key: the replay without it is off the floor)
+#: file has the axis's and the truth's SHARED sections), the header keys replay-tested,
+#: generator options, whether the trace shows the key: the replay without it is off the
+#: floor)
 KEYS = {
     "sample_time_s": (SCREW, {}, (), {"every": 2}, False),
     "position_loop_sample_time_s": (SCREW, {"controller": {"position_cycle_ratio": 8,
@@ -120,6 +126,17 @@ KEYS = {
                            ("scale_resolution_m",), {}, True),
     "preroll_s": (SCREW, {"table": {"external_force_n": 300.0}}, ("preroll_s",),
                   {"preroll_s": 0.3}, True),
+    # the counts half a step apart: half a micrometre on a 1 um scale
+    "encoder_rounding": (SCREW, {"sensors": {"encoder_rounding": "round",
+                                             "scale_resolution_m": 1e-6}},
+                         ("encoder_rounding",), {}, True),
+    "encoder_zero_at_start": (SCREW, {"sensors": {"encoder_zero_at_start": True},
+                                      "pitch_error": PITCH_AT_ZERO},
+                              ("encoder_zero_at_start",), {"start": 0.0}, True),
+    # a 0.64 A full scale (8 bits of 5 mA) that the friction and the excitation's current
+    # steps exceed
+    "current_adc_full_scale_a": (SCREW, {}, ("current_adc_bits", "current_adc_full_scale_a"),
+                                 {"adc_bits": 8}, True),
 }
 
 
@@ -134,9 +151,12 @@ def test_each_header_key_replays_at_the_floor(tmp_path, key):
     at the floor.  Without the key the replay is off the floor where the key shows
     (``preroll_s``: a 300 N force on the axis in both files, and the replay started cold
     sags under it; not the current ADC's step: the replay's rounding at the declared
-    step leaves the same error as the floor's own rounding)."""
+    step leaves the same error as the floor's own rounding; its full scale: an 8-bit ADC
+    clips the current the replay without it reads whole; ``encoder_zero_at_start``: a
+    pitch error in both files that puts the motor 4 um off the scale at x = 0, where the
+    encoders counting from there read 0 on both)."""
     axis, truth, header_keys, options, shows = KEYS[key]
-    preroll = {"table": truth["table"]} if "table" in truth else {}
+    preroll = {sec: truth[sec] for sec in SHARED if sec in truth}
     rec, floor = _trace(tmp_path, axis, truth, **options)
     assert all(k in rec.meta for k in header_keys)
     got = _over_floor(axis, preroll, rec, floor)

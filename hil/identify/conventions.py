@@ -17,11 +17,15 @@ header key                      machine-file key it sets
 ``speed_actual_filter_s``       ``[controller] speed_actual_filter_s``
 ``speed_antiwindup``            ``[controller] speed_antiwindup``
 ``current_delay_cycles``        ``[controller] current_delay_cycles``
-``current_adc_bits``,           ``[sensors] current_lsb_a`` = 2 full scale / 2^bits
-``current_adc_full_scale_a``
+``current_adc_bits``,           ``[sensors] current_lsb_a`` = 2 full scale / 2^bits, and
+``current_adc_full_scale_a``    ``[sensors] current_full_scale_a`` = full scale (clipping)
 ``encoder_counts_per_rev``,     ``[sensors]`` keys of the same names
 ``encoder_resolution_m``,
-``scale_resolution_m``
+``scale_resolution_m``,
+``encoder_rounding``,
+``encoder_zero_at_start``
+``voltage_limit``               ``[motor] voltage_limit`` (a ``dq`` motor model only)
+``karnopp_reversal``            ``[friction] karnopp_reversal`` (Karnopp friction only)
 ``preroll_s``                   none: the replay starts this long before t = 0, at rest
 ``vel_set_column``              none: ``feedforward`` (trace-format.md) or ``speed_command``
 =============================== ============================================================
@@ -38,12 +42,15 @@ from hil.controller.config import ANTIWINDUP_MODES
 from hil.identify.record import Record
 from hil.trace_file import TraceFormatError
 from plant.config import MachineConfig
+from plant.sections import REVERSALS, ROUNDINGS, VOLTAGE_LIMITS
 
 #: relative tolerance of a cycle time against a whole number of PWM periods
 CYCLE_TOLERANCE = 1e-3
 #: the feed-forward column's meanings: trace-format.md's, and the whole speed command that
 #: this project's own trace writers put there before they followed it
 VEL_SET_MEANINGS = ("feedforward", "speed_command")
+#: ``encoder_zero_at_start``'s values as written, and what they mean
+BOOLEANS = {"true": True, "false": False}
 #: sources whose ``vel_set_mm_min`` is the whole speed command when the header has no
 #: ``vel_set_column``: the traces hil.sim.servo_trace_columns wrote before it followed
 #: trace-format.md (it now writes the feed-forward and says so in the header)
@@ -110,7 +117,9 @@ def read_conventions(rec: Record, cfg: MachineConfig) -> Conventions:
 
     Raises:
         ConventionError: a value that is no number, outside its range, not a whole number
-            of PWM periods, or a current loop cycle other than the plant's.
+            of PWM periods, a current loop cycle other than the plant's, a word outside its
+            choices, or a plant key the machine file cannot take (``voltage_limit = "q"``
+            without a ``dq`` motor, ``karnopp_reversal = "stop"`` without Karnopp friction).
     """
     meta = rec.meta
     pwm = 1.0 / cfg.motor.pwm_frequency_hz
@@ -172,8 +181,8 @@ def read_conventions(rec: Record, cfg: MachineConfig) -> Conventions:
         n_bits = _number(rec, "current_adc_bits", meta["current_adc_bits"], integer=True,
                          lo=4, hi=32)
         scale = _number(rec, "current_adc_full_scale_a", meta["current_adc_full_scale_a"],
-                        lo=1e-3, hi=1e4, unit="A")
-        sensors["current_lsb_a"] = 2.0 * scale / 2.0 ** n_bits
+                        lo=0.01, hi=1e4, unit="A")
+        sensors.update(current_lsb_a=2.0 * scale / 2.0 ** n_bits, current_full_scale_a=scale)
     if has("encoder_counts_per_rev"):
         sensors["encoder_counts_per_rev"] = _number(rec, "encoder_counts_per_rev",
                                                     meta["encoder_counts_per_rev"],
@@ -181,6 +190,14 @@ def read_conventions(rec: Record, cfg: MachineConfig) -> Conventions:
     for key in ("encoder_resolution_m", "scale_resolution_m"):
         if has(key):
             sensors[key] = _number(rec, key, meta[key], lo=1e-10, hi=1e-3, unit="m")
+    if has("encoder_rounding"):
+        sensors["encoder_rounding"] = _choice(rec, "encoder_rounding",
+                                              meta["encoder_rounding"], ROUNDINGS)
+    if has("encoder_zero_at_start"):
+        sensors["encoder_zero_at_start"] = BOOLEANS[_choice(
+            rec, "encoder_zero_at_start", meta["encoder_zero_at_start"], tuple(BOOLEANS))]
+    motor = _voltage_limit(rec, cfg) if has("voltage_limit") else {}
+    friction = _karnopp_reversal(rec, cfg) if has("karnopp_reversal") else {}
     preroll = (_number(rec, "preroll_s", meta["preroll_s"], hi=60.0, unit="s")
                if has("preroll_s") else 0.0)
     if has("vel_set_column"):
@@ -189,20 +206,50 @@ def read_conventions(rec: Record, cfg: MachineConfig) -> Conventions:
         source = str(meta.get("source", ""))
         vel_set = ("speed_command" if source.startswith(SPEED_COMMAND_SOURCES)
                    else "feedforward")
-    overrides = {sec: keys for sec, keys in (("controller", ctrl), ("sensors", sensors)) if keys}
+    overrides = {sec: keys for sec, keys in (("controller", ctrl), ("sensors", sensors),
+                                             ("motor", motor), ("friction", friction)) if keys}
     return Conventions(overrides, preroll, vel_set, given)
+
+
+def _voltage_limit(rec: Record, cfg: MachineConfig) -> dict:
+    """``{"voltage_limit": ...}`` of the header; ConventionError where the machine file's
+    motor has no voltage controller to limit (only the ``dq`` model has)."""
+    value = _choice(rec, "voltage_limit", rec.meta["voltage_limit"], VOLTAGE_LIMITS)
+    if cfg.motor.model != "dq" and value != "vector":
+        raise ConventionError(f"{rec.source}: header key voltage_limit = {value!r}: "
+                              f"{cfg.path} has [motor] model = {cfg.motor.model!r}, which "
+                              "has no voltage controller; the key needs model = 'dq'")
+    return {"voltage_limit": value}
+
+
+def _karnopp_reversal(rec: Record, cfg: MachineConfig) -> dict:
+    """``{"karnopp_reversal": ...}`` of the header; ConventionError where the machine
+    file's friction is no Karnopp stick-slip (presliding, or no Coulomb or breakaway
+    level), as its loader would refuse the machine-file key."""
+    value = _choice(rec, "karnopp_reversal", rec.meta["karnopp_reversal"], REVERSALS)
+    fr = cfg.friction
+    levels = (fr.coulomb_nm, fr.breakaway_nm) if cfg.machine.kind == "rotary" else \
+        (fr.coulomb_n, fr.breakaway_n)
+    if value == "stop" and (cfg.presliding.enabled or not max(levels)):
+        why = "[presliding] replaces it" if cfg.presliding.enabled else \
+            "no Coulomb or breakaway level"
+        raise ConventionError(f"{rec.source}: header key karnopp_reversal = 'stop' needs "
+                              f"Karnopp stick-slip friction, and {cfg.path} has none ({why})")
+    return {"karnopp_reversal": value}
 
 
 def apply_conventions(cfg: MachineConfig, conv: Conventions) -> MachineConfig:
     """``cfg`` with the header's machine-file keys applied (the ``[controller]`` table
-    replaced key by key, the ``[sensors]`` values set; ranges are checked where the
-    sections are read)."""
+    replaced key by key, the ``[sensors]``, ``[motor]`` and ``[friction]`` values set;
+    ranges and applicability are checked where the header is read)."""
     out = cfg
     ctrl = conv.overrides.get("controller")
     if ctrl:
         table = {**out.section("controller"), **ctrl}
         out = dataclasses.replace(out, foreign={**out.foreign, "controller": table})
-    sensors = conv.overrides.get("sensors")
-    if sensors:
-        out = dataclasses.replace(out, sensors=dataclasses.replace(out.sensors, **sensors))
+    for name in ("sensors", "motor", "friction"):
+        keys = conv.overrides.get(name)
+        if keys:
+            out = dataclasses.replace(out, **{name: dataclasses.replace(getattr(out, name),
+                                                                        **keys)})
     return out

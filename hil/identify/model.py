@@ -90,12 +90,17 @@ class Model:
             mask &= t.effect.mask(self.ctx)
         return mask
 
+    def prediction(self, domain: str) -> np.ndarray:
+        """The domain's terms' prediction, shape (n,): force (N) or table-minus-motor
+        position (m, without the encoders' zero offset)."""
+        return sum((t.contribution(self.ctx) for t in self._domain(domain)),
+                   np.zeros(self.ctx.rec.n))
+
     def residual(self, domain: str) -> np.ndarray:
         """The domain's measured signal less the model's prediction, shape (n,): force (N)
         or table-minus-motor position (m, its mean removed: the encoders' zeros differ)."""
         m = self.ctx.m
-        pred = sum((t.contribution(self.ctx) for t in self._domain(domain)),
-                   np.zeros(self.ctx.rec.n))
+        pred = self.prediction(domain)
         if domain == FORCE:
             return m.force - pred
         if domain == POSITION and m.dx is not None:

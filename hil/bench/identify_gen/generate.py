@@ -6,7 +6,9 @@ convention in its header.
 Per PWM period (the basic clock) k, in this order:
 
 * the measurements of the period's start, delayed by ``[sensors] delay_s``: encoder and
-  scale counts (floor), the current with Gaussian noise, rounded to the ADC's step;
+  scale counts (floor, or the nearest count with ``[sensors] encoder_rounding = "round"``;
+  of the travel since the start with ``encoder_zero_at_start``), the current with Gaussian
+  noise, rounded to the ADC's step and clipped at its full scale (``adc_bits`` steps);
 * every position cycle: e = x_set' - x_meas with x_set' the setpoint through a first-order
   lag of ``speedctrl_equiv_time_s``; v_P = K_v e;
 * every speed cycle: the speed from the encoder's difference over the cycle, through the
@@ -108,6 +110,8 @@ def _conventions(cfg: MachineConfig, sec: ControllerSection, dt_rec: float,
         "current_delay_cycles": str(sec.current_delay_cycles),
         "current_adc_bits": str(adc[0]), "current_adc_full_scale_a": repr(adc[1]),
         "preroll_s": repr(preroll_s), "vel_set_column": "feedforward",
+        "encoder_rounding": sen.encoder_rounding,
+        "encoder_zero_at_start": "true" if sen.encoder_zero_at_start else "false",
     }
     if cfg.machine.kind == "linear":
         meta["encoder_resolution_m"] = repr(sen.encoder_resolution_m)
@@ -120,7 +124,8 @@ def _conventions(cfg: MachineConfig, sec: ControllerSection, dt_rec: float,
 
 def simulate(truth: str | Path, traj: Trajectory, *, record_every: int, preroll_s: float,
              adc_bits: int, seed: int, rtol: float = RTOL, progress=None,
-             excitation: np.ndarray | None = None) -> Recording:
+             excitation: np.ndarray | None = None,
+             start_m: float | None = None) -> Recording:
     """Run ``traj`` on the machine file ``truth`` (its ``[controller]`` with the
     conventions of the module docstring) and record every ``record_every`` PWM periods.
 
@@ -129,8 +134,9 @@ def simulate(truth: str | Path, traj: Trajectory, *, record_every: int, preroll_
         traj: the setpoint (table units), starting at rest.
         record_every: PWM periods per record sample.
         preroll_s: s at rest before the first sample (a whole number of position cycles).
-        adc_bits: the current ADC's bits; its full scale is 2^(bits-1) times
-            ``[sensors] current_lsb_a``.
+        adc_bits: the current ADC's bits; its full scale, where the measured current
+            clips, is 2^(bits-1) times ``[sensors] current_lsb_a`` (the truth's
+            ``current_full_scale_a`` must be 0 or that).
         seed: of the measurement noise.
         rtol: the integration's relative tolerance (the bench's repeat uses ten times
             RTOL: a trace that changes with it cannot be followed closer by any model).
@@ -138,6 +144,14 @@ def simulate(truth: str | Path, traj: Trajectory, *, record_every: int, preroll_
         excitation: added to the speed feed-forward of each record row (m/s or rad/s),
             shape (n,) with n at least the number of rows (traj.duration_s over the sample
             time, plus one); the trace's ``vel_set`` holds it.
+        start_m: where the table truly stands at the start (m or rad; default the
+            trajectory's start).  Only with ``[sensors] encoder_zero_at_start``, whose
+            encoders read the travel since the start, may it differ from it: the trace's
+            frame is then the encoders', and the trajectory must start at 0.
+    Raises:
+        UnsupportedModel: a key of ``truth`` the generator does not model.
+        ValueError: an excitation of the wrong shape, or a start the trajectory's frame
+            contradicts.
     """
     cfg = load_machine(truth)
     sec = load_controller(cfg)
@@ -147,14 +161,24 @@ def simulate(truth: str | Path, traj: Trajectory, *, record_every: int, preroll_
     lim = axis_limits(cfg, sec)
     p: AxisParams = axis_params(cfg)
     x_start, _ = traj.at(0.0)
-    axis = Axis(p, float(x_start[0]), rtol)
     sen = cfg.sensors
+    table0 = _start(cfg, float(x_start[0]), start_m)
+    axis = Axis(p, table0, rtol)
     rng = np.random.default_rng(seed)
     lsb = sen.current_lsb_a
+    full_scale = lsb * 2 ** (adc_bits - 1) if lsb > 0 else math.inf
+    if sen.current_full_scale_a and sen.current_full_scale_a != full_scale:
+        raise UnsupportedModel(f"{cfg.path}: [sensors] current_full_scale_a = "
+                               f"{sen.current_full_scale_a:g} A: the generator's ADC clips at "
+                               f"2^(adc_bits-1) current_lsb_a = {full_scale:g} A")
+    rounding = 0.5 if sen.encoder_rounding == "round" else 0.0
     linear = kind == "linear"
     enc_step = sen.encoder_resolution_m if linear else 2 * math.pi / sen.encoder_counts_per_rev
     enc_step_table = enc_step * p.ratio  # one count in table units
     scale = sen.scale_resolution_m if kind != "rotary" else 0.0
+    # the encoders' zeros: the axis's start, or position 0
+    zero_motor, zero_table = ((axis.motor_position, axis.table_position)
+                              if sen.encoder_zero_at_start else (0.0, 0.0))
     feedback_scale = sec.feedback == "scale"
     kt = p.kf * p.ratio  # torque (force) per ampere on the motor side
     n_pos, n_spd = sec.position_cycle_ratio, sec.speed_cycle_ratio
@@ -196,11 +220,12 @@ def simulate(truth: str | Path, traj: Trajectory, *, record_every: int, preroll_
     for k in range(n_ticks):
         t = (k - pre_ticks) * pwm  # trace time; negative during the pre-roll
         true_motor, true_table, true_i = axis.motor_position, axis.table_position, axis.current
-        counts = math.floor(true_motor / enc_step_table + 1e-9)
-        x_scale = math.floor(true_table / scale + 1e-9) * scale if scale > 0 else math.nan
+        counts = math.floor((true_motor - zero_motor) / enc_step_table + rounding + 1e-9)
+        x_scale = math.floor((true_table - zero_table) / scale + rounding + 1e-9) * scale \
+            if scale > 0 else math.nan
         i_meas = true_i + sen.current_noise_a * rng.standard_normal()
         if lsb > 0:
-            i_meas = round(i_meas / lsb) * lsb
+            i_meas = max(-full_scale, min(full_scale, round(i_meas / lsb) * lsb))
         meas_q.append((counts, x_scale, i_meas, true_motor, true_table, true_i))
         counts, x_scale, i_meas, true_motor, true_table, true_i = meas_q[0]
         motor_meas = counts * enc_step_table
@@ -238,12 +263,28 @@ def simulate(truth: str | Path, traj: Trajectory, *, record_every: int, preroll_
             rec["motor"][row] = motor_meas
             rec["x_true"][row] = true_table
             rec["motor_true"][row] = true_motor
-            rec["iq_true"][row] = true_i
+            # what no model can explain: the noise and the step, not the clipping
+            rec["iq_true"][row] = max(-full_scale, min(full_scale, true_i))
             row += 1
             if progress is not None and row % max(1, n_rec // 20) == 0:
                 progress(row / n_rec)
         axis.step(pwm, applied)
     return _recording(cfg, sec, rec, record_every * pwm, preroll_s, adc_bits, feedback_scale)
+
+
+def _start(cfg: MachineConfig, traj_start: float, start_m: float | None) -> float:
+    """The table's true start position (see :func:`simulate`'s ``start_m``)."""
+    if cfg.sensors.encoder_zero_at_start:
+        if traj_start != 0.0:
+            raise ValueError(f"the trajectory starts at {traj_start:g}: with encoders zeroed "
+                             "at the start ([sensors] encoder_zero_at_start) it is in their "
+                             "frame and starts at 0")
+        return traj_start if start_m is None else start_m
+    if start_m is not None and start_m != traj_start:
+        raise ValueError(f"start_m = {start_m:g} differs from the trajectory's start "
+                         f"{traj_start:g}: only encoders zeroed at the start "
+                         "([sensors] encoder_zero_at_start) read another frame")
+    return traj_start
 
 
 def _recording(cfg, sec, rec: dict, dt: float, preroll_s: float, adc_bits: int,

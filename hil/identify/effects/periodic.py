@@ -10,6 +10,7 @@ import math
 
 import numpy as np
 
+from hil.identify.conventions import apply_conventions, read_conventions
 from hil.identify.effects.base import POSITION, Effect, Term, explained, lstsq
 from hil.identify.effects.drivetrain import NO_SECOND_SENSOR
 from hil.identify.spectrum import position_spectrum
@@ -38,12 +39,13 @@ def _amp_phase(coef: np.ndarray, scale: float) -> tuple[list[float], list[float]
     return amps, phases
 
 
-def _greedy_orders(cols_of, candidates, residual, mask, min_gain):
+def _greedy_orders(cols_of, candidates, residual, mask, min_gain, start=0.0):
     """Pick orders one at a time while each removes at least ``min_gain`` of the residual
-    energy; returns (orders, coef, explained)."""
+    energy more than the last (``start``: what ``cols_of([])`` explains); returns (orders,
+    coef, explained)."""
     chosen: list[float] = []
     coef = np.zeros(0)
-    ex = 0.0
+    ex = start
     for _ in range(MAX_HARMONICS):
         best = None
         for k in candidates:
@@ -158,7 +160,13 @@ class PitchError(Effect):
     the table position -- harmonics of the lead (the screw's own run-out and thread
     errors: periods lead / k), and the long-wave periods the residual's spectrum shows --
     plus a cumulative lead error c x (``linear_ppm``) where it explains as much as a
-    harmonic must, as the plant's e(u) = sum A_k sin(2 pi u / P_k + phi_k) + c u."""
+    harmonic must, as the plant's e(u) = sum A_k sin(2 pi u / P_k + phi_k) + c u.
+
+    Every fit of the proposal has a constant d beside them: the encoders' zeros differ
+    (encoders zeroed at the start, away from x = 0, differ by -e(x_0); issue 30).  Without
+    it a short travel's offset goes into a slope and beating periods.  d is no plant
+    parameter, so the term leaves it out (the domain's joint fit has its own offset,
+    :meth:`hil.identify.model.Model.refit`); the evidence says what it is."""
     name = "pitch_error"
     domain = POSITION
     n_params = 2
@@ -182,12 +190,17 @@ class PitchError(Effect):
         return Term(self, {"periods_m": list(pe.periods_m), "linear": linear},
                     np.array(coef + ([pe.linear_ppm * 1e-6] if linear else [])))
 
-    def _cols(self, ctx, periods, linear=False):
+    def _cols(self, ctx, periods, linear=False, offset=False):
         """The harmonics' sine and cosine columns (and the cumulative error's, c x: the
-        plant's e(u) = c u from the screw's zero), shape (n, 2k (+ 1))."""
+        plant's e(u) = c u from the screw's zero; and the constant's, with ``offset``),
+        shape (n, 2k (+ 1) (+ 1))."""
         x = ctx.m.x
-        cols = _sincos(2 * math.pi * x, [1.0 / p for p in periods])
-        return np.hstack([cols, x[:, None]]) if linear else cols
+        cols = [_sincos(2 * math.pi * x, [1.0 / p for p in periods])]
+        if linear:
+            cols.append(x[:, None])
+        if offset:
+            cols.append(np.ones((x.size, 1)))
+        return np.hstack(cols)
 
     def propose(self, ctx, residual, model):
         mask = ctx.moving
@@ -205,36 +218,79 @@ class PitchError(Effect):
                    for f, _ in peaks if 1.0 / f >= p_min]
         lead = 2 * math.pi * ctx.drive.ratio
         periods += [lead / k for k in range(1, LEAD_HARMONICS + 1) if lead / k >= p_min]
-        chosen, coef, ex = _greedy_orders(lambda ps: self._cols(ctx, ps), periods, residual,
-                                          mask, 0.01)
+        alone = self._cols(ctx, [], offset=True)
+        start = explained(residual, alone @ lstsq(alone, residual, mask), mask)
+        chosen, coef, ex = _greedy_orders(lambda ps: self._cols(ctx, ps, offset=True),
+                                          periods, residual, mask, 0.01, start)
         if not chosen:
             return None
+        chosen, coef, ex = self._refine_jointly(ctx, residual, mask, chosen, lead,
+                                                spec.resolution, (coef, ex))
         # the cumulative lead error, when it explains as much more as a harmonic must
-        cols = self._cols(ctx, chosen, True)
+        cols = self._cols(ctx, chosen, True, True)
         with_linear = lstsq(cols, residual, mask)
         ex_linear = explained(residual, cols @ with_linear, mask)
         linear = ex_linear - ex >= 0.01
         if linear:
             coef, ex = with_linear, ex_linear
         shape = {"periods_m": chosen, "linear": linear}
+        coef, d = coef[:-1], float(coef[-1])
         amps, _ = _amp_phase(coef[:2 * len(chosen)], 1.0)
         ppm = float(coef[-1]) * 1e6 if linear else 0.0
+        zero = self._zero_offset(ctx, shape, coef, d, residual, model)
         ev = {"explained": ex, "periods_m": chosen, "amplitudes_m": amps,
-              "periods_per_lead": [p / lead for p in chosen], "linear_ppm": ppm,
+              "periods_per_lead": [p / lead for p in chosen], "linear_ppm": ppm, **zero,
               "text": "table position minus motor position is periodic in the table "
                       "position: " + ", ".join(f"period {p * 1e3:.4g} mm ({p / lead:.3g} "
                                                f"lead), {a * 1e6:.3g} um"
                                                for p, a in zip(chosen, amps))
-                      + (f"; cumulative lead error {ppm:.3g} um/m" if linear else "")}
+                      + (f"; cumulative lead error {ppm:.3g} um/m" if linear else "")
+                      + "; " + zero["offset_text"]}
         return Term(self, shape, coef, True, ev)
 
-    def _refine(self, ctx, residual, mask, cycles, resolution):
+    def _zero_offset(self, ctx, shape, coef, d, residual, model) -> dict:
+        """What the fitted constant says about the encoders' zeros: ``offset_m``, table
+        minus motor position where the pitch error is 0 (the residual's centring undone),
+        ``zero_at_start_m``, the offset encoders zeroed at the record's first position x_0
+        show, -e(x_0) (so that both read 0 there), and ``offset_text``."""
+        # the residual is centred: its mean over the used samples is added back
+        raw = ctx.m.dx - model.prediction(POSITION)
+        offset = d + float(np.mean((raw - residual)[ctx.m.use]))
+        at_start = -float(self.columns(ctx, shape)[0] @ coef)
+        cfg = apply_conventions(ctx.cfg, read_conventions(ctx.rec, ctx.cfg))
+        zeroed = cfg.sensors.encoder_zero_at_start
+        if zeroed:
+            text = (f"the encoders' zeros differ by {offset * 1e6:.3g} um: encoders zeroed "
+                    f"at the start (encoder_zero_at_start) differ by -e(x_0) = "
+                    f"{at_start * 1e6:.3g} um, at x_0 = {ctx.m.x[0] * 1e3:.4g} mm")
+        else:
+            text = (f"the encoders' zeros differ by {offset * 1e6:.3g} um (no plant "
+                    "parameter: left out of the machine file)")
+        return {"offset_m": offset, "zero_at_start_m": at_start, "offset_text": text}
+
+    def _refine_jointly(self, ctx, residual, mask, chosen, lead, resolution, fit):
+        """``chosen`` with each spectral period (no lead harmonic) refined again beside the
+        others: refined alone, another period's leakage pulls it off (by 0.3 % against a
+        lead harmonic of a third its amplitude: 3.6x the floor over 60 mm); returns
+        (periods, coef, explained), ``fit`` = (coef, explained) of ``chosen`` as given."""
+        periods = list(chosen)
+        for i, p in enumerate(chosen):
+            if any(math.isclose(p, lead / k) for k in range(1, LEAD_HARMONICS + 1)):
+                continue
+            others = periods[:i] + periods[i + 1:]
+            periods[i] = self._refine(ctx, residual, mask, 1.0 / p, resolution, others)
+        cols = self._cols(ctx, periods, offset=True)
+        coef = lstsq(cols, residual, mask)
+        ex = explained(residual, cols @ coef, mask)
+        return (periods, coef, ex) if ex > fit[1] else (chosen, *fit)
+
+    def _refine(self, ctx, residual, mask, cycles, resolution, others=()):
         """The period within one spectral line of ``cycles`` (cycles/m) that explains
-        most of the residual."""
+        most of the residual, fitted beside the periods ``others`` (m)."""
         from scipy.optimize import minimize_scalar
 
         def unexplained(f):
-            cols = self._cols(ctx, [1.0 / f])
+            cols = self._cols(ctx, [1.0 / f, *others], offset=True)
             return -explained(residual, cols @ lstsq(cols, residual, mask), mask)
 
         lo = max(cycles - resolution, 0.5 * cycles)
