@@ -366,6 +366,13 @@ def test_bench_study_reports_both_cluster_sizes():
         100 * (r["bare_in_task_s_per_sample"] / r["bare_s_per_sample"] - 1))
     assert one["wall_s"] == sorted(x["wall_s"] for x in one["rounds"])[1]
     assert r["scaling_ratio"] == pytest.approx(two["samples_per_s"] / (2 * one["samples_per_s"]))
+    # on two workers too, in hil study's size there (no fewer tasks than workers: two)
+    assert r["study_task_size_two_workers"] == 4
+    assert all((x["samples"], x["failed"], x["task_size"], x["tasks"]) == (8, 0, 4, 2)
+               for x in two["study_task_size_rounds"])
+    own = [[x["samples_per_s"] for x in c["study_task_size_rounds"]] for c in (one, two)]
+    assert r["scaling_ratio_study_task_size"] == pytest.approx(
+        np.median(own[1]) / (2 * np.median(own[0])))
     # the first bare run, then one after each round; each round against its neighbours
     bares = [None, *one["bare_s_after_rounds"]]
     assert len(bares) == 3 and len(r["overhead_pct_per_round"]) == 2

@@ -17,9 +17,10 @@ per-task cost).  In one call:
   stored: samples per second; each worker's kernels loaded before the clock starts, as
   ``hil study`` does.  The round of median wall time gives the figures; every round is
   in the JSON.
-* after each 1-worker round: **the study's own task size** (the same samples in the tasks
-  ``hil study`` would make of them: :func:`hil.study.run.task_size` with the bare
-  simulation's time), the overhead per sample that a study pays; and **Dask's floor**:
+* after each round: **the study's own task size** (the same samples in the tasks ``hil
+  study`` would make of them on that cluster: :func:`hil.study.run.task_size` with the
+  bare simulation's time), the overhead per sample that a study pays and its scaling; and
+  after each 1-worker round **Dask's floor**:
   as many tasks that only sleep as long as the bare simulation: what their wall time
   exceeds the sleep by is Dask's own per-task latency,
   and the CPU the worker's event loop spends per task is Dask's own work, which needs the
@@ -31,8 +32,11 @@ bare simulation measured just before and just after it.
 
 Figures: ``bare_s_per_sample`` (goal: <= 30 ms per simulated second) and
 ``bare_over_plant``, the bare simulation over the plant's kernel alone (goal <= 1.5: the
-NC, the drive and the recording cost at most half the plant); ``scaling_ratio`` = rate(2)
-/ (2 rate(1)) (goal >= 0.9); ``overhead_pct`` = the median over the rounds of (wall(1) /
+NC, the drive and the recording cost at most half the plant);
+``scaling_ratio_study_task_size`` = rate(2) / (2 rate(1)) with the tasks ``hil study``
+makes on each cluster (goal >= 0.9: what a study gains from a second worker), and
+``scaling_ratio`` the same with one sample per task (each task's whole cost paid per
+sample); ``overhead_pct`` = the median over the rounds of (wall(1) /
 samples - bare) / bare, the per-task overhead against a bare simulation of the same
 length with one sample per task; ``task_vs_bare_pct`` and ``task_vs_bare_cpu_pct``: the
 bare simulation run as a task against here, its wall time (goal <= 5 %) and its
@@ -76,8 +80,11 @@ def text(r: dict) -> str:
          f"({one['wall_s']:.1f} s)"),
         (f"  2 workers                 {two['samples_per_s']:8.2f} samples/s "
          f"({two['wall_s']:.1f} s, {two['distinct_workers']} workers used)"),
-        (f"  scaling 1 -> 2 workers    {r['scaling_ratio']:8.2f} x linear "
-         f"(goal >= {goals['scaling_ratio_min']:g})"),
+        (f"  scaling 1 -> 2 workers    {r['scaling_ratio_study_task_size']:8.2f} x linear in "
+         f"hil study's task size ({r['study_task_size']} and "
+         f"{r['study_task_size_two_workers']} samples per task; goal >= "
+         f"{goals['scaling_ratio_min']:g}); {r['scaling_ratio']:.2f} with one sample per "
+         "task"),
         (f"  per-task overhead         {r['overhead_per_task_s'] * 1e3:8.1f} ms = "
          f"{r['overhead_pct']:.1f} % of the bare simulation (rounds "
          + ", ".join(f"{x:.1f}" for x in r["overhead_pct_per_round"]) + " %)"),
