@@ -51,7 +51,7 @@ from plant.config import load_machine
 #: factor of its floor
 FLOOR_GOAL = 1.5
 #: the generator's version: a cached trace of another version is generated again
-GENERATOR_VERSION = 7
+GENERATOR_VERSION = 8
 
 
 def _rms_keys(err: dict) -> list[str]:
