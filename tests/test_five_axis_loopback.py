@@ -48,10 +48,10 @@ GLITCH_WINDOW_S = 0.005
 #: rows clear of timing faults needed (at 8 kHz on a 2-vCPU machine two or three stalls
 #: of a few hundred µs a run are usual, each clouding 0.2 s of a 1.4 s program)
 MIN_CLEAR = 0.15
-#: runs tried: on the 2-vCPU VM (2026-11-29) a run's emulator overran 100-130 times, its
-#: worst several ms late in a Python tick after the enable with no counter of
-#: hil.rt.causes moving, and the controller then missed 30-90 feedbacks: most runs of a
-#: full suite were unusable, the same tree's runs on a fresh numba cache usable (open)
+#: runs tried: on the 2-vCPU VM (2026-11-29), for a while, a run's emulator overran 100-130
+#: times, its worst several ms late in a Python tick after the enable with no counter of
+#: hil.rt.causes moving, and the controller then missed 30-90 feedbacks: four runs in a
+#: row were unusable, then on the same tree and cache most were usable again (open)
 ATTEMPTS = 8
 
 
