@@ -152,18 +152,18 @@ class ControllerSetpoints:
         """
         path = folder / "controller.npz"
         try:
-            with np.load(path) as npz:
-                columns = {name: npz[name] for name in npz.files}
+            npz = np.load(path)
         except (OSError, ValueError) as e:
             raise RecordingError(f"{path}: cannot read it: {e}") from e
-        prefix = "" if "x_set" in columns else f"{axis}_"
-        if f"{prefix}x_set" not in columns:
-            raise RecordingError(f"{path}: no setpoints of axis {axis}")
-        if "seq_minus_k" not in columns:
-            raise RecordingError(f"{path}: written by a hil controller that did not keep "
-                                 "its setpoints' sequence numbers; run it again")
-        return cls(path, columns["k"].astype(np.int64), columns[f"{prefix}x_set"],
-                   columns[f"{prefix}v_set"], int(columns["seq_minus_k"]))
+        with npz:  # only the four columns used are read from the file
+            prefix = "" if "x_set" in npz.files else f"{axis}_"
+            if f"{prefix}x_set" not in npz.files:
+                raise RecordingError(f"{path}: no setpoints of axis {axis}")
+            if "seq_minus_k" not in npz.files:
+                raise RecordingError(f"{path}: written by a hil controller that did not "
+                                     "keep its setpoints' sequence numbers; run it again")
+            return cls(path, npz["k"].astype(np.int64), npz[f"{prefix}x_set"],
+                       npz[f"{prefix}v_set"], int(npz["seq_minus_k"]))
 
     def at(self, sp_seq: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(position, velocity) setpoints of the setpoints numbered ``sp_seq`` (SI); NaN

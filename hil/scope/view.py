@@ -177,7 +177,12 @@ class ScopeView:
         first = int(t0_s / self.period_s)
         if ticks.size and ticks[0] <= max(first, 0) and all(c in self.buffer
                                                               for c in self.channels):
-            env.add(ticks * self.period_s, self.buffer)
+            # the rows of the span (and a tick either side; the envelope keeps the span's
+            # own), not the whole buffer: a 2 s window of a 121 s buffer every second
+            lo = np.searchsorted(ticks, first)
+            hi = np.searchsorted(ticks, int(np.ceil(t1_s / self.period_s)), side="right")
+            env.add(ticks[lo:hi] * self.period_s,
+                    {c: self.buffer[c][lo:hi] for c in self.channels})
         else:
             spans = self.samples.spans_between(first, int(np.ceil(t1_s / self.period_s)))
             for rows in self.samples.read(spans, ["tick", *self.channels]):
@@ -194,8 +199,11 @@ class ScopeView:
         buffer holds whole; None when there is none yet."""
         if self.trigger is None or not self.buffer["tick"].size:
             return None
-        t_s = self.buffer["tick"] * self.period_s
-        at = self.trigger.first(t_s, self.buffer[self.trigger.channel], after_s)
+        # from the last row at or before after_s on (a crossing needs the row before it)
+        ticks = self.buffer["tick"]
+        lo = max(int(np.searchsorted(ticks, after_s / self.period_s, side="right")) - 1, 0)
+        t_s = ticks[lo:] * self.period_s
+        at = self.trigger.first(t_s, self.buffer[self.trigger.channel][lo:], after_s)
         if at is None or self.trigger.window(at, window_s)[1] > t_s[-1]:
             return None
         return at
