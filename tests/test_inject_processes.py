@@ -134,26 +134,31 @@ def test_an_sdo_write_of_2f00h_injects_and_reads_back(config, tmp_path, multicas
 def test_hil_controller_sends_its_injection_over_serial_at_its_program_time(config, tmp_path):
     """hil controller --inject ...,at_s=0.5 and hil run over a socat pty pair: the INJECT
     goes out once, half a second into the program; the emulator takes it from the serial
-    link (the adapter's counter), starts it on arrival and ramps it over its 0.2 s."""
-    import json
+    link (the adapter's counter), starts it on arrival and ramps it over its 0.2 s.
 
-    from tests.runtime_helpers import EXIT_S, python_module
-    from tests.test_loopback import PROGRAM, link
-    with Children(tmp_path) as children, link("serial", tmp_path, children) as (device, ctl):
-        emulator, _ = children.emulator(config, device, tmp_path / "emulator", "--no-rt")
-        controller = children.start("controller", python_module(
-            "hil.runtime.controller_proc", config, "--adapter", ctl, "--program", PROGRAM,
-            "--out", tmp_path / "controller", "--no-rt", "--inject",
-            "friction_growth:growth_pct=80,ramp_s=0.2,at_s=0.5"))
-        assert controller.wait(timeout=EXIT_S) == 0, children.log("controller")
-        assert terminate(emulator) == 0, children.log("emulator")
-    summary = json.loads((tmp_path / "controller" / "summary.json").read_text())
+    Both processes run as the serial loopback's do (SCHED_FIFO, each on a CPU of its own):
+    without them, on 2 vCPUs, late setpoints alone moved the axis 1 mm off the contour
+    model (alarm 25050) before the injection was due.  An attempt the controller ends on
+    an alarm or a silent link is run again; the injection's checks hold on the one that
+    completes."""
+    from tests.test_loopback import ATTEMPTS, run_pair
+    failures = []
+    for attempt in range(1, ATTEMPTS + 1):
+        folder = tmp_path / f"attempt{attempt}"
+        folder.mkdir()
+        result = run_pair("serial", config, folder, "--inject",
+                          "friction_growth:growth_pct=80,ramp_s=0.2,at_s=0.5")
+        if not isinstance(result, str):
+            break
+        failures.append(f"attempt {attempt}: the controller stopped:\n{result[-600:]}")
+    else:
+        pytest.fail(f"no completed run in {ATTEMPTS} attempts:\n" + "\n".join(failures))
+    summary, report = result
     assert summary["injections_sent"] == [{"at_s": 0.5, "axis": 0, "fault": "friction_growth",
                                           "settings": {"growth_pct": 80.0, "ramp_s": 0.2}}]
-    report = json.loads((tmp_path / "emulator" / "report.json").read_text())
     assert report["adapter"]["stats"]["injections"] == 1
     assert report["injections"]["X"]["levels_at_end"] == {"friction_growth": 80.0}
-    events = [e for e in _events(tmp_path / "emulator") if e["source"] == "inject"]
+    events = [e for e in _events(folder / "emulator") if e["source"] == "inject"]
     assert [e["kind"] for e in events] == ["request", "injected", "reached"]
     assert events[2]["tick"] - events[1]["tick"] == round(0.2 * 2000)
 

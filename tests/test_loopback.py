@@ -113,10 +113,12 @@ def link(kind: str, folder: Path, children: Children):
         terminate(socat)
 
 
-def run_pair(kind: str, config: Path, folder: Path) -> tuple[dict, dict] | str:
-    """Emulator and controller over ``kind``; returns (controller summary, emulator report),
-    or the controller's log when it gave up (a link silent past its feedback timeout: a VM
-    pause or a starved peer on a loaded machine, which another attempt may not meet)."""
+def run_pair(kind: str, config: Path, folder: Path,
+             *controller_args: object) -> tuple[dict, dict] | str:
+    """Emulator and controller (with ``controller_args`` added) over ``kind``; returns
+    (controller summary, emulator report), or the controller's log when it gave up (a link
+    silent past its feedback timeout: a VM pause or a starved peer on a loaded machine,
+    which another attempt may not meet) or stopped on an alarm."""
     cpus = sorted(os.sched_getaffinity(0))
     pin = ["--cpu", cpus[0]] if len(cpus) > 1 else []
     with Children(folder) as children, link(kind, folder, children) as (device, controller):
@@ -124,7 +126,7 @@ def run_pair(kind: str, config: Path, folder: Path) -> tuple[dict, dict] | str:
                                              "--cpu", cpus[-1])
         ctl = children.start("controller", python_module(
             "hil.runtime.controller_proc", config, "--adapter", controller or served,
-            "--program", PROGRAM, "--out", folder / "controller", *pin))
+            "--program", PROGRAM, "--out", folder / "controller", *pin, *controller_args))
         code = ctl.wait(timeout=EXIT_S)
         assert terminate(emulator) == 0, children.log("emulator")
         if code != 0:
