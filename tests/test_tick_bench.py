@@ -14,6 +14,10 @@ import subprocess
 import sys
 
 from hil.bench import tick as bench_tick
+from hil.runtime.steady_tick import BURST_S
+
+#: calls the enable sequence and the start may take besides those the test explains
+ENABLE_CALLS = 20
 
 PERCENTILES = {"p50", "p99", "p999", "max"}
 PARTS = ("socket_calls_us", "compiled_work_us", "glue_us")
@@ -33,9 +37,14 @@ def _check(row: dict, axes: int) -> None:
     assert row["ticks_lost_to_the_ring"] == 0
     assert row["exits"]["cause"] == row["exits"]["refused"] == 0
     assert row["exits"]["plant"] == row["exits"]["loop"] == 0
-    # the drives idle, enable and hold compiled; the loop returns to Python now and then
+    # the drives idle, enable and hold compiled; the loop returns to Python only for what
+    # hil.runtime.steady_tick lists: an overrun (many on a loaded machine), a declined
+    # tick, BURST_S of ticks run, and the few Python ticks of the enable sequence
     loop = row["compiled_loop"]
-    assert row["compiled_share"] > 0.9 and loop["ticks"] > 10 * loop["calls"]
+    assert row["compiled_share"] > 0.9
+    explained = (row["overruns"] + row["grace_overruns"] + sum(loop["declined"].values())
+                 + loop["ticks"] / (BURST_S * row["rate_hz"]) + ENABLE_CALLS)
+    assert loop["calls"] <= explained, (loop, row["overruns"])
     assert row["compiled_share"] == loop["ticks"] / row["ticks"]
     tick = row["compiled_tick_us"]
     for part in ("socket_calls_us", "compiled_work_us"):

@@ -17,7 +17,8 @@ JSON, per machine file::
 
     {"config", "axes", "rate_hz", "drive", "seconds", "ticks",
      "tick_compute_us": {"p50", "p99", "p999", "max"}, "lateness_us": {...},
-     "plant_step_us": {"p50", "p999"}, "ratio_p50", "overruns", "setpoints_heard",
+     "plant_step_us": {"p50", "p999"}, "ratio_p50", "overruns", "grace_overruns",
+     "setpoints_heard",
      "ticks_lost_to_the_ring", "load_avg_1min", "exits", "compiled_share",
      "compiled_loop": {...} or null, "compiled_tick_us": {...}, "socket_calls_us": {...},
      "compiled_work_us": {...}, "glue_us": {...}, "python_per_call_us",
@@ -26,7 +27,7 @@ JSON, per machine file::
 ``tick_compute_us`` is every tick's compute time as the loop measured it (from its
 wake-up to its end), ``lateness_us`` its wake-up after the deadline; ``ratio_p50`` the
 tick's p50 over the plant step's; an overrun is a tick that ended after the next
-deadline.  Of the ticks the compiled loop ran (``compiled_share`` of all;
+deadline (``grace_overruns``: those of the loop's grace period, counted apart).  Of the ticks the compiled loop ran (``compiled_share`` of all;
 ``compiled_loop``: its counts, :meth:`~hil.runtime.steady_tick.SteadyTick.as_dict`),
 each stamped in the loop (:data:`~hil.runtime.steady_tick.T_WAKE` ...):
 ``compiled_tick_us`` the whole tick, ``socket_calls_us`` its ``recvmsg`` calls (the
@@ -175,7 +176,8 @@ def bench(config: Path, seconds: float, compiled: bool = True) -> dict:
            "lateness_us": Percentiles.of_ns_in_us(drain.lateness[ran]).as_dict(),
            "plant_step_us": {"p50": plant_p.p50, "p999": plant_p.p999},
            "ratio_p50": tick_p.p50 / plant_p.p50,
-           "overruns": stats.overruns, "setpoints_heard": emulator.setpoints_heard,
+           "overruns": stats.overruns, "grace_overruns": stats.grace_overruns,
+           "setpoints_heard": emulator.setpoints_heard,
            "ticks_lost_to_the_ring": emulator.recorder.lost,
            "load_avg_1min": os.getloadavg()[0]}
     exits = {name: sum(d.compiled.exits[code] for d in drives if d.compiled is not None)
