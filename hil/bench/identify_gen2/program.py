@@ -62,8 +62,8 @@ def program(steps: list[tuple[float, float]], x0: float = 0.0) -> Program:
     return Program(*(np.array(a, dtype=float) for a in (start, origin, distance, length)))
 
 
-def bench_program(travel: float, speed: float, duration_s: float) -> Program:
-    """Moves over ``travel`` (m or rad) at speeds up to ``speed`` (per s) from 0: both
+def bench_program(travel: float, speed: float, duration_s: float, x0: float = 0.0) -> Program:
+    """Moves over ``travel`` (m or rad) at speeds up to ``speed`` (per s) from ``x0``: both
     directions at falling speeds with short dwells (the friction map), a slow crawl there and
     back (periodic effects at low frequency), a pass of about 12 s repeated move by move until
     the program lasts at least ``duration_s`` (s)."""
@@ -74,4 +74,4 @@ def bench_program(travel: float, speed: float, duration_s: float) -> Program:
     steps: list[tuple[float, float]] = []
     while not steps or program(steps).duration_s < duration_s:
         steps.append(one[len(steps) % len(one)])
-    return program(steps)
+    return program(steps, x0)
