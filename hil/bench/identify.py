@@ -122,6 +122,10 @@ def prepare_second(c: second.Case, folder: Path, log=None,
     text = c.axis.read_text()
     truth = folder / "truth.toml"
     truth.write_text(patch_config(text, c.truth, "bench truth") if c.truth else text)
+    # what the truth/floor column replays: the truth where the trace's encoders count from
+    truth_trace = folder / "truth_trace_frame.toml"
+    framed = second.truth_in_trace_frame(c)
+    truth_trace.write_text(patch_config(text, framed, "bench truth") if framed else text)
     start = folder / "start.toml"
     start.write_text(patch_config(text, c.start, "bench start") if c.start else text)
     trace, info = folder / "trace.csv", folder / "floor.json"
@@ -136,7 +140,7 @@ def prepare_second(c: second.Case, folder: Path, log=None,
         if log:
             log(f"{c.name}: generated in {cached['generated_s']:.0f} s")
     return {"floor": cached["floor"], "repeat": cached["repeat"], "trace": trace,
-            "start": start, "truth": truth}
+            "start": start, "truth": truth_trace}
 
 
 def lookup(name: str) -> tuple[str, Case | second.Case]:
