@@ -270,8 +270,9 @@ def add_arguments(p) -> None:
     p.add_argument("--refine-nfev", type=int, default=10,
                    help="closed-loop refinement iterations of hil identify (10)")
     p.add_argument("--duration", type=float, default=None, metavar="S",
-                   help="traces at least this long, s (the program repeated at other "
-                        "speeds; default: one pass, 13-32 s; the second generator's 16 s)")
+                   help="traces at least this long, s (the first generator repeats its "
+                        "program at other speeds, the second its pass move by move; "
+                        "default: one pass, 13-32 s; the second generator's 16 s)")
     p.add_argument("--json", action="store_true", help="print the JSON instead of the table")
 
 
