@@ -1,9 +1,17 @@
-"""``hil bench identify``: undeclared effects in traces of an independent simulator.
+"""``hil bench identify``: undeclared effects in traces of independent simulators.
 
-For every case of :mod:`hil.bench.identify_gen.cases` the generator (scipy's solve_ivp on
-the documented equations, a Sinumerik-style cascade, noise and quantisation; never the
-plant's kernel) writes a trace of the truth, and ``hil identify``'s search runs on it from
-the declared machine file.  Scores per trace:
+Two generators, neither using the plant's kernel nor the replay, write the traces of the
+truth, and ``hil identify``'s search runs on each from the declared machine file:
+
+* ``solve_ivp`` (:mod:`hil.bench.identify_gen`): scipy's solve_ivp on the documented
+  equations, a Sinumerik-style cascade, noise and quantisation;
+* ``fixed_step`` (:mod:`hil.bench.identify_gen2`, cases named ``g2_...``): written without
+  the first one's or the replay's code, a fixed-step Runge-Kutta integrator and a cascade
+  from the trace format's text, its cases covering every header convention (a position
+  cycle slower than the record, rounding and zeroed encoders, a clipping ADC, the rigid
+  screw); its repeat is the same run at four times the integration steps.
+
+Scores per trace:
 
 * **named first**: the first effect added is one of the case's undeclared effects (and
   ``found``: which of them were added at all);
@@ -41,6 +49,8 @@ from hil.bench.identify_gen.cases import (
 )
 from hil.bench.identify_gen.generate import deviation, simulate, write
 from hil.bench.identify_gen.trajectory import bench_moves
+from hil.bench.identify_gen2 import cases as second
+from hil.bench.identify_gen2.trace import write as write_second
 from hil.identify.config_out import patch_config
 from hil.identify.fit import Identification, record_errors
 from hil.identify.record import load_record
@@ -52,6 +62,11 @@ from plant.config import load_machine
 FLOOR_GOAL = 1.5
 #: the generator's version: a cached trace of another version is generated again
 GENERATOR_VERSION = 8
+#: the same for the second generator
+SECOND_VERSION = 1
+#: the generators by name, with their cases' names
+GENERATORS = {"solve_ivp": tuple(c.name for c in CASES),
+              "fixed_step": tuple(c.name for c in second.CASES)}
 
 
 def _rms_keys(err: dict) -> list[str]:
@@ -97,6 +112,46 @@ def prepare(c: Case, folder: Path, log=None, duration_s: float | None = None) ->
             "start": start, "truth": truth_plain}
 
 
+def prepare_second(c: second.Case, folder: Path, log=None,
+                   duration_s: float | None = None) -> dict:
+    """:func:`prepare` for a case of the second generator: truth and start machine files
+    (the truth without controller keys: the header carries its conventions), the trace
+    (None: :data:`~hil.bench.identify_gen2.cases.DURATION_S` long) and its floor and
+    repeat."""
+    folder.mkdir(parents=True, exist_ok=True)
+    text = c.axis.read_text()
+    truth = folder / "truth.toml"
+    truth.write_text(patch_config(text, c.truth, "bench truth") if c.truth else text)
+    # what the truth/floor column replays: the truth where the trace's encoders count from
+    truth_trace = folder / "truth_trace_frame.toml"
+    framed = second.truth_in_trace_frame(c)
+    truth_trace.write_text(patch_config(text, framed, "bench truth") if framed else text)
+    start = folder / "start.toml"
+    start.write_text(patch_config(text, c.start, "bench start") if c.start else text)
+    trace, info = folder / "trace.csv", folder / "floor.json"
+    cached = json.loads(info.read_text()) if info.is_file() and trace.is_file() else {}
+    if cached.get("version") != SECOND_VERSION or cached.get("duration_s") != duration_s:
+        t0 = time.monotonic()
+        rec, repeat = second.generate(c, load_machine(truth), duration_s)
+        write_second(rec, trace, f"hil bench identify, second generator ({c.name})")
+        cached = {"version": SECOND_VERSION, "duration_s": duration_s, "floor": rec.floor,
+                  "repeat": repeat, "generated_s": time.monotonic() - t0}
+        info.write_text(json.dumps(cached, indent=1))
+        if log:
+            log(f"{c.name}: generated in {cached['generated_s']:.0f} s")
+    return {"floor": cached["floor"], "repeat": cached["repeat"], "trace": trace,
+            "start": start, "truth": truth_trace}
+
+
+def lookup(name: str) -> tuple[str, Case | second.Case]:
+    """(generator, case) of the case called ``name``; KeyError lists every case."""
+    for generator, names in GENERATORS.items():
+        if name in names:
+            return generator, (case(name) if generator == "solve_ivp" else second.case(name))
+    raise KeyError(f"no bench case {name!r}; cases: "
+                   + ", ".join(n for names in GENERATORS.values() for n in names))
+
+
 def traces_folder(out: Path, duration_s: float | None) -> Path:
     """Where the traces of one duration are cached under ``out``."""
     return out / ("traces" if duration_s is None else f"traces_{duration_s:g}s")
@@ -105,8 +160,9 @@ def traces_folder(out: Path, duration_s: float | None) -> Path:
 def run_case(name: str, out: Path, refine_nfev: int = 10, log=None,
              duration_s: float | None = None) -> dict:
     """Generate (or reuse) the case's trace, identify it, score it."""
-    c = case(name)
-    files = prepare(c, traces_folder(out, duration_s) / c.name, log, duration_s)
+    generator, c = lookup(name)
+    make = prepare if generator == "solve_ivp" else prepare_second
+    files = make(c, traces_folder(out, duration_s) / c.name, log, duration_s)
     rec = load_record(files["trace"])
     floor = files["floor"]
     truth_err = record_errors(rec, replay(load_machine(files["truth"]), rec))
@@ -116,7 +172,7 @@ def run_case(name: str, out: Path, refine_nfev: int = 10, log=None,
     added = [s.effect for s in ident.steps]
     after = ratios(ident.error_after, floor)
     row = {
-        "case": c.name, "axis": c.axis.stem.removeprefix("bench_"),
+        "case": c.name, "generator": generator, "axis": c.axis.stem.removeprefix("bench_"),
         "undeclared": list(c.effects), "added": added,
         "named_first": bool(added) and added[0] in c.effects,
         "found": [e for e in c.effects if e in added],
@@ -180,12 +236,12 @@ def _line(r: dict) -> str:
 
 def table(result: dict) -> str:
     """The bench as a Markdown table (ratios: current / position / motor encoder)."""
-    lines = ["| trace | axis | undeclared | added (in order) | named first | before / floor "
-             "| after / floor | truth / floor | repeat / floor | trace, s | identify, s |",
-             "|---" * 11 + "|"]
+    lines = ["| trace | generator | axis | undeclared | added (in order) | named first "
+             "| before / floor | after / floor | truth / floor | repeat / floor | trace, s "
+             "| identify, s |", "|---" * 12 + "|"]
     for r in result["rows"]:
         lines.append(
-            f"| {r['case']} | {r['axis']} | {', '.join(r['undeclared'])} | "
+            f"| {r['case']} | {r['generator']} | {r['axis']} | {', '.join(r['undeclared'])} | "
             f"{', '.join(r['added']) or '-'} | {'yes' if r['named_first'] else 'no'} | "
             f"{_fmt(r['before_over_floor'])} | {_fmt(r['after_over_floor'])} | "
             f"{_fmt(r['truth_over_floor'])} | {_fmt(r['repeat_over_floor'])} | "
@@ -201,7 +257,11 @@ def table(result: dict) -> str:
 
 def add_arguments(p) -> None:
     p.add_argument("--cases", nargs="+", default=None, metavar="CASE",
-                   help="cases to run (default: all): " + ", ".join(c.name for c in CASES))
+                   help="cases to run (default: every case of the --generator): "
+                        + ", ".join(n for names in GENERATORS.values() for n in names))
+    p.add_argument("--generator", choices=("all", *GENERATORS), default="all",
+                   help="the generator whose cases run when --cases is not given: "
+                        "solve_ivp (scipy), fixed_step (the second, g2_ cases) or all")
     p.add_argument("--ci", action="store_true", help="the reduced set CI runs: "
                    + ", ".join(CI_CASES))
     p.add_argument("--out", type=Path, default=Path("bench-identify"),
@@ -210,16 +270,19 @@ def add_arguments(p) -> None:
     p.add_argument("--refine-nfev", type=int, default=10,
                    help="closed-loop refinement iterations of hil identify (10)")
     p.add_argument("--duration", type=float, default=None, metavar="S",
-                   help="traces at least this long, s (the program repeated at other "
-                        "speeds; default: one pass, 13-32 s)")
+                   help="traces at least this long, s (the first generator repeats its "
+                        "program at other speeds, the second its pass move by move; "
+                        "default: one pass, 13-32 s; the second generator's 16 s)")
     p.add_argument("--json", action="store_true", help="print the JSON instead of the table")
 
 
 def run_from_args(args) -> int:
-    names = list(CI_CASES) if args.ci else (args.cases or [c.name for c in CASES])
+    every = [n for g, names in GENERATORS.items() if args.generator in ("all", g)
+             for n in names]
+    names = list(CI_CASES) if args.ci else (args.cases or every)
     try:
         for n in names:
-            case(n)
+            lookup(n)
     except KeyError as exc:
         print(f"hil bench identify: {exc.args[0]}", file=sys.stderr)
         return 2
