@@ -39,7 +39,7 @@ from hil.runtime.demo_verdict import (
 )
 from hil.runtime.record_reader import Recording
 from hil.runtime.run_folder import REPORT
-from hil.runtime.timing_quality import TimingQuality
+from hil.runtime.timing_quality import TimingQuality, same_moment
 from plant.config import MachineConfig, load_machine
 from plant.errors import ConfigError
 
@@ -149,6 +149,8 @@ def judge_timing_counts(v: Verdict, report: dict, summary: dict | None,
             v.fail(reason)
         if side.worst_overrun:
             v.context.append(side.worst_text())
+    if len(sides) == 2 and (both := same_moment(*sides)):
+        v.context.append(both)
     return sides
 
 

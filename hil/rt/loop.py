@@ -153,8 +153,10 @@ class LoopStats:
         overrun_causes: what the overruns after the grace period found, summed
             (:class:`~hil.rt.causes.Cause` as a dict; None: there were none).
         worst_overrun: the one that ended latest: ``tick``, ``behind_us`` (after the
-            next deadline), ``where`` ("compiled" or "python") and ``cause`` (what moved
-            since the overrun before it); None: none.
+            next deadline), ``deadline_ns`` (its deadline on the loop's clock: the
+            machine's monotonic clock, which another process's loop shares), ``where``
+            ("compiled" or "python") and ``cause`` (what moved since the overrun before
+            it); None: none.
         lateness_us, compute_us: percentiles over the ticks run.
     """
     period_ns: int
@@ -271,7 +273,7 @@ def run_ticks(loop, end_tick: Callable[[int, int, int], None], n: int) -> TickCo
                 total = episode if total is None else total.plus(episode)
             behind = end - deadline - period
             if worst is None or behind > worst["behind_ns"]:
-                worst = {"tick": k, "behind_ns": behind,
+                worst = {"tick": k, "behind_ns": behind, "deadline_ns": deadline,
                          "where": "compiled" if ran else "python", "cause": episode}
             if overruns == stop_after:
                 stopped_by = "overruns"
@@ -287,7 +289,8 @@ def run_ticks(loop, end_tick: Callable[[int, int, int], None], n: int) -> TickCo
         k = k_next
     if worst is not None:
         worst = {"tick": worst["tick"], "behind_us": worst["behind_ns"] * 1e-3,
-                 "where": worst["where"], "cause": worst["cause"].as_dict()}
+                 "deadline_ns": worst["deadline_ns"], "where": worst["where"],
+                 "cause": worst["cause"].as_dict()}
     return TickCounts(ticks, overruns, grace_overruns, skipped, stalls, stopped_by,
                       (time.monotonic_ns() - wall0) * 1e-9,
                       (time.process_time_ns() - cpu0) * 1e-9,

@@ -127,6 +127,16 @@ class TimingQuality:
                 f"deadline, in a {w['where']} tick; since the overrun before it: "
                 f"{Cause.from_dict(w['cause']).text()}")
 
+    def window_ns(self) -> tuple[int, int] | None:
+        """The worst overrun's tick from its deadline to its end, on the machine's
+        monotonic clock, ns (None: no worst overrun, or one of a report that kept no
+        deadline)."""
+        w = self.worst_overrun
+        if not w or "deadline_ns" not in w:
+            return None
+        start = w["deadline_ns"]
+        return start, start + round(self.period_s * 1e9 + w["behind_us"] * 1e3)
+
     def header(self) -> dict[str, str]:
         """The trace header's ``# key: value`` lines for this side's timing (a trace's
         reader, ``hil identify``, warns on ``timing_within_limits: no``)."""
@@ -139,3 +149,18 @@ class TimingQuality:
     def as_dict(self) -> dict:
         return {**asdict(self), "max_share": MAX_SHARE, "within": self.within,
                 "reasons": self.reasons()}
+
+
+def same_moment(a: TimingQuality, b: TimingQuality) -> str:
+    """A line when the worst overruns of two loops (the emulator's and the controller's,
+    each on a CPU of its own) overlap in time: the machine stopped both, which neither
+    program's counters see (a virtual machine's host running something else, a firmware
+    interrupt); empty otherwise."""
+    wa, wb = a.window_ns(), b.window_ns()
+    if wa is None or wb is None or wa[1] <= wb[0] or wb[1] <= wa[0]:
+        return ""
+    return (f"both loops' worst overruns happened at the same moment ({a.side} "
+            f"{a.worst_overrun['behind_us']:.1f} µs, {b.side} "
+            f"{b.worst_overrun['behind_us']:.1f} µs behind, {abs(wa[0] - wb[0]) * 1e-3:.0f} µs "
+            "apart): the whole machine stopped them (on a virtual machine, its host), not "
+            "either program")
