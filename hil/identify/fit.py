@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from hil.identify.candidates import Candidate, CandidatePool, Setting, n_coef
-from hil.identify.changes import change_text, declared_changes
+from hil.identify.changes import declared_changes, finding_text
 from hil.identify.conventions import read_conventions
 from hil.identify.effects import BY_NAME, FORCE, LIBRARY, POSITION, REPLAY, Context
 from hil.identify.effects.base import correlation
@@ -172,8 +172,7 @@ class Identification:
         self.declared_changes = declared_changes(self.model)
         for row in self.declared_changes:
             if row["beyond_tolerance"]:
-                self._say(f"declared {row['parameter']} moved {change_text(row)} "
-                          f"(± {row['sigma']:.3g}), beyond its {row['tolerance_pct']:g} %")
+                self._say(f"declared {finding_text(row)}")
         self._say("done")
         return self
 

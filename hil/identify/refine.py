@@ -25,7 +25,10 @@ replays per parameter) polishes their point on the same sum of squares, kept whe
 falls by it.
 
 The declared coefficients keep their prior (:class:`hil.identify.model.Model`): one more
-residual (c - c_declared) / (tolerance |c_declared|) each.
+residual (c - c_declared) / (tolerance |c_declared|) each, and stay within their
+tolerance (:meth:`hil.identify.model.Model.box`).  Where one ends on its tolerance's edge
+the refinement is run once more without the box, from that point, to learn what the
+replay asks for: that is kept as the term's ``wanted``, a finding, not taken.
 
 The Jacobian at the solution, its rows in those deviations, gives each parameter's
 standard uncertainty: sqrt of the diagonal of (JᵀJ)⁻¹.
@@ -58,6 +61,8 @@ FAILED = 1e3
 #: parameters (relative to their scale: 0.1 % of a coefficient, 1e-4 of a log shape)
 POLISH_REPLAYS = 20
 POLISH_XTOL = 1e-3
+#: a coefficient within this fraction of its bounds' magnitude from a tolerance edge is on it
+EDGE = 1e-6
 
 
 @dataclass(frozen=True)
@@ -84,13 +89,15 @@ def parameters(model: Model) -> list[Parameter]:
 
 
 def refine(model: Model, rec: Record, floor: dict, n_eff: float, max_nfev: int,
-           say=None) -> dict:
+           say=None, boxed: bool = True) -> dict:
     """Adjust :func:`parameters` on the closed-loop replay (module docstring); the model's
     terms are left at the best point found (or as they were when nothing is better).
+    With ``boxed`` the declared coefficients stay within their tolerance, and where one
+    ends on its edge, the unboxed refinement's value is set as its term's ``wanted``.
 
     Returns the report's ``refinement``: ``before``/``after`` (label -> value),
-    ``sigma`` (label -> standard uncertainty), ``cost_before``/``cost_after`` (J) and
-    ``replays``."""
+    ``sigma`` (label -> standard uncertainty), ``wanted`` (label -> what the replay asks
+    for beyond the tolerance), ``cost_before``/``cost_after`` (J) and ``replays``."""
     params = parameters(model)
     if not params:
         return {}
@@ -114,7 +121,8 @@ def refine(model: Model, rec: Record, floor: dict, n_eff: float, max_nfev: int,
         if p.log:
             lo[i], hi[i] = z0[i] - math.log(SHAPE_RANGE), z0[i] + math.log(SHAPE_RANGE)
         else:
-            lo[i], hi[i] = t.effect.bounds(t.shape)[0][0], t.effect.bounds(t.shape)[1][0]
+            box = model.box(t) if boxed else t.effect.bounds(t.shape)
+            lo[i], hi[i] = box[0][0], box[1][0]
     z0 = np.clip(z0, lo + 1e-12 * np.abs(z0), hi)
     prior = []  # (index, declared value, deviation)
     for i, p in enumerate(params):
@@ -190,8 +198,49 @@ def refine(model: Model, rec: Record, floor: dict, n_eff: float, max_nfev: int,
             t.sigma = np.array([s])
     if say is not None:
         say(f"refined in {count[0]} replays: J {j0:.4g} -> {j1:.4g}")
-    return {"before": before, "after": after, "sigma": sig, "cost_before": j0,
-            "cost_after": j1, "replays": count[0]}
+    wanted = (_asked_beyond(model, [p for p in params if p.key is None], rec, floor, n_eff,
+                            max_nfev, say) if boxed else {})
+    return {"before": before, "after": after, "sigma": sig, "wanted": wanted,
+            "cost_before": j0, "cost_after": j1, "replays": count[0]}
+
+
+def _asked_beyond(model: Model, coefs: list[Parameter], rec: Record, floor: dict,
+                  n_eff: float, max_nfev: int, say) -> dict:
+    """For the declared coefficients among ``coefs`` (refined, within their tolerance):
+    where one ends on its tolerance's edge, the refinement without the box, from the
+    model's point, and each declared term's ``wanted`` set to its value where that lies
+    beyond the tolerance (cleared otherwise: the replay asks for no more).  Returns
+    label -> wanted value; the model's terms are left as they were."""
+    declared = [p for p in coefs if p.effect in model.declared]
+
+    def edge(p: Parameter) -> bool:
+        t = model.term(p.effect)
+        (b_lo,), (b_hi,) = model.box(t)
+        (e_lo,), (e_hi,) = t.effect.bounds(t.shape)
+        c, eps = float(t.coef[0]), EDGE * max(abs(b_lo), abs(b_hi))
+        return (b_lo > e_lo and c <= b_lo + eps) or (b_hi < e_hi and c >= b_hi - eps)
+
+    if not any(edge(p) for p in declared):
+        for p in declared:
+            model.term(p.effect).wanted = None
+        return {}
+    if say is not None:
+        say("a declared coefficient ends on its tolerance: the refinement once more "
+            "without the box, for the report")
+    saved = model.snapshot()
+    free = refine(model, rec, floor, n_eff, max_nfev, boxed=False)["after"]
+    model.restore(saved)
+    out = {}
+    for p in declared:
+        t = model.term(p.effect)
+        (b_lo,), (b_hi,) = model.box(t)
+        asked = free[p.label]
+        beyond = not b_lo <= asked <= b_hi
+        t.wanted = np.array([asked]) if beyond else None
+        t.wanted_by = "the closed-loop refinement" if beyond else ""
+        if beyond:
+            out[p.label] = asked
+    return out
 
 
 def _polish(residual, z: np.ndarray, bounds: tuple, scale: np.ndarray,

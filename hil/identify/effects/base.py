@@ -82,6 +82,11 @@ class Term:
         evidence: what pointed to it (numbers and a sentence), for the report.
         sigma: standard uncertainty of each coefficient from the last fit, shape (k,), or
             None before one.
+        wanted: for a declared effect, the coefficients the data asked for where that
+            lies beyond the declared values' tolerance, which held ``coef`` (shape (k,));
+            None when what they ask for is within it.  A finding, not taken.
+        wanted_by: what asked for ``wanted`` (its proposal, the joint refit, the
+            closed-loop refinement).
     """
     effect: "Effect"
     shape: dict
@@ -89,6 +94,8 @@ class Term:
     added: bool = False
     evidence: dict = field(default_factory=dict)
     sigma: np.ndarray | None = None
+    wanted: np.ndarray | None = None
+    wanted_by: str = ""
 
     def contribution(self, ctx: Context) -> np.ndarray:
         """The term's part of its domain's prediction, shape (n,)."""
