@@ -2,6 +2,10 @@
 seen on outside traces, on a trace of our own controller and plant
 (tests/test_identify_effects.py's axis and program) whose truth has it.
 
+* cause 4: presliding not proposed.  The inverse model's fit, on the low-passed motion,
+  ran to x1 = 3 nm (k1 = 1.2e9 N/m) on a trace whose spring has x1 = 0.1 um, and the
+  spring was dropped as shorter than two scale counts; the replay stayed 6.4x the scale's
+  floor.  The fit now looks over x1 from 0.1 to 50 um and the replay judges.
 * cause 5: Coulomb's friction and a Stribeck dip both undeclared.  Coulomb alone took
   the dip's average (35 N against the truth's 30 N) and the joint refit of the force
   domain cut the declared viscous friction to 0 (-100 %); the dip, proposed beside that
@@ -18,7 +22,7 @@ import pytest
 from hil.identify.fit import Identification
 from hil.identify.record import load_record
 from hil.identify.report import markdown, summary
-from tests.test_identify_effects import make_trace, write_config
+from tests.test_identify_effects import check_floor, make_trace, run_case, write_config
 
 #: a wide dip: 60 N above Coulomb's 30 N at rest, over 15 mm/s (the program moves at 1
 #: to 100 mm/s, so the dip covers most of its slow moves)
@@ -81,3 +85,15 @@ def test_a_move_beyond_the_tolerance_is_a_finding_not_taken(tmp_path):
     assert any(text in line for line in said), said
     md = markdown(summary(ident, None, 0.0))
     assert "### Findings" in md and text in md
+
+
+@pytest.mark.parametrize("k1, x1", [(3e8, 1e-7), (1.5e6, 4e-5)], ids=["0.1um", "40um"])
+def test_presliding_is_found_across_0_1_to_50_um(tmp_path, k1, x1):
+    """A presliding spring (exponent 1) at either end of the range: named first, its x1
+    within 10 % (0.1 um, the range's end: at it) or 25 % (40 um), and the replay within
+    1.5x the noise floor on every channel."""
+    ident, floor = run_case(tmp_path, {"presliding": {
+        "enabled": True, "stiffness_n_per_m": k1, "x1_m": x1, "exponent": 1.0}}, {})
+    assert ident.steps and ident.steps[0].effect == "presliding_hysteresis", ident.rounds[0]
+    assert ident.steps[0].params["x1_m"] == pytest.approx(x1, rel=0.1 if x1 < 1e-6 else 0.25)
+    check_floor(ident, floor)

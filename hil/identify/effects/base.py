@@ -44,8 +44,6 @@ class Context:
         moving: samples in use where |v| exceeds 1 % of the largest speed: the inverse
             model's friction terms are sign(v) functions, undefined at rest.
         direction: +1/-1, the direction of the last motion (held through standstill).
-        resolution: the position measurement's step (m or rad): the smallest change of the
-            recorded position (its count), or 0 when it is not on a grid.
     """
     cfg: MachineConfig
     drive: Drive
@@ -53,7 +51,6 @@ class Context:
     m: Motion
     moving: np.ndarray
     direction: np.ndarray
-    resolution: float
 
     @classmethod
     def of(cls, cfg: MachineConfig, drive: Drive, rec: Record, m: Motion) -> "Context":
@@ -67,7 +64,7 @@ class Context:
             elif vk < -v_eps:
                 last = -1.0
             direction[k] = last
-        return cls(cfg, drive, rec, m, moving, direction, quantum(rec.pos))
+        return cls(cfg, drive, rec, m, moving, direction)
 
 
 @dataclass
