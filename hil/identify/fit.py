@@ -298,7 +298,10 @@ class Identification:
             self.rejected[name] = verdict.reason
             self._say(f"rejected {name}: {verdict.reason}")
             return False
-        for t in added:
+        # a joint candidate names the effects new to the model first; a member the file
+        # declared (Coulomb's level beside a Stribeck dip) is a correction of it
+        had = {t.effect.name for t in saved}
+        for t in sorted(added, key=lambda t: t.effect.name in had):
             self.steps.append(Step(t.effect.name, t.params(self.ctx), t.evidence, new))
         self._say(f"added {name} ({evidence.get('text', '')}); {verdict.reason}")
         return True
