@@ -84,11 +84,13 @@ def noise_floor(truth: Path, trace: Path) -> dict:
     return floor
 
 
-def run_case(tmp_path, truth_over: dict, start_over: dict) -> tuple[Identification, dict]:
+def run_case(tmp_path, truth_over: dict, start_over: dict,
+             tolerance: dict | None = None) -> tuple[Identification, dict]:
     truth = write_config(tmp_path / "truth.toml", truth_over)
     start = write_config(tmp_path / "start.toml", start_over)
     trace = make_trace(truth, tmp_path / "trace.csv")
-    ident = Identification(start, load_record(trace), refine_nfev=0).fit()
+    ident = Identification(start, load_record(trace), refine_nfev=0,
+                           tolerance=tolerance or {}).fit()
     return ident, noise_floor(truth, trace)
 
 
@@ -110,6 +112,10 @@ CASES = {
     "compliance": (TWO_MASS, {}),
     "time_delay": ({"sensors": {"delay_s": 0.001}}, {}),
 }
+#: the declared coefficients' tolerances a case needs: the table's 90 kg against the
+#: declared 60 kg is 22 % of the reflected mass, which the default 10 % holds as a finding
+#: (issue 30 item 3, tests/test_identify_shapes.py)
+TOLERANCE = {"inertia": {"inertia": 0.3}}
 
 
 def check_floor(ident: Identification, floor: dict) -> None:
@@ -124,7 +130,7 @@ def check_floor(ident: Identification, floor: dict) -> None:
 @pytest.mark.parametrize("effect", list(CASES))
 def test_undeclared_effect_is_named_first_and_error_reaches_noise_floor(tmp_path, effect):
     truth_over, start_over = CASES[effect]
-    ident, floor = run_case(tmp_path, truth_over, start_over)
+    ident, floor = run_case(tmp_path, truth_over, start_over, TOLERANCE.get(effect))
     added = [s.effect for s in ident.steps]
     assert added and added[0] == effect, f"added {added}, expected {effect} first"
     check_floor(ident, floor)

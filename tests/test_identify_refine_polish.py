@@ -24,7 +24,10 @@ TRUTH = {"inertia": 60.0 + 2e-4 / (0.01 / (2 * math.pi)) ** 2, "viscous_friction
 def test_stribeck_record_refined_to_the_truths_friction_and_the_floor(tmp_path):
     files = prepare(case("screw_stribeck"), tmp_path)
     ident = Identification(files["start"], load_record(files["trace"])).fit()
-    assert [s.effect for s in ident.steps] == ["stribeck"]
+    # Stribeck named first; Coulomb's declared level, fitted beside the dip (the joint
+    # candidate of issue 30 item 3), may come with it as a correction
+    added = [s.effect for s in ident.steps]
+    assert added[0] == "stribeck" and set(added) <= {"stribeck", "coulomb_friction"}, added
     after = ident.refinement["after"]
     for label, value in TRUTH.items():
         # within 1 % of the truth (the passes alone: the mass 1.7 %, the viscous 1.6 % off)

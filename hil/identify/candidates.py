@@ -24,7 +24,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from hil.identify.effects import LIBRARY, REPLAY, Context, Term
+from hil.identify.effects import BY_NAME, LIBRARY, REPLAY, Context, Term
+from hil.identify.effects.joint import domain_of, members, propose
 from hil.identify.floor import channel_residuals
 from hil.identify.model import Model
 from hil.identify.motion import Drive, motion
@@ -35,9 +36,6 @@ from plant.config import load_machine
 #: length of the alternating fit / held-out blocks, s: shorter than the program's moves so
 #: that every kind of motion (reversals, slow and fast moves) lands in both
 BLOCK_S = 0.5
-_BY_NAME = {e.name: e for e in LIBRARY}
-
-
 def holdout_rows(rec: Record) -> np.ndarray:
     """True on the held-out samples (odd blocks of BLOCK_S), shape (n,)."""
     block = max(1, round(BLOCK_S / rec.dt))
@@ -65,18 +63,19 @@ def heldout_cost(rec: Record, rep: Replay | None, rows: np.ndarray, floor: dict)
 
 @dataclass
 class Candidate:
-    """One effect's try in a round.
+    """One candidate's try in a round: a library effect, or a joint candidate of two
+    (:mod:`hil.identify.effects.joint`).
 
     Attributes:
         effect: its name.
-        term: the proposed term (fit blocks only), or None when it proposed nothing.
+        terms: the proposed terms (fit blocks only); empty when it proposed nothing.
         cost: J on the held-out blocks with it (inf: nothing proposed or a failed replay).
         delta_bic: the criterion's change against the round's start (negative: better).
         params: its parameters as proposed, for the report.
         note: why it has no score, or the evidence's sentence.
     """
     effect: str
-    term: Term | None
+    terms: list[Term]
     cost: float
     delta_bic: float
     params: dict
@@ -121,24 +120,33 @@ class Evaluator:
                             self.setting.floor)
 
     def evaluate(self, terms: list[Term], name: str, cost0: float) -> Candidate:
-        """Propose effect ``name`` on the fit blocks from the model of ``terms`` (fitted to
-        its domain's residual alone), replay, score on the held-out blocks."""
-        effect = _BY_NAME[name]
+        """Propose candidate ``name`` on the fit blocks from the model of ``terms`` (fitted
+        to its domain's residual alone), replay, score on the held-out blocks."""
+        where = domain_of(name, BY_NAME)
         model = self.model(terms)
-        residual = model.residual(effect.domain) if effect.domain != REPLAY else None
-        term = effect.propose(self.fit_ctx, residual, model)
-        if term is None:
-            return Candidate(name, None, math.inf, math.inf, {}, "nothing to propose")
-        params = term.params(self.ctx)
+        residual = model.residual(where) if where != REPLAY else None
+        proposed = propose(name, self.fit_ctx, residual, model, BY_NAME)
+        if proposed is None:
+            return Candidate(name, [], math.inf, math.inf, {}, "nothing to propose")
+        params = {}
         # the candidate alone, the rest as it is: a joint refit would give every candidate
         # of a domain the same gain of its base terms' refit
-        model.add(term)
+        for term in proposed:
+            params.update(term.params(self.ctx))
+            model.add(term)
         cost = heldout_cost(self.setting.rec, model.replay(), self.held_out,
                             self.setting.floor)
-        k = max(1, effect.n_coef(term.shape))
+        k = n_coef(proposed)
         delta = (self.n_ho * math.log(cost / cost0) + k * math.log(self.n_ho)
                  if 0.0 < cost0 and math.isfinite(cost) else math.inf)
-        return Candidate(name, term, cost, delta, params, term.evidence.get("text", ""))
+        return Candidate(name, proposed, cost, delta, params,
+                         proposed[-1].evidence.get("text", ""))
+
+
+def n_coef(terms: list[Term]) -> int:
+    """The parameters a candidate's terms add, as the criterion counts them: each term's
+    coefficients, at least one."""
+    return sum(max(1, t.effect.n_coef(t.shape)) for t in terms)
 
 
 _WORKER: Evaluator | None = None
@@ -197,5 +205,7 @@ class CandidatePool:
                 if done is not None:
                     done(out[-1])
         order = {e.name: i for i, e in enumerate(LIBRARY)}
-        out.sort(key=lambda c: (c.delta_bic, order[c.effect]))
+        # among equal scores the simpler first: a single effect before a joint one
+        out.sort(key=lambda c: (c.delta_bic, len(members(c.effect)),
+                                order[members(c.effect)[0]]))
         return cost0, out

@@ -30,7 +30,7 @@ from dataclasses import asdict, dataclass, replace
 
 import numpy as np
 
-from hil.identify.changes import change_text
+from hil.identify.changes import asked_pct, asked_text
 from hil.identify.effects import FORCE
 from hil.identify.effects.drivetrain import contact_side, transmitted_force
 from hil.identify.motion import motion
@@ -98,33 +98,34 @@ def _changes(ident) -> dict:
 
 def force_side(ident) -> list[Fault]:
     """``friction_growth`` or ``torque_constant_loss`` from the declared coefficients'
-    changes (each change in per cent of the declared value; tolerance per effect)."""
+    changes the data ask for (each in per cent of the declared value; tolerance per
+    effect): beyond the tolerance they are findings the model did not take."""
     rows = _changes(ident)
     mass = rows.get("mass_kg")
     grown = [rows[k] for k in _FRICTION_KEYS
-             if k in rows and rows[k]["beyond_tolerance"] and rows[k]["change_pct"] > 0]
+             if k in rows and rows[k]["beyond_tolerance"] and asked_pct(rows[k]) > 0]
     if not grown:
         return []
     coulomb = rows.get("coulomb_n")
     lead = coulomb if coulomb in grown else grown[0]
-    listed = ", ".join(f"{r['parameter']} {change_text(r)}" for r in grown)
-    f_fric = 1.0 + lead["change_pct"] / 100.0
-    score = abs(lead["change_pct"]) / lead["tolerance_pct"]
-    if mass is not None and mass["beyond_tolerance"] and mass["change_pct"] > 0:
-        f_mass = 1.0 + mass["change_pct"] / 100.0
+    listed = ", ".join(f"{r['parameter']} {asked_text(r)}" for r in grown)
+    f_fric = 1.0 + asked_pct(lead) / 100.0
+    score = abs(asked_pct(lead)) / lead["tolerance_pct"]
+    if mass is not None and mass["beyond_tolerance"] and asked_pct(mass) > 0:
+        f_mass = 1.0 + asked_pct(mass) / 100.0
         if max(f_mass / f_fric, f_fric / f_mass) <= ONE_FACTOR:
             return [_named(
                 "torque_constant_loss", 100.0 * (1.0 - 1.0 / f_mass),
-                min(score, mass["change_pct"] / mass["tolerance_pct"]),
-                f"inertia {change_text(mass)} and friction ({listed}) up by about "
+                min(score, asked_pct(mass) / mass["tolerance_pct"]),
+                f"inertia {asked_text(mass)} and friction ({listed}) up by about "
                 "one factor 1/(1 - loss): the torque per ampere dropped",
                 "a gain error of the current measurement that reads high on every phase "
                 "(ours, on phase a only, would also ripple at 2x the electrical frequency)",
-                {"inertia_change_pct": mass["change_pct"]})]
+                {"inertia_change_pct": asked_pct(mass)})]
     return [_named(
-        "friction_growth", lead["change_pct"], score,
+        "friction_growth", asked_pct(lead), score,
         f"friction beyond its tolerance ({listed}), inertia "
-        + (change_text(mass) if mass else "as declared"),
+        + (asked_text(mass) if mass else "as declared"),
         "a changed load or lubrication state; viscous friction lumps in the motor's and "
         "bearings' drag, which the growth leaves alone, so it grows less", {})]
 

@@ -30,11 +30,12 @@ from pathlib import Path
 
 import numpy as np
 
-from hil.identify.candidates import Candidate, CandidatePool, Setting
-from hil.identify.changes import change_text, declared_changes
+from hil.identify.candidates import Candidate, CandidatePool, Setting, n_coef
+from hil.identify.changes import declared_changes, finding_text
 from hil.identify.conventions import read_conventions
-from hil.identify.effects import FORCE, LIBRARY, POSITION, REPLAY, Context, Term
+from hil.identify.effects import BY_NAME, FORCE, LIBRARY, POSITION, REPLAY, Context
 from hil.identify.effects.base import correlation
+from hil.identify.effects.joint import companions, domain_of, propose
 from hil.identify.floor import floor_origins, judge, normalised_cost, replay_floor
 from hil.identify.model import Model
 from hil.identify.motion import Drive, motion
@@ -171,8 +172,7 @@ class Identification:
         self.declared_changes = declared_changes(self.model)
         for row in self.declared_changes:
             if row["beyond_tolerance"]:
-                self._say(f"declared {row['parameter']} moved {change_text(row)} "
-                          f"(± {row['sigma']:.3g}), beyond its {row['tolerance_pct']:g} %")
+                self._say(f"declared {finding_text(row)}")
         self._say("done")
         return self
 
@@ -189,8 +189,11 @@ class Identification:
         return self.motion.noise_force if domain == FORCE else self.motion.noise_dx
 
     def _candidate_names(self) -> list[str]:
-        """The library's effects this round may try: available in the record, not excluded,
-        not rejected before, not in the model yet (or declared and correctable)."""
+        """The candidates this round may try: the library's effects available in the record,
+        not excluded, not rejected before, not in the model yet (or declared and
+        correctable); then the joint candidates they call for (Coulomb with the Stribeck
+        dip wherever Coulomb is a candidate, :mod:`hil.identify.effects.joint`), unless
+        rejected before."""
         out = []
         domains = self.domains() + [REPLAY]
         for effect in LIBRARY:
@@ -207,7 +210,14 @@ class Identification:
             if have is not None and (have.added or not effect.correctable):
                 continue
             out.append(effect.name)
-        return out
+
+        def joins(name: str) -> bool:
+            # a member already rejected alone may still belong beside the other
+            effect = BY_NAME[name]
+            return (name not in self.exclude and effect.unavailable(self.ctx) is None
+                    and self.model.term(name) is None)
+
+        return out + [j for j in companions(out, joins) if j not in self.rejected]
 
     def _round(self, pool: CandidatePool, names: list[str], err: dict) -> bool:
         """Rank every candidate by its held-out gain (:mod:`hil.identify.candidates`) and
@@ -233,63 +243,67 @@ class Identification:
                   f"BIC {best.delta_bic:+.1f})")
         self.rounds.append({"heldout_cost_before": cost0, "ranking": [
             {"effect": c.effect, "heldout_cost": c.cost, "heldout_delta_bic": c.delta_bic,
-             "explained": (c.term.evidence.get("explained") if c.term is not None else None),
+             "explained": (c.terms[-1].evidence.get("explained") if c.terms else None),
              "params": c.params, "note": c.note} for c in ranked]})
         for c in ranked:
             if not c.delta_bic < 0.0:
                 break
             # a delay's "explained" is the effort error's share alone: the ranking's
             # replay over every channel is its measure
-            if (c.term.effect.domain != REPLAY
-                    and c.term.evidence.get("explained", 1.0) < self.min_explained):
+            explains = c.terms[-1].evidence.get("explained", 1.0)
+            if c.terms[-1].effect.domain != REPLAY and explains < self.min_explained:
                 self._say(f"  {c.effect} not tried on the whole record: explains "
-                          f"{c.term.evidence['explained']:.3g} of its residual, under "
-                          f"{self.min_explained:g}")
+                          f"{explains:.3g} of its residual, under {self.min_explained:g}")
                 continue
-            if self._try(c.term, err):
+            if self._try(c, err):
                 return True
         return False
 
-    def _try(self, candidate: Term, err: dict) -> bool:
-        """Propose the candidate's effect again on the whole record (its shape, fitted on
-        half of it for the ranking, is sharper on all of it: a pitch period, a Stribeck
-        velocity), with its domain refitted jointly or not, whichever replays better, and
-        keep it when the replay's information criterion says so
-        (:func:`hil.identify.floor.judge`)."""
-        effect = candidate.effect
-        residual = self.model.residual(effect.domain) if effect.domain != REPLAY else None
-        term = effect.propose(self.ctx, residual, self.model) or candidate
+    def _try(self, candidate: Candidate, err: dict) -> bool:
+        """Propose the candidate again on the whole record (its shape, fitted on half of it
+        for the ranking, is sharper on all of it: a pitch period, a Stribeck velocity),
+        with its domain refitted jointly or not, whichever replays better, and keep it
+        when the replay's information criterion says so (:func:`hil.identify.floor.judge`)."""
+        name = candidate.effect
+        where = domain_of(name, BY_NAME)
+        residual = self.model.residual(where) if where != REPLAY else None
+        terms = propose(name, self.ctx, residual, self.model, BY_NAME) or candidate.terms
         saved = self.model.snapshot()
-        self.model.add(dataclasses.replace(term, coef=term.coef.copy()))
+        for term in terms:
+            self.model.add(dataclasses.replace(term, coef=term.coef.copy()))
         new = record_errors(self.rec, self.model.replay())
-        if term.effect.domain != REPLAY:
+        if where != REPLAY:
             # the domain refitted jointly too; the replay keeps the better of the two, so
             # a declared parameter moves only where the closed loop gains by it (the
             # inverse model's joint fit can move one to absorb what its statics miss)
             alone = self.model.snapshot()
-            self.model.refit(term.effect.domain)
+            self.model.refit(where)
             joint = record_errors(self.rec, self.model.replay())
             if normalised_cost(joint, self.floor) <= normalised_cost(new, self.floor):
                 new = joint
             else:
                 self.model.restore(alone)
-                self._say(f"  {term.effect.name}: the joint refit of its domain replays "
+                self._say(f"  {name}: the joint refit of its domain replays "
                           "worse; the declared terms kept")
-        verdict = judge(err, new, self.floor, max(1, term.effect.n_coef(term.shape)),
-                        self.n_eff)
-        added = self.model.term(term.effect.name)
-        self.proposals.append({"effect": term.effect.name, "params": added.params(self.ctx),
-                               "evidence": term.evidence, "error_before": err,
+        verdict = judge(err, new, self.floor, n_coef(terms), self.n_eff)
+        added = [self.model.term(t.effect.name) for t in terms]
+        params = {k: v for t in added for k, v in t.params(self.ctx).items()}
+        evidence = terms[-1].evidence
+        self.proposals.append({"effect": name, "params": params,
+                               "evidence": evidence, "error_before": err,
                                "error_after": new, "accepted": verdict.keep,
                                "reason": verdict.reason})
         if not verdict.keep:
             self.model.restore(saved)
-            self.rejected[term.effect.name] = verdict.reason
-            self._say(f"rejected {term.effect.name}: {verdict.reason}")
+            self.rejected[name] = verdict.reason
+            self._say(f"rejected {name}: {verdict.reason}")
             return False
-        self.steps.append(Step(term.effect.name, added.params(self.ctx), term.evidence, new))
-        self._say(f"added {term.effect.name} ({term.evidence.get('text', '')}); "
-                  f"{verdict.reason}")
+        # a joint candidate names the effects new to the model first; a member the file
+        # declared (Coulomb's level beside a Stribeck dip) is a correction of it
+        had = {t.effect.name for t in saved}
+        for t in sorted(added, key=lambda t: t.effect.name in had):
+            self.steps.append(Step(t.effect.name, t.params(self.ctx), t.evidence, new))
+        self._say(f"added {name} ({evidence.get('text', '')}); {verdict.reason}")
         return True
 
     def _describe_rest(self) -> dict:

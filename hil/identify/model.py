@@ -22,8 +22,9 @@ def merge(into: dict, more: dict) -> dict:
     return into
 
 
-#: a declared parameter's default tolerance, relative: the prior's deviation, and the
-#: change beyond which the report flags it (``hil identify --tolerance EFFECT=FRACTION``)
+#: a declared parameter's default tolerance, relative: the prior's deviation, and how far
+#: a refit may move it; what the data ask for beyond it is reported as a finding
+#: (``hil identify --tolerance EFFECT=FRACTION``)
 DEFAULT_TOLERANCE = 0.1
 
 
@@ -33,7 +34,11 @@ class Model:
     The terms the machine file declares keep their declared coefficients as a prior: a
     joint refit (:meth:`refit`) moves them only as far as the data outweigh a Gaussian
     prior of deviation ``tolerance`` x |declared value| (:data:`DEFAULT_TOLERANCE`), and
-    each refit leaves every coefficient's standard uncertainty in ``Term.sigma``.
+    never beyond ``tolerance`` x |declared value| (:meth:`box`): what the data ask for
+    beyond it stays in ``Term.wanted``, a finding the report lists, not a change taken
+    (issue 30, item 3: a declared mass or viscous friction moved to absorb what the model
+    lacked).  Each refit leaves every coefficient's standard uncertainty in
+    ``Term.sigma``.
 
     Args:
         ctx: the record, its motion and the config as read.
@@ -60,8 +65,28 @@ class Model:
     def term(self, name: str) -> Term | None:
         return next((t for t in self.terms if t.effect.name == name), None)
 
+    def box(self, term: Term) -> tuple[np.ndarray, np.ndarray]:
+        """Bounds of ``term``'s coefficients, each shape (k,): its effect's, narrowed for a
+        declared effect to the declared values +- tolerance x |declared| (a declared 0 has
+        no relative tolerance and keeps its effect's bounds)."""
+        lo, hi = term.effect.bounds(term.shape)
+        c0 = self.declared.get(term.effect.name)
+        if c0 is None or c0.size != lo.size:
+            return lo, hi
+        dev = self.tolerance_of(term.effect.name) * np.abs(c0)
+        free = c0 == 0.0
+        return (np.where(free, lo, np.maximum(lo, c0 - dev)),
+                np.where(free, hi, np.minimum(hi, c0 + dev)))
+
     def add(self, term: Term) -> None:
-        """Add a term (replacing the same effect's) and forget the cached replay."""
+        """Add a term (replacing the same effect's) and forget the cached replay.  A
+        declared effect's coefficients are held within their tolerance (:meth:`box`);
+        what the term asked for beyond it is kept as its ``wanted``."""
+        lo, hi = self.box(term)
+        held = np.clip(term.coef, lo, hi)
+        if not np.array_equal(held, term.coef):
+            term = dataclasses.replace(term, coef=held, wanted=term.coef.copy(),
+                                       wanted_by="its proposal")
         self.terms = [t for t in self.terms if t.effect.name != term.effect.name] + [term]
         self._replay = None
 
@@ -117,14 +142,17 @@ class Model:
         """Fit every term of the domain jointly, shapes fixed: the samples in noise units
         (each over the domain's noise floor, weighted by the share of independent samples,
         2 f_c dt, of the low-passed signals), the declared coefficients with their priors;
-        sets each term's ``coef`` and ``sigma`` (standard uncertainty from the weighted
-        Jacobian, inflated by the residual's ratio to the floor where it exceeds 1)."""
+        sets each term's ``coef`` (the declared ones within :meth:`box`), ``wanted`` (the
+        fit without the box, where that goes beyond it) and ``sigma`` (standard
+        uncertainty from the weighted Jacobian, inflated by the residual's ratio to the
+        floor where it exceeds 1)."""
         terms = [t for t in self._domain(domain) if t.effect.n_coef(t.shape) > 0]
         if not terms:
             return
         cols = [t.effect.columns(self.ctx, t.shape) for t in terms]
         lo = [t.effect.bounds(t.shape)[0] for t in terms]
         hi = [t.effect.bounds(t.shape)[1] for t in terms]
+        box = [self.box(t) for t in terms]
         y = self.ctx.m.force if domain == FORCE else self.ctx.m.dx
         if domain == POSITION:
             # the encoders' zero offset is fitted too, and thrown away
@@ -139,16 +167,24 @@ class Model:
         prior_a, prior_b = self._priors(terms, a.shape[1]) if noise > 0.0 else ([], [])
         a_w = np.vstack([w * a] + prior_a)
         b_w = np.concatenate([w * b] + prior_b)
-        coef = lstsq(a_w, b_w, np.ones(b_w.size, dtype=bool), np.concatenate(lo),
-                     np.concatenate(hi))
+        rows = np.ones(b_w.size, dtype=bool)
+        free = lstsq(a_w, b_w, rows, np.concatenate(lo), np.concatenate(hi))
+        lo_box = np.concatenate([b_lo for b_lo, _ in box] + lo[len(terms):])
+        hi_box = np.concatenate([b_hi for _, b_hi in box] + hi[len(terms):])
+        coef = (free if np.all((free >= lo_box) & (free <= hi_box))
+                else lstsq(a_w, b_w, rows, lo_box, hi_box))
         r = b - a @ coef
         misfit = float(np.sqrt(np.mean(r * r))) / noise if noise > 0.0 and r.size else 1.0
         sigma = uncertainty(a_w, misfit)
         i = 0
-        for t in terms:
+        for t, (b_lo, b_hi) in zip(terms, box):
             k = t.effect.n_coef(t.shape)
             t.coef = coef[i:i + k]
             t.sigma = sigma[i:i + k]
+            asked = free[i:i + k]
+            beyond = bool(np.any((asked < b_lo) | (asked > b_hi)))
+            t.wanted = asked.copy() if beyond else None
+            t.wanted_by = "the joint refit of its domain" if beyond else ""
             i += k
         self._replay = None
 

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-from hil.identify.changes import change_text
+from hil.identify.changes import asked_text, change_text, finding_text
 from hil.identify.config_out import write_config
 from hil.identify.diagnosis import as_json, diagnose, faults_markdown
 from hil.identify.effects import FORCE
@@ -153,16 +153,25 @@ def markdown(rep: dict) -> str:
                       f"{_fmt(ref['sigma'][k])}" for k, v in ref["after"].items())]
     changes = rep.get("declared_changes") or []
     if changes:
-        lines += ["", "## Declared parameters (refitted with a prior at the declared value)", "",
-                  "| parameter | declared | identified | change | ± (1 sigma) | tolerance | |",
-                  "|---|---|---|---|---|---|---|"]
+        lines += ["", "## Declared parameters (refitted with a prior at the declared value, "
+                  "within their tolerance)", "",
+                  "| parameter | declared | identified | change | ± (1 sigma) | tolerance | "
+                  "asked for | |", "|---|---|---|---|---|---|---|---|"]
         for c in changes:
-            flag = "**beyond tolerance**" if c["beyond_tolerance"] else ""
+            flag = "**finding**" if c["beyond_tolerance"] else ""
             if c["significant"] is False:
                 flag = (flag + " " if flag else "") + "within its uncertainty"
+            asked = (f"{_fmt(c['wanted'])} ({asked_text(c)})" if c.get("wanted") is not None
+                     else "-")
             lines.append(f"| {c['parameter']} | {_fmt(c['declared'])} | "
                          f"{_fmt(c['identified'])} | {change_text(c)} | "
-                         f"{_fmt(c['sigma'])} | {c['tolerance_pct']:g} % | {flag} |")
+                         f"{_fmt(c['sigma'])} | {c['tolerance_pct']:g} % | {asked} | {flag} |")
+        found = [c for c in changes if c["beyond_tolerance"]]
+        if found:
+            lines += ["", "### Findings", "",
+                      "What the data ask of a declared coefficient beyond its tolerance is "
+                      "not taken: the model lacks something, or the machine file is wrong "
+                      "there.", ""] + [f"- {finding_text(c)}" for c in found]
     origin = rep.get("replay_noise_floor_origin", {})
     lines += ["", "Noise floor of the replay channels: " + ", ".join(
         f"{k} {_fmt(v)}" + (f" ({origin[k]})" if k in origin else "")

@@ -20,5 +20,6 @@ LIBRARY: tuple[Effect, ...] = (
     Stribeck(), Cogging(), Presliding(), PitchError(), Backlash(), Compliance(), TimeDelay(),
 )
 NAMES = tuple(e.name for e in LIBRARY)
+BY_NAME = {e.name: e for e in LIBRARY}
 
-__all__ = ["FORCE", "POSITION", "REPLAY", "Context", "Effect", "Term", "LIBRARY", "NAMES"]
+__all__ = ["FORCE", "POSITION", "REPLAY", "Context", "Effect", "Term", "LIBRARY", "NAMES", "BY_NAME"]

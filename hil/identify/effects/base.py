@@ -44,8 +44,6 @@ class Context:
         moving: samples in use where |v| exceeds 1 % of the largest speed: the inverse
             model's friction terms are sign(v) functions, undefined at rest.
         direction: +1/-1, the direction of the last motion (held through standstill).
-        resolution: the position measurement's step (m or rad): the smallest change of the
-            recorded position (its count), or 0 when it is not on a grid.
     """
     cfg: MachineConfig
     drive: Drive
@@ -53,7 +51,6 @@ class Context:
     m: Motion
     moving: np.ndarray
     direction: np.ndarray
-    resolution: float
 
     @classmethod
     def of(cls, cfg: MachineConfig, drive: Drive, rec: Record, m: Motion) -> "Context":
@@ -67,7 +64,7 @@ class Context:
             elif vk < -v_eps:
                 last = -1.0
             direction[k] = last
-        return cls(cfg, drive, rec, m, moving, direction, quantum(rec.pos))
+        return cls(cfg, drive, rec, m, moving, direction)
 
 
 @dataclass
@@ -82,6 +79,11 @@ class Term:
         evidence: what pointed to it (numbers and a sentence), for the report.
         sigma: standard uncertainty of each coefficient from the last fit, shape (k,), or
             None before one.
+        wanted: for a declared effect, the coefficients the data asked for where that
+            lies beyond the declared values' tolerance, which held ``coef`` (shape (k,));
+            None when what they ask for is within it.  A finding, not taken.
+        wanted_by: what asked for ``wanted`` (its proposal, the joint refit, the
+            closed-loop refinement).
     """
     effect: "Effect"
     shape: dict
@@ -89,6 +91,8 @@ class Term:
     added: bool = False
     evidence: dict = field(default_factory=dict)
     sigma: np.ndarray | None = None
+    wanted: np.ndarray | None = None
+    wanted_by: str = ""
 
     def contribution(self, ctx: Context) -> np.ndarray:
         """The term's part of its domain's prediction, shape (n,)."""

@@ -254,30 +254,52 @@ class Stribeck(Effect):
         # replaces Karnopp's stick-slip with Stribeck sliding friction in the plant
         if model.term("presliding_hysteresis") is not None:
             return None
+        fit = self.dip_fit(ctx, residual, with_level=False)
+        if fit is None:
+            return None
+        ex, vs, coef = fit
+        ev = self.dip_evidence(ctx, residual, vs, ex)
+        return Term(self, {"vs": vs}, coef, True, ev)
+
+    def dip_fit(self, ctx: Context, residual: np.ndarray,
+                with_level: bool) -> tuple[float, float, np.ndarray] | None:
+        """The dip width that explains most of ``residual`` (N, shape (n,)) on the samples
+        in motion: (share explained, vs in m/s or rad/s, coefficients); the coefficients
+        are the excess Fs - Fc (N), or with ``with_level`` the Coulomb level Fc and the
+        excess fitted together, both >= 0.  None when the widest dip tried fits best (no
+        longer told apart from Coulomb's level) or the excess is 0."""
         vmax = float(np.max(np.abs(ctx.m.v[ctx.moving])))
         mask = ctx.moving
         best = None
         # a dip wider than a third of the top speed is no longer told apart from Coulomb:
         # one that fits best at the widest tried is no Stribeck dip
         widths = np.geomspace(vmax / 300.0, vmax / 3.0, 40)
+        level = np.sign(ctx.m.v)[:, None]
         for vs in widths:
             col = self.columns(ctx, {"vs": vs})
-            coef = lstsq(col, residual, mask, np.zeros(1), np.full(1, np.inf))
+            if with_level:
+                col = np.hstack([level, col])
+            k = col.shape[1]
+            coef = lstsq(col, residual, mask, np.zeros(k), np.full(k, np.inf))
             ex = explained(residual, col @ coef, mask)
             if best is None or ex > best[0]:
-                best = (ex, vs, coef)
-        ex, vs, coef = best
-        if vs == widths[-1]:
+                best = (ex, float(vs), coef)
+        if best[1] == widths[-1] or best[2][-1] <= 0.0:
             return None
+        return best
+
+    def dip_evidence(self, ctx: Context, residual: np.ndarray, vs: float, ex: float) -> dict:
+        """The dip's evidence: mean |residual| (N) below and above 2 vs, and a sentence."""
+        mask = ctx.moving
         slow = mask & (np.abs(ctx.m.v) < 2 * vs)
-        ev = {"explained": ex, "vs": float(vs),
+        ev = {"explained": ex, "vs": vs,
               "mean_abs_residual_slow": float(np.mean(np.abs(residual[slow]))) if slow.any()
               else 0.0,
               "mean_abs_residual_fast": float(np.mean(np.abs(residual[mask & ~slow])))}
         ev["text"] = (f"friction above the Coulomb level at low speed: mean |residual| "
                       f"{ev['mean_abs_residual_slow']:.3g} below {2 * vs:.3g} against "
                       f"{ev['mean_abs_residual_fast']:.3g} above")
-        return Term(self, {"vs": float(vs)}, coef, True, ev)
+        return ev
 
     def columns(self, ctx, shape):
         v = ctx.m.v
