@@ -167,7 +167,8 @@ def run_case(name: str, out: Path, refine_nfev: int = 10, log=None,
     floor = files["floor"]
     truth_err = record_errors(rec, replay(load_machine(files["truth"]), rec))
     t0 = time.monotonic()
-    ident = Identification(files["start"], rec, refine_nfev=refine_nfev).fit()
+    ident = Identification(files["start"], rec, refine_nfev=refine_nfev,
+                           tolerance=c.tolerance).fit()
     elapsed = time.monotonic() - t0
     added = [s.effect for s in ident.steps]
     after = ratios(ident.error_after, floor)

@@ -36,6 +36,8 @@ from plant.config import load_machine
 #: length of the alternating fit / held-out blocks, s: shorter than the program's moves so
 #: that every kind of motion (reversals, slow and fast moves) lands in both
 BLOCK_S = 0.5
+
+
 def holdout_rows(rec: Record) -> np.ndarray:
     """True on the held-out samples (odd blocks of BLOCK_S), shape (n,)."""
     block = max(1, round(BLOCK_S / rec.dt))

@@ -97,8 +97,9 @@ class Identification:
     After :meth:`fit`: ``steps`` (the effects added, in order), ``rejected`` and
     ``skipped`` (effect -> why), ``proposals`` (every step tried, kept or not, with its
     parameters, errors before and after and the reason), ``floor`` (the replay channels'
-    noise floors) and ``floor_origins`` (how each was found), ``refinement``, ``error_before``/``error_after`` (replay
-    errors), ``residual_before``/``residual_after`` (domain -> residual, shape (n,)),
+    noise floors) and ``floor_origins`` (how each was found), ``refinement``,
+    ``error_before``/``error_after`` (replay errors), ``residual_before``/
+    ``residual_after`` (domain -> residual, shape (n,)),
     ``replay_before``/``replay_after``, ``friction_before``/``friction_after`` (v -> force),
     ``unexplained`` (the signature of what is left), ``rounds`` (every round's candidates
     ranked by their held-out gain), ``declared_changes`` (:func:`hil.identify.changes.

@@ -22,4 +22,5 @@ LIBRARY: tuple[Effect, ...] = (
 NAMES = tuple(e.name for e in LIBRARY)
 BY_NAME = {e.name: e for e in LIBRARY}
 
-__all__ = ["FORCE", "POSITION", "REPLAY", "Context", "Effect", "Term", "LIBRARY", "NAMES", "BY_NAME"]
+__all__ = ["FORCE", "POSITION", "REPLAY", "Context", "Effect", "Term", "LIBRARY", "NAMES",
+           "BY_NAME"]
