@@ -245,3 +245,21 @@ def test_hil_scope_refuses_a_folder_without_a_recording(tmp_path):
                           capture_output=True, text=True, timeout=EXIT_S)
     assert done.returncode == 2, done.stderr
     assert f"{tmp_path}: no recording.arrows" in done.stderr
+
+
+def test_the_scope_bench_lists_each_segments_p999_in_the_order_they_ran():
+    """hil bench scope's per-segment figures follow the segments' order (closed, open,
+    closed, open), whatever the grouping by page state, and its text shows them."""
+    import numpy as np
+
+    from hil.bench.scope import _in_turn, text
+    bounds = [(False, 0, 1), (True, 1, 2), (False, 2, 3), (True, 3, 4)]
+    groups = {False: [np.array([1]), np.array([3])], True: [np.array([2]), np.array([4])]}
+    assert [int(a[0]) for a in _in_turn(groups, bounds)] == [1, 2, 3, 4]
+    q = {"p50": 0.0, "p99": 0.0, "p999": 1.0, "max": 1.0}
+    r = {"config": "c", "rate_hz": 8000, "segments": 2, "seconds": 10.0, "closed": {
+        "ticks": 1, "lateness_us": q}, "open": {"ticks": 1, "lateness_us": q},
+        "ratio_p999": 1.0, "ok": True, "scope_cpu_s": 1.0, "page_updates": 1,
+        "each_segment": [{"page": "closed", "lateness_p999_us": 587.7},
+                         {"page": "open", "lateness_p999_us": 2386.6}]}
+    assert text(r).endswith("p99.9 per segment, in turn, µs: 587.7 (closed), 2386.6 (open)")
