@@ -22,6 +22,7 @@ from hil.identify.fit import Identification
 from hil.identify.model import Model
 from hil.identify.motion import Drive, motion
 from hil.identify.record import load_record
+from hil.identify.refine import parameters
 from plant.config import load_machine
 from tests.test_identify_effects import (
     BASE,
@@ -109,6 +110,25 @@ def test_declared_stiffnesses_are_held_within_the_default_tolerance(case):
         assert row["identified"] == pytest.approx(0.9 * row["declared"], rel=1e-9), row
         assert row["beyond_tolerance"] and row["wanted_by"] == "its proposal", row
         assert row["wanted_change_pct"] < -50.0, row
+
+
+def test_the_closed_loop_refinement_frees_both_stiffnesses_in_log_space(case):
+    """The refinement (hil.identify.refine) adjusts the coupling's and the nut's
+    compliance as two parameters, each in log space, within the stiffness box: with the
+    default tolerance a compliance may reach 1/0.9 of the declared one (the stiffness
+    -10 %), not 1.1 times."""
+    start, rec, _ = case
+    cfg = load_machine(start)
+    drive = Drive.of(cfg)
+    ctx = Context.of(cfg, drive, rec, motion(rec, drive, None))
+    model = Model(ctx, start)
+    mine = [p for p in parameters(model) if p.effect == "screw_model_compliance"]
+    assert [(p.label, p.log, p.index) for p in mine] == [
+        ("screw_model_compliance[0]", True, 0), ("screw_model_compliance[1]", True, 1)]
+    term = model.term("screw_model_compliance")
+    lo, hi = model.box(term)
+    assert hi == pytest.approx(term.coef / 0.9, rel=1e-12)
+    assert lo == pytest.approx(term.coef / 1.1, rel=1e-12)
 
 
 @pytest.mark.parametrize("table_pos", [0.0, 0.1, 0.25])
