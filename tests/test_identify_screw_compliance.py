@@ -138,7 +138,10 @@ def test_held_motor_compliance_is_the_lumped_series_of_the_train(table_pos):
     up to the lumped nut place, thrust bearing and nut (the validation's analytic
     formula), to 1e-9."""
     from hil.identify.effects.screw_compliance import held_motor_compliance
-    from hil.validate.experiments.mechanics import lumped_nut_distance, series_compliance
+    from hil.validate.experiments.mechanics import (
+        lumped_nut_distance,
+        series_compliance,
+    )
     cfg = load_machine(BASE, DECLARED)
     expected = series_compliance(cfg, lumped_nut_distance(cfg, table_pos))
     assert held_motor_compliance(cfg, table_pos) == pytest.approx(expected, rel=1e-9)
