@@ -17,12 +17,14 @@ from hil.identify.model import Model
 
 def declared_changes(model: Model) -> list[dict]:
     """One row per declared coefficient still in the model: ``parameter`` (the machine-file
-    key, or ``effect[j]`` for a multi-coefficient term), ``declared``, ``identified`` (the
+    key, or ``effect[j]`` for a multi-coefficient term whose coefficients are not one key
+    each), ``declared``, ``identified`` (the
     value taken, within the tolerance), ``sigma`` (standard uncertainty, NaN when
     unknown), ``change_pct`` (of the value taken; infinite from a declared 0, which has no
     per cent), ``tolerance_pct``, ``wanted`` (what the data ask for where that lies beyond
     the tolerance, else None) with ``wanted_change_pct`` and ``wanted_by``,
-    ``beyond_tolerance`` (the change asked for exceeds the tolerance: a finding) and
+    ``beyond_tolerance`` (the coefficient asked for lies outside the declared box,
+    :meth:`~hil.identify.effects.base.Effect.declared_box`: a finding) and
     ``significant`` (the change taken exceeds twice its uncertainty)."""
     rows = []
     for t in model.terms:
@@ -30,30 +32,59 @@ def declared_changes(model: Model) -> list[dict]:
         if c0 is None or c0.size != t.coef.size or c0.size == 0:
             continue
         tol = model.tolerance_of(t.effect.name)
+        box_lo, box_hi = t.effect.declared_box(c0, tol)
+        c_asked = t.wanted if t.wanted is not None else t.coef
+        keyed = c0.size == 1 or t.effect.keys_per_coefficient
         for j in range(c0.size):
             before, after = float(c0[j]), float(t.coef[j])
             sigma = float(t.sigma[j]) if t.sigma is not None else math.nan
             wanted = float(t.wanted[j]) if t.wanted is not None else None
             label = f"{t.effect.name}[{j}]"
-            if c0.size == 1:
-                # the machine-file key and sign (a constant force is minus its coefficient)
-                key, value0 = next(iter(t.effect.params(model.ctx, t.shape, c0).items()))
-                _, value1 = next(iter(t.effect.params(model.ctx, t.shape, t.coef).items()))
-                label, before, after = key, float(value0), float(value1)
+            if keyed:
+                # the machine-file key and sign (a constant force is minus its coefficient,
+                # a stiffness the inverse of a compliance)
+                label, before = _key_value(model, t, c0, j)
+                after = _key_value(model, t, t.coef, j)[1]
+                sigma *= _key_slope(model, t, j)
                 if wanted is not None:
-                    wanted = float(next(iter(t.effect.params(model.ctx, t.shape,
-                                                             t.wanted).items()))[1])
+                    wanted = _key_value(model, t, t.wanted, j)[1]
             change = after - before
             asked = (wanted if wanted is not None else after) - before
+            # the box's edges are where a held coefficient sits: a hair beyond is rounding
+            slack = 1e-9 * abs(float(c0[j]))
+            if c0[j] == 0.0:
+                beyond = c_asked[j] != 0.0
+            else:
+                beyond = not box_lo[j] - slack <= c_asked[j] <= box_hi[j] + slack
             rows.append({
                 "parameter": label, "effect": t.effect.name, "declared": before,
                 "identified": after, "sigma": sigma, "change_pct": _pct(change, before),
                 "tolerance_pct": 100.0 * tol, "wanted": wanted,
                 "wanted_change_pct": None if wanted is None else _pct(asked, before),
                 "wanted_by": t.wanted_by if wanted is not None else "",
-                "beyond_tolerance": abs(asked) > tol * abs(before),
+                "beyond_tolerance": bool(beyond),
                 "significant": None if math.isnan(sigma) else bool(abs(change) > 2.0 * sigma)})
     return rows
+
+
+def _key_value(model: Model, term, coef, j: int) -> tuple[str, float]:
+    """The machine-file key of ``term``'s coefficient ``j`` and its value for ``coef``."""
+    key, value = list(term.effect.params(model.ctx, term.shape, coef).items())[j]
+    return key, float(value)
+
+
+#: relative step of the coefficient that :func:`_key_slope` differentiates with
+SLOPE_STEP = 1e-6
+
+
+def _key_slope(model: Model, term, j: int) -> float:
+    """|d key / d coefficient j| at ``term``'s coefficients: what carries a coefficient's
+    uncertainty to its key's (1 for a key that is the coefficient, k/c for a stiffness k
+    that is the inverse of a compliance c)."""
+    h = SLOPE_STEP * max(abs(float(term.coef[j])), 1e-300)
+    moved = term.coef.copy()
+    moved[j] += h
+    return abs(_key_value(model, term, moved, j)[1] - _key_value(model, term, term.coef, j)[1]) / h
 
 
 def _pct(change: float, before: float) -> float:

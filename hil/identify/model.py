@@ -67,16 +67,18 @@ class Model:
 
     def box(self, term: Term) -> tuple[np.ndarray, np.ndarray]:
         """Bounds of ``term``'s coefficients, each shape (k,): its effect's, narrowed for a
-        declared effect to the declared values +- tolerance x |declared| (a declared 0 has
-        no relative tolerance and keeps its effect's bounds)."""
+        declared effect to the declared values +- tolerance x |declared| (or the effect's
+        own :meth:`~hil.identify.effects.base.Effect.declared_box`: a declared stiffness
+        moves by the tolerance's share); a declared 0 has no relative tolerance and keeps
+        its effect's bounds."""
         lo, hi = term.effect.bounds(term.shape)
         c0 = self.declared.get(term.effect.name)
         if c0 is None or c0.size != lo.size:
             return lo, hi
-        dev = self.tolerance_of(term.effect.name) * np.abs(c0)
+        d_lo, d_hi = term.effect.declared_box(c0, self.tolerance_of(term.effect.name))
         free = c0 == 0.0
-        return (np.where(free, lo, np.maximum(lo, c0 - dev)),
-                np.where(free, hi, np.minimum(hi, c0 + dev)))
+        return (np.where(free, lo, np.maximum(lo, d_lo)),
+                np.where(free, hi, np.minimum(hi, d_hi)))
 
     def add(self, term: Term) -> None:
         """Add a term (replacing the same effect's) and forget the cached replay.  A
@@ -154,6 +156,10 @@ class Model:
         hi = [t.effect.bounds(t.shape)[1] for t in terms]
         box = [self.box(t) for t in terms]
         y = self.ctx.m.force if domain == FORCE else self.ctx.m.dx
+        for t in terms:
+            fixed = t.effect.fixed(self.ctx, t.shape)
+            if fixed is not None:
+                y = y - fixed
         if domain == POSITION:
             # the encoders' zero offset is fitted too, and thrown away
             cols.append(np.ones((self.ctx.rec.n, 1)))

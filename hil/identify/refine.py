@@ -3,7 +3,9 @@
 The inverse model weighs every sample's force balance equally; the closed loop weighs
 them as the controller does, and its error is what the report measures.  So at the end of
 the search the single-coefficient terms (mass, viscous and Coulomb friction, the
-constant force, the Stribeck excess; backlash, compliance) and the scalar shapes that the
+constant force, the Stribeck excess; backlash, compliance), each coefficient of a term
+whose coefficients are one machine-file key each (the screw model's coupling and nut
+compliance, in log space: they span decades) and the scalar shapes that the
 linear fits hold fixed (the Stribeck velocity, the presliding spring's k1, x1 and
 exponent) are adjusted together so that the replay matches the record
 (``scipy.optimize.least_squares``), on the acceptance's measure: every replay channel's
@@ -68,23 +70,35 @@ POLISH_XTOL = 1e-3
 
 @dataclass(frozen=True)
 class Parameter:
-    """One refined parameter: a term's coefficient (``key`` None) or shape entry."""
+    """One refined parameter: a term's coefficient (``key`` None: coefficient ``index``,
+    of ``several`` where the term has more than one) or shape entry; its log where
+    ``log``."""
     effect: str
     key: str | None
     log: bool
+    index: int = 0
+    several: bool = False
 
     @property
     def label(self) -> str:
-        return self.effect if self.key is None else f"{self.effect}.{self.key}"
+        if self.key is not None:
+            return f"{self.effect}.{self.key}"
+        return f"{self.effect}[{self.index}]" if self.several else self.effect
 
 
 def parameters(model: Model) -> list[Parameter]:
     """What the refinement adjusts in ``model``."""
     out = []
     for t in model.terms:
-        if (t.effect.domain in (FORCE, POSITION) and t.effect.n_coef(t.shape) == 1
-                and t.effect.name not in FIXED_SCALE):
-            out.append(Parameter(t.effect.name, None, False))
+        n = t.effect.n_coef(t.shape)
+        if t.effect.domain in (FORCE, POSITION) and t.effect.name not in FIXED_SCALE:
+            if n == 1:
+                out.append(Parameter(t.effect.name, None, False))
+            elif n > 1 and t.effect.keys_per_coefficient:
+                lo = t.effect.bounds(t.shape)[0]
+                # a positive coefficient in log space: a compliance spans decades
+                out += [Parameter(t.effect.name, None, bool(lo[j] >= 0.0 and t.coef[j] > 0.0),
+                                  j, True) for j in range(n)]
         out += [Parameter(t.effect.name, k, True) for k in SHAPES.get(t.effect.name, ())]
     return out
 
@@ -104,15 +118,16 @@ def refine(model: Model, rec: Record, floor: dict, n_eff: float, max_nfev: int,
         return out
     coefs = [p for p in parameters(model) if p.key is None and p.effect in model.declared]
     wanted = {}
-    for p in coefs:
-        t = model.term(p.effect)
+    for name in dict.fromkeys(p.effect for p in coefs):
+        t = model.term(name)
         lo, hi = model.box(t)
         asked = np.clip(t.coef, lo, hi)
         beyond = not np.array_equal(asked, t.coef)
         t.wanted = t.coef.copy() if beyond else None
         t.wanted_by = "the closed-loop refinement" if beyond else ""
         if beyond:
-            wanted[p.label] = float(t.coef[0])
+            wanted.update({p.label: float(t.wanted[p.index]) for p in coefs
+                           if p.effect == name and asked[p.index] != t.wanted[p.index]})
             t.coef = asked
     if not wanted:
         return {**out, "wanted": wanted}
@@ -136,30 +151,41 @@ def _refine(model: Model, rec: Record, floor: dict, n_eff: float, max_nfev: int,
 
     def get(p: Parameter) -> float:
         t = terms[p.effect]
-        return math.log(t.shape[p.key]) if p.log else float(t.coef[0])
+        if p.key is not None:
+            return math.log(t.shape[p.key])
+        c = float(t.coef[p.index])
+        return math.log(c) if p.log else c
 
     def put(p: Parameter, z: float) -> None:
         t = terms[p.effect]
-        if p.log:
+        if p.key is not None:
             t.shape = {**t.shape, p.key: math.exp(z)}
         else:
-            t.coef = np.array([z])
+            coef = t.coef.copy()
+            coef[p.index] = math.exp(z) if p.log else z
+            t.coef = coef
 
     z0 = np.array([get(p) for p in params])
     lo, hi = np.empty(z0.size), np.empty(z0.size)
     for i, p in enumerate(params):
         t = terms[p.effect]
-        if p.log:
+        if p.key is not None:
             lo[i], hi[i] = z0[i] - math.log(SHAPE_RANGE), z0[i] + math.log(SHAPE_RANGE)
-        else:
-            box = model.box(t) if boxed else t.effect.bounds(t.shape)
-            lo[i], hi[i] = box[0][0], box[1][0]
+            continue
+        box = model.box(t) if boxed else t.effect.bounds(t.shape)
+        lo[i], hi[i] = box[0][p.index], box[1][p.index]
+        if p.log:
+            # the coefficient is positive and within its bounds: hi > 0
+            lo[i] = math.log(lo[i]) if lo[i] > 0.0 else -np.inf
+            hi[i] = math.log(hi[i])
     z0 = np.clip(z0, lo + 1e-12 * np.abs(z0), hi)
-    prior = []  # (index, declared value, deviation)
+    prior = []  # (index, declared value, deviation, whether z is its log)
     for i, p in enumerate(params):
         c0 = model.declared.get(p.effect)
-        if not p.log and c0 is not None and c0.size == 1 and c0[0] != 0.0:
-            prior.append((i, float(c0[0]), model.tolerance_of(p.effect) * abs(float(c0[0]))))
+        if (p.key is None and c0 is not None and c0.size == terms[p.effect].coef.size
+                and c0[p.index] != 0.0):
+            c0j = float(c0[p.index])
+            prior.append((i, c0j, model.tolerance_of(p.effect) * abs(c0j), p.log))
     n = rec.n - ERROR_START
     weight = math.sqrt(max(n_eff, 1.0) / n)
     count = [0]
@@ -183,7 +209,7 @@ def _refine(model: Model, rec: Record, floor: dict, n_eff: float, max_nfev: int,
         last[:] = ratios
         if say is not None and count[0] % 10 == 0:
             say(f"  refinement: {count[0]} replays, J {costs[-1]:.4g}")
-        pri = [(z[i] - c0) / s for i, c0, s in prior]
+        pri = [((math.exp(z[i]) if log else z[i]) - c0) / s for i, c0, s, log in prior]
         data = np.concatenate([c / s for c, s in zip(chans, scale_k)])
         return np.concatenate([weight * data, np.array(pri)])
 
@@ -226,7 +252,10 @@ def _refine(model: Model, rec: Record, floor: dict, n_eff: float, max_nfev: int,
     for p, s in zip(params, sigma):
         t = terms[p.effect]
         if p.key is None:
-            t.sigma = np.array([s])
+            if t.sigma is None or t.sigma.size != t.coef.size:
+                t.sigma = np.full(t.coef.size, math.nan)
+            t.sigma = t.sigma.copy()
+            t.sigma[p.index] = sig[p.label] if p.log else s
     if say is not None:
         say(f"refined in {count[0]} replays: J {j0:.4g} -> {j1:.4g}")
     return {"before": before, "after": after, "sigma": sig, "cost_before": j0,

@@ -13,11 +13,13 @@ from hil.identify.effects.force import (
                                         ViscousFriction,
 )
 from hil.identify.effects.periodic import Cogging, PitchError
+from hil.identify.effects.screw_compliance import ScrewModelCompliance
 
 #: every effect, simplest first: among effects that explain about as much, the earlier wins
 LIBRARY: tuple[Effect, ...] = (
     Inertia(), ViscousFriction(), CoulombFriction(), GravityOffset(), ViscousAsymmetry(),
-    Stribeck(), Cogging(), Presliding(), PitchError(), Backlash(), Compliance(), TimeDelay(),
+    Stribeck(), Cogging(), Presliding(), PitchError(), Backlash(), Compliance(),
+    ScrewModelCompliance(), TimeDelay(),
 )
 NAMES = tuple(e.name for e in LIBRARY)
 BY_NAME = {e.name: e for e in LIBRARY}

@@ -96,7 +96,9 @@ class Term:
 
     def contribution(self, ctx: Context) -> np.ndarray:
         """The term's part of its domain's prediction, shape (n,)."""
-        return self.effect.columns(ctx, self.shape) @ self.coef
+        out = self.effect.columns(ctx, self.shape) @ self.coef
+        fixed = self.effect.fixed(ctx, self.shape)
+        return out if fixed is None else out + fixed
 
     def params(self, ctx: Context) -> dict:
         return self.effect.params(ctx, self.shape, self.coef)
@@ -113,6 +115,9 @@ class Effect(ABC):
     n_params = 1
     #: whether a declared term may still be proposed, as a correction of its coefficients
     correctable = False
+    #: whether :meth:`params` gives one machine-file key per coefficient, in their order
+    #: (a single coefficient always does)
+    keys_per_coefficient = False
 
     def unavailable(self, ctx: Context) -> str | None:
         """Why the effect cannot be looked for in this record or config, or None."""
@@ -138,6 +143,19 @@ class Effect(ABC):
 
     def n_coef(self, shape: dict) -> int:
         return 1
+
+    def fixed(self, ctx: Context, shape: dict) -> np.ndarray | None:
+        """The part of the effect's prediction that no coefficient scales, shape (n,) (the
+        screw model's compliance the fit leaves as declared), or None."""
+        return None
+
+    def declared_box(self, c0: np.ndarray, tolerance: float) -> tuple[np.ndarray, np.ndarray]:
+        """Where declared coefficients ``c0`` (k,) may move within the relative
+        ``tolerance``, each shape (k,): +- tolerance x |c0|.  An effect whose coefficients
+        are the inverse of the machine file's keys (a compliance, the file's stiffness)
+        narrows it so that the keys move by at most that share."""
+        dev = tolerance * np.abs(c0)
+        return c0 - dev, c0 + dev
 
     def mask(self, ctx: Context) -> np.ndarray:
         """Samples the fits of this effect use."""

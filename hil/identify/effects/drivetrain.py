@@ -46,6 +46,14 @@ def contact_side(force: np.ndarray, band: float) -> np.ndarray:
     return side
 
 
+def stiffness_box(c0: np.ndarray, tolerance: float) -> tuple[np.ndarray, np.ndarray]:
+    """Where declared compliances ``c0`` (m/N or rad/(N·m), shape (k,)) may move so that the
+    stiffnesses 1/c0 the machine file declares move by at most the relative ``tolerance``:
+    c0 / (1 + tolerance) to c0 / (1 - tolerance) (unbounded above from a tolerance of 1)."""
+    hi = c0 / (1.0 - tolerance) if tolerance < 1.0 else np.full(c0.shape, np.inf)
+    return c0 / (1.0 + tolerance), hi
+
+
 class Backlash(Effect):
     """A gap in the train: table minus motor position jumps by the gap when the force
     through the train reverses."""
@@ -130,9 +138,12 @@ class Compliance(Effect):
         if ctx.m.dx is None:
             return NO_SECOND_SENSOR
         if ctx.cfg.mechanics.model == "screw":
-            return ("the screw model's stiffness follows from its dimensions; "
-                    "adjust [screw] rather than one spring")
+            return ("the screw model holds coupling, screw and nut compliance apart: "
+                    "screw_model_compliance fits them there")
         return None
+
+    def declared_box(self, c0, tolerance):
+        return stiffness_box(c0, tolerance)
 
     def declared(self, ctx):
         if ctx.cfg.mechanics.model != "two_mass":
