@@ -419,3 +419,18 @@ def test_bench_rows_have_the_documented_fields(monkeypatch, tmp_path):
     assert set(row["lateness_us"]) == {"p50", "p99", "p999", "max"}
     assert (row["rate_hz"], row["period_us"], row["cyclictest_us"]) == (2000, 500, None)
     assert any("not installed" in n for n in notes)
+
+
+def test_a_start_given_beforehand_is_tick_zeros_deadline_whenever_run_begins():
+    """A controller aligned to its drive gives the loop tick 0's deadline: the ticks keep
+    that phase exactly, however long the caller took to reach run() (before, the loop took
+    one period after its own start, and the delay moved the phase: the serial loopback's
+    setpoints then missed the drive's tick)."""
+    from hil.rt.clock import SimulatedClock
+    clock = SimulatedClock(start_ns=1_000_000_000)
+    seen = []
+    loop = RealTimeLoop(50_000, lambda k: seen.append(clock.now_ns()), n_ticks=3, clock=clock)
+    loop.start_ns = 1_000_000_000 + 10_000_000 + 123
+    clock.advance(7_654_321)  # what ran between the alignment and run()
+    loop.run()
+    assert seen == [loop.start_ns + k * 50_000 for k in range(3)]

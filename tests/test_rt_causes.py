@@ -111,9 +111,9 @@ def test_a_cpu_shared_with_a_busy_process_shows_as_waiting_for_it():
 def test_steal_is_read_from_the_cpus_line_of_proc_stat():
     """/proc/stat's eighth number after the name is steal, in clock ticks: CPU 1's line,
     the sum line for a thread on several CPUs; the text names steal first."""
-    stat = ("cpu  4433588 541129 591785 5079609 4928 0 15240 1588 0 0\n"
-            "cpu0 1873107 274211 247295 2925582 1337 0 6816 793 0 0\n"
-            "cpu1 2560481 266918 344490 2154026 3590 0 8423 795 0 0\n")
+    stat = (b"cpu  4433588 541129 591785 5079609 4928 0 15240 1588 0 0\n"
+            b"cpu0 1873107 274211 247295 2925582 1337 0 6816 793 0 0\n"
+            b"cpu1 2560481 266918 344490 2154026 3590 0 8423 795 0 0\n")
     assert (steal_ticks(stat, 1), steal_ticks(stat, None), steal_ticks(stat, 7)) == (795, 1588, 0)
     text = Cause(0, 0, 0, 0, 0.0, 0.0, steal_ms=1000.0 / CLOCK_TICKS_S).text()
     assert text.startswith("the hypervisor ran something else on the loop's virtual CPU for 10 ms")

@@ -38,20 +38,33 @@ RUNQUEUE_NOTED_MS = 0.5
 CLOCK_TICKS_S = os.sysconf("SC_CLK_TCK") if hasattr(os, "sysconf") else 100
 
 
+def _read_proc(path: str, size: int) -> bytes:
+    """Up to ``size`` bytes of a /proc file (b"" where it cannot be read).  Plain system
+    calls: a file object would leave the io machinery's caches behind, memory a loop's
+    overrun should not keep."""
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except OSError:
+        return b""
+    try:
+        return os.read(fd, size)
+    except OSError:
+        return b""
+    finally:
+        os.close(fd)
+
+
 def runqueue_wait_ns(path: str = SCHEDSTAT) -> int:
     """The calling thread's time runnable but not running since it started, ns (0 where
     the kernel does not say)."""
-    try:
-        with open(path, "rb") as f:
-            return int(f.read().split()[1])
-    except (OSError, IndexError, ValueError):
-        return 0
+    fields = _read_proc(path, 256).split()
+    return int(fields[1]) if len(fields) > 1 else 0
 
 
-def steal_ticks(stat: str, cpu: int | None) -> int:
-    """Steal time of CPU ``cpu`` (None: all CPUs together) in ``/proc/stat``'s text
+def steal_ticks(stat: bytes, cpu: int | None) -> int:
+    """Steal time of CPU ``cpu`` (None: all CPUs together) in ``/proc/stat``'s content
     ``stat``, clock ticks (0 where the line or its eighth field is missing)."""
-    name = "cpu" if cpu is None else f"cpu{cpu}"
+    name = b"cpu" if cpu is None else b"cpu%d" % cpu
     for line in stat.splitlines():
         fields = line.split()
         if fields and fields[0] == name:
@@ -61,13 +74,10 @@ def steal_ticks(stat: str, cpu: int | None) -> int:
 
 def _steal_now() -> int:
     """Steal of the CPU the calling thread is pinned to (all CPUs where it has several),
-    clock ticks."""
+    clock ticks (the CPU lines come first in /proc/stat: 64 kB hold a few hundred)."""
     cpus = os.sched_getaffinity(0)
-    try:
-        with open("/proc/stat") as f:
-            return steal_ticks(f.read(), next(iter(cpus)) if len(cpus) == 1 else None)
-    except OSError:
-        return 0
+    return steal_ticks(_read_proc("/proc/stat", 65536),
+                       next(iter(cpus)) if len(cpus) == 1 else None)
 
 
 def _on_gc(phase: str, info: dict, started: list[int] = [0]) -> None:  # noqa: B006
@@ -159,7 +169,12 @@ class Cause(NamedTuple):
 
     def plus(self, other: "Cause") -> "Cause":
         """The two summed, field by field."""
-        return Cause(*(a + b for a, b in zip(self, other)))
+        return Cause(self.preempted + other.preempted, self.page_faults + other.page_faults,
+                     self.major_faults + other.major_faults,
+                     self.gc_collections + other.gc_collections,
+                     self.gc_ms + other.gc_ms, self.compile_ms + other.compile_ms,
+                     self.runqueue_ms + other.runqueue_ms, self.steal_ms + other.steal_ms,
+                     self.interval_s + other.interval_s)
 
     def as_dict(self) -> dict:
         return self._asdict()

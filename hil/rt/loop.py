@@ -237,7 +237,9 @@ def run_ticks(loop, end_tick: Callable[[int, int, int], None], n: int) -> TickCo
     on_time = True  # the tick before ended in time
 
     wall0, cpu0 = time.monotonic_ns(), time.process_time_ns()
-    t0 = now_ns() + period
+    # a phase given beforehand is kept exactly: taken from the clock here, it would move
+    # by whatever ran between the caller's wake-up and this line
+    t0 = loop.start_ns if loop.start_ns is not None else now_ns() + period
     k = 0
     woke = None  # the wake-up of tick k, woken in a burst but this loop's to run
     while k < n:
@@ -335,6 +337,10 @@ class RealTimeLoop:
         #: runs ticks in compiled code where it may, writing their ``lateness_ns`` and
         #: ``compute_ns`` itself (:func:`run_ticks`); None: every tick is ``step``'s
         self.burst = None
+        #: tick 0's deadline on ``clock`` (ns), where the ticks must keep a phase found
+        #: before the run (a controller aligned to its drive); None: one period after
+        #: :meth:`run` starts
+        self.start_ns: int | None = None
 
     def request_stop(self) -> None:
         """Stop before the next tick (safe to call from a signal handler).  The request

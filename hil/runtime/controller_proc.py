@@ -79,7 +79,6 @@ from hil.drive.faults import fault_text
 from hil.inject import INJECT_HELP
 from hil.inject.sender import InjectionSender
 from hil.progress import COMPILING, Progress
-from hil.rt.clock import MonotonicClock
 from hil.rt.loop import OverrunPolicy, RealTimeLoop
 from hil.runtime.common import (
     EXIT_BAD_INPUT,
@@ -104,7 +103,7 @@ from hil.runtime.controller_files import (
     write_outputs,
 )
 from hil.runtime.controller_steady import ControllerSteady
-from hil.runtime.sync import U32, DriveNotAnswering, align
+from hil.runtime.sync import START_MARGIN_NS, U32, DriveNotAnswering, align
 from hil.runtime.timing_quality import TimingQuality
 from io_adapters import AdapterError, Endpoint, open_endpoint
 from io_adapters.messages import axis_records, message_pair
@@ -365,9 +364,8 @@ class ControllerProcess:
                               f"{rc.connect_timeout_s:g} s)", ticking=True):
                     alignment = align(self.ep, self.sp, self.fb, self.period_ns,
                                       rc.connect_timeout_s)
-                clock = MonotonicClock.for_period(self.period_ns)
-                t0 = alignment.first_deadline(self.period_ns, clock.now_ns() + self.period_ns)
-                clock.sleep_until(t0 - self.period_ns)  # run() places tick 0 one period on
+                self.loop.start_ns = alignment.first_deadline(
+                    self.period_ns, self.loop.clock.now_ns() + START_MARGIN_NS)
                 stats = self.loop.run()
                 self._disable()
         finally:

@@ -48,7 +48,7 @@ from hil.runtime.common import (
     write_json,
 )
 from hil.runtime.streaming_loop import StreamingLoop
-from hil.runtime.sync import U32, DriveNotAnswering, align
+from hil.runtime.sync import START_MARGIN_NS, U32, DriveNotAnswering, align
 from io_adapters import AdapterError, Feedback, Setpoint, open_endpoint
 from io_adapters.messages import MODE_CSP
 from plant.config import load_machine
@@ -191,9 +191,8 @@ class SoakMaster:
         try:
             with scheduling(not a.no_rt, a.cpu, a.priority) as granted:
                 alignment = align(self.ep, self.sp, self.fb, self.period_ns, 10.0)
-                clock = self.loop.clock
-                t0 = alignment.first_deadline(self.period_ns, clock.now_ns() + self.period_ns)
-                clock.sleep_until(t0 - self.period_ns)
+                self.loop.start_ns = alignment.first_deadline(
+                    self.period_ns, self.loop.clock.now_ns() + START_MARGIN_NS)
                 self.seq.enable()
                 loop = self.loop.run()
                 self.sp.controlword = DISABLE_VOLTAGE.value

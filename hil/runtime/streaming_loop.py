@@ -66,6 +66,9 @@ class StreamingLoop:
         #: runs ticks in compiled code where it may (:func:`hil.rt.loop.run_ticks`); None:
         #: every tick is ``step``'s
         self.burst = None
+        #: tick 0's deadline (ns) where a phase found before the run must be kept (the soak
+        #: master aligned to its drive); None: one period after :meth:`run` starts
+        self.start_ns: int | None = None
 
     def request_stop(self) -> None:
         """Stop before the next tick (safe from a signal handler or another thread)."""

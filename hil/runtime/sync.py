@@ -37,6 +37,10 @@ from io_adapters import Endpoint, Feedback, Setpoint
 ALIGN_SAMPLES = 64
 #: how long the alignment waits for an answer before sending again, s
 RESEND_S = 0.05
+#: the first aligned tick comes at least this long after the alignment: room for what
+#: runs before the loop's first wait (its arrays reset, the counters read), so that tick
+#: 0 is on time and on the aligned phase
+START_MARGIN_NS = 10_000_000
 #: a controller tick's own work before its setpoint leaves (ctrl.tick and the feedback
 #: poll: 6-15 µs measured), added to the measured send time
 TICK_ALLOWANCE_NS = 15_000
