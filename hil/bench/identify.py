@@ -80,6 +80,23 @@ def ratios(err: dict, floor: dict) -> dict:
             if k in floor and floor[k] > 0 and isinstance(err.get(k), float)}
 
 
+def _machine_file(path: Path, text: str, keys: dict, note: str) -> Path:
+    """The machine file ``text`` with ``keys`` (``{"section": {"key": value}}``) patched in
+    (as it is without keys), written to ``path``."""
+    path.write_text(patch_config(text, keys, note) if keys else text)
+    return path
+
+
+def _cached(folder: Path, version: int, duration_s: float | None) -> tuple[Path, Path, dict]:
+    """(trace, floor file, what the floor file holds); the dict is empty where the trace
+    must be generated again (missing, or of another generator version or duration)."""
+    trace, info = folder / "trace.csv", folder / "floor.json"
+    cached = json.loads(info.read_text()) if info.is_file() and trace.is_file() else {}
+    if cached.get("version") != version or cached.get("duration_s") != duration_s:
+        cached = {}
+    return trace, info, cached
+
+
 def prepare(c: Case, folder: Path, log=None, duration_s: float | None = None) -> dict:
     """Write the case's truth and start machine files and its trace into ``folder`` (the
     trace only when absent or of another generator version or duration); returns the floor,
@@ -87,16 +104,14 @@ def prepare(c: Case, folder: Path, log=None, duration_s: float | None = None) ->
     ``duration_s``: the program repeated to at least this long (None: one pass, 13-32 s)."""
     folder.mkdir(parents=True, exist_ok=True)
     text = c.axis.read_text()
-    truth = folder / "truth.toml"
-    truth.write_text(patch_config(text, merged(SINUMERIK_STYLE, c.truth), "bench truth"))
+    truth = _machine_file(folder / "truth.toml", text, merged(SINUMERIK_STYLE, c.truth),
+                          "bench truth")
     # the truth's physics with the declared controller: its conventions come from the header
-    truth_plain = folder / "truth_declared_controller.toml"
-    truth_plain.write_text(patch_config(text, c.truth, "bench truth"))
-    start = folder / "start.toml"
-    start.write_text(patch_config(text, c.start, "bench start") if c.start else text)
-    trace, info = folder / "trace.csv", folder / "floor.json"
-    cached = json.loads(info.read_text()) if info.is_file() and trace.is_file() else {}
-    if cached.get("version") != GENERATOR_VERSION or cached.get("duration_s") != duration_s:
+    truth_plain = _machine_file(folder / "truth_declared_controller.toml", text, c.truth,
+                                "bench truth")
+    start = _machine_file(folder / "start.toml", text, c.start, "bench start")
+    trace, info, cached = _cached(folder, GENERATOR_VERSION, duration_s)
+    if not cached:
         t0 = time.monotonic()
         traj = bench_moves(c.travel, c.speed, 0.3 * c.travel, duration_s)
         rec, again = (simulate(truth, traj, record_every=RECORD_EVERY, preroll_s=PREROLL_S,
@@ -120,17 +135,13 @@ def prepare_second(c: second.Case, folder: Path, log=None,
     repeat."""
     folder.mkdir(parents=True, exist_ok=True)
     text = c.axis.read_text()
-    truth = folder / "truth.toml"
-    truth.write_text(patch_config(text, c.truth, "bench truth") if c.truth else text)
+    truth = _machine_file(folder / "truth.toml", text, c.truth, "bench truth")
     # what the truth/floor column replays: the truth where the trace's encoders count from
-    truth_trace = folder / "truth_trace_frame.toml"
-    framed = second.truth_in_trace_frame(c)
-    truth_trace.write_text(patch_config(text, framed, "bench truth") if framed else text)
-    start = folder / "start.toml"
-    start.write_text(patch_config(text, c.start, "bench start") if c.start else text)
-    trace, info = folder / "trace.csv", folder / "floor.json"
-    cached = json.loads(info.read_text()) if info.is_file() and trace.is_file() else {}
-    if cached.get("version") != SECOND_VERSION or cached.get("duration_s") != duration_s:
+    truth_trace = _machine_file(folder / "truth_trace_frame.toml", text,
+                                second.truth_in_trace_frame(c), "bench truth")
+    start = _machine_file(folder / "start.toml", text, c.start, "bench start")
+    trace, info, cached = _cached(folder, SECOND_VERSION, duration_s)
+    if not cached:
         t0 = time.monotonic()
         rec, repeat = second.generate(c, load_machine(truth), duration_s)
         write_second(rec, trace, f"hil bench identify, second generator ({c.name})")
