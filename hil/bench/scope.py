@@ -40,7 +40,7 @@ from pathlib import Path
 import numpy as np
 
 from hil.cia402 import State
-from hil.runtime.demo import DemoError, wait_ready
+from hil.runtime.demo import DemoError, process_cpu_s, wait_ready
 
 ROOT = Path(__file__).resolve().parents[2]
 CONFIG = ROOT / "configs" / "arrow500_x.toml"
@@ -57,15 +57,6 @@ START_S = 120.0
 
 def _python(*args) -> list[str]:
     return [sys.executable, "-m", *map(str, args)]
-
-
-def _cpu_s(pid: int) -> float:
-    """User and system CPU time of process ``pid`` so far, s (0 once it has gone)."""
-    try:
-        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-    except OSError:
-        return 0.0
-    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
 def _percentiles(lateness_ns: np.ndarray) -> dict:
@@ -153,7 +144,7 @@ class _Page:
 
     def close(self) -> float:
         """Stop both; the scope's CPU time, s."""
-        cpu = _cpu_s(self.proc.pid)
+        cpu = process_cpu_s(self.proc.pid)
         self.driver.quit()
         self.proc.send_signal(signal.SIGTERM)
         self.proc.wait(timeout=60)
