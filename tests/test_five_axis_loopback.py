@@ -92,6 +92,12 @@ def test_five_axes_at_8khz_match_the_machine_lockstep(lockstep, tmp_path):
         print(f"{name}: {keep.sum()} of {n} rows clear; max |FE diff| {worst:.6f} {unit} "
               f"(allowed {allowed:.6f}); lock-step max |FE| {np.abs(fe_ref).max():.6f}")
         assert worst <= allowed, f"{name}: row {np.flatnonzero(keep & (diff > allowed))[0]}"
+        # where friction holds an axis at rest depends on the last moves' timing: the end
+        # is compared only where the rows before it are clear of timing faults
+        if not clear[name][fe.size - 1]:
+            print(f"{name}: final position not compared (a timing fault within the settling "
+                  f"window before the end)")
+            continue
         final, final_ref = t.column(f"pos_{unit}")[-1], t_ref.column(f"pos_{unit}")[-1]
         assert abs(final - final_ref) <= (FINAL_COUNTS * count if unit == "mm" else FINAL_DEG) \
             + 1e-12, name
