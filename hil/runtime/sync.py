@@ -223,12 +223,23 @@ def in_step(cols: dict, period_s: float, delay_ticks: int = 0,
     answers the setpoint sent ``delay_ticks`` ticks before the last one (lag
     ``delay_ticks``; 0: the tick before, lock-step timing) and, with ``drive_clock``,
     comes from the drive cycle one period after the one read the tick before (its time
-    stamp advanced by one period).  Without the drive's clock on the wire (``can://``)
-    the lag alone says it: a tick without new feedback has a larger one."""
+    stamp advanced by one period) and from the cycle the run's ticks usually read: the
+    drive's time stamp less the tick's time (to a thousandth of a period) is one the
+    run's ticks had for :data:`SETTLE_WINDOW_S` in all (or as often as the commonest, in
+    a shorter run).  So ticks that went on reading a cycle ahead after a feedback came a
+    cycle early, each advancing by one period, are out of step until a repeat takes them
+    back (seen: three ticks, the middle one with lag 0); a lasting change of offset (the
+    drive skipped ticks after a stall) counts out only where it happens.  Without the
+    drive's clock on the wire (``can://``) the lag alone says it: a tick without new
+    feedback has a larger one."""
     ok = cols["lag_ticks"] == delay_ticks
-    if drive_clock:
-        advance = np.diff(cols["fb_time_s"], prepend=cols["fb_time_s"][:1] - period_s)
+    if drive_clock and ok.size:
+        fb_time = cols["fb_time_s"]
+        advance = np.diff(fb_time, prepend=fb_time[:1] - period_s)
         ok &= np.abs(advance - period_s) < 1e-3 * period_s
+        offset = np.round((fb_time - cols["tick"] * period_s) / period_s * 1e3)
+        _, which, count = np.unique(offset, return_inverse=True, return_counts=True)
+        ok &= count[which] >= min(round(SETTLE_WINDOW_S / period_s), count.max())
     return ok
 
 
