@@ -21,7 +21,7 @@ from hil.runtime.run_status import RunStatus
 from hil.runtime.stream_file import END_OF_STREAM, FORMAT, ArrowStream, schema_of
 from hil.scope.envelope import Envelope
 from hil.scope.trigger import Trigger
-from hil.scope.view import KEEP_S, STOPPED_AFTER_S, ScopeView
+from hil.scope.view import KEEP_S, STOPPED_AFTER_S, KeptRows, ScopeView
 from tests.runtime_helpers import ENV, EXIT_S, python_module
 
 PERIOD_NS = 1_000_000
@@ -180,6 +180,32 @@ def test_the_panel_counts_following_error_statusword_and_setpoints_never_applied
     # ticks 49, 99, ..., 999 had none; the numbers skipped after each but the last
     assert panel["link"]["ticks_without"] == 20 and not panel["link"]["silent"]
     assert panel["link"]["skipped_setpoints"] == 19
+
+
+def test_kept_rows_hold_what_concatenating_and_cutting_holds():
+    """KeptRows appends in place and drops the rows that age out by an index; after every
+    batch it holds exactly what joining the batches and cutting before the keep limit
+    gives (the plain way it replaced), through growth, moves to the front and batches
+    longer than the kept span."""
+    rng = np.random.default_rng(7)
+    kept = KeptRows({"tick": np.empty(0, np.int64), "x": np.empty(0)})
+    plain = {"tick": np.empty(0, np.int64), "x": np.empty(0)}
+    tick, moves = 0, 0
+    for _ in range(400):
+        n = int(rng.integers(1, 300))
+        rows = {"tick": np.arange(tick, tick + n), "x": rng.normal(size=n)}
+        tick += n
+        keep_from = tick - int(rng.integers(50, 500))
+        before = kept._data["tick"]
+        kept.extend(rows, keep_from)
+        moves += kept._data["tick"] is before and kept._lo == 0
+        plain = {k: np.concatenate([plain[k], rows[k]]) for k in plain}
+        start = np.searchsorted(plain["tick"], keep_from)
+        plain = {k: v[start:] for k, v in plain.items()}
+        for k in plain:
+            assert np.array_equal(kept[k], plain[k]) and kept[k].dtype == plain[k].dtype
+    assert moves > 0  # the kept rows did move to the front in place
+    assert kept._data["tick"].size <= 2 * (500 + 300)
 
 
 def test_the_view_keeps_a_bounded_buffer_and_draws_the_same_curve_from_it_or_the_file(
