@@ -98,3 +98,27 @@ def test_linear_move_cruises_at_the_velocity_limit():
     assert res.sim["v_cmd"].max() <= MV.PAPER_PEAK_VELOCITY * (1.0 + 1e-12)
     cruise = (res.t_s >= 0.15) & (res.t_s <= 0.35)
     assert np.median(res.sim["v_act"][cruise]) == pytest.approx(MV.PAPER_PEAK_VELOCITY, rel=0.01)
+
+
+def test_the_speed_loop_figure_is_hil_measures_bode_with_the_seeds_marks(tmp_path):
+    """The seed figure draws hil measure's Bode (magnitude, phase, coherence) and
+    annotates only the peaks it compares (below MODE_BAND_HZ), not the coherent noise
+    ripple of the roll-off: a synthetic response with two modes in parallel (150 and
+    440 Hz, peaks at 148 and 438 Hz) and a ripple at 2-4 kHz, all with coherence 1."""
+    f = np.arange(2.0, 4000.0, 2.0)
+    s = 2j * np.pi * f
+
+    def mode(hz, zeta):
+        w = 2 * np.pi * hz
+        return w * w / (s * s + 2 * zeta * w * s + w * w)
+
+    h = 1 / (1 + s / (2 * np.pi * 70)) * (0.5 * mode(150.0, 0.05) + 0.5 * mode(440.0, 0.05))
+    h *= 1 + 0.5 * (f > 2000) * np.sin(f / 7.0)
+    fr = L0.FrequencyResponse.from_h(f, h, np.ones(f.size))
+    assert any(p.freq_hz > L0.MODE_BAND_HZ for p in peaks(fr))
+    L0._plot_speed_bode(fr, fr, np.array([133.0, 415.0]), tmp_path)
+    assert (tmp_path / "seed000_speed_loop_bode.png").stat().st_size > 0
+    fig = L0.bode_figure(fr, marked_peaks=L0._band_peaks(fr))
+    assert [a.get_ylabel().split()[0] for a in fig.axes] == ["magnitude", "phase", "coherence"]
+    marked = [t.get_text().split()[0] for t in fig.axes[0].texts]
+    assert marked == ["148", "438"]

@@ -221,13 +221,14 @@ def read_csv(path: str | Path) -> FrequencyResponse:
 
 def bode_figure(fr: FrequencyResponse, title: str = "",
                 reference: FrequencyResponse | None = None,
-                marked_peaks: tuple[Peak, ...] | None = None):
+                marked_peaks: tuple[Peak, ...] | None = None,
+                reference_label: str = "reference"):
     """Bode diagram with its coherence, over log frequency: magnitude (dB) with the -3 dB
     level and :func:`bandwidth_hz` marked and the resonance peaks annotated; phase (deg,
     unwrapped from the lowest frequency); coherence γ² with :data:`MIN_COHERENCE`.  Bins
     below it are drawn grey in magnitude and phase.  ``marked_peaks``: the peaks to
     annotate (None: :func:`peaks` of ``fr``); ``reference``: a response drawn dashed (for
-    example the analytic one).  Returns the matplotlib Figure."""
+    example the analytic one), named ``reference_label`` in the legend.  Returns the matplotlib Figure."""
     from matplotlib.figure import Figure
     from matplotlib.lines import Line2D
     from matplotlib.ticker import MultipleLocator
@@ -245,7 +246,7 @@ def bode_figure(fr: FrequencyResponse, title: str = "",
                     label=f"measured, γ² ≥ {MIN_COHERENCE:g}")
     if reference is not None:
         mag_ax.semilogx(reference.freq_hz, reference.magnitude_db, "k--", linewidth=0.9,
-                        label="reference")
+                        label=reference_label)
         phase_ax.semilogx(reference.freq_hz, reference.phase_deg, "k--", linewidth=0.9)
     _mark_bandwidth(fr, (mag_ax, phase_ax, coh_ax))
     marked = peaks(fr) if marked_peaks is None else marked_peaks
