@@ -37,25 +37,31 @@ PROGRAM = ("N10 G90 G71\nN20 G1 X20 F3000\nN30 G4 F0.05\nN40 G1 X2 F3000\nN50 G4
            "N60 G1 X15 F1200\nN70 G1 X5 F600\nN80 G1 X12 F2000\nN90 M30\n")
 
 
+#: mm, contour monitoring (MD36400, 1 mm by default): a loaded machine's late ticks made
+#: the controller's deviation 1.1 mm and stopped the run with alarm 25050; what the test
+#: needs is a run in CST, whatever its timing
+CONTOUR_TOL_MM = 20.0
+
+
 def _variant(path, **keys) -> object:
-    """BASE with each ``key = value`` line replaced, written to ``path``."""
-    text = BASE.read_text()
-    for key, value in keys.items():
+    """BASE at 2 kHz with the wider contour monitoring (``[controller]`` is its last
+    section) and each ``key = value`` line of ``keys`` replaced, written to ``path``."""
+    text = BASE.read_text() + f"contour_tol_mm = {CONTOUR_TOL_MM}\n"
+    for key, value in {"pwm_frequency_hz": "2000.0", **keys}.items():
         text, n = re.subn(rf"^{key}\s*=.*$", f"{key} = {value}", text, flags=re.MULTILINE)
         assert n == 1, key
     path.write_text(text)
     return path
 
 
-@pytest.fixture(scope="module")
-def cst_run(tmp_path_factory):
-    """(run folder, the emulator's machine file, the same without Coulomb friction)."""
-    folder = tmp_path_factory.mktemp("cst_run")
-    truth = _variant(folder / "truth.toml", pwm_frequency_hz="2000.0")
-    no_coulomb = _variant(folder / "no_coulomb.toml", pwm_frequency_hz="2000.0",
-                          coulomb_n="0.0")
-    program = folder / "moves.nc"
-    program.write_text(PROGRAM)
+#: runs tried: on a loaded machine the controller may read feedback so late that the axis
+#: overspeeds (8400h) or leaves the contour, and the program ends early
+ATTEMPTS = 3
+
+
+def _run(folder, truth, program):
+    """``hil run --record`` and ``hil controller`` on ``truth`` over UDP: the run folder,
+    or None (and the controller's log) when the controller did not complete the program."""
     run = folder / "run"
     with Children(folder) as children:
         emulator, served = children.emulator(truth, "udp://127.0.0.1:0", run, "--no-rt",
@@ -63,9 +69,27 @@ def cst_run(tmp_path_factory):
         ctl = children.start("controller", python_module(
             "hil.runtime.controller_proc", truth, "--adapter", served, "--program", program,
             "--out", folder / "controller", "--start", START_MM, "--no-rt"))
-        assert ctl.wait(timeout=120) == 0, children.log("controller")
+        done = ctl.wait(timeout=120) == 0
         assert terminate(emulator) == 0, children.log("emulator")
-    return run, truth, no_coulomb
+        return (run if done else None), children.log("controller")
+
+
+@pytest.fixture(scope="module")
+def cst_run(tmp_path_factory):
+    """(run folder, the emulator's machine file, the same without Coulomb friction)."""
+    folder = tmp_path_factory.mktemp("cst_run")
+    truth = _variant(folder / "truth.toml")
+    no_coulomb = _variant(folder / "no_coulomb.toml", coulomb_n="0.0")
+    program = folder / "moves.nc"
+    program.write_text(PROGRAM)
+    logs = []
+    for attempt in range(ATTEMPTS):
+        (folder / str(attempt)).mkdir()
+        run, log = _run(folder / str(attempt), truth, program)
+        if run is not None:
+            return run, truth, no_coulomb
+        logs.append(log)
+    pytest.fail("no run completed its program:\n" + "\n".join(logs))
 
 
 def test_the_loader_takes_the_cst_stretch_and_its_applied_current(cst_run):
