@@ -272,6 +272,13 @@ def _no_load_speed(cfg: MachineConfig) -> float:
     return 1.5 * voltage_limit(cfg) / motor_constant(cfg)  # omega = U / (p psi), K_t = 1.5 p psi
 
 
+def current_limit_a(cfg: MachineConfig) -> float:
+    """6072h as the q-current limit, A: ``[drive] max_current_a``, absent [motor]
+    current_max_a (the bound :func:`load_drive` checks it against)."""
+    sec = build_section(DriveSection, cfg.section("drive"), cfg.path, "drive")
+    return sec.max_current_a or cfg.motor.current_max_a
+
+
 def load_drive(cfg: MachineConfig, controller: ControllerSection | None) -> DriveParameters:
     """The drive's parameters from ``cfg``'s ``[drive]`` section (absent keys derived);
     ConfigError names the file, the key and the unit."""
@@ -309,7 +316,7 @@ def load_drive(cfg: MachineConfig, controller: ControllerSection | None) -> Driv
     else:
         max_speed = speed * rpm if speed > 0.0 else math.inf
     i_peak = cfg.motor.current_max_a
-    max_current = given("max_current_a") or i_peak
+    max_current = current_limit_a(cfg)
     if max_current > i_peak:
         raise ConfigError(f"{cfg.path}: [drive] max_current_a = {max_current:g} A must be <= "
                           f"[motor] current_max_a = {i_peak:g} A (the power stage's peak)")

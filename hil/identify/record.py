@@ -8,9 +8,15 @@ Three sources:
 * the recording of ``hil run`` (its run folder, or its ``recording.arrows``), read with
   :mod:`hil.runtime.record_reader` and mapped onto the same columns by
   :mod:`hil.runtime.record_trace`: the longest stretch of consecutive ticks in which the
-  drive ran in CSP in OPERATION ENABLED (the drive knows the position setpoint only in
-  CSP), one axis (a run of several axes: export the axis with ``hil export RUN --to
-  csv``);
+  drive ran in OPERATION ENABLED in one mode, CSP or CST, one axis (a run of several axes:
+  export the axis with ``hil export RUN --to csv``).  In CSP the record holds the
+  position setpoints the drive applied, which the replay feeds through the machine file's
+  position and speed loops; in CST (``hil controller`` on a current-input plant: the
+  controller closes those loops itself and sends a q-current setpoint each tick) the
+  position setpoint stays in the controller, and the record holds the q-current setpoint
+  the drive applied each tick, which the replay feeds straight to the plant
+  (``Record.applied``).  CSV (the drive's speed loop on 60FFh) and voltage mode (the
+  controller's current loop) are refused;
 * the EMPS benchmark's ``.mat`` files (``/work/shared/data/EMPS/SOURCE.md``): ``qg`` is the
   position setpoint, ``qm`` the motor encoder expressed at the load, and the force on the
   load is ``gtau * vir``; the dSPACE PD loop that produced them is kept as
@@ -27,7 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
-from hil.cia402 import State
+from hil.cia402 import State, mode_name
 from hil.runtime.record_reader import Recording, RecordingError
 from hil.runtime.record_trace import axis_trace
 from hil.runtime.run_folder import RECORDING
@@ -40,13 +46,15 @@ from hil.trace_file import (
     read_trace,
     si_factor,
 )
-from io_adapters.messages import MODE_CSP
+from io_adapters.messages import MODE_CSP, MODE_CST
 from plant.files import read_bytes
 
 #: variables an EMPS ``.mat`` file must hold (``pulses_N`` is optional)
 EMPS_VARIABLES = ("t", "qm", "qg", "vir", "gtau", "kp", "kv")
 #: the EMPS loop's saturation of the controller output nu, V (SOURCE.md)
 EMPS_V_MAX = 10.0
+#: what a record's replay feeds the drive (``Record.applied``)
+APPLIED = ("position", "current")
 
 
 @dataclass(frozen=True)
@@ -75,7 +83,8 @@ class Record:
     Attributes:
         source: the file it was read from.
         t: s, k * dt from 0.
-        pos_set: position setpoint, m (rad on rotary tables).
+        pos_set: position setpoint, m (rad on rotary tables); None on a CST run's record
+            (the controller kept it).
         pos: measured table position (linear scale, else the motor encoder in table
             units), m or rad.
         effort: measured q-current in A (``effort_kind == "iq"``) or force in N
@@ -86,13 +95,17 @@ class Record:
             included), m/s or rad/s, when recorded.
         vel: measured table velocity, m/s or rad/s, when recorded.
         iq_set: q-current setpoint, A, when recorded.
+        applied: what the replay feeds the drive (:mod:`hil.identify.replay`):
+            "position", the position setpoints through the machine file's loops (a servo
+            trace, an EMPS record, a CSP run), or "current", ``iq_set`` as the q-current
+            setpoint the drive applied each sample (a CST run).
         emps: for EMPS records, the loop that produced them.
         meta: text metadata of the file (trace metadata, or the EMPS variable names), and
             ``position_unit``: "m", or "rad" when the trace had ``_deg`` columns.
     """
     source: str
     t: np.ndarray
-    pos_set: np.ndarray
+    pos_set: np.ndarray | None
     pos: np.ndarray
     effort: np.ndarray
     effort_kind: str
@@ -100,6 +113,7 @@ class Record:
     vel_set: np.ndarray | None = None
     vel: np.ndarray | None = None
     iq_set: np.ndarray | None = None
+    applied: str = "position"
     emps: EmpsLoop | None = None
     meta: dict = field(default_factory=dict)
 
@@ -107,6 +121,13 @@ class Record:
         if self.effort_kind not in ("iq", "force"):
             raise ValueError(f"{self.source}: effort_kind {self.effort_kind!r} is not "
                              "'iq' or 'force'")
+        if self.applied not in APPLIED:
+            raise ValueError(f"{self.source}: applied {self.applied!r} is not one of "
+                             f"{', '.join(APPLIED)}")
+        if (self.pos_set if self.applied == "position" else self.iq_set) is None:
+            raise ValueError(f"{self.source}: a record whose replay applies its "
+                             f"{self.applied} setpoints needs "
+                             f"{'pos_set' if self.applied == 'position' else 'iq_set'}")
         n = self.t.shape
         if len(n) != 1 or n[0] < 2:
             raise ValueError(f"{self.source}: t has shape {n}, needs (n,) with n >= 2")
@@ -149,21 +170,38 @@ class Record:
                                    **cut)
 
 
+#: what ``hil identify RUN`` replays of a run in each mode it takes
+_RUN_REPLAYS = {"CSP": "the position targets the drive held, through the machine file's loops",
+                "CST": "the q-current setpoint the drive applied in each tick, straight into "
+                       "the plant"}
+
+
 def timing_warning(rec: Record) -> str | None:
     """Why ``rec``'s run may show its timing rather than the machine (its header's
-    ``timing_*`` lines, :meth:`hil.runtime.timing_quality.TimingQuality.header`), or None
-    when its timing was within the limits or is not stated."""
-    if rec.meta.get("timing_within_limits") != "no":
+    ``timing_*`` lines, :meth:`hil.runtime.timing_quality.TimingQuality.header`), and what
+    to identify instead for the run's mode of operation; None when its timing was within
+    the limits or is not stated, or when the record is a CST run's (the setpoint each tick
+    applied is the replay's input, so the timing is in it and not in the model error)."""
+    if rec.meta.get("timing_within_limits") != "no" or rec.applied == "current":
         return None
     counts = ", ".join(f"{k.removeprefix('timing_').replace('_', ' ')} {v}"
                        for k, v in rec.meta.items()
                        if k.startswith("timing_") and k not in ("timing_within_limits",
                                                                 "timing_side"))
-    return (f"{rec.source}: its run's timing was beyond the limits ({rec.meta.get('timing_side')}"
-            f": {counts}); the replay takes every setpoint as on time, so late and missed "
-            "ones show as model error.  A hil run folder (hil identify RUN) replays the "
-            "setpoints the drive applied, when they were, in CSP; or identify a run within "
-            "the limits")
+    why = (f"{rec.source}: its run's timing was beyond the limits "
+           f"({rec.meta.get('timing_side')}: {counts})")
+    if rec.meta.get("mode") == "CSP":  # a CSP run's folder (_load_run)
+        return (f"{why}; the replay takes {_RUN_REPLAYS['CSP']} at each position cycle, so a "
+                "target that came late or not at all between two cycles shows as model error: "
+                "identify a run within the limits")
+    modes = [m.strip() for m in rec.meta["modes"].split(",")] if "modes" in rec.meta else None
+    replayed = [m for m in (modes or _RUN_REPLAYS) if m in _RUN_REPLAYS]
+    advice = ("; ".join(f"in {m}, {_RUN_REPLAYS[m]}" for m in replayed)
+              if replayed else f"none of {', '.join(modes)}")
+    return (f"{why}; the replay takes every setpoint as on time, so late and missed ones show "
+            f"as model error.  The run's folder (hil identify RUN, of hil run --record DIR) "
+            f"replays what the drive applied: {advice} (CSV and voltage-mode runs it does not "
+            "replay); or identify a run within the limits")
 
 
 def load_record(path: str | Path) -> Record:
@@ -187,12 +225,14 @@ def load_record(path: str | Path) -> Record:
                            "folder")
 
 
-def _longest_span(ok: np.ndarray, tick: np.ndarray) -> slice:
-    """The longest run of rows where ``ok`` holds on consecutive ticks (empty: none)."""
+def _longest_span(ok: np.ndarray, tick: np.ndarray, mode: np.ndarray) -> slice:
+    """The longest run of rows where ``ok`` holds on consecutive ticks in one ``mode``
+    (empty: none)."""
     rows = np.flatnonzero(ok)
     if rows.size == 0:
         return slice(0, 0)
-    new = np.r_[True, (np.diff(rows) != 1) | (np.diff(tick[rows]) != 1)]
+    new = np.r_[True, (np.diff(rows) != 1) | (np.diff(tick[rows]) != 1)
+                | (np.diff(mode[rows]) != 0)]
     starts = np.flatnonzero(new)
     lengths = np.diff(np.r_[starts, rows.size])
     first = rows[starts[np.argmax(lengths)]]
@@ -200,7 +240,7 @@ def _longest_span(ok: np.ndarray, tick: np.ndarray) -> slice:
 
 
 def _load_run(folder: Path) -> Record:
-    """The CSP stretch of a ``hil run`` recording (module docstring) in SI."""
+    """The CSP or CST stretch of a ``hil run`` recording (module docstring) in SI."""
     try:
         rec = Recording(folder)
         trace = axis_trace(rec)
@@ -208,25 +248,32 @@ def _load_run(folder: Path) -> Record:
         meta = trace.metadata(rec)
     except RecordingError as e:
         raise TraceFormatError(str(e)) from e
-    ok = ((rows[trace.prefix + "sp_mode"] == MODE_CSP)
-          & (rows[trace.prefix + "drive_state"] == State.OPERATION_ENABLED))
-    span = _longest_span(ok, rows["tick"])
+    mode = rows[trace.prefix + "sp_mode"]
+    enabled = rows[trace.prefix + "drive_state"] == State.OPERATION_ENABLED
+    span = _longest_span(enabled & np.isin(mode, (MODE_CSP, MODE_CST)), rows["tick"], mode)
     if span.stop - span.start < 2:
-        raise TraceFormatError(f"{rec.path}: no two consecutive ticks with the drive in CSP "
-                               "(6060h = 8) and OPERATION ENABLED: the drive knows the "
-                               "position setpoint only in CSP; identify the controller's "
-                               "trace.csv instead")
+        seen = ", ".join(mode_name(m) for m in np.unique(mode[enabled])) or "none"
+        raise TraceFormatError(
+            f"{rec.path}: no two consecutive ticks with the drive in OPERATION ENABLED in CSP "
+            f"(6060h = 8) or CST (10) (modes while enabled: {seen}): the replay feeds the "
+            "drive's position setpoints (CSP) or q-current setpoints (CST); it does not "
+            "replay the drive's speed loop on a CSV target nor the controller's current "
+            "loop behind voltage setpoints; identify the controller's trace.csv instead")
     columns = trace.convert({k: v[span] for k, v in rows.items()})
     u = trace.unit
+    cst = mode[span.start] == MODE_CST
 
     def si(name: str) -> np.ndarray:
         return columns[name] * si_factor(name)[0]
 
     return Record(source=str(rec.path), t=np.arange(span.stop - span.start) * trace.period_s,
-                  pos_set=si(f"pos_set_{u}"), pos=si(f"pos_{u}"), effort=columns["iq_a"],
-                  effort_kind="iq", motor_pos=si(f"motor_pos_{u}"),
-                  vel_set=si(f"vel_set_{u}_min"), vel=si(f"vel_{u}_min"),
+                  pos_set=None if cst else si(f"pos_set_{u}"), pos=si(f"pos_{u}"),
+                  effort=columns["iq_a"], effort_kind="iq", motor_pos=si(f"motor_pos_{u}"),
+                  vel_set=None if cst else si(f"vel_set_{u}_min"), vel=si(f"vel_{u}_min"),
+                  iq_set=columns["iq_set_a"] if cst else None,
+                  applied="current" if cst else "position",
                   meta={**meta, "position_unit": "rad" if trace.rotary else "m",
+                        "mode": mode_name(int(mode[span.start])),
                         "ticks": f"{rows['tick'][span.start]}..{rows['tick'][span.stop - 1]}"})
 
 

@@ -17,7 +17,16 @@ to the measurement) and keeps every quantisation (encoder, scale, current LSB).
   pulse(k) at the sample where pulses_N switches.  The plant starts at rest at the record's
   first measured position (the reference model starts at 0; the EMPS records start within
   8 µm of it).  ``Replay.effort`` is gtau u(k), the measured one gtau vir(k).
-* **NC records** (servo traces): the machine file's ``[controller]`` with the record's
+* **CST runs** (``rec.applied == "current"``: a ``hil run`` recording of a controller
+  that closed the position and speed loops itself): the q-current setpoint the drive
+  applied in each tick, held inside the drive's 6072h limit (``[drive] max_current_a``,
+  as :meth:`hil.drive.EmulatedDrive` holds it), is the plant's input over that tick's PWM
+  periods; the plant's current loop and mechanics answer it, and the sensors are read after
+  the tick, where the recording reads them.  No loop of the machine file's ``[controller]``
+  runs (they ran in the controller, and the record holds their output), so the replay is
+  open loop: the record's timing, late or missed setpoints included, is in the setpoints
+  the drive applied.  The plant starts at rest at the record's first measured position.
+* **NC records** (servo traces, CSP runs): the machine file's ``[controller]`` with the record's
   conventions (:mod:`hil.identify.conventions`: the header's keys override the machine
   file's; :class:`~hil.identify.trace_controller.TraceController`) and the emulated drive in
   lock step (:class:`hil.sim.LockStep`: the NC's and the drive's compiled steady states
@@ -50,6 +59,7 @@ from numba import njit
 from hil.controller.config import ControllerSection, axis_limits, load_controller
 from hil.controller.interpolator import ProfileSamples
 from hil.controller.loops import PositionLoop
+from hil.drive.config import current_limit_a
 from hil.identify.conventions import (
     ConventionError,
     Conventions,
@@ -97,7 +107,8 @@ def replay(cfg: MachineConfig, rec: Record, progress=None, compiled: bool = True
     """Run ``rec``'s setpoints through ``cfg``'s closed loop (see the module docstring).
 
     Args:
-        cfg: the machine file (an EMPS record needs no ``[controller]``, an NC record does).
+        cfg: the machine file (an EMPS record or a CST run needs no ``[controller]``, an NC
+            record does).
         rec: the measured record.
         progress: optional callable(fraction done), called about 20 times.
         compiled: run an NC record's lock step on the NC's and the drive's compiled
@@ -114,6 +125,8 @@ def replay(cfg: MachineConfig, rec: Record, progress=None, compiled: bool = True
                                                                  current_noise_a=0.0))
     if rec.emps is not None:
         return _replay_emps(quiet, rec, progress)
+    if rec.applied == "current":
+        return _replay_current(quiet, rec, progress)
     return _replay_nc(quiet, rec, progress, compiled)
 
 
@@ -196,6 +209,43 @@ def _emps_loop(p, s, inp, out, n_sub, dt, m_per_count, qr, pulses, gain, kv, v_m
         status = axis_step_nb(p, s, inp, out, n_sub)
         if status != L.STATUS_OK:
             return status
+    return L.STATUS_OK
+
+
+def _replay_current(cfg: MachineConfig, rec: Record, progress) -> Replay:
+    """A CST run's applied q-current setpoints into the plant (module docstring)."""
+    plant = Plant(cfg, table_pos=float(rec.pos[0]))
+    n_per = _periods(plant, rec)
+    p = plant.params
+    per_count = plant.built.ratio / p[L.P_ENC_COUNTS_PER_RAD]
+    n = rec.n
+    pos, motor_pos = np.full(n, math.nan), np.full(n, math.nan)
+    vel, effort = np.full(n, math.nan), np.full(n, math.nan)
+    status = _current_fed(p, plant.state, plant.inp, plant.out, n_per * plant.sub_per_pwm,
+                          np.ascontiguousarray(rec.iq_set, dtype=np.float64),
+                          current_limit_a(cfg), per_count, pos, motor_pos, vel, effort)
+    if progress is not None:
+        progress(1.0)
+    return Replay(pos=pos, effort=effort, motor_pos=motor_pos, vel=vel, status=int(status))
+
+
+@njit(cache=True, error_model="numpy")
+def _current_fed(p, s, inp, out, n_sub, iq_set, limit, per_count, pos, motor_pos, vel,
+                 effort):
+    """The plant on ``iq_set`` (A, one per sample, within +-``limit``), compiled as
+    :func:`_emps_loop` is.  Fills pos (the scale, else the motor encoder; m or rad),
+    motor_pos, vel and effort (the measured q current, A) after each sample, shape (n,);
+    returns the plant's status (samples after a fault stay NaN)."""
+    scale = p[L.P_SCALE_RES]
+    for k in range(iq_set.size):
+        inp[L.I_IQ_REF] = min(limit, max(-limit, iq_set[k]))
+        status = axis_step_nb(p, s, inp, out, n_sub)
+        if status != L.STATUS_OK:
+            return status
+        motor_pos[k] = out[L.O_ENCODER] * per_count
+        pos[k] = out[L.O_SCALE] * scale if scale > 0.0 else motor_pos[k]
+        vel[k] = out[L.O_TABLE_VEL]
+        effort[k] = out[L.O_IQ_MEAS]
     return L.STATUS_OK
 
 
