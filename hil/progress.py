@@ -16,7 +16,10 @@ started; :meth:`Progress.close` ends it with the phase's duration.
 
 A phase that blocks in one call (numba compiling, a child process running) passes
 ``ticking=True``: a thread then updates the line with the time alone until the phase
-ends.
+ends.  A phase whose process must not wake a thread meanwhile (a measured real-time loop:
+the thread would take the GIL from it) and whose length is known calls
+:meth:`Progress.expect` instead: the line, with that length in its label, shows at once
+and ends with the phase.
 """
 
 import sys
@@ -33,9 +36,14 @@ TERMINAL_EVERY_S = 0.1
 STEP_FRACTION = 0.1
 #: when piped and the work is not counted, a line this often, s
 PLAIN_EVERY_S = 5.0
-#: the phase that loads the compiled kernels (a cold cache compiles them; measured 26 s
-#: for hil sim on a 2-vCPU VM, 2026-11-29)
-COMPILING = "loading the compiled kernels (a cold cache compiles them: up to 40 s)"
+#: how long one process takes to compile its kernels into a cold numba cache and warm them
+#: up, s: hil demo's emulator took 54.5 s on the 2-vCPU VM, hil sim 26 s
+#: (docs/benchmarks.md, 2026-11-29); every message about that wait quotes this figure
+COLD_START_S = 55.0
+#: the estimate as the messages give it
+COLD_START = f"up to {COLD_START_S:.0f} s on a cold cache"
+#: the phase that loads the compiled kernels
+COMPILING = f"loading the compiled kernels ({COLD_START})"
 
 
 class Progress:
@@ -95,13 +103,21 @@ class Progress:
         with self._lock:
             self._update(done)
 
-    def _update(self, done: int | None) -> None:
-        now = self.clock()
-        elapsed = now - self.t0
-        if elapsed < QUIET_S:
+    def expect(self, seconds: float) -> None:
+        """The phase will take ``seconds`` and cannot update its line meanwhile: when that
+        is :data:`QUIET_S` or more, show the line now (:meth:`close` ends it)."""
+        if seconds >= QUIET_S:
+            with self._lock:
+                self._update(None, now=True)
+
+    def _update(self, done: int | None, now: bool = False) -> None:
+        """Show the line when it is due (``now``: at once)."""
+        t = self.clock()
+        elapsed = t - self.t0
+        if elapsed < QUIET_S and not now:
             return
         if self.terminal:
-            if now - self._last_t < TERMINAL_EVERY_S:
+            if t - self._last_t < TERMINAL_EVERY_S and not now:
                 return
             self.stream.write("\r" + self._text(done, elapsed) + "\033[K")
             self._open_line = True
@@ -111,11 +127,11 @@ class Progress:
                 if step <= self._last_step and self.shown:
                     return
                 self._last_step = step
-            elif now - self._last_t < PLAIN_EVERY_S:
+            elif t - self._last_t < PLAIN_EVERY_S and not now:
                 return
             self.stream.write(self._text(done, elapsed) + "\n")
         self.stream.flush()
-        self._last_t = now
+        self._last_t = t
         self.shown = True
 
     def close(self, note: str = "") -> None:

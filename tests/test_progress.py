@@ -2,7 +2,10 @@
 (one per tenth of the work) when piped.  Time is a clock the test sets, never the wall."""
 
 import io
+import json
 import time
+
+import pytest
 
 from hil.progress import QUIET_S, Progress
 
@@ -102,3 +105,106 @@ def test_hil_controller_says_it_waits_for_a_drive_that_does_not_answer():
     waiting = f"waiting for the drive at udp://127.0.0.1:{port} (up to 3 s)"
     assert f"{waiting}: 2 s" in done.stderr and f"{waiting}: done in 3.0 s" in done.stderr
     assert f"drive 127.0.0.1:{port}> within 3 s" in done.stderr.splitlines()[-1]
+
+
+def test_a_phase_of_known_length_shows_its_line_at_once_and_ends_it():
+    """expect(): a phase that cannot update its line (a measured loop) shows it at its
+    start when it will take QUIET_S or more, and nothing when shorter; close() ends it, in
+    place on a terminal."""
+    out, clock = io.StringIO(), Clock()
+    with Progress("the loop measured for 5 s", stream=out, clock=clock) as p:
+        p.expect(5.0)
+        clock.t += 5.0
+    assert out.getvalue().splitlines() == ["the loop measured for 5 s: 0 s",
+                                           "the loop measured for 5 s: done in 5.0 s"]
+    term = Terminal()
+    with Progress("loop", stream=term, clock=clock) as p:
+        p.expect(QUIET_S)
+        clock.t += 3.0
+    assert term.getvalue() == "\rloop: 0 s\033[K\rloop: done in 3.0 s\033[K\n"
+    short = io.StringIO()
+    with Progress("loop", stream=short, clock=clock) as p:
+        p.expect(QUIET_S - 0.5)
+        clock.t += QUIET_S - 0.5
+    assert short.getvalue() == ""
+
+
+def test_every_compile_estimate_is_the_measured_cold_start():
+    """The progress lines' compile estimate is one figure, at or above the cold start
+    docs/benchmarks.md measured, and the README and docs/benchmarks.md quote it."""
+    import re
+
+    from hil.progress import COLD_START, COLD_START_S, COMPILING
+    from tests.conftest import ROOT
+
+    benchmarks = (ROOT / "docs" / "benchmarks.md").read_text()
+    measured = re.search(r"compiling and\s+warming up ([\d.]+) s", benchmarks)
+    assert measured and float(measured.group(1)) <= COLD_START_S
+    quoted = f"up to {COLD_START_S:.0f} s"
+    assert quoted in COLD_START and COLD_START in COMPILING
+    assert quoted in benchmarks and quoted in (ROOT / "README.md").read_text()
+
+
+def _run(*argv, timeout: float = 300.0):
+    """``hil ARGV`` as a child process, stdout and stderr piped (plain progress lines)."""
+    import subprocess
+
+    from tests.conftest import ROOT
+    from tests.runtime_helpers import ENV, python_module
+
+    return subprocess.run(python_module("hil.cli", *argv), cwd=ROOT, env=ENV,
+                          capture_output=True, text=True, timeout=timeout, check=False)
+
+
+def test_hil_soak_shows_how_far_its_run_is_and_keeps_stdout_for_its_summary(tmp_path):
+    """A 3.6 s soak (--no-rt): stderr has the run's progress, its share of the 3.6 s in
+    steps of a tenth, and its end; stdout has the summary alone."""
+    done = _run("soak", "--minutes", "0.06", "--no-rt", "--rss-every", "0.5", "--out",
+                tmp_path, timeout=400)
+    assert done.returncode == 0, done.stderr
+    label = "hil soak: the master drives the emulator for 3.6 s"
+    # "LABEL:  60 % (2 s)": the shares shown, each once and rising
+    shares = [int(line.removeprefix(f"{label}:").split("%")[0])
+              for line in done.stderr.splitlines() if line.startswith(f"{label}:") and "%" in line]
+    assert shares and shares == sorted(set(shares)), done.stderr
+    assert f"{label}: done in" in done.stderr
+    assert label not in done.stdout
+    assert done.stdout.splitlines()[0] == "hil soak: 0.06 min at 4000 Hz, --no-rt"
+    assert done.stdout.splitlines()[-1] == f"files in {tmp_path}/"
+
+
+def test_hil_validate_shows_the_experiment_it_runs_and_keeps_the_json_clean(experiment_rows):
+    """seed003_trapezoid (about 15 s): stderr names it while it runs, with the compile's
+    estimate (the first experiment loads the kernels); stdout is the JSON of its rows, as
+    run_all gives them, and nothing else."""
+    from hil.progress import COMPILING
+
+    done = _run("validate", "--json", "--no-plots", "--only", "seed003_trapezoid")
+    assert done.returncode == 0, done.stderr
+    label = f"hil validate: seed003_trapezoid (1 of 1), {COMPILING}"
+    assert f"{label}: 2 s" in done.stderr and f"{label}: done in" in done.stderr
+    rows = [r.as_dict() for r in experiment_rows("seed003_trapezoid")]
+    assert done.stdout == json.dumps(rows, indent=1) + "\n"
+
+
+def test_hil_report_shows_cyclictest_running_and_keeps_stdout_for_the_report(tmp_path):
+    """hil report --cyclictest on a one-second run of hil run: stderr shows cyclictest's
+    3 s at the run's period while it runs; stdout is the report and its verdict alone."""
+    import shutil
+
+    from tests.runtime_helpers import ARROW
+
+    if shutil.which("cyclictest") is None:
+        pytest.skip("cyclictest is not installed (apt-get install rt-tests)")
+    run = tmp_path / "run"
+    made = _run("run", ARROW, "--adapter", "udp://127.0.0.1:0", "--record", run,
+                "--duration", "1", "--no-rt")
+    assert made.returncode == 0, made.stderr
+    done = _run("report", run, "--cyclictest", "--cyclictest-seconds", "3")
+    if "cyclictest failed" in done.stderr:
+        pytest.skip(f"cyclictest does not run here: {done.stderr.strip()}")
+    label = "hil report: cyclictest, 125 µs for 3 s"
+    assert f"{label}: 2 s" in done.stderr and f"{label}: done in" in done.stderr
+    assert "cyclictest" not in done.stderr.replace(label, "")
+    assert done.stdout.startswith("# Latency report: run\n"), done.stdout[:200]
+    assert label not in done.stdout and "## Verdict" in done.stdout

@@ -10,9 +10,12 @@ import math
 import os
 import shutil
 import signal
+import socket
 import subprocess
 import sys
 import tracemalloc
+from collections.abc import Iterator
+from contextlib import contextmanager
 
 import numpy as np
 import pytest
@@ -24,6 +27,8 @@ from hil.rt.cyclictest import CyclictestError, parse_histogram, run_cyclictest
 from hil.rt.loop import SKIPPED, OverrunPolicy, Percentiles, RealTimeLoop, Stall
 from hil.rt.scheduling import SchedulingRequest, last_cpu, realtime_scheduling
 from hil.runtime.common import shared_cpu
+from tests.conftest import CONFIGS, ROOT
+from tests.runtime_helpers import ENV, python_module
 
 P = 100_000  # simulated period, ns
 
@@ -341,11 +346,15 @@ HISTOGRAM = """\
 """
 
 
+#: the name the process of _FIFO_CHILD gives itself (/proc/PID/comm), so a warning about it
+#: can be told from one about another process on a shared machine
+FIFO_CHILD_NAME = "fifo-neighbour"
 #: a process that pins itself to a CPU under SCHED_FIFO (argv: the CPU, the priority), a
 #: stand-in for another hil run or LinuxCNC's servo thread
-_FIFO_CHILD = """
-import os, sys
-os.sched_setaffinity(0, {int(sys.argv[1])})
+_FIFO_CHILD = f"""
+import ctypes, os, sys
+ctypes.CDLL(None).prctl(15, b"{FIFO_CHILD_NAME}")  # PR_SET_NAME
+os.sched_setaffinity(0, {{int(sys.argv[1])}})
 try:
     os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(int(sys.argv[2])))
 except OSError as e:
@@ -356,30 +365,68 @@ sys.stdin.read()
 """
 
 
-def test_a_real_time_thread_of_another_process_on_the_loops_cpu_is_named():
-    """Another process pinned to the loop's CPU under SCHED_FIFO 10 is found there and on
-    no other CPU; the warning hil run and hil controller print names it and says that a
-    loop at 10 or below waits for it and one above preempts it; no warning without real
-    time or without a CPU (the loop is not pinned)."""
-    cpu = last_cpu()
-    child = subprocess.Popen([sys.executable, "-c", _FIFO_CHILD, str(cpu), "10"],
+@contextmanager
+def fifo_neighbour(cpu: int, priority: int) -> Iterator[subprocess.Popen]:
+    """A process of _FIFO_CHILD pinned to ``cpu`` at SCHED_FIFO ``priority`` for the block
+    (the test is skipped where SCHED_FIFO is refused)."""
+    child = subprocess.Popen([sys.executable, "-c", _FIFO_CHILD, str(cpu), str(priority)],
                              stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
     try:
         line = child.stdout.readline().strip()
         if line != "ready":
             pytest.skip(f"SCHED_FIFO is refused here: {line}")
-        found = [n for n in scheduling.realtime_neighbours(cpu) if n.pid == child.pid]
-        assert [(n.tid, n.policy, n.priority) for n in found] == [(child.pid, "SCHED_FIFO", 10)]
-        assert not any(n.pid == child.pid for c in os.sched_getaffinity(0) - {cpu}
-                       for n in scheduling.realtime_neighbours(c))
-        _, warning = shared_cpu(True, cpu, 10)
-        assert f"CPU {cpu} is already held" in warning and f"pid {child.pid}" in warning
-        assert "SCHED_FIFO 10 waits whenever 1 of them" in warning and "--cpu N" in warning
-        assert "SCHED_FIFO 11 preempts them" in shared_cpu(True, cpu, 11)[1]
-        assert shared_cpu(False, cpu, 10) == ([], None) == shared_cpu(True, None, 10)
+        yield child
     finally:
         child.stdin.close()
         child.wait(timeout=10)
+        child.stdout.close()
+
+
+def test_a_real_time_thread_of_another_process_on_the_loops_cpu_is_named():
+    """Another process pinned to the loop's CPU under SCHED_FIFO 10 is found there and on
+    no other CPU, and by a loop not pinned; the warning hil run and hil controller print
+    names it and says that a loop at 10 or below waits for it and one above preempts it,
+    pinned or not; no warning without real time."""
+    cpu = last_cpu()
+    with fifo_neighbour(cpu, 10) as child:
+        found = [n for n in scheduling.realtime_neighbours(cpu) if n.pid == child.pid]
+        assert [(n.tid, n.policy, n.priority, n.cpus) for n in found] == [
+            (child.pid, "SCHED_FIFO", 10, {cpu})]
+        assert not any(n.pid == child.pid for c in os.sched_getaffinity(0) - {cpu}
+                       for n in scheduling.realtime_neighbours(c))
+        assert [n for n in scheduling.realtime_neighbours(None) if n.pid == child.pid] == found
+        _, warning = shared_cpu(True, cpu, 10)
+        assert f"CPU {cpu} is already held" in warning and f"pid {child.pid}" in warning
+        assert "SCHED_FIFO 10 waits whenever" in warning and "--cpu N" in warning
+        assert "SCHED_FIFO 11 preempts them" in shared_cpu(True, cpu, 11)[1]
+        _, unpinned = shared_cpu(True, None, 10)
+        assert "this loop is not pinned" in unpinned
+        assert f"{FIFO_CHILD_NAME} (pid {child.pid}, thread {child.pid}, SCHED_FIFO 10, " \
+               f"CPUs {cpu})" in unpinned
+        assert shared_cpu(False, cpu, 10) == ([], None) == shared_cpu(False, None, 10)
+
+
+def test_an_unpinned_hil_controller_warns_of_a_real_time_process_on_a_cpu_it_may_use(
+        tmp_path):
+    """hil controller in real time and not pinned (its default), beside a process pinned
+    to the last CPU at SCHED_FIFO 10: its stderr names that process, pid and CPU before it
+    waits for a drive (a port nobody answers: it then fails, exit 1)."""
+    cpu = last_cpu()
+    with fifo_neighbour(cpu, 10) as child, \
+            socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))  # a port of our own that nothing answers on
+        done = subprocess.run(python_module(
+            "hil.cli", "controller", CONFIGS / "arrow500_x.toml", "--adapter",
+            f"udp://127.0.0.1:{s.getsockname()[1]}", "--program",
+            ROOT / "programs" / "demo_moves.nc", "--out", tmp_path / "ctl",
+            "--connect-timeout", "1"), cwd=ROOT, env=ENV, capture_output=True, text=True,
+            timeout=180, check=False)
+    assert done.returncode == 1, done.stderr  # no drive answered: the run failed
+    warnings = [line for line in done.stderr.splitlines() if "not pinned" in line]
+    assert len(warnings) == 1, done.stderr
+    assert warnings[0].startswith("hil controller: this loop is not pinned")
+    assert (f"{FIFO_CHILD_NAME} (pid {child.pid}, thread {child.pid}, SCHED_FIFO 10, "
+            f"CPUs {cpu})") in warnings[0]
 
 
 def test_cyclictest_histogram_is_reduced_to_nearest_rank_percentiles():

@@ -68,7 +68,8 @@ from plant.machines import load_machine_set
 ROOT = Path(__file__).resolve().parents[2]
 #: how long the axis is watched after the program's end, s
 SETTLE_S = 0.3
-#: bound on the emulator's start (a cold numba cache compiles for up to 40 s)
+#: bound on the emulator's start (a cold numba cache compiles for
+#: :data:`~hil.progress.COLD_START_S`)
 READY_S = 120.0
 #: bound on enabling the drive and on the emulator's exit, s
 ENABLE_S = 5.0

@@ -53,6 +53,7 @@ import numpy as np
 
 from hil.bench import tick as bench_tick
 from hil.bench.adapters import server
+from hil.progress import COLD_START, COMPILING, Progress
 from hil.rt.cyclictest import (
     CyclictestError,
     cyclictest_histogram,
@@ -80,15 +81,30 @@ def plant_step(config: Path = PLANT_CONFIG) -> Callable[[int], None]:
     from plant import Plant
     from plant.machines import load_machine_set
 
-    plant = Plant(load_machine_set(config).configs[0])
-    n_sub = plant.sub_per_pwm
-    for _ in range(PLANT_WARMUP_CALLS):
-        plant.step(n_sub)
+    with Progress(f"hil bench loop: {COMPILING}", ticking=True):
+        plant = Plant(load_machine_set(config).configs[0])
+        n_sub = plant.sub_per_pwm
+        for _ in range(PLANT_WARMUP_CALLS):
+            plant.step(n_sub)
 
     def step(k: int) -> None:
         plant.step(n_sub)
 
     return step
+
+
+def measuring(rate_hz: float, seconds: float) -> Progress:
+    """The progress of the measured loop: shown at its start, ended with it, and never
+    updated meanwhile (a thread of this process would take the GIL from the loop)."""
+    shown = Progress(f"hil bench loop: {rate_hz:g} Hz, the loop measured for {seconds:g} s")
+    shown.expect(seconds)
+    return shown
+
+
+def cyclictest_progress(rate_hz: float, interval_us: int, seconds: float) -> Progress:
+    """The progress of cyclictest after the loop (a child process: this one only waits)."""
+    return Progress(f"hil bench loop: {rate_hz:g} Hz, cyclictest at {interval_us} µs for "
+                    f"{seconds:g} s", ticking=True)
 
 
 def emulator_rate(rate_hz: int | None, seconds: float, config: Path, cpu: int,
@@ -105,8 +121,10 @@ def emulator_rate(rate_hz: int | None, seconds: float, config: Path, cpu: int,
     machine = load_machine_set(config)
     rc = RuntimeConfig(config, "udp://127.0.0.1:0", realtime=False, rate_hz=rate_hz,
                        duration_s=seconds)
-    emulator = Emulator(rc, machine, log=lambda message: None)
-    emulator.open()
+    with Progress(f"hil bench loop: the emulator loading its compiled kernels and warming "
+                  f"up ({COLD_START})", ticking=True):
+        emulator = Emulator(rc, machine, log=lambda message: None)
+        emulator.open()
     timing = emulator.timing
     period_us = timing.period_ns / 1000
     drain = Drain(emulator.recorder, timing.n_ticks)
@@ -114,12 +132,14 @@ def emulator_rate(rate_hz: int | None, seconds: float, config: Path, cpu: int,
         else None
     with ExitStack() as stack:
         stack.callback(emulator.endpoint.close)
-        stack.enter_context(server(bench_tick.controller, emulator.endpoint.address[1],
-                                   len(machine.axes), timing.period_ns))
+        with Progress("hil bench loop: the controller process starting", ticking=True):
+            stack.enter_context(server(bench_tick.controller, emulator.endpoint.address[1],
+                                       len(machine.axes), timing.period_ns))
         drain.start()
         stack.callback(drain.stop)
         with short_gil_switch(), realtime_scheduling(
-                SchedulingRequest(cpus=frozenset({cpu}))) as report:
+                SchedulingRequest(cpus=frozenset({cpu}))) as report, \
+                measuring(timing.rate_hz, seconds):
             stats = emulator.loop.run()
     ran = drain.compute >= 0
     compute = Percentiles.of_ns_in_us(drain.compute[ran])
@@ -152,7 +172,8 @@ def emulator_rate(rate_hz: int | None, seconds: float, config: Path, cpu: int,
     # tick of median compute time leaves would have overrun too
     slack_us = period_us - compute.p50
     try:
-        text = cyclictest_histogram(interval_us, seconds, cpu=cpu)
+        with cyclictest_progress(timing.rate_hz, interval_us, seconds):
+            text = cyclictest_histogram(interval_us, seconds, cpu=cpu)
     except CyclictestError as err:
         note(f"cyclictest failed, cyclictest_us is null: {err}")
         text = None
@@ -170,10 +191,12 @@ def bench_rate(rate_hz: int, seconds: float, step: Callable[[int], None], cpu: i
     """One row: the loop at ``rate_hz`` on ``cpu``, then cyclictest at the same interval."""
     period_us = round(1e6 / rate_hz)
     loop = RealTimeLoop(period_us * 1000, step, duration_s=seconds, policy=OverrunPolicy("skip"))
-    with realtime_scheduling(SchedulingRequest(cpus=frozenset({cpu}))) as report:
+    with realtime_scheduling(SchedulingRequest(cpus=frozenset({cpu}))) as report, \
+            measuring(rate_hz, seconds):
         stats = loop.run()
     try:
-        reference = run_cyclictest(period_us, seconds, cpu=cpu)
+        with cyclictest_progress(rate_hz, period_us, seconds):
+            reference = run_cyclictest(period_us, seconds, cpu=cpu)
         if reference is None:
             note("cyclictest is not installed (apt-get install rt-tests): cyclictest_us is null")
     except CyclictestError as err:

@@ -56,6 +56,7 @@ import numpy as np
 
 from hil.cia402 import EnableSequencer
 from hil.drive import compiled as C
+from hil.progress import COLD_START, Progress
 from hil.rt.loop import Percentiles
 from hil.runtime import steady_tick as S
 from hil.runtime.emulator import Emulator, RuntimeConfig, short_gil_switch
@@ -135,16 +136,19 @@ def bench(config: Path, seconds: float, compiled: bool = True) -> dict:
     machine = load_machine_set(config)
     rc = RuntimeConfig(config, "udp://127.0.0.1:0", realtime=False, steady_tick=compiled,
                        duration_s=seconds)
-    emulator = Emulator(rc, machine, log=lambda message: None)
-    if not compiled:
-        for d in emulator.drives.drives:
-            d.compiled = None
+    name = config.name
+    with Progress(f"hil bench tick: {name}: the emulator loading its compiled kernels and "
+                  f"warming up ({COLD_START})", ticking=True):
+        emulator = Emulator(rc, machine, log=lambda message: None)
+        if not compiled:
+            for d in emulator.drives.drives:
+                d.compiled = None
+        emulator.open()  # the compiled tick is built here
     period_ns = emulator.timing.period_ns
     n_ticks = emulator.timing.n_ticks
     drives = emulator.drives.drives
     ctx = multiprocessing.get_context("spawn")
     parent, child_conn = ctx.Pipe()
-    emulator.open()
     steady = emulator.steady
     trace = steady.keep_trace(n_ticks) if steady is not None else None
     child = ctx.Process(target=controller, args=(emulator.endpoint.address[1],
@@ -152,11 +156,17 @@ def bench(config: Path, seconds: float, compiled: bool = True) -> dict:
     child.start()
     drain = Drain(emulator.recorder, n_ticks)
     try:
-        if not parent.poll(START_S):
-            raise RuntimeError(f"the controller process did not start within {START_S} s")
-        parent.recv()
+        with Progress(f"hil bench tick: {name}: the controller process starting",
+                      ticking=True):
+            if not parent.poll(START_S):
+                raise RuntimeError(f"the controller process did not start within {START_S} s")
+            parent.recv()
         drain.start()
-        with short_gil_switch():
+        # shown at the start and ended with the run, never updated meanwhile: a thread of
+        # this process would take the GIL from the loop
+        with short_gil_switch(), Progress(f"hil bench tick: {name}: the loop measured for "
+                                          f"{seconds:g} s") as shown:
+            shown.expect(seconds)
             stats = emulator.loop.run()
     finally:
         drain.stop()

@@ -17,7 +17,8 @@ names, LinuxCNC on a copy of the INI for this run, and what both recorded.
    written by ``halsampler`` to ``OUT/linuxcnc/ferror.txt``.
 4. When LinuxCNC has exited, SIGTERM to ``hil run`` (its clean stop writes report.json).
 
-Every child has a timeout and is killed if it is still running when the session ends.
+Every child has a timeout and is killed if it is still running when the session ends; each
+wait longer than two seconds shows its progress on stderr (:mod:`hil.progress`).
 """
 
 import configparser
@@ -38,15 +39,16 @@ import numpy as np
 
 from hil.linuxcnc import install
 from hil.linuxcnc.install import LinuxCNC
+from hil.progress import Progress
 from hil.rt.loop import Percentiles
 from hil.runtime.common import reap
-from hil.runtime.demo import DemoError, wait_ready
+from hil.runtime.demo import EMULATOR_STARTING, DemoError, wait_exit, wait_ready
 from hil.runtime.record_reader import Recording, RecordingError
 
 #: the headless display program LinuxCNC runs (in its own Python)
 DISPLAY = Path(__file__).resolve().parent / "display.py"
-#: longest wait for the emulator's ready line (a cold numba cache compiles for up to 40 s each
-#: of a few kernels)
+#: longest wait for the emulator's ready line (a cold numba cache compiles for
+#: :data:`~hil.progress.COLD_START_S`, more on a machine LinuxCNC's start keeps busy)
 READY_TIMEOUT_S = 180.0
 #: how long LinuxCNC's start and shut-down may take beyond the display's phases, s
 LINUXCNC_MARGIN_S = 60.0
@@ -282,7 +284,8 @@ def run(cfg: LinuxCNCConfig, lc: LinuxCNC, files: SessionFiles, program: Path | 
             emulator = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=log, text=True)
         children.append(emulator)
         try:
-            url = wait_ready(emulator, READY_TIMEOUT_S)
+            with Progress(f"hil linuxcnc: {EMULATOR_STARTING}") as shown:
+                url = wait_ready(emulator, READY_TIMEOUT_S, shown)
         except DemoError as e:
             return Processes(emulator.poll(), None, None, str(e))
         port = urlsplit(url).port
@@ -298,7 +301,10 @@ def run(cfg: LinuxCNCConfig, lc: LinuxCNC, files: SessionFiles, program: Path | 
         children.append(linuxcnc)
         limit = PHASES * timeout_s + LINUXCNC_MARGIN_S
         try:
-            lc_status = linuxcnc.wait(timeout=limit)
+            with Progress(f"hil linuxcnc: LinuxCNC starting, homing, running "
+                          f"{program.name if program else 'no program'} and ending (up to "
+                          f"{limit:g} s)") as shown:
+                lc_status = wait_exit(linuxcnc, limit, shown)
             problem = None
         except subprocess.TimeoutExpired:
             os.killpg(linuxcnc.pid, signal.SIGKILL)
@@ -306,7 +312,9 @@ def run(cfg: LinuxCNCConfig, lc: LinuxCNC, files: SessionFiles, program: Path | 
             lc_status, problem = None, f"LinuxCNC did not end within {limit:g} s"
         emulator.send_signal(signal.SIGTERM)
         try:
-            emu_status = emulator.wait(timeout=STOP_TIMEOUT_S)
+            with Progress("hil linuxcnc: hil run stopping (its recording and report written)",
+                          ticking=True):
+                emu_status = emulator.wait(timeout=STOP_TIMEOUT_S)
         except subprocess.TimeoutExpired:
             emu_status, problem = None, problem or "hil run did not stop on SIGTERM"
         return Processes(emu_status, lc_status, url, problem)

@@ -116,6 +116,7 @@ from pathlib import Path
 
 import numpy as np
 
+from hil.progress import Progress
 from hil.report.baseline import CyclictestBaseline, run_cyclictest_baseline
 from hil.report.host import host_fingerprint
 from hil.report.wakeup import (
@@ -638,7 +639,9 @@ def report_run(folder: Path | str, cyclictest_s: float | None = None,
             note(f"cyclictest runs at whole µs: {interval_us} µs for the run's "
                  f"{run.period_ns} ns")
         try:
-            baseline = run_cyclictest_baseline(interval_us, cyclictest_s, cpu=last_cpu())
+            with Progress(f"hil report: cyclictest, {interval_us} µs for {cyclictest_s:g} s",
+                          ticking=True):
+                baseline = run_cyclictest_baseline(interval_us, cyclictest_s, cpu=last_cpu())
         except CyclictestError as err:
             note(f"cyclictest failed, no baseline: {err}")
         else:

@@ -94,23 +94,36 @@ def last_cpu() -> int:
 
 @dataclass(frozen=True)
 class RealtimeNeighbour:
-    """A thread of another process pinned to a CPU under a real-time policy.
+    """A thread of another process under a real-time policy, on CPUs a loop may use.
 
     Attributes:
         pid, tid: its process and thread ids.
         command: the process's name (``/proc/PID/comm``).
         policy: ``"SCHED_FIFO"`` or ``"SCHED_RR"``.
         priority: its real-time priority, 1..99.
+        cpus: the CPUs it may run on (its affinity).
     """
     pid: int
     tid: int
     command: str
     policy: str
     priority: int
+    cpus: frozenset[int]
 
     def describe(self) -> str:
         return (f"{self.command} (pid {self.pid}, thread {self.tid}, {self.policy} "
-                f"{self.priority})")
+                f"{self.priority}, CPUs {cpu_list(self.cpus)})")
+
+
+def cpu_list(cpus: frozenset[int] | set[int]) -> str:
+    """CPUs as the kernel's lists write them: ``0-3,6``."""
+    runs: list[list[int]] = []
+    for c in sorted(cpus):
+        if runs and c == runs[-1][1] + 1:
+            runs[-1][1] = c
+        else:
+            runs.append([c, c])
+    return ",".join(str(a) if a == b else f"{a}-{b}" for a, b in runs)
 
 
 #: /proc/PID/stat: the kernel-thread flag (PF_KTHREAD), and the policies by number
@@ -118,12 +131,15 @@ _PF_KTHREAD = 0x00200000
 _RT_POLICIES = {1: "SCHED_FIFO", 2: "SCHED_RR"}
 
 
-def realtime_neighbours(cpu: int) -> list[RealtimeNeighbour]:
-    """Threads of other processes pinned to ``cpu`` alone under SCHED_FIFO or SCHED_RR,
-    by pid and tid.  A loop put there waits whenever one of them at its priority or above
-    runs (the kernel's own per-CPU threads are left out: every CPU has them).  Empty off
-    Linux or where ``/proc`` cannot be read; a thread gone meanwhile is skipped."""
+def realtime_neighbours(cpu: int | None) -> list[RealtimeNeighbour]:
+    """Threads of other processes under SCHED_FIFO or SCHED_RR, by pid and tid, that a
+    loop can share a CPU with: pinned to ``cpu`` alone, or -- ``cpu`` None, a loop not
+    pinned -- allowed on any CPU this process may run on.  A loop on a CPU with one of them
+    waits whenever one at its priority or above runs (the kernel's own per-CPU threads are
+    left out: every CPU has them).  Empty off Linux or where ``/proc`` cannot be read; a
+    thread gone meanwhile is skipped."""
     own = os.getpid()
+    mine = os.sched_getaffinity(0)
     found = []
     try:
         pids = [int(p) for p in os.listdir("/proc") if p.isdigit() and int(p) != own]
@@ -141,13 +157,17 @@ def realtime_neighbours(cpu: int) -> list[RealtimeNeighbour]:
                 # the fields after the command's closing parenthesis start at field 3
                 rest = stat[stat.rindex(")") + 2:].split()
                 flags, priority, policy = int(rest[6]), int(rest[37]), int(rest[38])
-                if (flags & _PF_KTHREAD or policy not in _RT_POLICIES
-                        or os.sched_getaffinity(tid) != {cpu}):
+                if flags & _PF_KTHREAD or policy not in _RT_POLICIES:
+                    continue
+                cpus = os.sched_getaffinity(tid)
+                shares = bool(cpus & mine) if cpu is None else cpus == {cpu}
+                if not shares:
                     continue
                 command = stat[stat.index("(") + 1:stat.rindex(")")]
             except (OSError, ValueError, IndexError):
                 continue
-            found.append(RealtimeNeighbour(pid, tid, command, _RT_POLICIES[policy], priority))
+            found.append(RealtimeNeighbour(pid, tid, command, _RT_POLICIES[policy], priority,
+                                           frozenset(cpus)))
     return found
 
 

@@ -23,6 +23,7 @@ from hil.rt.scheduling import (
     RealtimeNeighbour,
     SchedulingReport,
     SchedulingRequest,
+    cpu_list,
     realtime_neighbours,
     realtime_scheduling,
 )
@@ -133,22 +134,26 @@ def scheduling(realtime: bool, cpu: int | None, priority: int):
 
 def shared_cpu(realtime: bool, cpu: int | None, priority: int
                ) -> tuple[list[RealtimeNeighbour], str | None]:
-    """Other processes' real-time threads already pinned to the ``cpu`` a loop is about to
-    take at SCHED_FIFO ``priority`` (:func:`hil.rt.scheduling.realtime_neighbours`), and
-    a warning naming them (None: none, or the loop is not real-time or not pinned).  Two
-    loops on one CPU starve each other: the lower one waits while the other runs, and a
-    spinning one at the same priority holds the CPU until it sleeps."""
-    if not realtime or cpu is None:
+    """Other processes' real-time threads a loop about to run at SCHED_FIFO ``priority``
+    can share a CPU with (:func:`hil.rt.scheduling.realtime_neighbours`): those pinned to
+    its ``cpu``, or, the loop not pinned (``cpu`` None), those allowed on any CPU it may
+    use; and a warning naming them (None: none, or the loop is not real-time).  Two loops
+    on one CPU starve each other: the lower one waits while the other runs, and a spinning
+    one at the same priority holds the CPU until it sleeps."""
+    if not realtime:
         return [], None
     found = realtime_neighbours(cpu)
     if not found:
         return [], None
     above = [n for n in found if n.priority >= priority]
-    return found, (f"CPU {cpu} is already held by real-time threads of other processes: "
+    where = (f"CPU {cpu} is already held by" if cpu is not None else
+             f"this loop is not pinned: the CPUs it may run on "
+             f"({cpu_list(os.sched_getaffinity(0))}) are open to")
+    return found, (f"{where} real-time threads of other processes: "
                    f"{'; '.join(n.describe() for n in found)}. This loop at SCHED_FIFO "
                    f"{priority} " + (f"waits whenever {len(above)} of them at its priority "
                                      f"or above run" if above else "preempts them") +
-                   "; choose a free CPU with --cpu N")
+                   " on its CPU; choose a free CPU with --cpu N")
 
 
 def scheduling_dict(report: SchedulingReport | None) -> dict:

@@ -78,7 +78,7 @@ from hil.controller.program import ProgramError, read_program
 from hil.drive.faults import fault_text
 from hil.inject import INJECT_HELP
 from hil.inject.sender import InjectionSender
-from hil.progress import COMPILING, Progress
+from hil.progress import COLD_START, COMPILING, Progress
 from hil.rt.loop import OverrunPolicy, RealTimeLoop
 from hil.runtime.common import (
     EXIT_BAD_INPUT,
@@ -351,7 +351,7 @@ class ControllerProcess:
         self.lag_is_age = getattr(self.ep, "lag_is_age", False)
         self.steady = ControllerSteady.for_process(self)
         if self.steady is not None:
-            with Progress(COMPILING.replace("kernels", "loop"), ticking=True):
+            with Progress(f"loading the compiled loop ({COLD_START})", ticking=True):
                 self.steady.warm()
             self.loop.burst = self.steady.burst
         neighbours, warning = shared_cpu(rc.realtime, rc.cpu, rc.priority)

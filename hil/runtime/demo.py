@@ -40,7 +40,7 @@ from pathlib import Path
 
 from hil.controller.config import clamp_codes, load_controller
 from hil.controller.program import ProgramError, read_program
-from hil.progress import Progress
+from hil.progress import COLD_START, Progress
 from hil.replay import ReplayResult
 from hil.replay.timing import LOOP_PEAK, SHOWN_RUNS, TimingCost
 from hil.report.baseline import CyclictestBaseline, run_cyclictest_baseline
@@ -67,8 +67,8 @@ from plant.errors import ConfigError
 ROOT = Path(__file__).resolve().parents[2]
 DEFAULT_CONFIG = ROOT / "configs" / "arrow500_x.toml"
 DEFAULT_PROGRAM = ROOT / "programs" / "demo_moves.nc"
-#: longest wait for the emulator's ready line (a cold numba cache compiles for up to 40 s
-#: on an idle machine) ...
+#: longest wait for the emulator's ready line (a cold numba cache compiles for
+#: :data:`~hil.progress.COLD_START_S` on an idle machine) ...
 READY_TIMEOUT_S = 120.0
 #: ... and beyond it, while the emulator keeps working (compiling beside other busy
 #: processes took over 120 s on the 2-vCPU VM), up to this long in all
@@ -77,6 +77,8 @@ READY_BUSY_MAX_S = 600.0
 #: BUSY_WINDOW_S seconds
 BUSY_SHARE = 0.2
 BUSY_WINDOW_S = 10.0
+#: what a wait for the emulator's ready line shows
+EMULATOR_STARTING = f"emulator compiling and warming up ({COLD_START})"
 #: longest wait for the controller beyond its program, and for the emulator's stop
 CHILD_TIMEOUT_S = 120.0
 #: how often a wait for a child looks again (and updates its progress line), s
@@ -136,7 +138,7 @@ def wait_ready(proc: subprocess.Popen, timeout_s: float,
                                     "ready")
 
 
-def _wait(proc: subprocess.Popen, timeout_s: float, progress: Progress) -> int:
+def wait_exit(proc: subprocess.Popen, timeout_s: float, progress: Progress) -> int:
     """``proc``'s exit status (``progress`` updated meanwhile); TimeoutExpired after
     ``timeout_s``."""
     deadline = time.monotonic() + timeout_s
@@ -167,7 +169,7 @@ def run_pair(config: Path, program: Path, out: Path, realtime: bool) -> tuple[in
                                            "--cpu", cpus[-1], *rt),
                                    stdout=subprocess.PIPE, stderr=emu_log, text=True, env=env)
             children.append(emu)
-            with Progress("hil demo: emulator compiling and warming up") as shown:
+            with Progress(f"hil demo: {EMULATOR_STARTING}") as shown:
                 url = wait_ready(emu, READY_TIMEOUT_S, shown)
             eprint(f"hil demo: emulator ready on {url}; controller running {program.name}")
             pin = ["--cpu", cpus[0]] if len(cpus) > 1 else []
@@ -177,7 +179,7 @@ def run_pair(config: Path, program: Path, out: Path, realtime: bool) -> tuple[in
                                    stdout=ctl_log, stderr=subprocess.STDOUT, env=env)
             children.append(ctl)
             with Progress("hil demo: controller and emulator running") as shown:
-                ctl_status = _wait(ctl, CHILD_TIMEOUT_S, shown)
+                ctl_status = wait_exit(ctl, CHILD_TIMEOUT_S, shown)
             emu.send_signal(signal.SIGTERM)
             emu_status = emu.wait(timeout=CHILD_TIMEOUT_S)
             emu_log.write(emu.stdout.read())

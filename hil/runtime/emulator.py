@@ -16,7 +16,8 @@ signal handlers that only set a flag, a fixed shutdown order):
    (exit 2), before any adapter is opened.
 2. **Build**: the plant's kernels compiled (or loaded from numba's cache) with SIGTERM and
    SIGINT left to end the process at once (a cold compile takes seconds inside numba,
-   where a Python handler would not run); then the plant and the CiA 402 drive
+   where a Python handler would not run; this phase, the next and the opening each show
+   their progress on stderr when longer than two seconds, :mod:`hil.progress`); then the plant and the CiA 402 drive
    (:class:`hil.drive.EmulatedDrive`, its steady state compiled), the kernels warmed by
    :data:`WARMUP_CYCLES` cycles on the same arrays, enabled and holding in CSP (then reset;
    a signal ends the warm-up at the next cycle and the daemon exits before opening
@@ -118,6 +119,7 @@ from hil.drive import DriveSet, EmulatedDrive, load_drive
 from hil.drive.compiled_path import WARM_CYCLES, warm
 from hil.drive.objects import DriveObjects
 from hil.inject.schedule import InjectEvent, injectors_for
+from hil.progress import COLD_START, Progress
 from hil.rt.clock import MonotonicClock
 from hil.rt.loop import OverrunPolicy
 from hil.rt.scheduling import helper_threads_realtime, last_cpu
@@ -522,9 +524,8 @@ def run_from_args(args: argparse.Namespace) -> int:
             # the [controller] and [drive] sections (the braking room among them) are
             # refused here, before the kernels compile, not when the drives are built
             load_drive(cfg, load_controller(cfg) if cfg.section("controller") else None)
-        eprint("hil run: loading the plant's compiled kernels (a cold cache compiles them, "
-               "up to 40 s; SIGTERM/SIGINT end the process meanwhile)")
-        with signals_end_process():
+        with signals_end_process(), Progress(
+                f"hil run: loading the plant's compiled kernels ({COLD_START})", ticking=True):
             Plant(machine.configs[0])  # numba compiles here (or loads its cache)
     except (ConfigError, RuntimeInputError) as e:
         eprint(f"hil run: {e}")
@@ -532,7 +533,9 @@ def run_from_args(args: argparse.Namespace) -> int:
     stop = StopFlag()
     with stop_on_signals(stop.request):
         try:
-            emulator = Emulator(rc, machine, stop)
+            with Progress("hil run: warming up the drives (a cold cache compiles their "
+                          "kernels first)", ticking=True):
+                emulator = Emulator(rc, machine, stop)
             if stop.requested:
                 eprint("hil run: stopped by a signal while starting; nothing written")
                 return EXIT_OK
@@ -541,8 +544,10 @@ def run_from_args(args: argparse.Namespace) -> int:
             eprint(f"hil run: {e.strerror if type(e) is OSError else e}")
             return EXIT_BAD_INPUT
         try:
-            url = emulator.open()
-            emulator.open_recording()
+            with Progress("hil run: opening the adapter and the recording (a cold cache "
+                          "compiles the tick first)", ticking=True):
+                url = emulator.open()
+                emulator.open_recording()
         except (AdapterError, OSError) as e:
             if emulator.endpoint is not None:
                 emulator.endpoint.close()

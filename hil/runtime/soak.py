@@ -20,6 +20,10 @@ memory and timing watched.
    five minutes, a third of the run when shorter);
 5. ``DIR/soak.json`` and ``DIR/soak.png`` (RSS, lateness, overruns against time).
 
+Each of these phases that takes longer than two seconds shows its progress on stderr
+(:mod:`hil.progress`): the emulator's start, the run (the share of ``--minutes`` done), the
+emulator's stop, the figures; stdout has the summary alone.
+
 Exit status 0 when both processes ended cleanly (whatever the goals say: they are
 measurements, printed and in the JSON), 1 otherwise, 2 on bad input.
 """
@@ -36,10 +40,13 @@ from pathlib import Path
 
 import numpy as np
 
+from hil.progress import Progress
 from hil.rt.loop import Percentiles
 from hil.runtime.common import EXIT_BAD_INPUT, EXIT_FAILED, EXIT_OK, eprint, reap, write_json
 from hil.runtime.demo import (
     DEFAULT_CONFIG,
+    EMULATOR_STARTING,
+    POLL_S,
     READY_TIMEOUT_S,
     ROOT,
     DemoError,
@@ -183,6 +190,27 @@ def _start_arg(config: Path) -> str:
     return str(cfg.table.travel_m * 500.0) if cfg.table is not None else "0"
 
 
+def sample_rss(emu: subprocess.Popen, master: subprocess.Popen, seconds: float,
+               every_s: float, samples: dict, progress: Progress) -> None:
+    """Until the master ends: both processes' RSS every ``every_s`` into ``samples``, and
+    ``progress`` (ms of the run's ``seconds``) every :data:`POLL_S`."""
+    t0 = time.monotonic()
+    due = 0.0
+    while master.poll() is None:
+        t = time.monotonic() - t0
+        if t >= due:
+            for name, proc in (("emulator", emu), ("master", master)):
+                mb = rss_mb(proc.pid)
+                if mb is not None:
+                    samples[name].append((t, mb))
+            due += every_s
+        if t > seconds + EXIT_S:
+            raise DemoError(f"the master did not finish {EXIT_S:g} s after its "
+                            f"{seconds:g} s")
+        progress.update(min(round(t * 1e3), progress.total))
+        time.sleep(min(POLL_S, every_s))
+
+
 def run_children(args: argparse.Namespace, out: Path) -> tuple[int, int, dict]:
     """Emulator and master as child processes, RSS sampled; their exit statuses and the
     samples (process name -> [(t_s, MB), ...])."""
@@ -201,26 +229,22 @@ def run_children(args: argparse.Namespace, out: Path) -> tuple[int, int, dict]:
                 cpus[-1], "--start", _start_arg(args.config), *rt),
                 stdout=subprocess.PIPE, stderr=emu_log, text=True, env=env)
             children.append(emu)
-            url = wait_ready(emu, READY_TIMEOUT_S)
+            with Progress(f"hil soak: {EMULATOR_STARTING}") as shown:
+                url = wait_ready(emu, READY_TIMEOUT_S, shown)
             pin = ["--cpu", cpus[0]] if len(cpus) > 1 else []
             master = subprocess.Popen(_python(
                 "hil.runtime.soak_master", args.config, "--adapter", url, "--rate", args.rate,
                 "--seconds", seconds, "--out", out / "master", *pin, *rt),
                 stdout=m_log, stderr=subprocess.STDOUT, env=env)
             children.append(master)
-            t0 = time.monotonic()
-            while master.poll() is None:
-                t = time.monotonic() - t0
-                for name, proc in (("emulator", emu), ("master", master)):
-                    mb = rss_mb(proc.pid)
-                    if mb is not None:
-                        samples[name].append((t, mb))
-                if t > seconds + EXIT_S:
-                    raise DemoError(f"the master did not finish {EXIT_S:g} s after its "
-                                    f"{seconds:g} s")
-                time.sleep(args.rss_every)
-            emu.send_signal(signal.SIGTERM)
-            emu_status = emu.wait(timeout=EXIT_S)
+            # the run's share done, in ms of its length (the line then says how far it is)
+            with Progress(f"hil soak: the master drives the emulator for {seconds:g} s",
+                          total=max(1, round(seconds * 1e3))) as shown:
+                sample_rss(emu, master, seconds, args.rss_every, samples, shown)
+            with Progress("hil soak: the emulator stopping (its recording and report "
+                          "written)", ticking=True):
+                emu.send_signal(signal.SIGTERM)
+                emu_status = emu.wait(timeout=EXIT_S)
         finally:
             reap(children)
     return emu_status, master.returncode, samples
@@ -242,6 +266,17 @@ def run_soak(args: argparse.Namespace) -> int:
     except (DemoError, subprocess.TimeoutExpired) as e:
         eprint(f"hil soak: {e}; logs in {out}")
         return EXIT_FAILED
+    with Progress("hil soak: the figures from the recording, and the plot", ticking=True):
+        result = soak_result(args, out, emu_status, master_status, samples)
+    print("\n".join(summary_lines(result)))
+    print(f"files in {out}/")
+    return EXIT_OK if (emu_status, master_status) == (EXIT_OK, EXIT_OK) else EXIT_FAILED
+
+
+def soak_result(args: argparse.Namespace, out: Path, emu_status: int, master_status: int,
+                samples: dict) -> dict:
+    """The soak's figures (module docstring, 4.) from both processes' files and the RSS
+    ``samples``; ``DIR/soak.json`` and ``DIR/soak.png`` written."""
     run_s = args.minutes * 60.0
     master = json.loads((out / "master" / SUMMARY).read_text())
     recording = Recording(out / "emulator")
@@ -264,9 +299,7 @@ def run_soak(args: argparse.Namespace) -> int:
                        "lateness_met": ratio is not None and ratio <= LATENESS_GOAL}
     write_json(out / "soak.json", result)
     plot(result, out / "soak.png")
-    print("\n".join(summary_lines(result)))
-    print(f"files in {out}/")
-    return EXIT_OK if (emu_status, master_status) == (EXIT_OK, EXIT_OK) else EXIT_FAILED
+    return result
 
 
 def summary_lines(result: dict) -> list[str]:

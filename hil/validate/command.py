@@ -6,7 +6,9 @@ verdict, then a summary.
 Exit status 0 when the experiments ran, whatever they found (a reproduction or prediction
 that disagrees is a finding); with ``--strict`` 1 when a verification row disagrees (a
 verification failing is a bug).  An unknown experiment raises KeyError, which the command
-line reports with exit status 2.
+line reports with exit status 2.  An experiment that takes longer than two seconds (the
+first one loading the compiled kernels, or compiling them on a cold cache) shows its
+progress on stderr (:mod:`hil.progress`); stdout has the table or the JSON alone.
 """
 
 import argparse
@@ -15,6 +17,7 @@ import sys
 from dataclasses import dataclass
 from pathlib import Path
 
+from hil.progress import COMPILING, Progress
 from hil.validate.core import Kind, Result, failing_verifications, run_all
 
 
@@ -36,8 +39,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run_from_args(args: argparse.Namespace) -> int:
     """Run the experiments ``args`` name and print their rows and summary; the exit status."""
     out_dir = None if args.no_plots else Path(args.out)
-    rows = run_all(out_dir, args.only or None,
-                   progress=lambda name, s: _eprint(f"  {name:<28} {s:6.1f} s"))
+    rows = run_all(out_dir, args.only or None, progress=_experiment_progress)
     summary = summarize(rows)
     if args.json:
         print(json.dumps([r.as_dict() for r in rows], indent=1))
@@ -49,6 +51,12 @@ def run_from_args(args: argparse.Namespace) -> int:
         if out_dir is not None:
             print(f"\nplots in {out_dir}/")
     return 1 if args.strict and summary.failing_verifications else 0
+
+
+def _experiment_progress(name: str, i: int, n: int) -> Progress:
+    """One experiment's progress line; the first's says that it may compile the kernels."""
+    first = f", {COMPILING}" if i == 1 else ""
+    return Progress(f"hil validate: {name} ({i} of {n}){first}", ticking=True)
 
 
 @dataclass(frozen=True)

@@ -24,8 +24,8 @@ printed digit, one unit where the seed says "approximately", "around" or "~".
 """
 
 import enum
-import time
 from collections.abc import Callable
+from contextlib import AbstractContextManager, nullcontext
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -156,8 +156,11 @@ def failing_verifications(rows: list[Result]) -> list[Result]:
 
 
 def run_all(out_dir: Path | None, only: list[str] | None = None,
-            progress: Callable[[str, float], None] | None = None) -> list[Result]:
-    """Run every registered experiment (or those named in ``only``), in registry order.
+            progress: Callable[[str, int, int], AbstractContextManager] | None = None
+            ) -> list[Result]:
+    """Run every registered experiment (or those named in ``only``), in registry order;
+    each inside ``progress(name, its place from 1, how many)`` when given (the command's
+    progress line).
 
     A plant error inside an experiment becomes one failed verification row (a model that
     cannot run its own experiment is a bug) rather than stopping the others.
@@ -170,14 +173,13 @@ def run_all(out_dir: Path | None, only: list[str] | None = None,
         raise KeyError(f"unknown experiment(s): {', '.join(unknown)}; "
                        f"known: {', '.join(REGISTRY)}")
     rows: list[Result] = []
-    for name in names:
+    for i, name in enumerate(names, 1):
         exp = REGISTRY[name]
-        t0 = time.perf_counter()
-        try:
-            rows.extend(exp.func(out_dir))
-        except PlantError as exc:
-            rows.append(Result(name, "-", f"error: {exc}", "-", False, f"seed {exp.seed}", "-",
-                               VERIFICATION, note=f"the experiment did not run: {exc}"))
-        if progress is not None:
-            progress(name, time.perf_counter() - t0)
+        with nullcontext() if progress is None else progress(name, i, len(names)):
+            try:
+                rows.extend(exp.func(out_dir))
+            except PlantError as exc:
+                rows.append(Result(name, "-", f"error: {exc}", "-", False, f"seed {exp.seed}",
+                                   "-", VERIFICATION,
+                                   note=f"the experiment did not run: {exc}"))
     return rows
