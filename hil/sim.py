@@ -28,8 +28,8 @@ from hil.controller.alarms import Alarm
 from hil.controller.compiled_path import warm as warm_nc
 from hil.controller.machine import MachineController
 from hil.controller.nc import Controller
-from hil.drive import DriveSet, EmulatedDrive
 from hil.decimal_grid import decimal_step, on_grid
+from hil.drive import DriveSet, EmulatedDrive
 from hil.drive.compiled_path import warm as warm_drives
 from hil.inject.schedule import Injector, injectors_for
 from hil.sim_block import COLUMNS, DRIVE_DECLINED, RAN, Blocks
