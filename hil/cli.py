@@ -42,6 +42,9 @@ needs an optional extra that is not installed (:mod:`hil.extras`: the message na
 import argparse
 import importlib
 import json
+import os
+import select
+import signal
 import sys
 from pathlib import Path
 
@@ -438,11 +441,24 @@ BENCH_EXAMPLES = {
 }
 
 
+#: exit status when standard output's reader went away (``hil config-keys | head``): that
+#: of a tool ended by SIGPIPE, as the shell reports it
+EXIT_CLOSED_PIPE = 128 + int(signal.SIGPIPE)
+
+
 def main(argv: list[str] | None = None) -> int:
     words = sys.argv[1:] if argv is None else argv
     try:
         args = build_parser(argv).parse_args(argv)
-        return args.func(args)
+        status = args.func(args)
+        sys.stdout.flush()  # a reader gone shows here, not in the interpreter's exit
+        return status
+    except BrokenPipeError:
+        if not _stdout_closed():
+            raise
+        # what is still buffered goes nowhere, so that the flush at exit cannot fail again
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return EXIT_CLOSED_PIPE
     except ModuleNotFoundError as exc:
         # a command module is imported when chosen and its optional packages when it
         # needs them, so an extra that is not installed shows up here and nowhere else
@@ -458,6 +474,18 @@ def main(argv: list[str] | None = None) -> int:
             raise
         _eprint(f"hil: {exc}")
         return 2
+
+
+def _stdout_closed() -> bool:
+    """Whether standard output is a pipe whose reader has gone (it polls as an error), as
+    opposed to a socket or pipe of the command itself breaking, which stays an error."""
+    try:
+        fd = sys.stdout.fileno()
+    except (AttributeError, OSError, ValueError):  # replaced by a stream without a file
+        return False
+    poller = select.poll()
+    poller.register(fd, select.POLLOUT)
+    return any(events & select.POLLERR for _, events in poller.poll(0))
 
 
 def _bad_input() -> tuple[type[Exception], ...]:

@@ -240,6 +240,26 @@ def test_config_keys_tables_hold_together():
                for line in plain)
 
 
+def test_config_keys_into_a_pipe_closed_early_exits_quietly():
+    """`hil config-keys | head -1`: the reader takes one line and closes the pipe while hil
+    still writes (the pipe made one page long, so that the 34 kB listing cannot all sit
+    in it); hil stops without a traceback on stderr, with the status a tool ended by
+    SIGPIPE has (128 + 13)."""
+    import fcntl
+    import subprocess
+    import sys
+
+    proc = subprocess.Popen([sys.executable, "-m", "hil.cli", "config-keys"], bufsize=0,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    fcntl.fcntl(proc.stdout.fileno(), fcntl.F_SETPIPE_SZ, 4096)
+    first = proc.stdout.readline()
+    proc.stdout.close()
+    stderr = proc.stderr.read()
+    assert proc.wait(timeout=120) == 141, stderr.decode()
+    assert first.startswith(b"[section] key")
+    assert stderr == b""
+
+
 def _config(name):
     return Plant.from_file(CONFIG_DIR / name)
 
