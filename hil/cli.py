@@ -42,6 +42,9 @@ needs an optional extra that is not installed (:mod:`hil.extras`: the message na
 import argparse
 import importlib
 import json
+import os
+import select
+import signal
 import sys
 from pathlib import Path
 
@@ -243,11 +246,13 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     b = sub.add_parser("bench", help="benchmarks (JSON with --json)")
     bsub = b.add_subparsers(dest="what", required=True)
     bp = bsub.add_parser("plant", help="kernel ns per sub-step vs uncompiled reference")
-    bp.add_argument("--json", action="store_true")
+    bp.add_argument("--json", action="store_true", help="print the rows as JSON instead of the table")
     bp.add_argument("--config", action="append", default=[], help="machine file (repeatable; "
                     "default: every file in configs/)")
-    bp.add_argument("--seconds", type=float, default=0.3, help="timing per config, s")
-    bp.add_argument("--ref-seconds", type=float, default=0.5, help="reference timing, s")
+    bp.add_argument("--seconds", type=float, default=0.3, help="timing per config, s (default "
+                    "%(default)s)")
+    bp.add_argument("--ref-seconds", type=float, default=0.5, help="reference timing, s (default "
+                    "%(default)s)")
     bp.set_defaults(func=cmd_bench_plant)
 
     s = sub.add_parser("sim", help="controller and plant in lock-step on a part program",
@@ -258,19 +263,22 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     s.add_argument("config", help="machine file (TOML)")
     s.add_argument("--program", required=True, help="part program (G-code subset)")
     s.add_argument("--out", required=True, help="folder for trace.csv and sim.png")
-    s.add_argument("--start", type=float, default=0.0, help="initial table position, mm (deg)")
+    s.add_argument("--start", type=float, default=0.0, help="initial table position, mm (deg; "
+                   "default %(default)s)")
     s.add_argument("--axis", help="axis letter in the program (default X, or C if rotary)")
     s.add_argument("--every", type=int, help="trace row every n ticks (default: the "
                    "position-control cycle)")
     s.add_argument("--trigger", help="servo trace with trigger: COLUMN:edge, "
                    "COLUMN:LEVEL[:rising|falling|either] or immediate (columns of trace.csv, "
                    "levels in their units) -> triggered.csv")
-    s.add_argument("--depth", type=int, default=1000, help="triggered trace: rows in all")
+    s.add_argument("--depth", type=int, default=1000, help="triggered trace: rows in all "
+                   "(default %(default)s)")
     s.add_argument("--pre-trigger", type=int, default=100,
-                   help="triggered trace: rows kept before the trigger")
+                   help="triggered trace: rows kept before the trigger (default %(default)s)")
     s.add_argument("--inject", action="append", metavar="FAULT:KEY=VALUE,...",
                    help=INJECT_HELP)
-    s.add_argument("--json", action="store_true")
+    s.add_argument("--json", action="store_true",
+                   help="print the summary as JSON instead of 'key: value' lines")
     s.set_defaults(func=cmd_sim)
 
     m = sub.add_parser("measure", help="the controller's step and frequency-response tests")
@@ -283,9 +291,12 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
                         "speed)")
     m.add_argument("--amplitude", type=float, required=True,
                    help="step or PRBS amplitude: A, mm/min (deg/min) or mm (deg)")
-    m.add_argument("--offset", type=float, default=0.0, help="bode: setpoint offset, same unit")
-    m.add_argument("--at", type=float, default=0.0, help="table position, mm (deg)")
-    m.add_argument("--order", type=int, default=12, help="bode: PRBS register length")
+    m.add_argument("--offset", type=float, default=0.0, help="bode: setpoint offset, same unit "
+                   "(default %(default)s)")
+    m.add_argument("--at", type=float, default=0.0,
+                   help="table position, mm (deg; default %(default)s)")
+    m.add_argument("--order", type=int, default=12, help="bode: PRBS register length "
+                   "(default %(default)s)")
     m.add_argument("--periods", type=int, default=4,
                    help="bode: PRBS periods averaged (more: less noise, longer run; "
                         "default %(default)s)")
@@ -296,7 +307,8 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     bl = bsub.add_parser("loop", help="hard-timed loop lateness vs cyclictest, same interval")
     bl.add_argument("--rate", help="comma-separated rates, Hz (default: 1000,4000,8000; "
                     "with --adapter the machine's PWM frequency)")
-    bl.add_argument("--seconds", type=float, default=5.0, help="run per rate and tool, s")
+    bl.add_argument("--seconds", type=float, default=5.0, help="run per rate and tool, s "
+                    "(default %(default)s)")
     bl.add_argument("--with-plant", action="store_true",
                     help="step the Arrow 500 X plant every tick")
     bl.add_argument("--adapter", choices=("udp",), help="the emulator's whole tick (drive, "
@@ -304,14 +316,15 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
                     "(needs --with-plant)")
     bl.add_argument("--config", help="machine file or manifest of the plant or the emulator "
                     "(default: the Arrow 500 X)")
-    bl.add_argument("--json", action="store_true")
+    bl.add_argument("--json", action="store_true", help="print the rows as JSON instead of the table")
     bl.set_defaults(func=cmd_bench_loop)
 
     ba = bsub.add_parser("adapters", help="setpoint-to-feedback round trip vs raw echo")
-    ba.add_argument("--n", type=int, default=20000, help="round trips of each kind")
+    ba.add_argument("--n", type=int, default=20000, help="round trips of each kind "
+                    "(default %(default)s)")
     ba.add_argument("--adapter", action="append", choices=("udp", "serial"),
                     help="repeatable; default: all")
-    ba.add_argument("--json", action="store_true")
+    ba.add_argument("--json", action="store_true", help="print the rows as JSON instead of the table")
     ba.set_defaults(func=cmd_bench_adapters)
 
     for name, help_ in (
@@ -337,7 +350,7 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     r.add_argument("run", help="run folder of hil run (recording.arrows + report.json)")
     r.add_argument("--cyclictest", action="store_true",
                    help="cyclictest baseline at the run's period (needs rt-tests)")
-    r.add_argument("--cyclictest-seconds", type=float, default=10.0, help="baseline length, s")
+    r.add_argument("--cyclictest-seconds", type=float, default=10.0, help="baseline length, s (default %(default)s)")
     r.add_argument("--controller", metavar="DIR",
                    help="hil controller's --out folder: pair its controller.npz with the "
                         "run for the round trip's total and transport")
@@ -428,11 +441,24 @@ BENCH_EXAMPLES = {
 }
 
 
+#: exit status when standard output's reader went away (``hil config-keys | head``): that
+#: of a tool ended by SIGPIPE, as the shell reports it
+EXIT_CLOSED_PIPE = 128 + int(signal.SIGPIPE)
+
+
 def main(argv: list[str] | None = None) -> int:
     words = sys.argv[1:] if argv is None else argv
     try:
         args = build_parser(argv).parse_args(argv)
-        return args.func(args)
+        status = args.func(args)
+        sys.stdout.flush()  # a reader gone shows here, not in the interpreter's exit
+        return status
+    except BrokenPipeError:
+        if not _stdout_closed():
+            raise
+        # what is still buffered goes nowhere, so that the flush at exit cannot fail again
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return EXIT_CLOSED_PIPE
     except ModuleNotFoundError as exc:
         # a command module is imported when chosen and its optional packages when it
         # needs them, so an extra that is not installed shows up here and nowhere else
@@ -448,6 +474,18 @@ def main(argv: list[str] | None = None) -> int:
             raise
         _eprint(f"hil: {exc}")
         return 2
+
+
+def _stdout_closed() -> bool:
+    """Whether standard output is a pipe whose reader has gone (it polls as an error), as
+    opposed to a socket or pipe of the command itself breaking, which stays an error."""
+    try:
+        fd = sys.stdout.fileno()
+    except (AttributeError, OSError, ValueError):  # replaced by a stream without a file
+        return False
+    poller = select.poll()
+    poller.register(fd, select.POLLOUT)
+    return any(events & select.POLLERR for _, events in poller.poll(0))
 
 
 def _bad_input() -> tuple[type[Exception], ...]:

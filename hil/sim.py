@@ -28,6 +28,7 @@ from hil.controller.alarms import Alarm
 from hil.controller.compiled_path import warm as warm_nc
 from hil.controller.machine import MachineController
 from hil.controller.nc import Controller
+from hil.decimal_grid import decimal_step, on_grid
 from hil.drive import DriveSet, EmulatedDrive
 from hil.drive.compiled_path import warm as warm_drives
 from hil.inject.schedule import Injector, injectors_for
@@ -66,6 +67,9 @@ class SimResult:
         position_cycle_ticks: ticks per position-control cycle, the period of the ripple
             the position cycle leaves on the currents (:func:`position_cycle_mean`);
             None where unknown (a recording rebuilt from files).
+        scale_resolution_m: the count of the linear scale the NC read its position
+            from, m; 0 where it read the motor encoder.  The servo trace puts the actual
+            position back on its grid (:func:`servo_trace_columns`).
     """
     signals: dict
     kind: str
@@ -74,6 +78,7 @@ class SimResult:
     meta: dict = field(default_factory=dict)
     alarms: tuple[Alarm, ...] = ()
     position_cycle_ticks: int | None = None
+    scale_resolution_m: float = 0.0
 
     def __getitem__(self, name: str) -> np.ndarray:
         return self.signals[name]
@@ -280,7 +285,7 @@ class AxisRecording:
     def result(self, cfg: MachineConfig) -> SimResult:
         return SimResult(self.rec, cfg.machine.kind, self.ctrl.ratio, self.plant.pwm_period,
                          {"machine": cfg.path}, tuple(self.ctrl.alarms.alarms),
-                         self.ctrl.sec.position_cycle_ratio)
+                         self.ctrl.sec.position_cycle_ratio, self.ctrl.scale_res)
 
 
 class MachineLockStep(_Stepper):
@@ -408,17 +413,31 @@ def servo_trace_columns(res: SimResult, every: int) -> dict[str, np.ndarray]:
     position-cycle ripple, so ``iq_set_a`` and ``iq_a`` alone can look far apart while the
     axis accelerates; :func:`mean_columns_note` says so in words)."""
     rows = np.flatnonzero(res["tick"] % every == 0)
-    cols = {"t_s": res["t_s"][rows] - res["t_s"][rows[0]]}
+    ticks = res["tick"][rows] - res["tick"][rows[0]]
+    cols = {"t_s": on_grid(ticks, decimal_step(res.period_s))}
     for name, sig in TRACE_COLUMNS.items():
-        values = res[sig] * (res.ratio if sig == "motor_pos_meas" else 1.0)
+        values = res[sig][rows] * (res.ratio if sig == "motor_pos_meas" else 1.0)
         if res.kind == "rotary":
             name = ROTARY_NAMES.get(name, name)
         factor, _ = si_factor(name)
-        cols[name] = values[rows] / factor
+        cols[name] = values / factor
+    if res.scale_resolution_m and res.kind != "rotary":
+        cols["pos_mm"] = _on_scale_grid(res["x_act"][rows], res.scale_resolution_m)
     if res.position_cycle_ticks is not None:
         for name, sig in MEAN_COLUMNS.items():
             cols[name] = position_cycle_mean(res[sig], res.position_cycle_ticks)[rows]
     return cols
+
+
+def _on_scale_grid(x_m: np.ndarray, resolution_m: float) -> np.ndarray:
+    """Positions ``x_m`` (m) in mm, those that are whole counts of the scale (the NC's
+    counts times its resolution, within float rounding) as the float nearest their exact
+    value (:mod:`hil.decimal_grid`): 1234567 counts of 0.1 µm print as 123.4567; the rest
+    (the start position before the first feedback) as they are."""
+    counts = np.round(x_m / resolution_m)
+    on_grid_mm = on_grid(counts, decimal_step(resolution_m) * 1000)
+    whole = np.isclose(counts * resolution_m, x_m, rtol=1e-12, atol=0.0)
+    return np.where(whole, on_grid_mm, x_m * 1e3)
 
 
 def mean_columns_note(res: SimResult) -> str:

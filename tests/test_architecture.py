@@ -143,3 +143,57 @@ def test_every_command_ends_its_help_with_an_example_that_parses():
     assert "coulomb_hold" in validate.format_help()
     with pytest.raises(SystemExit):
         build_parser(["validate"]).parse_args(["validate", "--only", "no_such_experiment"])
+
+
+def _has_default(default) -> bool:
+    """Whether an option's default is one its help must state: not None, False or an
+    empty list (0 and 0.0 count)."""
+    if default is None or default is False:
+        return False
+    return not (isinstance(default, (list, tuple)) and not default)
+
+
+def _as_written(default) -> tuple[str, ...]:
+    """How a help text may write a default: as str() does, a number as :g does (30 for
+    30.0), a path in the repository relative to its root."""
+    if isinstance(default, (str, Path)) and Path(default).is_relative_to(ROOT):
+        return (str(Path(default).relative_to(ROOT)),)
+    if isinstance(default, (int, float)):
+        return str(default), f"{default:g}"
+    return (str(default),)
+
+
+def _defaults_unstated() -> list[str]:
+    """Every command's and benchmark's optional argument without a help text, or whose
+    default (not None or False; not a flag) its help does not state, as 'hil CMD --OPT'."""
+    import argparse
+
+    from hil.cli import BENCH_EXAMPLES, EXAMPLES, build_parser
+    flags = (argparse._StoreTrueAction, argparse._StoreFalseAction, argparse._HelpAction,
+             argparse._VersionAction, argparse._StoreConstAction, argparse._CountAction)
+    argvs = [[c] for c in EXAMPLES if c != "bench"] + [["bench", b] for b in BENCH_EXAMPLES]
+    offenders = []
+    for argv in argvs:
+        chosen = build_parser(argv)._subparsers._group_actions[0].choices[argv[0]]
+        if argv[0] == "bench":
+            chosen = chosen._subparsers._group_actions[0].choices[argv[1]]
+        for action in chosen._actions:
+            if not action.option_strings:
+                continue
+            name = f"hil {' '.join(argv)} {action.option_strings[-1]}"
+            text, default = action.help or "", action.default
+            if not text or text == argparse.SUPPRESS:
+                offenders.append(f"{name}: no help")
+            elif (not isinstance(action, flags) and _has_default(default)
+                  and "%(default)" not in text
+                  and not any(w in text for w in _as_written(default))):
+                offenders.append(f"{name}: default {default!r} not stated ({text!r})")
+    return offenders
+
+
+def test_every_option_has_a_help_that_states_its_default():
+    """Each optional argument of every command and benchmark says what it means, and one
+    with a default (not None or False, not a flag) says the default, as %(default)s or
+    the value itself."""
+    offenders = _defaults_unstated()
+    assert offenders == [], "\n".join(offenders)

@@ -196,28 +196,68 @@ def test_every_key_is_documented():
 
 
 def test_config_keys_tables_hold_together():
-    """`hil config-keys --markdown` is a table every row of which has the header's seven
-    cells when split as GitHub's tables split them (on pipes not escaped: a choice list
-    "screw | linear | rotary" inside a cell is escaped), and the plain listing has the
-    range column docs/machine-files.md promises."""
-    import re
+    """`hil config-keys --markdown` read by a Markdown parser (markdown-it-py with GitHub's
+    tables): one table, its header the seven columns, one row of seven cells for each key
+    of the plain listing, in its order, the key's meaning from the schema in its last cell
+    (a | inside a cell -- the choice list "screw | linear | rotary" -- is escaped: it
+    neither ends the cell nor pushes the meaning out of the table); and the plain listing
+    has the range column docs/machine-files.md promises."""
     import subprocess
     import sys
+
+    from markdown_it import MarkdownIt
 
     def run(*args):
         return subprocess.run([sys.executable, "-m", "hil.cli", "config-keys", *args],
                               capture_output=True, text=True, check=True, timeout=120).stdout
 
-    rows = [line for line in run("--markdown").splitlines() if line.startswith("|")]
-    assert len(rows) > 100
-    cells = [[c.strip() for c in re.split(r"(?<!\\)\|", row)[1:-1]] for row in rows]
-    assert {len(c) for c in cells} == {7}
-    kind = next(c for c in cells if c[:2] == ["machine", "`kind`"])
-    assert kind[3] == r"screw \| linear \| rotary"
+    tokens = MarkdownIt("commonmark").enable("table").parse(run("--markdown"))
+    assert [t.type for t in tokens].count("table_open") == 1
+    rows, row = [], None
+    for token in tokens:
+        if token.type == "tr_open":
+            row = []
+        elif token.type == "inline" and row is not None:
+            row.append(token.content)
+        elif token.type == "tr_close":
+            rows.append(row)
+            row = None
+    header, body = rows[0], rows[1:]
+    assert header == ["section", "key", "unit", "range", "default", "applies to", "meaning"]
+    assert {len(cells) for cells in body} == {len(header)}
     plain = run().splitlines()
     assert plain[0].split()[:5] == ["[section]", "key", "unit", "range", "default"]
+    keys = [tuple(line.split()[:2]) for line in plain[1:]]
+    assert len(keys) > 100
+    assert [(f"[{cells[0]}]", cells[1].strip("`")) for cells in body] == keys
+    docs = {(r["section"], r["key"]): r["doc"] for r in schema_rows()}
+    wrong = [cells for cells in body if docs.get((cells[0], cells[1].strip("`")),
+                                                  cells[6]) != cells[6]]
+    assert wrong == [] and len(docs) > 100
+    kind = next(cells for cells in body if cells[:2] == ["machine", "`kind`"])
+    assert kind[3] == "screw | linear | rotary"
     assert any(line.startswith("[machine] kind") and "screw | linear | rotary" in line
                for line in plain)
+
+
+def test_config_keys_into_a_pipe_closed_early_exits_quietly():
+    """`hil config-keys | head -1`: the reader takes one line and closes the pipe while hil
+    still writes (the pipe made one page long, so that the 34 kB listing cannot all sit
+    in it); hil stops without a traceback on stderr, with the status a tool ended by
+    SIGPIPE has (128 + 13)."""
+    import fcntl
+    import subprocess
+    import sys
+
+    proc = subprocess.Popen([sys.executable, "-m", "hil.cli", "config-keys"], bufsize=0,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    fcntl.fcntl(proc.stdout.fileno(), fcntl.F_SETPIPE_SZ, 4096)
+    first = proc.stdout.readline()
+    proc.stdout.close()
+    stderr = proc.stderr.read()
+    assert proc.wait(timeout=120) == 141, stderr.decode()
+    assert first.startswith(b"[section] key")
+    assert stderr == b""
 
 
 def _config(name):

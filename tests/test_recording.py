@@ -11,6 +11,7 @@ are in ``test_recording_processes.py``.
 import argparse
 import math
 import os
+from fractions import Fraction
 from pathlib import Path
 
 import numpy as np
@@ -462,3 +463,37 @@ def test_the_csv_export_keeps_a_uniform_time_base_across_missing_ticks(plant, tm
     assert read.sample_time_s == pytest.approx(PERIOD_NS * 1e-9)
     gap = np.isnan(read.data["iq_a"])
     assert np.flatnonzero(gap).tolist() == list(range(10, 15)) and read.data["t_s"].size == 20
+
+
+def test_the_csv_export_prints_times_and_counts_as_their_exact_decimals(plant, tmp_path):
+    """200 ticks of 125 us with the table at 123.4567 mm: each t_s is the exact decimal of
+    tick * 125 us (tick 36 at 0.0045, not 36 * 0.000125 = 0.0045000000000000005 in
+    floats), pos_mm the exact decimal of the 0.1 um scale's counts, and motor_pos_mm the
+    float nearest the encoder's counts times 10 mm / 2**22 (reference: Python's exact
+    fractions); the events' times likewise."""
+    rig = Rig(plant, slots=256)
+    plant.reset(0.1234567)
+    writer = _writer(tmp_path / "run", rig, [])
+    for k in range(200):
+        rig.tick(k)
+    writer.stop([])
+    writer.folder.close()
+    trace = AxisTrace(name="X", prefix="", rotary=False, table_per_count=0.01 / 2 ** 22,
+                      scale_resolution_m=1e-7, period_s=PERIOD_NS * 1e-9)
+    rec = Recording(tmp_path / "run")
+    out = export_csv(rec, tmp_path / "trace.csv", trace)
+    lines = [line.split(",") for line in out.read_text().splitlines() if line[0] not in "#t"]
+    text = dict(zip(trace.names(), zip(*lines)))
+    rows = rec.read(["tick", "plant_scale_counts", "plant_encoder_counts"])
+    ticks = rows["tick"].tolist()
+    assert ticks == list(range(200)) and "0.0045" in text["t_s"]
+    assert [Fraction(t) for t in text["t_s"]] == [Fraction(k * PERIOD_NS, 10 ** 9)
+                                                  for k in ticks]
+    assert [Fraction(p) for p in text["pos_mm"]] == [
+        Fraction(int(c), 10_000) for c in rows["plant_scale_counts"]]
+    assert [float(p) for p in text["motor_pos_mm"]] == [
+        float(Fraction(int(c) * 10, 2 ** 22)) for c in rows["plant_encoder_counts"]]
+    events, _ = export.export_events_csv(rec, tmp_path / "events.csv")
+    for row in events.read_text().splitlines()[1:]:
+        t_s, tick = row.split(",")[:2]
+        assert t_s == "" or Fraction(t_s) == Fraction(int(tick) * PERIOD_NS, 10 ** 9), row

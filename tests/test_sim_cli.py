@@ -11,6 +11,7 @@ one period late, back-EMF cancelled by the drive's precontrol).
 
 import json
 import math
+from fractions import Fraction
 
 import numpy as np
 import pytest
@@ -101,6 +102,26 @@ def test_sim_trace_round_trips(sim_out, tmp_path):
     assert again.metadata == first.metadata
     for name in first.names:
         np.testing.assert_array_equal(again.column(name), first.column(name), err_msg=name)
+
+
+def test_sim_trace_prints_times_and_scale_positions_as_their_exact_decimals(sim_out):
+    """Rows one position cycle (2 ms) apart and the NC's position from the 0.1 um scale:
+    row i's t_s is the exact decimal i * 0.002 (not 0.0020000000000000018), and every
+    pos_mm a whole number of 0.0001 mm (reference: Python's exact fractions of the text)."""
+    _, out = sim_out
+    cfg = load_machine(ARROW)
+    cycle_s = Fraction(load_controller(cfg).position_cycle_ratio,
+                       round(cfg.motor.pwm_frequency_hz))
+    resolution_mm = Fraction(repr(cfg.sensors.scale_resolution_m)) * 1000
+    lines = (out / "trace.csv").read_text().splitlines()
+    assert "# sample_time_s: 0.002" in lines
+    header = next(line for line in lines if line.startswith("t_s,")).split(",")
+    rows = [line.split(",") for line in lines if line[0] not in "#t"]
+    t_col, pos_col = header.index("t_s"), header.index("pos_mm")
+    late = [row[t_col] for i, row in enumerate(rows) if Fraction(row[t_col]) != i * cycle_s]
+    off_grid = [row[pos_col] for row in rows
+                if (Fraction(row[pos_col]) / resolution_mm).denominator != 1]
+    assert late == [] and off_grid == [], (late[:5], off_grid[:5])
 
 
 def run_json(capsys, argv: list[str]) -> dict:

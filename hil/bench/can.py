@@ -307,7 +307,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="SYNC rate, Hz: one CSP target per SYNC (default %(default)s)")
     p.add_argument("--group", default="239.74.163.2", help="udp_multicast group, routed "
                    "over lo (default %(default)s)")
-    p.add_argument("--port", type=int, default=43113, help="udp_multicast port")
+    p.add_argument("--port", type=int, default=43113, help="udp_multicast port (default %(default)s)")
     p.add_argument("--json", action="store_true", help="print the JSON only")
 
 

@@ -277,8 +277,9 @@ def add_arguments(p) -> None:
     p.add_argument("--ci", action="store_true", help="the reduced set CI runs: "
                    + ", ".join(CI_CASES))
     p.add_argument("--out", type=Path, default=Path("bench-identify"),
-                   help="folder for the traces (cached) and bench_identify.json")
-    p.add_argument("--workers", type=int, default=2, help="processes (2)")
+                   help="folder for the traces (cached) and bench_identify.json "
+                        "(default %(default)s)")
+    p.add_argument("--workers", type=int, default=2, help="processes (default %(default)s)")
     p.add_argument("--refine-nfev", type=int, default=10,
                    help="closed-loop refinement iterations of hil identify (10)")
     p.add_argument("--duration", type=float, default=None, metavar="S",

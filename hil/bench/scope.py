@@ -248,8 +248,8 @@ def text(r: dict) -> str:
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     """The options of ``hil bench scope``."""
-    p.add_argument("--config", type=Path, default=CONFIG, help="machine file (default: the "
-                   "Arrow 500 X)")
+    p.add_argument("--config", type=Path, default=CONFIG, help="machine file (default: "
+                   "configs/arrow500_x.toml, the Arrow 500 X)")
     p.add_argument("--seconds", type=float, default=20.0, help="each segment, s (default "
                    "%(default)s)")
     p.add_argument("--segments", type=int, default=4, help="segments, closed and open in "

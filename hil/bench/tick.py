@@ -275,7 +275,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "a quick look; docs/benchmarks.md's figures took 10)")
     parser.add_argument("--python-drive", action="store_true",
                         help="every drive cycle in Python (the reference)")
-    parser.add_argument("--json", action="store_true")
+    parser.add_argument("--json", action="store_true",
+                        help="print the rows as JSON instead of the summary lines")
 
 
 def run_from_args(args: argparse.Namespace) -> int:

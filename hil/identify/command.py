@@ -26,14 +26,14 @@ def add_arguments(p) -> None:
                    help="share of a residual's energy an effect must explain (default 0.05)")
     p.add_argument("--floor-factor", type=float, default=1.5,
                    help="done when every replay channel is within this factor of its "
-                        "noise floor (1.5)")
-    p.add_argument("--max-steps", type=int, default=6, help="most effects added (6)")
+                        "noise floor (default %(default)s)")
+    p.add_argument("--max-steps", type=int, default=6, help="most effects added (default %(default)s)")
     p.add_argument("--refine-nfev", type=int, default=10,
                    help="iterations of the closed-loop refinement (0: off; default 10)")
     p.add_argument("--cutoff-hz", type=float, default=None,
                    help="inverse model's low-pass corner (default: a tenth of the sample rate)")
     p.add_argument("--exclude", nargs="+", default=(), choices=NAMES, metavar="EFFECT",
-                   help="library effects not to look for: " + ", ".join(NAMES))
+                   help="library effects not to look for (default: none): " + ", ".join(NAMES))
     p.add_argument("--workers", type=int, default=None,
                    help="processes evaluating a round's candidates (default: the CPUs "
                         "available, at most 2; 1: none)")

@@ -68,7 +68,7 @@ def _trace(proc, a: int, cols: dict, name: str, timing: dict[str, str]):
     # the servo trace's motor position is the encoder the controller read in the tick
     # (hil.sim's motor_pos_meas): this process's motor_pos column
     res = SimResult({**cols, "motor_pos_meas": cols["motor_pos"]}, ctrl.cfg.machine.kind,
-                    ctrl.ratio, proc.period_s)
+                    ctrl.ratio, proc.period_s, scale_resolution_m=ctrl.scale_res)
     return write_trace(rc.out_dir / name, servo_trace_columns(res, every), {
         "machine": str(rc.machine_file), "program": str(rc.program_file),
         "axis": proc.machine.names[a], "source": f"hil controller over {rc.adapter_url}",

@@ -322,7 +322,7 @@ def run_demo(config: Path, program: Path, out: Path, realtime: bool,
 def add_arguments(p: argparse.ArgumentParser) -> None:
     """The options of ``hil demo``."""
     p.add_argument("--config", default=str(DEFAULT_CONFIG), help="machine file (default: "
-                   "the Arrow 500 X)")
+                   "configs/arrow500_x.toml, the Arrow 500 X)")
     p.add_argument("--program", default=str(DEFAULT_PROGRAM),
                    help="part program (default: programs/demo_moves.nc)")
     p.add_argument("--out", default="demo-out", help="folder for every file (default "

@@ -23,7 +23,8 @@
   (:mod:`hil.runtime.record_trace` says which recording column makes which trace
   column), one row per tick on a uniform time base (a tick without a row -- dropped by
   the ``skip`` overrun policy, or not recorded -- is a row of NaN), every number in the
-  shortest text that reads back exactly; the header says the modes the setpoints were in
+  shortest text that reads back exactly (times and counts computed as the float nearest
+  their exact value, so that they show its decimal: :mod:`hil.decimal_grid`); the header says the modes the setpoints were in
   (no position setpoint outside CSP: it stays in the controller, and ``--controller DIR``
   takes it from ``hil controller``'s folder of the same run) and the run's timing;
   the run's events go to ``events.csv`` beside the traces, one row each.
@@ -42,11 +43,13 @@ import csv
 import json
 import math
 import tempfile
+from fractions import Fraction
 from pathlib import Path
 
 import numpy as np
 
 from hil.cia402 import mode_name
+from hil.decimal_grid import on_grid
 from hil.runtime import mdf_channels
 from hil.runtime.common import EXIT_BAD_INPUT, EXIT_FAILED, EXIT_OK, eprint
 from hil.runtime.record_reader import Recording, RecordingError
@@ -80,11 +83,13 @@ def export_events_csv(rec: Recording, out: Path, force: bool = False) -> tuple[P
     after the loop), tick (-1 after the loop), axis, source, kind, 603Fh code as hex (empty
     when none), drive cycle (empty when none) and reason.  Returns (the path, the count)."""
     ev = rec.events(stop_at_corrupt=True)
+    # from the tick rather than the stored tick * period: the exact decimal of the time
+    t_s = on_grid(ev["tick"], Fraction(rec.period_ns, 1_000_000_000))
     with open(_fresh(out, force), "w", encoding="utf-8", newline="") as f:
         w = csv.writer(f)
         w.writerow(EVENT_COLUMNS)
         for i in range(ev["tick"].size):
-            w.writerow((repr(float(ev["t_s"][i])) if ev["tick"][i] >= 0 else "",
+            w.writerow((repr(float(t_s[i])) if ev["tick"][i] >= 0 else "",
                         int(ev["tick"][i]), ev["axis"][i], ev["source"][i], ev["kind"][i],
                         f"{ev['code'][i]:04X}" if ev["code"][i] else "",
                         int(ev["cycle"][i]) if ev["cycle"][i] >= 0 else "", ev["reason"][i]))
@@ -150,7 +155,7 @@ def _every_tick(columns: dict[str, np.ndarray], tick: np.ndarray, first: int,
     for name, values in columns.items():
         out[name] = np.full(every.size, np.nan)
         out[name][tick - first] = values
-    out["t_s"] = every * trace.period_s
+    out["t_s"] = trace.t_s(every)
     return out
 
 

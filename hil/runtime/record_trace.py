@@ -8,7 +8,7 @@ and its plant's sensors.  So, per row:
 ===================  ==========================================================================
 trace column         from the recording
 ===================  ==========================================================================
-``t_s``              ``tick`` times the period
+``t_s``              ``tick`` times the period (exact decimals: :meth:`AxisTrace.t_s`)
 ``pos_set_mm``       the CSP target 607Ah in table units; empty (NaN) in rows not in CSP
 ``pos_mm``           the linear scale (``plant_scale_counts``); without one the motor encoder
 ``vel_set_mm_min``   CSP: the speed feed-forward 60B1h; CSV: the target 60FFh; else NaN
@@ -31,10 +31,12 @@ revolution on a screw axis).
 import json
 import math
 from dataclasses import dataclass
+from fractions import Fraction
 from pathlib import Path
 
 import numpy as np
 
+from hil.decimal_grid import decimal_step, on_grid
 from hil.runtime.record_reader import Recording, RecordingError
 from hil.runtime.run_folder import REPORT
 from hil.runtime.timing_quality import TimingQuality
@@ -86,23 +88,41 @@ class AxisTrace:
             "sp_velocity_offset_counts_s", "sp_iq_ref_a", "plant_encoder_counts",
             "plant_scale_counts", "plant_table_vel", "plant_iq_meas_a"))]
 
+    def t_s(self, tick: np.ndarray) -> np.ndarray:
+        """The times of ``tick`` (deadline indices), s: on the period's grid, so that each
+        prints as its exact decimal (:mod:`hil.decimal_grid`)."""
+        return on_grid(tick, decimal_step(self.period_s))
+
+    def per_count(self) -> Fraction:
+        """Trace position units (mm or deg) per motor-encoder count: the decimal the
+        metadata's ``table_per_count`` stands for, in mm exactly; in deg through the one
+        rounding of 180/pi."""
+        if self.rotary:
+            return decimal_step(self.table_per_count * self.k)
+        return decimal_step(self.table_per_count) * 1000
+
     def convert(self, rows: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-        """Trace columns (name -> float array) of recording ``rows`` (:meth:`sources`)."""
-        p, k, per_count = self.prefix, self.k, self.table_per_count
+        """Trace columns (name -> float array) of recording ``rows`` (:meth:`sources`);
+        times and counts on their grids (:meth:`t_s`, :meth:`per_count`), so that a
+        position of the 0.1 µm scale prints with at most 4 decimals in mm."""
+        p, step = self.prefix, self.per_count()
         mode = rows[p + "sp_mode"]
-        encoder = rows[p + "plant_encoder_counts"] * per_count
-        pos = (rows[p + "plant_scale_counts"] * self.scale_resolution_m
+        encoder = on_grid(rows[p + "plant_encoder_counts"], step)
+        pos = (on_grid(rows[p + "plant_scale_counts"],
+                       decimal_step(self.scale_resolution_m) * 1000)
                if self.scale_resolution_m else encoder)
-        vel_set = np.where(mode == MODE_CSP, rows[p + "sp_velocity_offset_counts_s"],
-                           np.where(mode == MODE_CSV, rows[p + "sp_target_velocity_counts_s"],
+        per_min = step * 60
+        vel_set = np.where(mode == MODE_CSP,
+                           on_grid(rows[p + "sp_velocity_offset_counts_s"], per_min),
+                           np.where(mode == MODE_CSV,
+                                    on_grid(rows[p + "sp_target_velocity_counts_s"], per_min),
                                     np.nan))
-        values = (rows["tick"] * self.period_s,
-                  np.where(mode == MODE_CSP, rows[p + "sp_target_position_counts"] * per_count,
-                           np.nan) * k,
-                  pos * k, vel_set * per_count * k * 60.0,
-                  rows[p + "plant_table_vel"] * k * 60.0,
+        values = (self.t_s(rows["tick"]),
+                  np.where(mode == MODE_CSP,
+                           on_grid(rows[p + "sp_target_position_counts"], step), np.nan),
+                  pos, vel_set, rows[p + "plant_table_vel"] * (self.k * 60.0),
                   np.where(mode == MODE_CST, rows[p + "sp_iq_ref_a"], np.nan),
-                  rows[p + "plant_iq_meas_a"], encoder * k)
+                  rows[p + "plant_iq_meas_a"], encoder)
         return {name: np.asarray(v, dtype=np.float64) for name, v in zip(self.names(), values)}
 
     def metadata(self, rec: Recording, stop_at_corrupt: bool = False) -> dict[str, str]:
@@ -206,4 +226,4 @@ def axis_trace(rec: Recording, axis: str | None = None) -> AxisTrace:
     return AxisTrace(name=axis, prefix=a["prefix"], rotary=a["kind"] == "rotary",
                      table_per_count=float(a["table_per_count"]),
                      scale_resolution_m=float(a["scale_resolution_m"]),
-                     period_s=rec.period_ns * 1e-9)
+                     period_s=rec.period_ns / 1e9)

@@ -336,7 +336,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="loop rate of both processes, Hz; must divide the PWM frequency "
                         "(default 4000)")
     p.add_argument("--config", default=str(DEFAULT_CONFIG),
-                   help="machine file (default: the Arrow 500 X)")
+                   help="machine file (default: configs/arrow500_x.toml, the Arrow 500 X)")
     p.add_argument("--no-rt", action="store_true", help="both processes without SCHED_FIFO")
     p.add_argument("--rss-every", type=float, default=5.0, metavar="S",
                    help="RSS sample period, s (default 5)")

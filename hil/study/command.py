@@ -39,7 +39,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="LocalCluster worker processes (default: the cores, %(default)s; "
                    "not used with --scheduler)")
     p.add_argument("--task-size", type=int, default=0, metavar="N",
-                   help="samples per task (default: about four tasks per worker, <= 32)")
+                   help="samples per task (default 0: about four tasks per worker, "
+                        "<= 32)")
     p.add_argument("--fresh", action="store_true", help="discard earlier results in --out")
     p.add_argument("--report-only", action="store_true",
                    help="run nothing: report on the results already in --out")

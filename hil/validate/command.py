@@ -26,7 +26,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--json", action="store_true",
                         help="print a JSON list of rows (kind and verdict included); the "
                         "summary goes to stderr")
-    parser.add_argument("--out", default="validate-out", help="folder for the plots")
+    parser.add_argument("--out", default="validate-out", help="folder for the plots (default "
+                        "%(default)s)")
     parser.add_argument("--no-plots", action="store_true", help="write no plots")
     import hil.validate.experiments  # noqa: F401  (registers the experiments: their names)
     from hil.validate.core import REGISTRY
