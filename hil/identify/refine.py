@@ -5,7 +5,9 @@ them as the controller does, and its error is what the report measures.  So at t
 the search the single-coefficient terms (mass, viscous and Coulomb friction, the
 constant force, the Stribeck excess; backlash, compliance), each coefficient of a term
 whose coefficients are one machine-file key each (the screw model's coupling and nut
-compliance, in log space: they span decades) and the scalar shapes that the
+compliance, in log space: they span decades), the cogging's sine and cosine coefficients
+(a fast periodic force's amplitude matters far more in the closed loop than in the
+inverse model) and the scalar shapes that the
 linear fits hold fixed (the Stribeck velocity, the presliding spring's k1, x1 and
 exponent) are adjusted together so that the replay matches the record
 (``scipy.optimize.least_squares``), on the acceptance's measure: every replay channel's
@@ -94,7 +96,7 @@ def parameters(model: Model) -> list[Parameter]:
         if t.effect.domain in (FORCE, POSITION) and t.effect.name not in FIXED_SCALE:
             if n == 1:
                 out.append(Parameter(t.effect.name, None, False))
-            elif n > 1 and t.effect.keys_per_coefficient:
+            elif n > 1 and (t.effect.keys_per_coefficient or t.effect.refined_per_coefficient):
                 lo = t.effect.bounds(t.shape)[0]
                 # a positive coefficient in log space: a compliance spans decades
                 out += [Parameter(t.effect.name, None, bool(lo[j] >= 0.0 and t.coef[j] > 0.0),

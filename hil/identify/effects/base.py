@@ -118,6 +118,9 @@ class Effect(ABC):
     #: whether :meth:`params` gives one machine-file key per coefficient, in their order
     #: (a single coefficient always does)
     keys_per_coefficient = False
+    #: whether the closed-loop refinement adjusts each coefficient of a term of several
+    #: (:func:`hil.identify.refine.parameters`; one key per coefficient always is)
+    refined_per_coefficient = False
 
     def unavailable(self, ctx: Context) -> str | None:
         """Why the effect cannot be looked for in this record or config, or None."""
