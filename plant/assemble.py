@@ -31,6 +31,7 @@ from plant import layout as L
 from plant.config import MachineConfig, delay_periods
 from plant.effects.chain import params_size, state_size
 from plant.effects.delay import ring_size
+from plant.effects.pmsm import first_order_kick_weights
 from plant.end_stops import EndStops, check_substep, end_stops
 from plant.errors import ConfigError
 from plant.substeps import MAX_SUB_PER_PWM, PLANT_LIMIT, refusal
@@ -374,6 +375,8 @@ def build(cfg: MachineConfig) -> Built:
     p[L.P_T_CL] = cl.time_constant_s
     if mo.model == "first_order":
         p[L.P_EXP_Q] = math.exp(-dt / cl.time_constant_s)
+        p[L.P_IQ_KICK_NOW], p[L.P_IQ_KICK_NEXT] = first_order_kick_weights(
+            dt, cl.time_constant_s)
     else:
         if mo.resistance_ohm <= 0.0:
             raise ConfigError(f"{cfg.path}: [motor] resistance_ohm must be > 0 ohm for "

@@ -201,11 +201,12 @@ def pwm_event(p, s, inp, omega_m):
 def motor_substep(p, s, inp, omega_m):
     """Advance the motor's electrical state one sub-step; return its torque (N·m or N).
 
-    The torque returned is that of the currents at the sub-step's start: the mechanics
-    take a kick-drift (symplectic Euler) step whose kick belongs to the start of the step,
-    and a current taken at the end would act one sub-step early.  On the trace of a
-    coarse plant (one sub-step per PWM period) that lead biased an inverse-model fit of
-    viscous friction and cogging by several per cent.
+    The torque returned is the kick of a kick-drift (symplectic Euler) step, which belongs
+    to the start of the step: that of the currents there (the d-q and commutation models),
+    or for the first-order model the lag's exact current averaged around the start
+    (:func:`plant.effects.pmsm.first_order_substep`).  A current taken at the end would act
+    one sub-step early: on the trace of a coarse plant (one sub-step per PWM period) that
+    lead biased an inverse-model fit of viscous friction and cogging by several per cent.
 
     With the power stage off the currents of the voltage-fed models freewheel to zero
     (pulses blocked: the windings are open, not shorted; back-EMF above the link
@@ -227,9 +228,7 @@ def motor_substep(p, s, inp, omega_m):
     if model == MOTOR_COMMUTATION:
         return commutation_substep(p, s, s[S_UQ_APPLIED], omega_m)
     iq_ref = inp[I_IQ_REF] if inp[I_ENABLE] > 0.0 else 0.0
-    torque = dq_torque(p, 0.0, s[S_IQ])
-    first_order_substep(p, s, iq_ref)
-    return torque
+    return dq_torque(p, 0.0, first_order_substep(p, s, iq_ref))
 
 
 @njit(cache=True, error_model="numpy")
@@ -240,8 +239,8 @@ def faulty_motor_substep(p, s, inp, omega_m):
     current loop, which regulates its measurement)."""
     theta_e = electrical_angle(p, s)
     if int(p[P_MOTOR_MODEL]) == MOTOR_FIRST_ORDER and inp[I_ENABLE] > 0.0:
-        torque = dq_torque(p, 0.0, s[S_IQ])
-        first_order_substep(p, s, first_order_target(p, inp[I_IQ_REF], theta_e))
+        torque = dq_torque(p, 0.0, first_order_substep(
+            p, s, first_order_target(p, inp[I_IQ_REF], theta_e)))
     else:
         torque = motor_substep(p, s, inp, omega_m)
     return torque * ripple_factor(p, theta_e)

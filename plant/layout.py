@@ -65,6 +65,8 @@ P_KI_I = next(_p)  # V/(A·s), current PI integral gain
 P_T_CL = next(_p)  # s, first-order current-loop time constant
 P_EXP_D = next(_p)  # exp(-R dt / L_d), exact decay over one sub-step
 P_EXP_Q = next(_p)  # exp(-R dt / L_q)
+P_IQ_KICK_NOW = next(_p)  # 1, first-order model: weight of i_n - target in the sub-step's kick
+P_IQ_KICK_NEXT = next(_p)  # 1, that of the next sub-step's kick, less e^(-dt/T) / 2 (pmsm)
 P_DECOUPLE = next(_p)  # 1: EMF and cross-coupling precontrol in the d-q current loops
 P_FW_ENABLED = next(_p)  # 1: commutation-angle field weakening (seed 001 eq. 6-10)
 P_FW_M_MAX = next(_p)  # N·m, rated maximum torque M_max of seed 001 eq. 8
@@ -201,7 +203,7 @@ S_UQ_NEXT = next(_s)
 S_ID_MEAS = next(_s)  # A, sampled and held measured currents
 S_IQ_MEAS = next(_s)
 S_KM = next(_s)  # N·m/A, present torque constant (commutation model)
-S_TORQUE = next(_s)  # N·m or N, electromagnetic torque of the last sub-step
+S_TORQUE = next(_s)  # N·m or N, electromagnetic torque (its kick) of the last sub-step
 S_TABLE_X = next(_s)  # table position (screw model; kinematic otherwise)
 S_TABLE_V = next(_s)
 S_NUT_F = next(_s)  # N, nut force of the last sub-step
@@ -215,6 +217,7 @@ S_DELAY_HEAD = next(_s)  # ring slot of the newest delayed sample
 S_ENC_LOST = next(_s)  # counts, signed: motor-encoder counts lost so far (P_ENC_LOST)
 S_ENC_PREV = next(_s)  # counts, true motor-encoder count at the last PWM event (P_ENC_LOST)
 S_ENC_NOISE = next(_s)  # counts, encoder noise of the last sample, held until the next
+S_IQ_KICK_TAIL = next(_s)  # A, first-order model: the next kick's share from this sub-step's lag
 S_COUNT = next(_s)
 del _s
 

@@ -38,8 +38,9 @@ def add_arguments(p) -> None:
                    help="processes evaluating a round's candidates (default: the CPUs "
                         "available, at most 2; 1: none)")
     p.add_argument("--tolerance", nargs="+", default=(), metavar="EFFECT=FRACTION",
-                   help="relative tolerance of a declared effect's coefficients: the prior's "
-                        "deviation in the refits and the change the report flags (default "
+                   help="relative tolerance of a declared effect's coefficients and shapes "
+                        "(a Stribeck velocity, a presliding spring's k1, x1, exponent): the "
+                        "prior's deviation in the refits and the change the report flags (default "
                         f"{DEFAULT_TOLERANCE:g} for every effect), e.g. inertia=0.05")
     p.add_argument("--quiet", action="store_true", help="no progress lines")
     p.add_argument("--json", action="store_true", help="print report.json to stdout")

@@ -90,7 +90,7 @@ class Identification:
             models: on EMPS, without ``viscous_asymmetry`` the search takes the constant
             offset of the paper's symmetric model instead).
         workers: processes evaluating a round's candidates (1: this one).
-        tolerance: effect name -> relative tolerance of its declared coefficients (the
+        tolerance: effect name -> relative tolerance of its declared values (the
             prior's deviation; :data:`hil.identify.model.DEFAULT_TOLERANCE` otherwise).
         log: optional callable(str) for progress lines (and a progress bar per round).
 

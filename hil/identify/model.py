@@ -31,20 +31,24 @@ DEFAULT_TOLERANCE = 0.1
 class Model:
     """Terms of the inverse model by domain, and the machine file they amount to.
 
-    The terms the machine file declares keep their declared coefficients as a prior: a
-    joint refit (:meth:`refit`) moves them only as far as the data outweigh a Gaussian
-    prior of deviation ``tolerance`` x |declared value| (:data:`DEFAULT_TOLERANCE`), and
-    never beyond ``tolerance`` x |declared value| (:meth:`box`): what the data ask for
-    beyond it stays in ``Term.wanted``, a finding the report lists, not a change taken
-    (issue 30, item 3: a declared mass or viscous friction moved to absorb what the model
-    lacked).  Each refit leaves every coefficient's standard uncertainty in
-    ``Term.sigma``.
+    The terms the machine file declares keep their declared values -- coefficients and
+    scalar shapes alike (:meth:`~hil.identify.effects.base.Term.values`: the Stribeck
+    velocity, the presliding spring's k1, x1 and exponent) -- as a prior: a joint refit
+    (:meth:`refit`) moves the coefficients only as far as the data outweigh a Gaussian
+    prior of deviation ``tolerance`` x |declared value| (:data:`DEFAULT_TOLERANCE`), the
+    closed-loop refinement every value the same way, and nothing moves beyond
+    ``tolerance`` x |declared value| (:meth:`box`): what the data ask for beyond it stays
+    in ``Term.wanted``, a finding the report lists, not a change taken (issue 30, item 3:
+    a declared mass or viscous friction moved to absorb what the model lacked; a declared
+    Stribeck velocity or presliding shape moved by up to a factor 3 unchecked).  Each
+    refit leaves every coefficient's standard uncertainty in ``Term.sigma``.
 
     Args:
         ctx: the record, its motion and the config as read.
         path: the machine file (the overrides are applied on top of it).
         progress: optional callable(fraction) for the replays.
-        tolerance: effect name -> relative tolerance of its declared coefficients.
+        tolerance: effect name -> relative tolerance of its declared values
+            (coefficients and scalar shapes).
     """
 
     def __init__(self, ctx: Context, path: str | Path, progress=None,
@@ -53,27 +57,35 @@ class Model:
         self.path = Path(path)
         self.progress = progress
         self.terms: list[Term] = [t for t in (e.declared(ctx) for e in LIBRARY) if t is not None]
-        self.declared = {t.effect.name: t.coef.copy() for t in self.terms}
+        self.declared = {t.effect.name: t.values() for t in self.terms}
         self.tolerance = dict(tolerance or {})
         self._replay: Replay | None = None
         self.pwm_period = 1.0 / ctx.cfg.motor.pwm_frequency_hz
 
     def tolerance_of(self, name: str) -> float:
-        """Relative tolerance of effect ``name``'s declared coefficients."""
+        """Relative tolerance of effect ``name``'s declared values."""
         return self.tolerance.get(name, DEFAULT_TOLERANCE)
 
     def term(self, name: str) -> Term | None:
         return next((t for t in self.terms if t.effect.name == name), None)
 
-    def box(self, term: Term) -> tuple[np.ndarray, np.ndarray]:
-        """Bounds of ``term``'s coefficients, each shape (k,): its effect's, narrowed for a
-        declared effect to the declared values +- tolerance x |declared| (or the effect's
-        own :meth:`~hil.identify.effects.base.Effect.declared_box`: a declared stiffness
-        moves by the tolerance's share); a declared 0 has no relative tolerance and keeps
-        its effect's bounds."""
-        lo, hi = term.effect.bounds(term.shape)
+    def declared_of(self, term: Term) -> np.ndarray | None:
+        """The declared values of ``term``'s effect, laid out as ``term.values()``, or None
+        where the file does not declare it (or declared another number of them: cogging
+        orders of its own)."""
         c0 = self.declared.get(term.effect.name)
-        if c0 is None or c0.size != lo.size:
+        return c0 if c0 is not None and c0.size == term.values().size else None
+
+    def box(self, term: Term) -> tuple[np.ndarray, np.ndarray]:
+        """Bounds of ``term``'s values (coefficients, then scalar shapes: ``term.values()``),
+        each that shape: its effect's, narrowed for a declared effect to the declared
+        values +- tolerance x |declared| (or the effect's own
+        :meth:`~hil.identify.effects.base.Effect.declared_box`: a declared stiffness moves
+        by the tolerance's share); a declared 0 has no relative tolerance and keeps its
+        effect's bounds."""
+        lo, hi = term.effect.value_bounds(term.shape)
+        c0 = self.declared_of(term)
+        if c0 is None:
             return lo, hi
         d_lo, d_hi = term.effect.declared_box(c0, self.tolerance_of(term.effect.name))
         free = c0 == 0.0
@@ -82,19 +94,31 @@ class Model:
 
     def add(self, term: Term) -> None:
         """Add a term (replacing the same effect's) and forget the cached replay.  A
-        declared effect's coefficients are held within their tolerance (:meth:`box`);
-        what the term asked for beyond it is kept as its ``wanted``."""
-        lo, hi = self.box(term)
-        held = np.clip(term.coef, lo, hi)
-        if not np.array_equal(held, term.coef):
-            term = dataclasses.replace(term, coef=held, wanted=term.coef.copy(),
-                                       wanted_by="its proposal")
+        declared effect's values are held within their tolerance (:meth:`hold`); what the
+        term asked for beyond it is kept as its ``wanted``."""
+        term = dataclasses.replace(term, coef=term.coef.copy(), shape=dict(term.shape))
+        self.hold(term, "its proposal")
         self.terms = [t for t in self.terms if t.effect.name != term.effect.name] + [term]
         self._replay = None
 
+    def hold(self, term: Term, by: str) -> bool:
+        """Hold ``term``'s values within :meth:`box`; where they lay beyond it, what they
+        were becomes its ``wanted`` (asked for by ``by``), else ``wanted`` is cleared.
+        True where something was held."""
+        values = term.values()
+        held = np.clip(values, *self.box(term))
+        beyond = not np.array_equal(held, values)
+        term.wanted = values if beyond else None
+        term.wanted_by = by if beyond else ""
+        if beyond:
+            term.set_values(held)
+            self._replay = None
+        return beyond
+
     def snapshot(self) -> list[Term]:
-        """A copy of the terms (coefficients copied) for :meth:`restore`."""
-        return [dataclasses.replace(t, coef=t.coef.copy()) for t in self.terms]
+        """A copy of the terms (coefficients and shapes copied) for :meth:`restore`."""
+        return [dataclasses.replace(t, coef=t.coef.copy(), shape=dict(t.shape))
+                for t in self.terms]
 
     def restore(self, terms: list[Term]) -> None:
         self.terms = terms
@@ -145,16 +169,20 @@ class Model:
         (each over the domain's noise floor, weighted by the share of independent samples,
         2 f_c dt, of the low-passed signals), the declared coefficients with their priors;
         sets each term's ``coef`` (the declared ones within :meth:`box`), ``wanted`` (the
-        fit without the box, where that goes beyond it) and ``sigma`` (standard
-        uncertainty from the weighted Jacobian, inflated by the residual's ratio to the
-        floor where it exceeds 1)."""
+        fit without the box with the term's shapes, where that goes beyond it) and
+        ``sigma`` (standard uncertainty from the weighted Jacobian, inflated by the
+        residual's ratio to the floor where it exceeds 1)."""
         terms = [t for t in self._domain(domain) if t.effect.n_coef(t.shape) > 0]
         if not terms:
             return
         cols = [t.effect.columns(self.ctx, t.shape) for t in terms]
         lo = [t.effect.bounds(t.shape)[0] for t in terms]
         hi = [t.effect.bounds(t.shape)[1] for t in terms]
-        box = [self.box(t) for t in terms]
+        k_of = [t.effect.n_coef(t.shape) for t in terms]
+        box = []
+        for t, k in zip(terms, k_of):
+            b_lo, b_hi = self.box(t)
+            box.append((b_lo[:k], b_hi[:k]))
         y = self.ctx.m.force if domain == FORCE else self.ctx.m.dx
         for t in terms:
             fixed = t.effect.fixed(self.ctx, t.shape)
@@ -183,14 +211,13 @@ class Model:
         misfit = float(np.sqrt(np.mean(r * r))) / noise if noise > 0.0 and r.size else 1.0
         sigma = uncertainty(a_w, misfit)
         i = 0
-        for t, (b_lo, b_hi) in zip(terms, box):
-            k = t.effect.n_coef(t.shape)
+        for t, k in zip(terms, k_of):
+            # what the fit without the box asked for, held like any proposal: the shapes,
+            # which it does not fit, as they are
+            t.set_values(np.concatenate([free[i:i + k], t.values()[k:]]))
+            self.hold(t, "the joint refit of its domain")
             t.coef = coef[i:i + k]
             t.sigma = sigma[i:i + k]
-            asked = free[i:i + k]
-            beyond = bool(np.any((asked < b_lo) | (asked > b_hi)))
-            t.wanted = asked.copy() if beyond else None
-            t.wanted_by = "the joint refit of its domain" if beyond else ""
             i += k
         self._replay = None
 
@@ -201,8 +228,8 @@ class Model:
         i = 0
         for t in terms:
             k = t.effect.n_coef(t.shape)
-            c0 = self.declared.get(t.effect.name)
-            if c0 is not None and c0.size == k:
+            c0 = self.declared_of(t)
+            if c0 is not None:
                 for j in range(k):
                     if c0[j] != 0.0:
                         s = self.tolerance_of(t.effect.name) * abs(float(c0[j]))

@@ -5,7 +5,9 @@ them as the controller does, and its error is what the report measures.  So at t
 the search the single-coefficient terms (mass, viscous and Coulomb friction, the
 constant force, the Stribeck excess; backlash, compliance), each coefficient of a term
 whose coefficients are one machine-file key each (the screw model's coupling and nut
-compliance, in log space: they span decades) and the scalar shapes that the
+compliance, in log space: they span decades), the cogging's sine and cosine coefficients
+(a fast periodic force's amplitude matters far more in the closed loop than in the
+inverse model) and the scalar shapes that the
 linear fits hold fixed (the Stribeck velocity, the presliding spring's k1, x1 and
 exponent) are adjusted together so that the replay matches the record
 (``scipy.optimize.least_squares``), on the acceptance's measure: every replay channel's
@@ -26,12 +28,15 @@ derivative-free pass (Powell's conjugate directions, at most :data:`POLISH_REPLA
 replays per parameter) polishes their point on the same sum of squares, kept where J
 falls by it.
 
-The declared coefficients keep their prior (:class:`hil.identify.model.Model`): one more
-residual (c - c_declared) / (tolerance |c_declared|) each, and stay within their
-tolerance (:meth:`hil.identify.model.Model.box`): the refinement runs first without the
-box, and where that takes a declared coefficient beyond its tolerance, what it asked for
-is kept as the term's ``wanted`` (a finding, not taken) and the refinement runs again
-from there with the coefficients held within it.  (Bounds change the least squares'
+The declared values -- coefficients and scalar shapes alike (``Term.values``) -- keep their
+prior (:class:`hil.identify.model.Model`): one more residual (c - c_declared) /
+(tolerance |c_declared|) each, and stay within their tolerance
+(:meth:`hil.identify.model.Model.box`): the refinement runs first without the box (a
+shape within :data:`SHAPE_RANGE` of its start), and where that takes a declared value
+beyond its tolerance, what it asked for is kept as the term's ``wanted`` (a finding, not
+taken) and the refinement runs again from there with the values held within it.
+Before issue 30 a declared shape had neither prior nor box: a Stribeck velocity or a
+presliding spring moved by up to the factor 3 unreported.  (Bounds change the least squares'
 steps, so a box that would not bind is left out: on EMPS, boxed from the start, the
 refinement stopped elsewhere and the validation's force error moved by 0.02 points.)
 
@@ -51,11 +56,9 @@ from hil.identify.model import Model, uncertainty
 from hil.identify.record import Record
 from hil.identify.replay import ERROR_START
 
-#: scalar shape parameters the refinement frees: effect -> shape keys (fitted in log
-#: space within a factor SHAPE_RANGE of the linear fit's value)
-SHAPES = {"stribeck": ("vs",), "presliding_hysteresis": ("k1", "x1", "a")}
-#: terms whose one coefficient is a fixed scale of their shape (not refined)
-FIXED_SCALE = ("presliding_hysteresis",)
+#: how far the refinement may take a scalar shape (``Effect.shape_keys``, fitted in log
+#: space): within this factor of where it starts, the linear fit's value (a declared
+#: shape no further than its tolerance besides, like a declared coefficient)
 SHAPE_RANGE = 3.0
 #: relative finite-difference steps of the two passes: stick-slip friction makes the
 #: replay's error rough in the friction levels at small scales, so a coarse pass first
@@ -70,8 +73,9 @@ POLISH_XTOL = 1e-3
 
 @dataclass(frozen=True)
 class Parameter:
-    """One refined parameter: a term's coefficient (``key`` None: coefficient ``index``,
-    of ``several`` where the term has more than one) or shape entry; its log where
+    """One refined parameter: entry ``index`` of a term's values (``Term.values``: its
+    coefficients, then its scalar shapes), the shape ``key`` where it is one (None: a
+    coefficient, ``several`` where the term has more than one refined); its log where
     ``log``."""
     effect: str
     key: str | None
@@ -91,15 +95,16 @@ def parameters(model: Model) -> list[Parameter]:
     out = []
     for t in model.terms:
         n = t.effect.n_coef(t.shape)
-        if t.effect.domain in (FORCE, POSITION) and t.effect.name not in FIXED_SCALE:
+        if t.effect.domain in (FORCE, POSITION) and not t.effect.fixed_scale:
             if n == 1:
                 out.append(Parameter(t.effect.name, None, False))
-            elif n > 1 and t.effect.keys_per_coefficient:
+            elif n > 1 and (t.effect.keys_per_coefficient or t.effect.refined_per_coefficient):
                 lo = t.effect.bounds(t.shape)[0]
                 # a positive coefficient in log space: a compliance spans decades
                 out += [Parameter(t.effect.name, None, bool(lo[j] >= 0.0 and t.coef[j] > 0.0),
                                   j, True) for j in range(n)]
-        out += [Parameter(t.effect.name, k, True) for k in SHAPES.get(t.effect.name, ())]
+        out += [Parameter(t.effect.name, key, True, n + j)
+                for j, key in enumerate(t.effect.shape_keys)]
     return out
 
 
@@ -107,8 +112,9 @@ def refine(model: Model, rec: Record, floor: dict, n_eff: float, max_nfev: int,
            say=None) -> dict:
     """Adjust :func:`parameters` on the closed-loop replay (module docstring); the model's
     terms are left at the best point found (or as they were when nothing is better), the
-    declared coefficients within their tolerance, their terms' ``wanted`` set to what the
-    replay asked for beyond it (cleared where it asked for no more).
+    declared values (coefficients and scalar shapes) within their tolerance, their terms'
+    ``wanted`` set to what the replay asked for beyond it (cleared where it asked for no
+    more).
 
     Returns the report's ``refinement``: ``before``/``after`` (label -> value),
     ``sigma`` (label -> standard uncertainty), ``wanted`` (label -> what the replay asks
@@ -116,19 +122,15 @@ def refine(model: Model, rec: Record, floor: dict, n_eff: float, max_nfev: int,
     out = _refine(model, rec, floor, n_eff, max_nfev, say, boxed=False)
     if not out:
         return out
-    coefs = [p for p in parameters(model) if p.key is None and p.effect in model.declared]
+    declared = [p for p in parameters(model)
+                if model.declared_of(model.term(p.effect)) is not None]
     wanted = {}
-    for name in dict.fromkeys(p.effect for p in coefs):
+    for name in dict.fromkeys(p.effect for p in declared):
         t = model.term(name)
-        lo, hi = model.box(t)
-        asked = np.clip(t.coef, lo, hi)
-        beyond = not np.array_equal(asked, t.coef)
-        t.wanted = t.coef.copy() if beyond else None
-        t.wanted_by = "the closed-loop refinement" if beyond else ""
-        if beyond:
-            wanted.update({p.label: float(t.wanted[p.index]) for p in coefs
-                           if p.effect == name and asked[p.index] != t.wanted[p.index]})
-            t.coef = asked
+        if model.hold(t, "the closed-loop refinement"):
+            taken = t.values()
+            wanted.update({p.label: float(t.wanted[p.index]) for p in declared
+                           if p.effect == name and taken[p.index] != t.wanted[p.index]})
     if not wanted:
         return {**out, "wanted": wanted}
     model.coefficients_changed()
@@ -141,7 +143,7 @@ def refine(model: Model, rec: Record, floor: dict, n_eff: float, max_nfev: int,
 
 def _refine(model: Model, rec: Record, floor: dict, n_eff: float, max_nfev: int, say,
             boxed: bool) -> dict:
-    """One refinement from the model's point (:func:`refine`), the declared coefficients
+    """One refinement from the model's point (:func:`refine`), the declared values
     held within their tolerance where ``boxed``; the report's ``refinement`` but
     ``wanted``."""
     params = parameters(model)
@@ -150,40 +152,33 @@ def _refine(model: Model, rec: Record, floor: dict, n_eff: float, max_nfev: int,
     terms = {t.effect.name: t for t in model.terms}
 
     def get(p: Parameter) -> float:
-        t = terms[p.effect]
-        if p.key is not None:
-            return math.log(t.shape[p.key])
-        c = float(t.coef[p.index])
-        return math.log(c) if p.log else c
+        v = float(terms[p.effect].values()[p.index])
+        return math.log(v) if p.log else v
 
     def put(p: Parameter, z: float) -> None:
         t = terms[p.effect]
-        if p.key is not None:
-            t.shape = {**t.shape, p.key: math.exp(z)}
-        else:
-            coef = t.coef.copy()
-            coef[p.index] = math.exp(z) if p.log else z
-            t.coef = coef
+        values = t.values()
+        values[p.index] = math.exp(z) if p.log else z
+        t.set_values(values)
 
     z0 = np.array([get(p) for p in params])
     lo, hi = np.empty(z0.size), np.empty(z0.size)
     for i, p in enumerate(params):
         t = terms[p.effect]
-        if p.key is not None:
-            lo[i], hi[i] = z0[i] - math.log(SHAPE_RANGE), z0[i] + math.log(SHAPE_RANGE)
-            continue
-        box = model.box(t) if boxed else t.effect.bounds(t.shape)
+        box = model.box(t) if boxed else t.effect.value_bounds(t.shape)
         lo[i], hi[i] = box[0][p.index], box[1][p.index]
         if p.log:
-            # the coefficient is positive and within its bounds: hi > 0
+            # the value is positive and within its bounds: hi > 0
             lo[i] = math.log(lo[i]) if lo[i] > 0.0 else -np.inf
             hi[i] = math.log(hi[i])
+        if p.key is not None:
+            lo[i] = max(lo[i], z0[i] - math.log(SHAPE_RANGE))
+            hi[i] = min(hi[i], z0[i] + math.log(SHAPE_RANGE))
     z0 = np.clip(z0, lo + 1e-12 * np.abs(z0), hi)
     prior = []  # (index, declared value, deviation, whether z is its log)
     for i, p in enumerate(params):
-        c0 = model.declared.get(p.effect)
-        if (p.key is None and c0 is not None and c0.size == terms[p.effect].coef.size
-                and c0[p.index] != 0.0):
+        c0 = model.declared_of(terms[p.effect])
+        if c0 is not None and c0[p.index] != 0.0:
             c0j = float(c0[p.index])
             prior.append((i, c0j, model.tolerance_of(p.effect) * abs(c0j), p.log))
     n = rec.n - ERROR_START
@@ -249,13 +244,16 @@ def _refine(model: Model, rec: Record, floor: dict, n_eff: float, max_nfev: int,
     sigma = uncertainty(jac, 1.0)
     after = {p.label: (math.exp(v) if p.log else float(v)) for p, v in zip(params, best)}
     sig = {p.label: (after[p.label] * s if p.log else s) for p, s in zip(params, sigma)}
-    for p, s in zip(params, sigma):
+    for p in params:
         t = terms[p.effect]
-        if p.key is None:
-            if t.sigma is None or t.sigma.size != t.coef.size:
-                t.sigma = np.full(t.coef.size, math.nan)
-            t.sigma = t.sigma.copy()
-            t.sigma[p.index] = sig[p.label] if p.log else s
+        size = t.values().size
+        if t.sigma is None or t.sigma.size != size:
+            known = t.sigma if t.sigma is not None and t.sigma.size == t.coef.size else None
+            t.sigma = np.full(size, math.nan)
+            if known is not None:
+                t.sigma[:known.size] = known
+        t.sigma = t.sigma.copy()
+        t.sigma[p.index] = sig[p.label]
     if say is not None:
         say(f"refined in {count[0]} replays: J {j0:.4g} -> {j1:.4g}")
     return {"before": before, "after": after, "sigma": sig, "cost_before": j0,

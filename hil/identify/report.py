@@ -169,9 +169,9 @@ def markdown(rep: dict) -> str:
         found = [c for c in changes if c["beyond_tolerance"]]
         if found:
             lines += ["", "### Findings", "",
-                      "What the data ask of a declared coefficient beyond its tolerance is "
-                      "not taken: the model lacks something, or the machine file is wrong "
-                      "there.", ""] + [f"- {finding_text(c)}" for c in found]
+                      "What the data ask of a declared value (a coefficient or a shape) "
+                      "beyond its tolerance is not taken: the model lacks something, or the "
+                      "machine file is wrong there.", ""] + [f"- {finding_text(c)}" for c in found]
     origin = rep.get("replay_noise_floor_origin", {})
     lines += ["", "Noise floor of the replay channels: " + ", ".join(
         f"{k} {_fmt(v)}" + (f" ({origin[k]})" if k in origin else "")

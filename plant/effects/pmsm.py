@@ -27,6 +27,8 @@ from plant.layout import (
     P_EXP_D,
     P_EXP_Q,
     P_I_MAX,
+    P_IQ_KICK_NEXT,
+    P_IQ_KICK_NOW,
     P_KI_I,
     P_KP_I,
     P_LD,
@@ -42,6 +44,7 @@ from plant.layout import (
     S_INT_D,
     S_INT_Q,
     S_IQ,
+    S_IQ_KICK_TAIL,
     S_IQ_MEAS,
     S_UD_NEXT,
     S_UQ_NEXT,
@@ -152,9 +155,41 @@ def dq_torque(p, i_d, i_q):
     return 1.5 * p[P_POLE_PAIRS] * (p[P_PSI] * i_q + (p[P_LD] - p[P_LQ]) * i_d * i_q)
 
 
+def first_order_kick_weights(dt: float, t_cl: float) -> tuple[float, float]:
+    """(P_IQ_KICK_NOW, P_IQ_KICK_NEXT) of :func:`first_order_substep` for a sub-step of
+    ``dt`` s and a lag of ``t_cl`` s, with x = dt / T_cl and a = e^-x: the lag's departure
+    from its target weighted by 1 - s/dt over the sub-step after the kick,
+    (x - (1 - a)) / x^2, and by s/dt over the one before, ((1 - a) - x a) / x^2, less the
+    a / 2 of it that the current at the kick's start already carries (expm1 keeps small x
+    exact)."""
+    x = dt / t_cl
+    a = math.exp(-x)
+    rise = -math.expm1(-x)
+    return (x - rise) / (x * x), (rise - x * a) / (x * x) - 0.5 * a
+
+
 @njit(cache=True, error_model="numpy")
 def first_order_substep(p, s, iq_ref):
-    """Current loop as a first-order lag (seed 004's T_cl): exact over one sub-step."""
+    """Current loop as a first-order lag (seed 004's T_cl): exact over one sub-step.
+    Returns the current (A) whose torque is the mechanics' kick of this sub-step.
+
+    The mechanics take kick-drift steps (v += dt F_n / m, then x += dt v): their positions
+    meet the true ones at the sub-step boundaries when the kick F_n is the force's average
+    over the two sub-steps around t_n weighted by 1 - |s|/dt (x_{n+1} - 2 x_n + x_{n-1}
+    is that average of x'' times dt^2).  The lag's current is known exactly between the
+    boundaries, i = c + (i_n - c) e^(-s/T) toward the held target c, so the kick takes that
+    average: (i_n + c) / 2 + (i_n - c) w_now from this sub-step and, from the one before,
+    what its departure from its target adds to i_n / 2 (kept in S_IQ_KICK_TAIL; 0 where
+    the current sat at its target, as after a reset or a current set from outside).  The
+    current at the sub-step's start alone, as before issue 30, is off by
+    (dt^2 / 6 T) di_set/dt: at one sub-step per 250 us PWM period and T = 0.5 ms, a speed
+    loop that fights a 120 Hz cogging force moved the position by nm against a generator
+    that integrates the lag, and the encoder's count flips turned that into 0.4 floor of
+    current error."""
     imax = p[P_I_MAX]
     target = clamp(iq_ref, -imax, imax)
-    s[S_IQ] = target + (s[S_IQ] - target) * p[P_EXP_Q]
+    i_n = s[S_IQ]
+    kick = 0.5 * (i_n + target) + (i_n - target) * p[P_IQ_KICK_NOW] + s[S_IQ_KICK_TAIL]
+    s[S_IQ_KICK_TAIL] = (i_n - target) * p[P_IQ_KICK_NEXT]
+    s[S_IQ] = target + (i_n - target) * p[P_EXP_Q]
+    return kick

@@ -77,11 +77,13 @@ class Term:
         coef: coefficients of ``effect.columns``, shape (k,).
         added: True when identification added it, False when the config declared it.
         evidence: what pointed to it (numbers and a sentence), for the report.
-        sigma: standard uncertainty of each coefficient from the last fit, shape (k,), or
-            None before one.
-        wanted: for a declared effect, the coefficients the data asked for where that
-            lies beyond the declared values' tolerance, which held ``coef`` (shape (k,));
-            None when what they ask for is within it.  A finding, not taken.
+        sigma: standard uncertainty of each coefficient from the last fit, shape (k,), and
+            of the scalar shapes after the closed-loop refinement, shape (k + s,) as
+            :meth:`values` (NaN where unknown), or None before a fit.
+        wanted: for a declared effect, the coefficients and scalar shapes the data asked
+            for (laid out as :meth:`values`) where that lies beyond the declared values'
+            tolerance, which held them; None when what they ask for is within it.  A
+            finding, not taken.
         wanted_by: what asked for ``wanted`` (its proposal, the joint refit, the
             closed-loop refinement).
     """
@@ -93,6 +95,20 @@ class Term:
     sigma: np.ndarray | None = None
     wanted: np.ndarray | None = None
     wanted_by: str = ""
+
+    def values(self) -> np.ndarray:
+        """The term's parameters as one vector, shape (k + s,): its coefficients, then its
+        scalar shapes (:attr:`Effect.shape_keys`, in their order).  What a declared term
+        holds to its tolerance (:meth:`hil.identify.model.Model.box`) and ``wanted``."""
+        shapes = [float(self.shape[key]) for key in self.effect.shape_keys]
+        return np.concatenate([self.coef, np.array(shapes)])
+
+    def set_values(self, values: np.ndarray) -> None:
+        """Set the coefficients and scalar shapes from a vector laid out as :meth:`values`."""
+        k = self.coef.size
+        self.coef = np.array(values[:k], dtype=float)
+        self.shape = {**self.shape, **{key: float(v) for key, v in
+                                       zip(self.effect.shape_keys, values[k:])}}
 
     def contribution(self, ctx: Context) -> np.ndarray:
         """The term's part of its domain's prediction, shape (n,)."""
@@ -118,6 +134,16 @@ class Effect(ABC):
     #: whether :meth:`params` gives one machine-file key per coefficient, in their order
     #: (a single coefficient always does)
     keys_per_coefficient = False
+    #: whether the closed-loop refinement adjusts each coefficient of a term of several
+    #: (:func:`hil.identify.refine.parameters`; one key per coefficient always is)
+    refined_per_coefficient = False
+    #: the scalar shape parameters (positive, SI) that the linear fits hold fixed and the
+    #: closed-loop refinement adjusts (in log space); a declared term's are declared values
+    #: like its coefficients, held to the same tolerance (:meth:`Term.values`)
+    shape_keys: tuple[str, ...] = ()
+    #: whether the one coefficient is a fixed scale of the shape (never fitted: the shape
+    #: carries the machine-file keys)
+    fixed_scale = False
 
     def unavailable(self, ctx: Context) -> str | None:
         """Why the effect cannot be looked for in this record or config, or None."""
@@ -144,14 +170,26 @@ class Effect(ABC):
     def n_coef(self, shape: dict) -> int:
         return 1
 
+    def value_bounds(self, shape: dict) -> tuple[np.ndarray, np.ndarray]:
+        """Bounds of :meth:`Term.values`, each shape (k + s,): the coefficients'
+        (:meth:`bounds`), then (0, inf) for each scalar shape."""
+        lo, hi = self.bounds(shape)
+        n = len(self.shape_keys)
+        return np.concatenate([lo, np.zeros(n)]), np.concatenate([hi, np.full(n, np.inf)])
+
+    def shape_label(self, ctx: Context, key: str) -> str:
+        """The name :meth:`params` gives the scalar shape ``key``."""
+        return key
+
     def fixed(self, ctx: Context, shape: dict) -> np.ndarray | None:
         """The part of the effect's prediction that no coefficient scales, shape (n,) (the
         screw model's compliance the fit leaves as declared), or None."""
         return None
 
     def declared_box(self, c0: np.ndarray, tolerance: float) -> tuple[np.ndarray, np.ndarray]:
-        """Where declared coefficients ``c0`` (k,) may move within the relative
-        ``tolerance``, each shape (k,): +- tolerance x |c0|.  An effect whose coefficients
+        """Where a declared term's values ``c0`` (coefficients and scalar shapes, laid out as
+        :meth:`Term.values`) may move within the relative ``tolerance``, each shape as
+        ``c0``: +- tolerance x |c0|.  An effect whose coefficients
         are the inverse of the machine file's keys (a compliance, the file's stiffness)
         narrows it so that the keys move by at most that share."""
         dev = tolerance * np.abs(c0)

@@ -248,6 +248,8 @@ PRESLIDING_LO = (-np.inf, math.log(X1_MIN), 0.3)
 PRESLIDING_HI = (np.inf, math.log(X1_MAX), 3.0)
 PRESLIDING_LO_WIDE = (-np.inf, math.log(X1_MIN), 0.1)
 PRESLIDING_HI_WIDE = (np.inf, math.log(X1_MAX), 6.0)
+#: the names :meth:`Presliding.params` gives the shapes
+PRESLIDING_LABELS = {"k1": "stiffness_n_per_m", "x1": "x1_m", "a": "exponent"}
 
 
 class Presliding(Effect):
@@ -256,6 +258,8 @@ class Presliding(Effect):
     name = "presliding_hysteresis"
     domain = FORCE
     n_params = 3
+    shape_keys = ("k1", "x1", "a")
+    fixed_scale = True
 
     def declared(self, ctx):
         pr = ctx.cfg.presliding
@@ -327,6 +331,9 @@ class Presliding(Effect):
 
     def columns(self, ctx, shape):
         return self._column(ctx, shape)[:, None]
+
+    def shape_label(self, ctx, key):
+        return PRESLIDING_LABELS[key]
 
     def params(self, ctx, shape, coef):
         return {"stiffness_n_per_m": shape["k1"] * float(coef[0]), "x1_m": shape["x1"],

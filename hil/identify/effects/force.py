@@ -234,6 +234,7 @@ class Stribeck(Effect):
     (Fs - Fc) exp(-(v/vs)^2) sign(v)."""
     name = "stribeck"
     n_params = 2
+    shape_keys = ("vs",)
 
     def _keys(self, ctx):
         if _rotary(ctx):
@@ -304,6 +305,9 @@ class Stribeck(Effect):
     def columns(self, ctx, shape):
         v = ctx.m.v
         return (np.sign(v) * np.exp(-(v / shape["vs"]) ** 2))[:, None]
+
+    def shape_label(self, ctx, key):
+        return self._keys(ctx)[1]
 
     def bounds(self, shape):
         return np.zeros(1), np.full(1, np.inf)
