@@ -28,7 +28,7 @@ def declared_changes(model: Model) -> list[dict]:
     ``significant`` (the change taken exceeds twice its uncertainty)."""
     rows = []
     for t in model.terms:
-        c0 = model.declared.get(t.effect.name)
+        c0 = model.declared_of(t)
         if c0 is None or c0.size != t.coef.size or c0.size == 0:
             continue
         tol = model.tolerance_of(t.effect.name)
@@ -36,6 +36,9 @@ def declared_changes(model: Model) -> list[dict]:
         c_asked = t.wanted if t.wanted is not None else t.coef
         keyed = c0.size == 1 or t.effect.keys_per_coefficient
         for j in range(c0.size):
+            if math.isnan(c0[j]):
+                # not declared (a coefficient the fit adds beside declared ones)
+                continue
             before, after = float(c0[j]), float(t.coef[j])
             sigma = float(t.sigma[j]) if t.sigma is not None else math.nan
             wanted = float(t.wanted[j]) if t.wanted is not None else None

@@ -4,10 +4,11 @@ The inverse model weighs every sample's force balance equally; the closed loop w
 them as the controller does, and its error is what the report measures.  So at the end of
 the search the single-coefficient terms (mass, viscous and Coulomb friction, the
 constant force, the Stribeck excess; backlash, compliance), each coefficient of a term
-whose coefficients are one machine-file key each (the screw model's coupling and nut
-compliance, in log space: they span decades) and the scalar shapes that the
+whose coefficients are one machine-file key each (the screw model's coupling, nut and
+torsion compliance, in log space: they span decades) and the scalar shapes that the
 linear fits hold fixed (the Stribeck velocity, the presliding spring's k1, x1 and
-exponent) are adjusted together so that the replay matches the record
+exponent, the damping ratio the replay chose for a rigid file's coupling in the screw
+model) are adjusted together so that the replay matches the record
 (``scipy.optimize.least_squares``), on the acceptance's measure: every replay channel's
 error over its noise floor, with the record's n_eff independent samples -- the residual
 vector is sqrt(n_eff / n) (y - y_hat) / (floor s_k) per channel and sample.  A channel
@@ -46,14 +47,16 @@ import numpy as np
 from scipy.optimize import least_squares, minimize
 
 from hil.identify.effects import FORCE, POSITION
+from hil.identify.effects.base import uncertainty
 from hil.identify.floor import channel_residuals
-from hil.identify.model import Model, uncertainty
+from hil.identify.model import Model
 from hil.identify.record import Record
 from hil.identify.replay import ERROR_START
 
 #: scalar shape parameters the refinement frees: effect -> shape keys (fitted in log
 #: space within a factor SHAPE_RANGE of the linear fit's value)
-SHAPES = {"stribeck": ("vs",), "presliding_hysteresis": ("k1", "x1", "a")}
+SHAPES = {"stribeck": ("vs",), "presliding_hysteresis": ("k1", "x1", "a"),
+          "screw_model_compliance": ("zeta",)}
 #: terms whose one coefficient is a fixed scale of their shape (not refined)
 FIXED_SCALE = ("presliding_hysteresis",)
 SHAPE_RANGE = 3.0
@@ -99,7 +102,10 @@ def parameters(model: Model) -> list[Parameter]:
                 # a positive coefficient in log space: a compliance spans decades
                 out += [Parameter(t.effect.name, None, bool(lo[j] >= 0.0 and t.coef[j] > 0.0),
                                   j, True) for j in range(n)]
-        out += [Parameter(t.effect.name, k, True) for k in SHAPES.get(t.effect.name, ())]
+        # a shape entry the term has, and positive (its log is refined): the screw model's
+        # damping ratio only where the replay chose one, and not 0
+        out += [Parameter(t.effect.name, k, True) for k in SHAPES.get(t.effect.name, ())
+                if t.shape.get(k, 0.0) > 0.0]
     return out
 
 
@@ -181,9 +187,9 @@ def _refine(model: Model, rec: Record, floor: dict, n_eff: float, max_nfev: int,
     z0 = np.clip(z0, lo + 1e-12 * np.abs(z0), hi)
     prior = []  # (index, declared value, deviation, whether z is its log)
     for i, p in enumerate(params):
-        c0 = model.declared.get(p.effect)
+        c0 = model.declared_of(terms[p.effect])
         if (p.key is None and c0 is not None and c0.size == terms[p.effect].coef.size
-                and c0[p.index] != 0.0):
+                and c0[p.index] != 0.0 and not math.isnan(c0[p.index])):
             c0j = float(c0[p.index])
             prior.append((i, c0j, model.tolerance_of(p.effect) * abs(c0j), p.log))
     n = rec.n - ERROR_START

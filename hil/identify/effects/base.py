@@ -118,6 +118,9 @@ class Effect(ABC):
     #: whether :meth:`params` gives one machine-file key per coefficient, in their order
     #: (a single coefficient always does)
     keys_per_coefficient = False
+    #: effects whose terms this one's takes the place of (the model holds one or the other:
+    #: the screw model's compliance and the two-mass form write the same keys)
+    replaces: tuple = ()
 
     def unavailable(self, ctx: Context) -> str | None:
         """Why the effect cannot be looked for in this record or config, or None."""
@@ -125,6 +128,13 @@ class Effect(ABC):
 
     def declared(self, ctx: Context) -> Term | None:
         """The term the config already holds, or None."""
+        return None
+
+    def declared_coefficients(self, ctx: Context) -> np.ndarray | None:
+        """Where the config holds no term of the effect but declares some of its
+        coefficients elsewhere (the screw's torsion, from the geometry a rigid file gives
+        its screw): those coefficients, NaN for the ones it does not declare, shape (k,);
+        else None.  They are held within their tolerance like a declared term's."""
         return None
 
     @abstractmethod
@@ -148,6 +158,11 @@ class Effect(ABC):
         """The part of the effect's prediction that no coefficient scales, shape (n,) (the
         screw model's compliance the fit leaves as declared), or None."""
         return None
+
+    def declared_for(self, c0: np.ndarray, shape: dict) -> np.ndarray:
+        """The declared coefficients ``c0`` as a term of ``shape`` has them (a shape that
+        holds a coefficient at its declared value leaves it out), shape (n_coef(shape),)."""
+        return c0
 
     def declared_box(self, c0: np.ndarray, tolerance: float) -> tuple[np.ndarray, np.ndarray]:
         """Where declared coefficients ``c0`` (k,) may move within the relative
@@ -256,3 +271,16 @@ def correlation(a: np.ndarray, b: np.ndarray) -> float:
     if sa == 0.0 or sb == 0.0:
         return 0.0
     return float(np.mean((a - a.mean()) * (b - b.mean())) / (sa * sb))
+
+
+def uncertainty(a_w: np.ndarray, misfit: float) -> np.ndarray:
+    """Standard uncertainties of a fit's parameters from its Jacobian (or a linear fit's
+    weighted columns) ``a_w``, rows in noise units: sqrt of the diagonal of (AᵀA)⁻¹,
+    times the data's rms residual over the noise floor (``misfit``) where it exceeds 1:
+    a model that does not reach the floor knows its parameters less well.  NaN where the
+    columns are degenerate."""
+    try:
+        cov = np.linalg.inv(a_w.T @ a_w)
+    except np.linalg.LinAlgError:
+        return np.full(a_w.shape[1], math.nan)
+    return np.sqrt(np.clip(np.diag(cov), 0.0, None)) * max(1.0, misfit)
