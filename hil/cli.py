@@ -150,6 +150,7 @@ def cmd_bench_adapters(args) -> int:
 def cmd_config_keys(args) -> int:
     from hil.controller.config import ControllerSection
     from hil.drive.config import DriveSection
+    from hil.identify import screw_geometry
     from hil.inject.catalog import FAULTS
     from plant.config import schema_rows
     from plant.schema import describe
@@ -160,6 +161,7 @@ def cmd_config_keys(args) -> int:
     rows = schema_rows() + [{"section": name, **row} for name, cls in hil_sections
                             for row in sorted(describe(cls),
                                               key=lambda r: r["key"] in ("at_s", "ramp_s"))]
+    rows += [{"section": screw_geometry.SECTION, **row} for row in screw_geometry.schema_rows()]
     if args.markdown:
         print("| section | key | unit | range | default | applies to | meaning |")
         print("|---|---|---|---|---|---|---|")

@@ -365,9 +365,9 @@ SECTIONS = {
     "presliding": PreslidingSection, "sensors": SensorsSection, "simulation": SimulationSection,
     "brake": BrakeSection,
 }
-# sections read by other packages (hil's controller, drive and fault injection): the plant
-# keeps them as raw tables
-FOREIGN_SECTIONS = ("controller", "drive", "inject")
+# sections read by other packages (hil's controller, drive, fault injection and
+# identification): the plant keeps them as raw tables
+FOREIGN_SECTIONS = ("controller", "drive", "inject", "identify")
 # sections that may be absent: they then take every default
 OPTIONAL_SECTIONS = {"field_weakening", "cogging", "friction", "presliding", "sensors",
                      "simulation", "current_loop", "pitch_error", "brake"}

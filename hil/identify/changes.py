@@ -43,6 +43,10 @@ def declared_changes(model: Model) -> list[dict]:
         k = t.coef.size
         keyed = k == 1 or t.effect.keys_per_coefficient
         for j in range(c0.size):
+            if math.isnan(c0[j]):
+                # not declared (a coefficient the fit adds beside declared ones, a shape
+                # the declaration lacks: Effect.declared_for)
+                continue
             if j < k and t.effect.fixed_scale:
                 continue
             sigma = float(t.sigma[j]) if t.sigma is not None and j < t.sigma.size else math.nan
@@ -55,7 +59,8 @@ def declared_changes(model: Model) -> list[dict]:
                 # a stiffness the inverse of a compliance, the presliding stiffness k1
                 # times its scale)
                 label = (list(_params_at(model, t, c0))[j] if j < k
-                         else t.effect.shape_label(model.ctx, t.effect.shape_keys[j - k]))
+                         else t.effect.shape_label(model.ctx,
+                                                   t.effect.shape_keys_of(t.shape)[j - k]))
                 before = _params_at(model, t, c0)[label]
                 after = _params_at(model, t, values)[label]
                 wanted = (_params_at(model, t, t.wanted)[label] if t.wanted is not None
@@ -87,8 +92,8 @@ def _params_at(model: Model, term, values) -> dict:
     """``term``'s physical parameters (:meth:`~hil.identify.effects.base.Effect.params`,
     name -> value) with its values set to ``values`` (laid out as ``Term.values``)."""
     k = term.coef.size
-    shape = {**term.shape, **{key: float(v) for key, v in
-                              zip(term.effect.shape_keys, values[k:])}}
+    keys = term.effect.shape_keys_of(term.shape)
+    shape = {**term.shape, **{key: float(v) for key, v in zip(keys, values[k:])}}
     return {name: float(v) for name, v in
             term.effect.params(model.ctx, shape, np.asarray(values[:k])).items()
             if not isinstance(v, list)}

@@ -9,7 +9,7 @@ import math
 import re
 from pathlib import Path
 
-_SECTION = re.compile(r"^\s*\[([A-Za-z0-9_]+)\]\s*(#.*)?$")
+_SECTION = re.compile(r"^\s*\[([A-Za-z0-9_.]+)\]\s*(#.*)?$")
 _KEY = re.compile(r"^(\s*)([A-Za-z0-9_]+)(\s*=\s*)")
 
 

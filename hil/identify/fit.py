@@ -30,6 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
+from hil.identify import screw_geometry
 from hil.identify.candidates import Candidate, CandidatePool, Setting, n_coef
 from hil.identify.changes import declared_changes, finding_text
 from hil.identify.conventions import read_conventions
@@ -133,6 +134,7 @@ class Identification:
         self._t0 = time.monotonic()
         cfg = load_machine(self.config)
         read_conventions(self.rec, cfg)  # a header the replay cannot honour: refused first
+        screw_geometry.check(cfg)
         self.drive = Drive.of(cfg)
         self.motion = motion(self.rec, self.drive, self.cutoff_hz)
         self.ctx = Context.of(cfg, self.drive, self.rec, self.motion)
@@ -192,7 +194,8 @@ class Identification:
     def _candidate_names(self) -> list[str]:
         """The candidates this round may try: the library's effects available in the record,
         not excluded, not rejected before, not in the model yet (or declared and
-        correctable); then the joint candidates they call for (Coulomb with the Stribeck
+        correctable, and not replaced by a term of the model); then the joint candidates
+        they call for (Coulomb with the Stribeck
         dip wherever Coulomb is a candidate, :mod:`hil.identify.effects.joint`), unless
         rejected before."""
         out = []
@@ -206,6 +209,11 @@ class Identification:
                 self.skipped[effect.name] = why
                 continue
             if effect.name in self.rejected:
+                continue
+            instead = next((t.effect.name for t in self.model.terms
+                            if effect.name in t.effect.replaces), None)
+            if instead is not None:
+                self.skipped[effect.name] = f"{instead} takes its place in the model"
                 continue
             have = self.model.term(effect.name)
             if have is not None and (have.added or not effect.correctable):

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from hil.identify.effects import FORCE, LIBRARY, POSITION, Context, Term
-from hil.identify.effects.base import lstsq
+from hil.identify.effects.base import lstsq, uncertainty
 from hil.identify.record import Record
 from hil.identify.replay import ERROR_START, Replay, replay
 from plant.config import ConfigError, MachineConfig, load_machine
@@ -58,6 +58,10 @@ class Model:
         self.progress = progress
         self.terms: list[Term] = [t for t in (e.declared(ctx) for e in LIBRARY) if t is not None]
         self.declared = {t.effect.name: t.values() for t in self.terms}
+        for e in LIBRARY:
+            c0 = None if e.name in self.declared else e.declared_coefficients(ctx)
+            if c0 is not None:
+                self.declared[e.name] = c0
         self.tolerance = dict(tolerance or {})
         self._replay: Replay | None = None
         self.pwm_period = 1.0 / ctx.cfg.motor.pwm_frequency_hz
@@ -70,11 +74,15 @@ class Model:
         return next((t for t in self.terms if t.effect.name == name), None)
 
     def declared_of(self, term: Term) -> np.ndarray | None:
-        """The declared values of ``term``'s effect, laid out as ``term.values()``, or None
-        where the file does not declare it (or declared another number of them: cogging
-        orders of its own)."""
+        """The declared values of ``term``'s effect laid out as ``term.values()`` (as its
+        shape has them, :meth:`~hil.identify.effects.base.Effect.declared_for`: NaN where
+        one is not declared), or None where the file does not declare the effect (or
+        declared another number of them: cogging orders of its own)."""
         c0 = self.declared.get(term.effect.name)
-        return c0 if c0 is not None and c0.size == term.values().size else None
+        if c0 is None:
+            return None
+        c0 = term.effect.declared_for(c0, term.shape)
+        return c0 if c0.size == term.values().size else None
 
     def box(self, term: Term) -> tuple[np.ndarray, np.ndarray]:
         """Bounds of ``term``'s values (coefficients, then scalar shapes: ``term.values()``),
@@ -82,23 +90,32 @@ class Model:
         values +- tolerance x |declared| (or the effect's own
         :meth:`~hil.identify.effects.base.Effect.declared_box`: a declared stiffness moves
         by the tolerance's share); a declared 0 has no relative tolerance and keeps its
-        effect's bounds."""
+        effect's bounds, as does a value the file does not declare (NaN,
+        :meth:`~hil.identify.effects.base.Effect.declared_coefficients`, or a shape the
+        declaration lacks)."""
         lo, hi = term.effect.value_bounds(term.shape)
         c0 = self.declared_of(term)
         if c0 is None:
             return lo, hi
-        d_lo, d_hi = term.effect.declared_box(c0, self.tolerance_of(term.effect.name))
-        free = c0 == 0.0
+        free = (c0 == 0.0) | np.isnan(c0)
+        d_lo, d_hi = term.effect.declared_box(np.where(free, 1.0, c0),
+                                              self.tolerance_of(term.effect.name))
         return (np.where(free, lo, np.maximum(lo, d_lo)),
                 np.where(free, hi, np.minimum(hi, d_hi)))
 
     def add(self, term: Term) -> None:
         """Add a term (replacing the same effect's) and forget the cached replay.  A
         declared effect's values are held within their tolerance (:meth:`hold`); what the
-        term asked for beyond it is kept as its ``wanted``."""
+        term asked for beyond it is kept as its ``wanted`` -- or what the proposal itself
+        kept there, where it held its declared values and fitted the rest beside them (the
+        screw model's compliance).  The terms its effect replaces (``Effect.replaces``)
+        leave the model."""
         term = dataclasses.replace(term, coef=term.coef.copy(), shape=dict(term.shape))
-        self.hold(term, "its proposal")
-        self.terms = [t for t in self.terms if t.effect.name != term.effect.name] + [term]
+        asked, by = term.wanted, term.wanted_by
+        if not self.hold(term, "its proposal") and asked is not None:
+            term.wanted, term.wanted_by = asked, by
+        gone = (term.effect.name, *term.effect.replaces)
+        self.terms = [t for t in self.terms if t.effect.name not in gone] + [term]
         self._replay = None
 
     def hold(self, term: Term, by: str) -> bool:
@@ -231,7 +248,7 @@ class Model:
             c0 = self.declared_of(t)
             if c0 is not None:
                 for j in range(k):
-                    if c0[j] != 0.0:
+                    if c0[j] != 0.0 and not math.isnan(c0[j]):
                         s = self.tolerance_of(t.effect.name) * abs(float(c0[j]))
                         row = np.zeros((1, width))
                         row[0, i + j] = 1.0 / s
@@ -253,7 +270,9 @@ class Model:
     def replay(self, extra: dict | None = None, rec: Record | None = None) -> Replay | None:
         """Closed-loop replay of ``rec`` (default: the identification record) through the
         config with the terms (and ``extra``); None when the overrides make no valid
-        machine file (a fit outside the schema's ranges)."""
+        machine file (a fit outside the schema's ranges, or a spring too stiff for the
+        plant's sub-steps: a refinement that drives a compliance toward 0).  The machine
+        file as declared, refused, is the caller's to hear of: its error is raised."""
         cached = extra is None and rec is None
         if cached and self._replay is not None:
             return self._replay
@@ -261,7 +280,12 @@ class Model:
             cfg = self.config(extra)
         except ConfigError:
             return None
-        rep = replay(cfg, rec if rec is not None else self.ctx.rec, progress=self.progress)
+        try:
+            rep = replay(cfg, rec if rec is not None else self.ctx.rec, progress=self.progress)
+        except ConfigError:
+            if extra is None and not any(t.added for t in self.terms):
+                raise
+            return None
         if cached:
             self._replay = rep
         return rep
@@ -270,16 +294,3 @@ class Model:
         """rms of the effort's replay error from sample ``start`` on."""
         d = self.ctx.rec.effort[start:] - rep.effort[start:]
         return float(np.sqrt(np.mean(d * d)))
-
-
-def uncertainty(a_w: np.ndarray, misfit: float) -> np.ndarray:
-    """Standard uncertainties of a fit's parameters from its Jacobian (or a linear fit's
-    weighted columns) ``a_w``, rows in noise units: sqrt of the diagonal of (AᵀA)⁻¹,
-    times the data's rms residual over the noise floor (``misfit``) where it exceeds 1:
-    a model that does not reach the floor knows its parameters less well.  NaN where the
-    columns are degenerate."""
-    try:
-        cov = np.linalg.inv(a_w.T @ a_w)
-    except np.linalg.LinAlgError:
-        return np.full(a_w.shape[1], math.nan)
-    return np.sqrt(np.clip(np.diag(cov), 0.0, None)) * max(1.0, misfit)

@@ -4,12 +4,13 @@ The inverse model weighs every sample's force balance equally; the closed loop w
 them as the controller does, and its error is what the report measures.  So at the end of
 the search the single-coefficient terms (mass, viscous and Coulomb friction, the
 constant force, the Stribeck excess; backlash, compliance), each coefficient of a term
-whose coefficients are one machine-file key each (the screw model's coupling and nut
-compliance, in log space: they span decades), the cogging's sine and cosine coefficients
-(a fast periodic force's amplitude matters far more in the closed loop than in the
-inverse model) and the scalar shapes that the
-linear fits hold fixed (the Stribeck velocity, the presliding spring's k1, x1 and
-exponent) are adjusted together so that the replay matches the record
+whose coefficients are one machine-file key each (the screw model's coupling, nut and
+torsion compliance, in log space: they span decades), the cogging's sine and cosine
+coefficients (a fast periodic force's amplitude matters far more in the closed loop than
+in the inverse model) and the scalar shapes that the
+linear fits hold fixed (``Effect.shape_keys_of``: the Stribeck velocity, the presliding
+spring's k1, x1 and exponent, the damping ratio the replay chose for a rigid file's
+coupling in the screw model) are adjusted together so that the replay matches the record
 (``scipy.optimize.least_squares``), on the acceptance's measure: every replay channel's
 error over its noise floor, with the record's n_eff independent samples -- the residual
 vector is sqrt(n_eff / n) (y - y_hat) / (floor s_k) per channel and sample.  A channel
@@ -51,13 +52,14 @@ import numpy as np
 from scipy.optimize import least_squares, minimize
 
 from hil.identify.effects import FORCE, POSITION
+from hil.identify.effects.base import uncertainty
 from hil.identify.floor import channel_residuals
-from hil.identify.model import Model, uncertainty
+from hil.identify.model import Model
 from hil.identify.record import Record
 from hil.identify.replay import ERROR_START
 
-#: how far the refinement may take a scalar shape (``Effect.shape_keys``, fitted in log
-#: space): within this factor of where it starts, the linear fit's value (a declared
+#: how far the refinement may take a scalar shape (``Effect.shape_keys_of``, fitted in
+#: log space): within this factor of where it starts, the linear fit's value (a declared
 #: shape no further than its tolerance besides, like a declared coefficient)
 SHAPE_RANGE = 3.0
 #: relative finite-difference steps of the two passes: stick-slip friction makes the
@@ -103,8 +105,13 @@ def parameters(model: Model) -> list[Parameter]:
                 # a positive coefficient in log space: a compliance spans decades
                 out += [Parameter(t.effect.name, None, bool(lo[j] >= 0.0 and t.coef[j] > 0.0),
                                   j, True) for j in range(n)]
+        # the term's scalar shapes follow its coefficients in its values (the screw model's
+        # damping ratio only where the replay chose one, and not 0: its log is refined).
+        # A screw-model torsion held as declared is no coefficient of its term (n_coef 2,
+        # Effect.declared_for): the refinement takes coupling and nut alone, the torsion
+        # stays in the term's fixed part, and the shapes' indices follow the two
         out += [Parameter(t.effect.name, key, True, n + j)
-                for j, key in enumerate(t.effect.shape_keys)]
+                for j, key in enumerate(t.effect.shape_keys_of(t.shape))]
     return out
 
 
@@ -178,7 +185,10 @@ def _refine(model: Model, rec: Record, floor: dict, n_eff: float, max_nfev: int,
     prior = []  # (index, declared value, deviation, whether z is its log)
     for i, p in enumerate(params):
         c0 = model.declared_of(terms[p.effect])
-        if c0 is not None and c0[p.index] != 0.0:
+        # a value the file does not declare (NaN: a rigid file's coupling and nut beside
+        # the torsion its [identify.screw] declares, a damping ratio the replay chose) has
+        # no prior
+        if c0 is not None and c0[p.index] != 0.0 and not math.isnan(c0[p.index]):
             c0j = float(c0[p.index])
             prior.append((i, c0j, model.tolerance_of(p.effect) * abs(c0j), p.log))
     n = rec.n - ERROR_START

@@ -98,17 +98,18 @@ class Term:
 
     def values(self) -> np.ndarray:
         """The term's parameters as one vector, shape (k + s,): its coefficients, then its
-        scalar shapes (:attr:`Effect.shape_keys`, in their order).  What a declared term
-        holds to its tolerance (:meth:`hil.identify.model.Model.box`) and ``wanted``."""
-        shapes = [float(self.shape[key]) for key in self.effect.shape_keys]
+        scalar shapes (:meth:`Effect.shape_keys_of` its shape, in their order).  What a
+        declared term holds to its tolerance (:meth:`hil.identify.model.Model.box`) and
+        ``wanted``."""
+        shapes = [float(self.shape[key]) for key in self.effect.shape_keys_of(self.shape)]
         return np.concatenate([self.coef, np.array(shapes)])
 
     def set_values(self, values: np.ndarray) -> None:
         """Set the coefficients and scalar shapes from a vector laid out as :meth:`values`."""
         k = self.coef.size
         self.coef = np.array(values[:k], dtype=float)
-        self.shape = {**self.shape, **{key: float(v) for key, v in
-                                       zip(self.effect.shape_keys, values[k:])}}
+        keys = self.effect.shape_keys_of(self.shape)
+        self.shape = {**self.shape, **{key: float(v) for key, v in zip(keys, values[k:])}}
 
     def contribution(self, ctx: Context) -> np.ndarray:
         """The term's part of its domain's prediction, shape (n,)."""
@@ -139,11 +140,15 @@ class Effect(ABC):
     refined_per_coefficient = False
     #: the scalar shape parameters (positive, SI) that the linear fits hold fixed and the
     #: closed-loop refinement adjusts (in log space); a declared term's are declared values
-    #: like its coefficients, held to the same tolerance (:meth:`Term.values`)
+    #: like its coefficients, held to the same tolerance (:meth:`Term.values`).  A term's
+    #: own are :meth:`shape_keys_of` its shape
     shape_keys: tuple[str, ...] = ()
     #: whether the one coefficient is a fixed scale of the shape (never fitted: the shape
     #: carries the machine-file keys)
     fixed_scale = False
+    #: effects whose terms this one's takes the place of (the model holds one or the other:
+    #: the screw model's compliance and the two-mass form write the same keys)
+    replaces: tuple = ()
 
     def unavailable(self, ctx: Context) -> str | None:
         """Why the effect cannot be looked for in this record or config, or None."""
@@ -151,6 +156,14 @@ class Effect(ABC):
 
     def declared(self, ctx: Context) -> Term | None:
         """The term the config already holds, or None."""
+        return None
+
+    def declared_coefficients(self, ctx: Context) -> np.ndarray | None:
+        """Where the config holds no term of the effect but declares some of its
+        coefficients elsewhere (the screw's torsion, from the geometry a rigid file gives
+        its screw): those coefficients, NaN for the ones it does not declare, laid out as
+        :meth:`Term.values` of a term of no shape; else None.  They are held within their
+        tolerance like a declared term's values (a NaN one is not held)."""
         return None
 
     @abstractmethod
@@ -174,8 +187,14 @@ class Effect(ABC):
         """Bounds of :meth:`Term.values`, each shape (k + s,): the coefficients'
         (:meth:`bounds`), then (0, inf) for each scalar shape."""
         lo, hi = self.bounds(shape)
-        n = len(self.shape_keys)
+        n = len(self.shape_keys_of(shape))
         return np.concatenate([lo, np.zeros(n)]), np.concatenate([hi, np.full(n, np.inf)])
+
+    def shape_keys_of(self, shape: dict) -> tuple[str, ...]:
+        """The scalar shapes a term of ``shape`` has (:attr:`shape_keys`; an effect whose
+        shape holds one only where a proposal chose it says which: the screw model's
+        compliance, its damping ratio)."""
+        return self.shape_keys
 
     def shape_label(self, ctx: Context, key: str) -> str:
         """The name :meth:`params` gives the scalar shape ``key``."""
@@ -185,6 +204,13 @@ class Effect(ABC):
         """The part of the effect's prediction that no coefficient scales, shape (n,) (the
         screw model's compliance the fit leaves as declared), or None."""
         return None
+
+    def declared_for(self, c0: np.ndarray, shape: dict) -> np.ndarray:
+        """The declared values ``c0`` (laid out as the declared term's :meth:`Term.values`)
+        as a term of ``shape`` lays them out: a shape that holds a coefficient at its
+        declared value leaves it out, a scalar shape the declaration has no value for is
+        NaN (not declared: neither prior nor box)."""
+        return c0
 
     def declared_box(self, c0: np.ndarray, tolerance: float) -> tuple[np.ndarray, np.ndarray]:
         """Where a declared term's values ``c0`` (coefficients and scalar shapes, laid out as
@@ -294,3 +320,16 @@ def correlation(a: np.ndarray, b: np.ndarray) -> float:
     if sa == 0.0 or sb == 0.0:
         return 0.0
     return float(np.mean((a - a.mean()) * (b - b.mean())) / (sa * sb))
+
+
+def uncertainty(a_w: np.ndarray, misfit: float) -> np.ndarray:
+    """Standard uncertainties of a fit's parameters from its Jacobian (or a linear fit's
+    weighted columns) ``a_w``, rows in noise units: sqrt of the diagonal of (AᵀA)⁻¹,
+    times the data's rms residual over the noise floor (``misfit``) where it exceeds 1:
+    a model that does not reach the floor knows its parameters less well.  NaN where the
+    columns are degenerate."""
+    try:
+        cov = np.linalg.inv(a_w.T @ a_w)
+    except np.linalg.LinAlgError:
+        return np.full(a_w.shape[1], math.nan)
+    return np.sqrt(np.clip(np.diag(cov), 0.0, None)) * max(1.0, misfit)
