@@ -65,13 +65,20 @@ def truth_overrides() -> dict:
 
 
 @pytest.fixture(scope="module")
-def case(tmp_path_factory):
-    """(declared file, record, noise floor) of the soft coupling and nut."""
+def soft_trace(tmp_path_factory):
+    """(folder, record, noise floor) of the soft coupling and nut, simulated once for the
+    screw-model, rigid and two-mass files that declare them."""
     d = tmp_path_factory.mktemp("screw_compliance")
     truth = write_config(d / "truth.toml", truth_overrides())
-    start = write_config(d / "start.toml", DECLARED)
     trace = make_trace(truth, d / "trace.csv")
-    return start, load_record(trace), noise_floor(truth, trace)
+    return d, load_record(trace), noise_floor(truth, trace)
+
+
+@pytest.fixture(scope="module")
+def case(soft_trace):
+    """(declared file, record, noise floor) of the soft coupling and nut."""
+    d, record, floor = soft_trace
+    return write_config(d / "start.toml", DECLARED), record, floor
 
 
 def test_coupling_and_nut_compliance_are_named_in_the_screw_model(case):
@@ -256,13 +263,10 @@ RIGID = {"mechanics": {"load_inertia_kgm2": SCREW_INERTIA + COUPLING_INERTIA},
 
 
 @pytest.fixture(scope="module")
-def rigid_case(tmp_path_factory):
+def rigid_case(soft_trace):
     """(rigid declared file, record, noise floor) of the soft coupling and nut."""
-    d = tmp_path_factory.mktemp("screw_rigid")
-    truth = write_config(d / "truth.toml", truth_overrides())
-    start = write_config(d / "start.toml", RIGID)
-    trace = make_trace(truth, d / "trace.csv")
-    return start, load_record(trace), noise_floor(truth, trace)
+    d, record, floor = soft_trace
+    return write_config(d / "rigid.toml", RIGID), record, floor
 
 
 def test_a_rigid_file_that_declares_its_screw_gets_the_screw_model(rigid_case):
