@@ -37,8 +37,10 @@ pytestmark = pytest.mark.skipif(bool(_MISSING), reason="hil scope's browser test
 
 #: where the table starts, mm: clear of the travel's ends
 START_MM = 100.0
-#: out by 5 mm and back, again and again (3 s a cycle): the trigger's position steps
-PROGRAM = "G90 G71\n" + "G4 F1\nG1 X105 F600\nG4 F1\nG1 X100 F600\n" * 15 + "M30\n"
+#: out by 5 mm and back, again and again (3 s a cycle): the trigger's position steps.  Three
+#: minutes, far beyond the tests' own time: a controller whose program ended disables the drive,
+#: and the watchdog then rightly stays quiet
+PROGRAM = "G90 G71\n" + "G4 F1\nG1 X105 F600\nG4 F1\nG1 X100 F600\n" * 60 + "M30\n"
 #: the trigger: the table passing 102.5 mm on its way out, m
 LEVEL_M = 102.5e-3
 #: the recording's flush period, s: how late the page may see a row
@@ -169,6 +171,9 @@ def test_stopping_the_controller_shows_it_silent_then_the_watchdog(live):
     the drive first, and the watchdog rightly stays quiet): the page says it is silent,
     then lists the watchdog's trip."""
     driver, _, _, ctl, _, _ = live
+    assert ctl.poll() is None, "the controller ended before it was stopped"
+    _until(driver, "the drive enabled before the stop", lambda: "OPERATION ENABLED" in (
+        _read(driver, "scope_status") or ""))
     ctl.kill()
     ctl.wait(timeout=EXIT_S)
     _until(driver, "the controller silent", lambda: "SILENT" in (
