@@ -306,10 +306,30 @@ def test_refused_requests_are_reported_not_raised(monkeypatch, tmp_path):
     assert not report.fifo.granted and "errno" in report.fifo.detail
     assert not report.affinity.granted and "errno" in report.affinity.detail
     assert not report.cpu_dma_latency.granted and "No such file" in report.cpu_dma_latency.detail
-    assert report.mlockall == report.timer_slack == report.gc_frozen
+    assert report.mlockall == report.timer_slack == report.gc_frozen == report.kernel_threads
     assert report.mlockall.detail == "not requested"
     assert report.granted() == []
     assert _state() == before
+
+
+def test_kdamond_is_kept_off_the_loops_cpu_and_given_back():
+    """The kernel threads of KEPT_OFF_KERNEL_THREADS (DAMON's kdamond, docs/realtime.md)
+    off the pinned loop's CPU while the block lasts, and allowed there again after it."""
+    cpu = last_cpu()
+    there = [t for t in scheduling.kernel_threads() if cpu in t.cpus and t.cpus - {cpu}]
+    if not there:
+        pytest.skip(f"no {', '.join(scheduling.KEPT_OFF_KERNEL_THREADS)} thread may run on "
+                    f"CPU {cpu} and another here (DAMON off, one CPU, or a container, which "
+                    f"sees no kernel thread)")
+    with realtime_scheduling(SchedulingRequest(cpus=frozenset({cpu}))) as report:
+        if not report.kernel_threads.granted:
+            pytest.skip(f"moving kernel threads was refused: {report.kernel_threads.detail}")
+        now = {t.pid: t for t in scheduling.kernel_threads()}
+        moved = [t for t in there if t.pid in now]
+        assert moved and all(cpu not in now[t.pid].cpus for t in moved), now
+        assert all(t.name in report.kernel_threads.detail for t in moved)
+    after = {t.pid: t.cpus for t in scheduling.kernel_threads()}
+    assert all(cpu in after[t.pid] for t in moved if t.pid in after)
 
 
 def test_scheduling_is_restored_when_the_block_raises():

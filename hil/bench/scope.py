@@ -70,7 +70,9 @@ class _Pair:
 
     def __init__(self, config: Path, folder: Path, seconds_total: float, realtime: bool):
         self.folder, self.run_dir = folder, folder / "run"
-        cycles = int(seconds_total / 3.0) + 20
+        # twice the segments' time: an open segment starts once the page is up, and hil
+        # scope's and Chromium's start-ups come on top (a program that ends disables the drive)
+        cycles = int(2 * seconds_total / 3.0) + 20
         program = folder / "steps.nc"
         program.write_text("G90 G71\n" + _CYCLE * cycles + "M30\n")
         cpus = sorted(os.sched_getaffinity(0))

@@ -14,7 +14,9 @@ The policy, the affinity and the timer slack belong to the *calling thread*: ent
 block in the thread that runs the loop.  Threads it starts afterwards inherit them, so a
 helper thread (a ``multiprocessing.Queue`` feeder, for one) competes with the loop on its
 CPU at the same priority and may never run: set up IPC before entering, or give helpers
-normal priority.  ``mlockall``, ``/dev/cpu_dma_latency`` and the GC are process-wide.
+normal priority.  ``mlockall``, ``/dev/cpu_dma_latency`` and the GC are process-wide;
+the kernel threads' CPUs are the whole system's (given back on leaving; a process killed by
+SIGKILL leaves them off its CPU).
 """
 
 import ctypes
@@ -48,6 +50,8 @@ class SchedulingRequest:
         timer_slack_ns: the calling thread's timer slack (the kernel default is 50 µs;
             Linux 6.7 and later give SCHED_FIFO threads none, earlier kernels do not).
         freeze_gc: collect, ``gc.freeze()`` and ``gc.disable()``: no collector pauses.
+        kernel_threads_off: keep the kernel threads of :data:`KEPT_OFF_KERNEL_THREADS` off
+            ``cpus`` while the block lasts; needs ``cpus``.
     """
     fifo_priority: int | None = 80
     cpus: frozenset[int] | None = None
@@ -55,6 +59,7 @@ class SchedulingRequest:
     cpu_dma_latency_us: int | None = 0
     timer_slack_ns: int | None = 1
     freeze_gc: bool = True
+    kernel_threads_off: bool = True
 
 
 @dataclass(frozen=True)
@@ -73,6 +78,7 @@ class SchedulingReport:
     cpu_dma_latency: Grant
     timer_slack: Grant
     gc_frozen: Grant
+    kernel_threads: Grant
 
     def as_dict(self) -> dict:
         """``{name: {"granted": bool, "detail": str}}`` (JSON-ready)."""
@@ -126,8 +132,11 @@ def cpu_list(cpus: frozenset[int] | set[int]) -> str:
     return ",".join(str(a) if a == b else f"{a}-{b}" for a, b in runs)
 
 
-#: /proc/PID/stat: the kernel-thread flag (PF_KTHREAD), and the policies by number
+#: /proc/PID/stat: the kernel-thread flag (PF_KTHREAD), the flag of a thread whose CPUs
+#: may not be changed (PF_NO_SETAFFINITY: per-CPU workers, bound interrupt threads), and the
+#: policies by number
 _PF_KTHREAD = 0x00200000
+_PF_NO_SETAFFINITY = 0x04000000
 _RT_POLICIES = {1: "SCHED_FIFO", 2: "SCHED_RR"}
 
 
@@ -171,6 +180,47 @@ def realtime_neighbours(cpu: int | None) -> list[RealtimeNeighbour]:
     return found
 
 
+#: kernel threads kept off a pinned loop's CPU, by name up to a digit (``kdamond.0``): DAMON's
+#: monitor holds its CPU without preemption for up to 0.7 ms every half second (traced on
+#: this project's VM, docs/realtime.md) and the scheduler sends it to the loop's CPU
+#: whenever the other CPUs are busy (a browser on the scope's page).  Moving every movable
+#: kernel thread instead (RCU's, kthreadd, kswapd, ...) made the loop's lateness p99.9 worse
+#: there (7 -> 75-135 µs): their work then reaches the loop's CPU by interrupts.
+KEPT_OFF_KERNEL_THREADS = ("kdamond",)
+
+
+@dataclass(frozen=True)
+class KernelThread:
+    """A kernel thread whose CPUs may be changed: its pid, name and allowed CPUs."""
+    pid: int
+    name: str
+    cpus: frozenset[int]
+
+
+def kernel_threads(names: tuple[str, ...] = KEPT_OFF_KERNEL_THREADS) -> list[KernelThread]:
+    """The kernel's threads named ``names`` (a name up to its first ``.``) whose CPUs may be
+    changed (the per-CPU ones left out).  Empty off Linux, where ``/proc`` cannot be read,
+    or inside a PID namespace (a container sees no kernel thread)."""
+    found = []
+    try:
+        pids = [int(p) for p in os.listdir("/proc") if p.isdigit()]
+    except OSError:
+        return []
+    for pid in pids:
+        try:
+            with open(f"/proc/{pid}/stat") as f:
+                stat = f.read()
+            name = stat[stat.index("(") + 1:stat.rindex(")")]
+            flags = int(stat[stat.rindex(")") + 2:].split()[6])
+            if (name.split(".")[0] not in names or not flags & _PF_KTHREAD
+                    or flags & _PF_NO_SETAFFINITY):
+                continue
+            found.append(KernelThread(pid, name, frozenset(os.sched_getaffinity(pid))))
+        except (OSError, ValueError, IndexError):  # gone meanwhile
+            continue
+    return found
+
+
 @functools.cache
 def _libc() -> ctypes.CDLL:
     return ctypes.CDLL(None, use_errno=True)
@@ -199,6 +249,40 @@ def _request_affinity(cpus: frozenset[int] | None, undo: ExitStack) -> Grant:
         return _refused(err)
     undo.callback(os.sched_setaffinity, 0, original)
     return Grant(True, f"CPUs {sorted(cpus)}")
+
+
+def _give_back(pid: int, cpus: frozenset[int]) -> None:
+    """Allow kernel thread ``pid`` on ``cpus`` again.  Adding back what was taken, not
+    setting what was found, leaves it right when two loops overlap: the second found it
+    already moved and took nothing."""
+    try:
+        os.sched_setaffinity(pid, os.sched_getaffinity(pid) | cpus)
+    except OSError:  # gone meanwhile
+        pass
+
+
+def _request_kernel_threads_off(cpus: frozenset[int] | None, keep_off: bool,
+                                undo: ExitStack) -> Grant:
+    if not keep_off or cpus is None:
+        return _NOT_REQUESTED
+    moved, refused = [], None
+    for thread in kernel_threads():
+        if not thread.cpus & cpus or thread.cpus <= cpus:  # not there, or nowhere else
+            continue
+        try:
+            os.sched_setaffinity(thread.pid, thread.cpus - cpus)
+        except OSError as err:
+            refused = err
+            continue
+        moved.append(thread.name)
+        undo.callback(_give_back, thread.pid, thread.cpus & cpus)
+    if refused is not None and not moved:
+        return _refused(refused)
+    where = f"CPU {cpu_list(cpus)}"
+    if not moved:
+        return Grant(True, f"none of {', '.join(KEPT_OFF_KERNEL_THREADS)} may run on {where} "
+                           f"(none visible, or kept off already)")
+    return Grant(True, f"{len(moved)} kept off {where} until the end: {', '.join(moved)}")
 
 
 def _request_mlockall(lock: bool, undo: ExitStack) -> Grant:
@@ -271,24 +355,29 @@ def realtime_scheduling(
         request: SchedulingRequest = SchedulingRequest()) -> Iterator[SchedulingReport]:
     """Apply ``request`` for the ``with`` block; yields the :class:`SchedulingReport`.
 
-    Order: affinity, memory lock, idle-state latency, timer slack, FIFO (so the set-up
-    runs at normal priority), GC freeze (last, so it freezes the set-up's objects);
+    Order: affinity, the kernel threads kept off, memory lock, idle-state latency, timer
+    slack, FIFO (so the set-up runs at normal priority), GC freeze (last, so it freezes
+    the set-up's objects);
     restored in the reverse order, also when the block raises.  Off Linux nothing is
     requested and every entry says so.
     """
     if not sys.platform.startswith("linux"):
         off = Grant(False, f"needs Linux, running on {sys.platform}")
-        yield SchedulingReport(off, off, off, off, off, off)
+        yield SchedulingReport(off, off, off, off, off, off, off)
         return
     with ExitStack() as undo:
         affinity = _request_affinity(request.cpus, undo)
+        # a loop that could not be pinned has no CPU to keep free
+        kernel_threads = _request_kernel_threads_off(
+            request.cpus if affinity.granted else None, request.kernel_threads_off, undo)
         mlockall = _request_mlockall(request.lock_memory, undo)
         dma = _request_cpu_dma_latency(request.cpu_dma_latency_us, undo)
         slack = _request_timer_slack(request.timer_slack_ns, undo)
         fifo = _request_fifo(request.fifo_priority, undo)
         gc_frozen = _request_gc_freeze(request.freeze_gc, undo)
         yield SchedulingReport(fifo=fifo, affinity=affinity, mlockall=mlockall,
-                               cpu_dma_latency=dma, timer_slack=slack, gc_frozen=gc_frozen)
+                               cpu_dma_latency=dma, timer_slack=slack, gc_frozen=gc_frozen,
+                               kernel_threads=kernel_threads)
 
 
 def helper_threads_realtime(cpu: int, priority: int) -> dict[str, str]:

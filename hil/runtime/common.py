@@ -162,7 +162,7 @@ def scheduling_dict(report: SchedulingReport | None) -> dict:
         return report.as_dict()
     off = {"granted": False, "detail": "not requested (--no-rt)"}
     return {name: dict(off) for name in ("fifo", "affinity", "mlockall", "cpu_dma_latency",
-                                         "timer_slack", "gc_frozen")}
+                                         "timer_slack", "gc_frozen", "kernel_threads")}
 
 
 def check_cpu(cpu: int | None, option: str = "--cpu") -> None:

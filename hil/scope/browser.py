@@ -6,7 +6,10 @@ Bokeh models read from the browser.
 """
 
 import importlib.util
+import os
 import shutil
+import tempfile
+import weakref
 
 #: what each part is and where it comes from
 _NEEDS = (("selenium", "selenium (pip install -e '.[test]')"),
@@ -34,6 +37,27 @@ m[arguments[1]] = arguments[2];
 """
 
 
+#: where Chromium's profile and shared memory go: /dev/shm (memory) when it holds at least
+#: SHM_MIN_BYTES, else /tmp with --disable-dev-shm-usage (a container's 64 MB /dev/shm is too
+#: small for its shared memory).  On disk, the browser's writes come back as block-device
+#: interrupts on whichever CPU serves the disk, the loop's on this project's VM
+#: (docs/realtime.md)
+SHM, SHM_MIN_BYTES = "/dev/shm", 512 * 2**20
+#: nothing from the network the page does not ask for (updates, sync, metrics): each reply
+#: is a network interrupt on some CPU, maybe the loop's
+_QUIET = ("--disable-background-networking", "--disable-component-update", "--disable-sync",
+          "--disable-default-apps", "--disable-breakpad", "--no-first-run",
+          "--disk-cache-size=1")
+
+
+def _shm_fits() -> bool:
+    try:
+        st = os.statvfs(SHM)
+    except OSError:
+        return False
+    return st.f_bavail * st.f_frsize >= SHM_MIN_BYTES
+
+
 def missing() -> list[str]:
     """What a headless Chromium needs and is not installed, in words (empty: nothing)."""
     found = {"selenium": importlib.util.find_spec("selenium") is not None,
@@ -43,17 +67,27 @@ def missing() -> list[str]:
 
 
 def headless_chromium(page_load_s: float = 20.0):
-    """A Selenium driver of a headless Chromium, 1700 x 1200 pixels."""
+    """A Selenium driver of a headless Chromium, 1700 x 1200 pixels, its profile in a
+    folder of its own (in memory where :data:`SHM` fits), removed with the driver."""
     from selenium import webdriver
     from selenium.webdriver.chrome.service import Service
 
+    in_memory = _shm_fits()
+    profile = tempfile.mkdtemp(prefix="hil-chromium-", dir=SHM if in_memory else None)
     options = webdriver.ChromeOptions()
     options.binary_location = shutil.which("chromium")
     # --no-sandbox: Chromium's sandbox refuses to run as root (CI's containers)
-    for arg in ("--headless=new", "--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage",
-                "--window-size=1700,1200"):
+    for arg in ("--headless=new", "--no-sandbox", "--disable-gpu", f"--user-data-dir={profile}",
+                "--window-size=1700,1200", *_QUIET,
+                *(() if in_memory else ("--disable-dev-shm-usage",))):
         options.add_argument(arg)
-    driver = webdriver.Chrome(service=Service(shutil.which("chromedriver")), options=options)
+    try:
+        driver = webdriver.Chrome(service=Service(shutil.which("chromedriver")),
+                                  options=options)
+    except BaseException:
+        shutil.rmtree(profile, ignore_errors=True)
+        raise
+    weakref.finalize(driver, shutil.rmtree, profile, True)
     driver.set_page_load_timeout(page_load_s)
     return driver
 
