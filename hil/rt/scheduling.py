@@ -180,12 +180,12 @@ def realtime_neighbours(cpu: int | None) -> list[RealtimeNeighbour]:
     return found
 
 
-#: kernel threads kept off a pinned loop's CPU, by name up to a digit (``kdamond.0``): DAMON's
-#: monitor holds its CPU without preemption for up to 0.7 ms every half second (traced on
-#: this project's VM, docs/realtime.md) and the scheduler sends it to the loop's CPU
-#: whenever the other CPUs are busy (a browser on the scope's page).  Moving every movable
-#: kernel thread instead (RCU's, kthreadd, kswapd, ...) made the loop's lateness p99.9 worse
-#: there (7 -> 75-135 µs): their work then reaches the loop's CPU by interrupts.
+#: kernel threads kept off a pinned loop's CPU, by name up to its first ``.`` (``kdamond.0``):
+#: DAMON's monitor holds its CPU without preemption for up to 0.7 ms every half second
+#: (traced on this project's VM, docs/realtime.md) and the scheduler sends it to the loop's
+#: CPU whenever the other CPUs are busy (a browser on the scope's page).  Moving every
+#: movable kernel thread instead (RCU's, kthreadd, kswapd, ...) made the loop's lateness
+#: p99.9 worse there (7 µs -> 75 and 135 µs, 16 s runs; why was not traced).
 KEPT_OFF_KERNEL_THREADS = ("kdamond",)
 
 

@@ -41,7 +41,7 @@ m[arguments[1]] = arguments[2];
 #: SHM_MIN_BYTES, else /tmp with --disable-dev-shm-usage (a container's 64 MB /dev/shm is too
 #: small for its shared memory).  On disk, the browser's writes come back as block-device
 #: interrupts on whichever CPU serves the disk, the loop's on this project's VM
-#: (docs/realtime.md)
+#: (docs/scope.md)
 SHM, SHM_MIN_BYTES = "/dev/shm", 512 * 2**20
 #: nothing from the network the page does not ask for (updates, sync, metrics): each reply
 #: is a network interrupt on some CPU, maybe the loop's
