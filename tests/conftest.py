@@ -51,3 +51,24 @@ def multicast_group():
         yield group, 40000 + secrets.randbelow(20000)
     finally:
         subprocess.run(["ip", "route", "del", f"{group}/32", "dev", "lo"], check=True)
+
+
+#: every test's setup, call and teardown time, s, written at the session's end: where the
+#: suite's minutes go (pytest prints only the slowest 30); out/ is ignored by git
+DURATIONS_JSON = ROOT / "out" / "test_durations.json"
+_durations: list[dict] = []
+
+
+def pytest_runtest_logreport(report):
+    _durations.append({"test": report.nodeid, "phase": report.when,
+                       "s": round(report.duration, 3), "outcome": report.outcome})
+
+
+def pytest_sessionfinish(session):
+    if not _durations:
+        return
+    import json
+
+    DURATIONS_JSON.parent.mkdir(exist_ok=True)
+    DURATIONS_JSON.write_text(json.dumps(
+        {"total_s": round(sum(d["s"] for d in _durations), 1), "phases": _durations}))
