@@ -135,7 +135,8 @@ def test_hil_run_takes_the_ports_injections_and_records_them(config, tmp_path):
     INJECT naming axis 3 of this one-axis machine is refused with an event of its tick, one
     with a fault the machine does not know is refused by the injector's check, a good one is
     requested, injected and reached, each event saying it came from the bench; report.json
-    has the port's counts and the level at the end."""
+    has the port's counts and the level at the end; hil replay, which hands the requests on
+    again in their ticks, reproduces the recording."""
     run = tmp_path / "run"
     with Children(tmp_path) as children:
         proc, _ = children.emulator(config, "udp://127.0.0.1:0", run, "--no-rt",
@@ -170,6 +171,9 @@ def test_hil_run_takes_the_ports_injections_and_records_them(config, tmp_path):
     assert events[4]["reason"] == "friction_growth growth_pct=20 on arrival, ramp 0.1 s (bench)"
     # one request a tick: each taken in a tick of its own, in the order sent
     assert events[0]["tick"] < events[1]["tick"] < events[3]["tick"]
+    from hil.replay.replay import replay_run
+    replayed = replay_run(run)
+    assert replayed.matches, replayed.line()
 
 
 def test_without_the_option_hil_run_opens_no_port(config, tmp_path):
