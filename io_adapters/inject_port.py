@@ -48,7 +48,6 @@ from io_adapters.codec import (
     HEADER_LEN,
     KIND_FEEDBACK,
     KIND_HELLO,
-    KIND_INJECT,
     KIND_SETPOINT,
     KIND_WELCOME,
     VERSION,
@@ -126,6 +125,7 @@ class InjectPort:
 
     Args:
         port: the UDP port on :data:`HOST` (0: any free one, :attr:`address` says which).
+        max_per_s: the most datagrams read in a second (> 0; module docstring).
 
     Attributes:
         requests: the well-formed requests (:class:`~io_adapters.messages.InjectRequest`)
@@ -138,10 +138,14 @@ class InjectPort:
         AdapterError: the port cannot be bound (taken).
     """
 
-    def __init__(self, port: int):
+    def __init__(self, port: int, max_per_s: int = MAX_PER_S):
         if not 0 <= port <= 65535:
             raise AdapterConfigError(f"injection port {port}: expected 0..65535 (0: any "
                                      f"free one)")
+        if max_per_s < 1:
+            raise AdapterConfigError(f"max_per_s={max_per_s}: expected at least 1 datagram "
+                                     f"a second")
+        self.max_per_s = max_per_s
         self.requests: deque[InjectRequest] = deque()
         self.stats = InjectPortStats()
         self._buf = bytearray(MAX_DATAGRAM)
@@ -201,7 +205,7 @@ class InjectPort:
             now = time.monotonic()
             if now >= window_end:
                 window_end, read = now + 1.0, 0
-            elif read >= MAX_PER_S:
+            elif read >= self.max_per_s:
                 self.stats.paused += 1
                 self._stop.wait(window_end - now)
 

@@ -86,6 +86,18 @@ def test_the_port_holds_at_most_max_waiting_requests():
         assert (port.stats.injections, port.stats.overflow) == (MAX_WAITING, 3)
 
 
+def test_beyond_its_datagrams_a_second_the_port_waits_and_then_reads_on():
+    """Eight datagrams at once to a port reading five a second: it pauses once its five
+    are read, and reads the other three after (the kernel held them meanwhile)."""
+    with InjectPort(0, max_per_s=5) as port, InjectClient(port.address) as client:
+        port.start()
+        for _ in range(8):
+            client.send(GOOD)
+        _until("every datagram read", lambda: port.stats.datagrams == 8)
+        assert port.stats.paused >= 1 and port.stats.overflow == 0
+        assert list(port.requests) == [GOOD] * 8
+
+
 def test_header_reads_the_first_bytes_of_every_message_of_the_wire():
     """(version, kind) from the array's first elements, whatever the array's size (a
     fixarray, an array 16 for a Feedback of 17 elements); None for anything else."""
@@ -232,3 +244,27 @@ def test_the_page_refuses_a_bad_setting_before_sending():
         # loopback: in order)
         _until("the request", lambda: port.requests)
         assert port.stats.datagrams == 1 and list(port.requests) == [GOOD]
+
+
+def test_the_answer_after_sending_follows_the_runs_events():
+    """What the panel says of a request sent, from the events read since: none of the
+    bench's yet (another source's injection, a ramp's end) says nothing; its request, its
+    start, its refusal each say so."""
+    pytest.importorskip("bokeh")
+    from hil.scope.inject_panel import outcome
+    from hil.scope.view import EventRow
+
+    def ev(kind: str, reason: str, source: str = "inject") -> EventRow:
+        return EventRow(2.5, "X", source, kind, 0, reason)
+
+    adapter = ev("injected", "friction_growth growth_pct=20 on arrival (adapter)")
+    assert outcome([adapter, ev("reached", "friction_growth growth_pct=20"),
+                    ev("tripped", "bench: not an injection", source="watchdog")]) is None
+    request = ev("request", json.dumps({"fault": "preload_loss", "settings": {
+        "loss_pct": 10.0, "at_s": 9.0}, "source": "bench"}))
+    assert outcome([adapter, request]).startswith("taken by the run at t = 2.500 s")
+    started = ev("injected", "preload_loss loss_pct=10 at 9 s (bench)")
+    assert "injected</b> at t = 2.500 s: preload_loss" in outcome([request, started])
+    refused = ev("refused", "bench: axis 4 of an injection request: this machine has 1 "
+                 "axis(es)")
+    assert "refused by the run</b> at t = 2.500 s: bench: axis 4" in outcome([refused])
