@@ -64,6 +64,8 @@ HOST = "127.0.0.1"
 MAX_WAITING = 16
 #: the most datagrams the receive thread reads in a second (module docstring)
 MAX_PER_S = 200
+#: the longest :meth:`InjectPort.close` waits for the receive thread to end, s
+JOIN_S = 2.0
 #: receive buffer, bytes: an INJECT is at most about 400 bytes (40-character names, 8
 #: settings); a longer datagram is truncated, and then malformed
 MAX_DATAGRAM = 2048
@@ -173,16 +175,20 @@ class InjectPort:
             self._thread.start()
 
     def close(self) -> None:
-        """Stop the receive thread and close the socket (idempotent)."""
+        """Stop the receive thread (waiting at most :data:`JOIN_S` for it) and close the
+        socket (idempotent)."""
         if self._stop.is_set():
             return
         self._stop.set()
         if self._thread is not None:
             try:  # an empty datagram to itself wakes the blocked receive
                 self._sock.sendto(b"", self.address)
-            except OSError:
-                pass
-            self._thread.join()
+            except OSError:  # else shutting it down does (Linux), ENOTCONN notwithstanding
+                try:
+                    self._sock.shutdown(socket.SHUT_RDWR)
+                except OSError:
+                    pass
+            self._thread.join(JOIN_S)
         self._sock.close()
 
     def __enter__(self) -> "InjectPort":
