@@ -363,7 +363,8 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     command_module("export", "a run's recording as MDF4 or servo-trace CSV",
                    "hil.runtime.export")
     command_module("scope", "a run's status, events and signals live in a browser, with a "
-                   "trigger; a finished run's whole length", "hil.scope.command")
+                   "trigger and fault injection (hil run --inject-port); a finished run's "
+                   "whole length", "hil.scope.command")
     command_module("soak", "emulator and controller for minutes or hours: memory, lateness "
                    "and overruns per minute, a plot", "hil.runtime.soak")
     command_module("run", "the emulator daemon: the plant behind an adapter, in real time",

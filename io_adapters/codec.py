@@ -480,6 +480,15 @@ def _check_inject(values: tuple) -> tuple:
     return values
 
 
+def decode_inject(data: bytes | memoryview) -> tuple:
+    """The checked array of an INJECT; raises :class:`FrameError` for anything else (a
+    bench's injection port takes nothing but INJECTs: :mod:`io_adapters.inject_port`)."""
+    values = _unpack(data)
+    if values[1] != KIND_INJECT:
+        raise FrameError(f"kind {values[1]!r:.20}, expected {KIND_INJECT} (INJECT)")
+    return _check_inject(values)
+
+
 def inject_request(values: tuple) -> InjectRequest:
     """The request of a checked INJECT array (settings as floats)."""
     return InjectRequest(values[4], values[5], {k: float(v) for k, v in values[6].items()})

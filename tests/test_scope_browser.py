@@ -1,6 +1,6 @@
 """``hil scope`` in a real browser: a headless Chromium (Debian's ``chromium`` and
-``chromium-driver``, driven by Selenium) on the page of a real ``hil run`` and ``hil
-controller`` pair, live, and then of the finished run.
+``chromium-driver``, driven by Selenium) on the page of a real ``hil run`` (with its
+injection port) and ``hil controller`` pair, live, and then of the finished run.
 
 What the page shows is read from its Bokeh document in the browser (the models named in
 :mod:`hil.scope.page`: what the server sent the tab), and checked against the run's own
@@ -12,6 +12,7 @@ installs the Debian packages, the ``test`` extra Selenium).
 """
 
 import importlib.util
+import json
 import os
 import time
 
@@ -47,6 +48,9 @@ LEVEL_M = 102.5e-3
 FLUSH_S = 0.25
 #: longest wait for the page to show something the run has done, s
 PAGE_S = 20.0
+#: the fault injected from the page: mild, so the controller's contour stays within its
+#: limits for the tests after it
+INJECTED = "growth_pct=20,ramp_s=0.5"
 #: the emulator's watchdog and the controller's patience without feedback: 1 s at 1 kHz, so
 #: that a loop held up by the browser's start on a small machine does not end the run
 PATIENCE_TICKS = 1000
@@ -81,7 +85,8 @@ def _scope(children: Children, run_dir, name: str) -> str:
 
 @pytest.fixture(scope="module")
 def live(tmp_path_factory):
-    """``hil run`` (1 kHz Arrow 500 X, recording) with ``hil controller`` on PROGRAM,
+    """``hil run`` (1 kHz Arrow 500 X, recording, an injection port) with ``hil
+    controller`` on PROGRAM,
     ``hil scope`` on the run folder and a headless Chromium on its page, once the drive is
     enabled: (driver, run folder, children, controller process, emulator process)."""
     folder = tmp_path_factory.mktemp("scope")
@@ -95,7 +100,8 @@ def live(tmp_path_factory):
     with Children(folder) as children:
         emulator, served = children.emulator(config, "udp://127.0.0.1:0", run_dir,
                                              "--cpu", cpus[-1], "--start", START_MM,
-                                             "--watchdog-cycles", PATIENCE_TICKS)
+                                             "--watchdog-cycles", PATIENCE_TICKS,
+                                             "--inject-port", 0)
         pin = ["--cpu", cpus[0]] if len(cpus) > 1 else []
         ctl = children.start("controller", python_module(
             "hil.runtime.controller_proc", config, "--adapter", served, "--program", program,
@@ -166,6 +172,37 @@ def test_a_trigger_on_the_position_step_fires_when_the_recording_crossed_the_lev
     browser.set_model(driver, "scope_trig_channel", "value", "(free running)")
 
 
+def test_a_fault_injected_from_the_page_is_in_its_events_and_the_recording(live):
+    """The injection panel, through its widgets and its button: friction growth of 5000 %
+    (beyond its 1000 %) is refused on the page and never sent; then INJECTED is sent, the
+    page's events list it as injected from the bench, the answer says so, and the
+    recording's events hold the request (source bench) and its start, once each."""
+    driver, run_dir = live[0], live[1]
+    _until(driver, "the injection panel enabled", lambda: _read(
+        driver, "scope_inject_send", "disabled") is False)
+    browser.set_model(driver, "scope_inject_fault", "value", "friction_growth")
+    browser.set_model(driver, "scope_inject_settings", "value", "growth_pct=5000")
+    assert browser.click(driver, "scope_inject_send")
+    refused = _until(driver, "the bad setting refused", lambda: (
+        (a := _read(driver, "scope_inject_answer")) and "not sent" in a and a))
+    assert "growth_pct" in refused and "1000" in refused, refused
+    browser.set_model(driver, "scope_inject_settings", "value", INJECTED)
+    assert browser.click(driver, "scope_inject_send")
+    started = "friction_growth growth_pct=20 on arrival, ramp 0.5 s (bench)"
+    _until(driver, "the injection among the events", lambda: started in (
+        _read(driver, "scope_events") or ""))
+    _until(driver, "the answer: injected", lambda: "injected</b>" in (
+        _read(driver, "scope_inject_answer") or ""))
+    driver.save_screenshot(str(driver.screens / "3_injected.png"))
+    ev = Recording(run_dir).events()
+    rows = [(k, r) for s, k, r in zip(ev["source"], ev["kind"], ev["reason"])
+            if s == "inject"]
+    requests = [json.loads(r) for k, r in rows if k == "request"]
+    assert requests == [{"fault": "friction_growth", "settings": {
+        "growth_pct": 20.0, "ramp_s": 0.5}, "source": "bench"}], rows
+    assert [r for k, r in rows if k == "injected"] == [started], rows
+
+
 def test_stopping_the_controller_shows_it_silent_then_the_watchdog(live):
     """The controller killed (SIGKILL: no goodbye, as a crash; on SIGTERM it would disable
     the drive first, and the watchdog rightly stays quiet): the page says it is silent,
@@ -180,7 +217,7 @@ def test_stopping_the_controller_shows_it_silent_then_the_watchdog(live):
         _read(driver, "scope_status") or ""))
     _until(driver, "the watchdog's event", lambda: "watchdog tripped" in (
         _read(driver, "scope_events") or ""))
-    driver.save_screenshot(str(driver.screens / "3_silent.png"))
+    driver.save_screenshot(str(driver.screens / "4_silent.png"))
 
 
 def test_the_finished_run_shows_its_whole_length(live):
@@ -201,4 +238,21 @@ def test_the_finished_run_shows_its_whole_length(live):
     pixel_s = (last_s + period_s) / 1200
     assert times.min() <= first_s + 2 * pixel_s and times.max() >= last_s - 2 * pixel_s, (
         times.min(), times.max(), first_s, last_s)
-    driver.save_screenshot(str(driver.screens / "4_finished.png"))
+    driver.save_screenshot(str(driver.screens / "5_finished.png"))
+
+
+def test_the_finished_runs_injection_panel_is_disabled(live):
+    """On the ended run's page the panel's widgets are disabled and it says why;
+    report.json counts the one request the injection port took and names its thread
+    among the helpers (real-time on the loop's CPU when the loop was)."""
+    driver, run_dir = live[0], live[1]
+    _until(driver, "the panel disabled", lambda: _read(
+        driver, "scope_inject_send", "disabled") is True)
+    assert _read(driver, "scope_inject_settings", "disabled") is True
+    assert "no longer live" in _read(driver, "scope_inject_answer")
+    report = json.loads((run_dir / "report.json").read_text())
+    stats = report["inject_port"]["stats"]
+    assert (stats["datagrams"], stats["injections"]) == (1, 1), stats
+    helper = report["helper_threads"]
+    if report["scheduling"]["fifo"]["granted"]:
+        assert helper["hil-inject-port"].startswith("SCHED_FIFO"), helper

@@ -18,7 +18,9 @@ takes).  Every tick the feedback each controller receives (all but the clock sta
 the session) and the plants' arrays must be the same bits; at the end every recording
 row (all but the clock stamps), the endpoints' counters, the watchdogs and the heard
 counts; and that no numba function was compiled or loaded from the cache once the
-emulators were open (a fault injection included: such a first call stalls the loop).
+emulators were open (a fault injection included: such a first call stalls the loop).  A
+request waiting at the injection port (``hil run --inject-port``) is taken in the same tick
+by both: the compiled tick hands that tick to the Python path.
 Each scenario also checks that the compiled tick ran most ticks and
 declined each kind of datagram it must, or the comparison would say nothing.
 """
@@ -38,6 +40,7 @@ from hil.runtime import steady_tick as S
 from hil.runtime.emulator import Emulator, RuntimeConfig
 from io_adapters import open_endpoint
 from io_adapters.codec import encode, encode_hello
+from io_adapters.inject_port import InjectClient
 from io_adapters.messages import (
     InjectRequest,
     Setpoint,
@@ -84,9 +87,11 @@ class WireTwin:
         machine = load_machine_set(self.config)
         rc = RuntimeConfig(self.config, "udp://127.0.0.1:0", realtime=False,
                            steady_tick=self.steady, rate_hz=self.rate_hz,
-                           watchdog_cycles=self.watchdog_cycles)
+                           watchdog_cycles=self.watchdog_cycles, inject_port=0)
         self.emulator = Emulator(rc, machine, log=lambda message: None)
         self.emulator.open()
+        self.emulator.open_inject_port()
+        self.bench = InjectClient(self.emulator.inject_port.address)
         self.drives = self.emulator.drives
         port = self.emulator.endpoint.address[1]
         self.ctl = open_endpoint(f"udp://127.0.0.1:{port}", "controller")
@@ -104,7 +109,8 @@ class WireTwin:
     def close(self) -> None:
         self.ctl.close()
         self.stranger.close()
-        self.emulator.endpoint.close()
+        self.bench.close()
+        self.emulator.close_links()
 
     def _raw(self, payload: bytes) -> None:
         self.ctl._send_bytes(payload, None)
@@ -127,6 +133,12 @@ class WireTwin:
             self._raw(encode_hello(self.ctl.session, self.ctl._frame))
         elif kind == "inject":  # a friction growth at once, before this tick's setpoint
             self.ctl.send_injection(InjectRequest(0, "friction_growth", {"growth_pct": 20.0}))
+        elif kind == "bench":  # a torque constant loss through the injection port
+            self.bench.send(InjectRequest(0, "torque_constant_loss", {"loss_pct": 5.0}))
+            end = time.monotonic() + 1.0
+            while not self.emulator.inject_port.requests and time.monotonic() < end:
+                time.sleep(0.001)  # its receive thread has queued it: both twins alike
+            assert self.emulator.inject_port.requests, f"tick {k}: the request not queued"
         elif kind == "skip":  # a frame lost on the way
             self.ctl._frame += 1
         elif kind in ("queued", "queued3", "flood"):  # older targets first, newest taken
@@ -251,7 +263,8 @@ def test_scenario_with_every_kind_of_traffic():
         ("csp", 600, 5.0),          # enable again
     ]
     extra = {700: "garbage_only", 701: "silent", 800: "stranger", 900: "hello", 1000: "repeat",
-             1100: "older", 1200: "queued", 1250: "inject", 1300: "silent", 1301: "silent",
+             1100: "older", 1200: "queued", 1250: "inject", 1270: "bench", 1300: "silent",
+             1301: "silent",
              1400: "range", 1450: "skip", 4500: "garbage", 4501: "silent", 5000: "queued",
              5200: "repeat"}
     b = _compare(segments, extra)
@@ -263,6 +276,9 @@ def test_scenario_with_every_kind_of_traffic():
     assert declined[S.DECLINED_CYCLE] >= 2      # the following error, the range
     assert steady.silent == 4 and steady.queued == 2  # taken compiled
     assert b.emulator.injectors[0].levels["friction_growth"] == 20.0
+    assert b.emulator.injectors[0].levels["torque_constant_loss"] == 5.0
+    bench = [e for e in b.emulator.injectors[0].events if e.reason.endswith("(bench)")]
+    assert [(e.kind, round(e.t_s / b.emulator.period_s)) for e in bench] == [("injected", 1270)]
 
 
 @pytest.mark.parametrize("extra", [{}, {300 + 7 * i: kind for i, kind in enumerate(

@@ -29,9 +29,14 @@ signal handlers that only set a flag, a fixed shutdown order):
    or :data:`MIN_RECORD_S` at the rate, the figure in the message), the adapter (device
    role, draining: each tick uses the newest setpoint), the recording's streams (schema
    and metadata on disk by the writer process, warmed), and print ``ready: URL`` on
-   stdout (the port actually bound for ``udp://HOST:0``).  IPC, the writer process and
-   its threads here are set up before any priority change (see ``docs/platform-notes``:
-   a SCHED_FIFO process must not start helpers later).
+   stdout (the port actually bound for ``udp://HOST:0``).  With ``--inject-port N`` a
+   bench's injection port too (:mod:`io_adapters.inject_port`: INJECT messages on a
+   loopback UDP socket of its own, from ``hil scope``'s page or a script; its receive
+   thread queues them), its address in the recording's metadata (``inject_port``); the
+   loop takes one of its requests a tick and hands it to the axis's injector (source
+   ``bench``), as it hands the adapter's.  IPC, the writer process and its threads (the
+   injection port's too) here are set up before any priority change (see
+   ``docs/platform-notes``: a SCHED_FIFO process must not start helpers later).
 4. **Run** under :func:`hil.rt.scheduling.realtime_scheduling` (SCHED_FIFO, pinned, memory
    locked; ``--no-rt`` leaves the process as it is).  Each tick (:meth:`Emulator.step`):
    poll the newest setpoint (timeout 0), the :class:`~hil.runtime.watchdog.Watchdog`,
@@ -52,8 +57,8 @@ signal handlers that only set a flag, a fixed shutdown order):
    against the moved deadlines, and the compute time includes that wait.  An adapter's
    own threads (canopen's receive thread on ``can://``) run at SCHED_FIFO one below the
    loop, on its CPU (:func:`hil.rt.scheduling.helper_threads_realtime`), and so do the
-   recording's threads here; the writer process stays at normal priority off the loop's
-   CPU.
+   recording's threads and the injection port's here; the writer process stays at normal
+   priority off the loop's CPU.
 5. **Stop** on ``--duration``, on SIGTERM/SIGINT (the handlers only set the loop's stop
    flag), by the ``stop`` overrun policy, or when the recording cannot be written (a
    full disk: the writer's message sets the same flag); then: the safe state (one cycle with
@@ -155,6 +160,7 @@ from hil.runtime.timing_quality import TimingQuality
 from hil.runtime.watchdog import Watchdog
 from io_adapters import AdapterError, Endpoint, open_endpoint
 from io_adapters.can_url import IN_PROCESS_ONLY, in_process_only
+from io_adapters.inject_port import InjectPort
 from io_adapters.messages import (
     Feedback,
     FeedbackGroup,
@@ -236,6 +242,8 @@ class Emulator:
         self.events = EventCollector(m.names, self.drives, self.watchdog, self.recorder,
                                      self.injectors, self.loop.stall_log)
         self.endpoint: Endpoint | None = None
+        #: the bench's injection port (``--inject-port``; :meth:`open_inject_port`)
+        self.inject_port: InjectPort | None = None
         self.sync_lock: SyncLock | None = None
         self.helper_threads: dict[str, str] = {}
         #: other processes' real-time threads pinned to the loop's CPU at its start
@@ -348,6 +356,25 @@ class Emulator:
             self.loop.burst = self.steady.burst
         return self.url
 
+    def open_inject_port(self) -> None:
+        """Open the bench's injection port of ``--inject-port`` (none without it) and
+        start its receive thread; raises :class:`~io_adapters.base.AdapterError` (the port
+        is taken).  Call before :meth:`open_recording` (the metadata has its address) and
+        before :meth:`run` (its thread is made real-time with the other helpers)."""
+        if self.rc.inject_port is None:
+            return
+        self.inject_port = InjectPort(self.rc.inject_port)
+        self.inject_port.start()
+        self._log(f"injection port {self.inject_port.url} (INJECT messages from this "
+                  f"machine: hil scope's page)")
+
+    def close_links(self) -> None:
+        """Close the adapter and the injection port (each idempotent)."""
+        if self.endpoint is not None:
+            self.endpoint.close()
+        if self.inject_port is not None:
+            self.inject_port.close()
+
     def step(self, k: int) -> None:
         """Tick ``k``: newest setpoint, watchdog, drive cycles, feedback, record."""
         t_ns = time.monotonic_ns()
@@ -375,7 +402,11 @@ class Emulator:
         self.watchdog.update(heard, k, sp.seq, drives, self.endpoint)
         requests = self.endpoint.injections
         if requests:
-            self._injections(requests)
+            self._injections(requests, "adapter", k)
+            requests.clear()
+        port = self.inject_port
+        if port is not None and port.requests:  # one a tick: a flood cannot hold the loop
+            self._injections((port.requests.popleft(),), "bench", k)
         for inj in self.injectors:
             if inj.busy:
                 inj.update(k * self.period_s)
@@ -401,18 +432,18 @@ class Emulator:
             self._log(f"link: {kind}: {text}")
         self._notices.clear()
 
-    def _injections(self, requests: list) -> None:
-        """Hand the adapter's injection requests (:class:`~io_adapters.messages.
-        InjectRequest`) to their axes' injectors; one naming no axis of this machine is
-        refused there and then."""
+    def _injections(self, requests, source: str, k: int) -> None:
+        """Hand injection requests (:class:`~io_adapters.messages.InjectRequest`) of
+        ``source`` ("adapter": the controller's link; "bench": the injection port) to
+        their axes' injectors; one naming no axis of this machine is refused there and
+        then, an event of tick ``k`` (on the first axis)."""
         for r in requests:
             if 0 <= r.axis < len(self.injectors):
-                self.injectors[r.axis].request(r.fault, r.settings, "adapter")
+                self.injectors[r.axis].request(r.fault, r.settings, source)
             else:
                 self.injectors[0].events.append(InjectEvent(
-                    -1.0, "refused", f"adapter: axis {r.axis} of an injection request: this "
-                    f"machine has {len(self.injectors)} axis(es)"))
-        requests.clear()
+                    k * self.period_s, "refused", f"{source}: axis {r.axis} of an injection "
+                    f"request: this machine has {len(self.injectors)} axis(es)"))
 
     def _adapter_error(self, kind: str, err: AdapterError) -> None:
         count = getattr(self.errors, kind) + 1
@@ -470,7 +501,7 @@ class Emulator:
                 stats = self.loop.run()
             finally:  # an exception leaves the axes in their safe state too
                 safe = self.safe_state()
-        self.endpoint.close()
+        self.close_links()
         self.writer.stop(final_events(self, stats, safe))
         lateness, compute = self.writer.loop_percentiles()
         stats = replace(stats, lateness_us=lateness, compute_us=compute)
@@ -547,10 +578,10 @@ def run_from_args(args: argparse.Namespace) -> int:
             with Progress("hil run: opening the adapter and the recording (a cold cache "
                           "compiles the tick first)", ticking=True):
                 url = emulator.open()
+                emulator.open_inject_port()
                 emulator.open_recording()
         except (AdapterError, OSError) as e:
-            if emulator.endpoint is not None:
-                emulator.endpoint.close()
+            emulator.close_links()
             emulator.folder.close()
             eprint(f"hil run: {e}")
             return EXIT_BAD_INPUT

@@ -53,6 +53,9 @@ class RuntimeConfig:
             the rest queued (:func:`io_adapters.udp.rx_budget_for`).
         status_line: show the run's status on stderr while it goes on
             (:mod:`hil.runtime.run_status`; ``hil run`` does unless ``--no-status``).
+        inject_port: the UDP port on 127.0.0.1 of a bench's injection port
+            (:mod:`io_adapters.inject_port`: INJECT messages from ``hil scope``'s page or
+            a script on this machine; 0: any free one); None: none.
     """
     machine_file: Path
     adapter_url: str
@@ -71,6 +74,7 @@ class RuntimeConfig:
     steady_tick: bool = True
     rx_share: float = DEFAULT_RX_SHARE
     status_line: bool = False
+    inject_port: int | None = None
 
     def __post_init__(self):
         positive = {"--duration (s)": self.duration_s, "--rate (Hz)": self.rate_hz}
@@ -89,6 +93,9 @@ class RuntimeConfig:
             OverrunPolicy(self.overrun, self.stop_after)
         except ValueError as e:
             raise RuntimeInputError(f"--overrun/--stop-after: {e}") from e
+        if self.inject_port is not None and not 0 <= self.inject_port <= 65535:
+            raise RuntimeInputError(f"--inject-port must be 0..65535 (0: any free port), got "
+                                    f"{self.inject_port}")
         check_cpu(self.cpu)
 
     @classmethod
@@ -101,7 +108,7 @@ class RuntimeConfig:
                    stop_after=args.stop_after, realtime=not args.no_rt, cpu=args.cpu,
                    priority=args.priority, start_cnc=args.start,
                    inject=tuple(args.inject or ()), rx_share=args.rx_share,
-                   status_line=not args.no_status)
+                   status_line=not args.no_status, inject_port=args.inject_port)
 
 
 @dataclass(frozen=True)
@@ -177,3 +184,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "X=10,Y=-5")
     p.add_argument("--inject", action="append", metavar="[AXIS/]FAULT:KEY=VALUE,...",
                    help=INJECT_HELP)
+    p.add_argument("--inject-port", type=int, metavar="N",
+                   help="take fault injections (INJECT messages) from this machine on UDP "
+                        "127.0.0.1:N besides the adapter: hil scope's injection panel; 0: any "
+                        "free port, written into the recording's metadata (default: none)")

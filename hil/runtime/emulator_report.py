@@ -33,7 +33,9 @@ def metadata(emu) -> dict:
     the adapter are events of the recording and listed in ``report.json``); and the
     wall clock beside the drive's (``clock``: ``unix_ns`` read between two readings of
     the monotonic clock, ``monotonic_ns`` their middle), so that what other tools stamped
-    in wall-clock time (a CAN bus log) can be placed on the run's time."""
+    in wall-clock time (a CAN bus log) can be placed on the run's time; and
+    ``inject_port``: the bench's injection port, ``HOST:PORT`` (``--inject-port``; None:
+    none), where ``hil scope``'s page sends the injections of its panel."""
     m, t = emu.machine, emu.timing
     files = ([Path(m.path)] if m.manifest else []) + [Path(c.path) for c in m.configs]
     axes = [{"name": a.name, "machine_file": a.config.path, "kind": a.config.machine.kind,
@@ -47,6 +49,7 @@ def metadata(emu) -> dict:
             "axes": axes, "runtime": runtime_dict(emu), "period_ns": t.period_ns,
             "rate_hz": t.rate_hz, "cycles_per_tick": t.cycles_per_tick,
             "pwm_frequency_hz": emu.cfg.motor.pwm_frequency_hz, "adapter": emu.url,
+            "inject_port": None if emu.inject_port is None else emu.inject_port.url,
             "started_utc": datetime.now(timezone.utc).isoformat(timespec="seconds"),
             "clock": _clock_pair()}
 
@@ -102,6 +105,8 @@ def run_report(emu, stats: LoopStats, granted, safe: dict, status: int) -> dict:
         "adapter": {"name": emu.url, "stats": asdict(emu.endpoint.stats),
                     "rx_budget": getattr(emu.endpoint, "rx_budget", None)},
         "adapter_errors": asdict(emu.errors),
+        "inject_port": None if emu.inject_port is None else {
+            "address": emu.inject_port.url, "stats": asdict(emu.inject_port.stats)},
         "sync_lock": None if emu.sync_lock is None else emu.sync_lock.as_dict(),
         "compiled_loop": None if emu.steady is None else emu.steady.as_dict(),
         "helper_threads": emu.helper_threads,

@@ -3,8 +3,9 @@ deadline's wait to the answer's send (issue 29; issue 12 part 6 began it with on
 
 In steady state -- a UDP link whose controller is pinned, every drive's compiled path
 holding its state (:mod:`hil.drive.compiled_path`: OPERATION ENABLED in CSP, CSV or CST,
-nothing to react to), the watchdog content, no injection under way -- one call of
-:func:`steady_run` (one axis) or :func:`steady_run_group` (a machine of up to
+nothing to react to), the watchdog content, no injection under way or waiting at the
+injection port (:mod:`io_adapters.inject_port`) -- one call of :func:`steady_run` (one
+axis) or :func:`steady_run_group` (a machine of up to
 :data:`~io_adapters.codec_compiled.MAX_AXES` axes) runs tick after tick.  Each tick waits
 for its deadline (:func:`hil.rt.clock.sleep_until_ns`, the loop's own wait), reads the
 datagrams queued for it (:func:`io_adapters.udp_steady.receive`: non-blocking
@@ -539,10 +540,13 @@ class SteadyTick:
 
     def _may_run(self) -> bool:
         """Every drive's compiled path holds its state with nothing to react to, no
-        injection is under way, the watchdog is content and the link ready."""
+        injection is under way or waiting at the injection port, the watchdog is content
+        and the link ready."""
         em = self.emulator
         watchdog = em.watchdog
-        if not watchdog.steady_counts(self.wd) or not self.link.ready():
+        port = em.inject_port
+        if (not watchdog.steady_counts(self.wd) or not self.link.ready()
+                or (port is not None and port.requests)):
             return self._python()
         causes = watchdog.steady_causes()
         for d, path, inj in zip(self.drives, self.paths, em.injectors):

@@ -35,6 +35,15 @@ _SET = """
 const m = window.Bokeh.documents[0].get_model_by_name(arguments[0]);
 m[arguments[1]] = arguments[2];
 """
+#: click the button of the page's model named arguments[0] as the user would (its view's
+#: own <button>: nothing happens while it is disabled); false: no such button shown
+_CLICK = """
+const m = window.Bokeh.documents[0].get_model_by_name(arguments[0]);
+const v = m == null ? null : window.Bokeh.index.find_one(m);
+if (v == null || v.button_el == null) return false;
+v.button_el.click();
+return true;
+"""
 
 
 #: where Chromium's profile and shared memory go: /dev/shm (memory) when it holds at least
@@ -101,3 +110,8 @@ def read_model(driver, name: str, prop: str = "text"):
 def set_model(driver, name: str, prop: str, value) -> None:
     """Set property ``prop`` of the page's model ``name`` as the user would."""
     driver.execute_script(_SET, name, prop, value)
+
+
+def click(driver, name: str) -> bool:
+    """Click the page's button ``name`` as the user would; False: no such button shown."""
+    return bool(driver.execute_script(_CLICK, name))

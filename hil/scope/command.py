@@ -2,11 +2,11 @@
 
 A Bokeh server on 127.0.0.1 in this process, apart from the emulator's: it reads the run
 folder's files (the recording, flushed every 0.25 s, and the events), never the loop's
-process or memory, and keeps off the loop's CPU where it may run elsewhere (as the
-recording's writer does).  Each browser tab gets its own page (:mod:`hil.scope.page`).  It
-prints
-``hil scope: http://127.0.0.1:PORT/`` once it serves, and runs until Ctrl-C (SIGINT) or
-SIGTERM.
+memory, talks to its process only to send the injections of the page's panel to the run's
+injection port (``hil run --inject-port``, :mod:`hil.scope.inject_panel`), and keeps off
+the loop's CPU where it may run elsewhere (as the recording's writer does).  Each browser
+tab gets its own page (:mod:`hil.scope.page`).  It prints ``hil scope:
+http://127.0.0.1:PORT/`` once it serves, and runs until Ctrl-C (SIGINT) or SIGTERM.
 """
 
 import argparse

@@ -2,7 +2,8 @@
 ScopeView` every :data:`UPDATE_S`.
 
 The page, top to bottom: the status panel (the run's time and state, the controller's link,
-a row per axis) beside the events list; the scope's controls (channels, time window, pause,
+a row per axis) beside the events list; the injection panel on a run with an injection port
+(:mod:`hil.scope.inject_panel`); the scope's controls (channels, time window, pause,
 trigger); the plot, one line per channel on a shared time axis, one y axis per unit.  A live
 run shows the last window (free running) or the captures of the trigger; a finished run (or
 one cut short) shows its whole length, and a zoom reads the zoomed span again at the
@@ -12,7 +13,8 @@ Models a test (or a user's script) can find by name in the page's document:
 ``scope_data`` (the plotted curve: ``t_s`` and a column per channel), ``scope_trigger``
 (``t_s``: the last capture's trigger time, ``armed_after_s``: the run time it was
 armed at; empty before one), ``scope_status`` and
-``scope_events`` (the panels' HTML), ``scope_state`` (live, ended or stopped).
+``scope_events`` (the panels' HTML), ``scope_state`` (live, ended or stopped); the
+injection panel's (``scope_inject_*``, :mod:`hil.scope.inject_panel`).
 """
 
 import html
@@ -43,6 +45,7 @@ from bokeh.plotting import figure
 from hil.cia402 import STATUSWORD_BITS
 from hil.drive.faults import fault_text
 from hil.runtime.run_status import mode_text, state_text
+from hil.scope.inject_panel import InjectPanel
 from hil.scope.trigger import MODES, SLOPES, Trigger
 from hil.scope.view import WINDOW_MAX_S, WINDOW_MIN_S, ScopeView
 
@@ -154,6 +157,7 @@ class ScopePage:
         self.status_div = Div(name="scope_status", width=760)
         self.events_div = Div(name="scope_events", width=560)
         self.state_div = Div(name="scope_state", text="", visible=False)
+        self.inject = InjectPanel(self.view)
         self.source = ColumnDataSource(name="scope_data", data={"t_s": []})
         self.trigger_source = ColumnDataSource(name="scope_trigger",
                                                 data={"t_s": [], "armed_after_s": []})
@@ -172,6 +176,7 @@ class ScopePage:
         doc.title = f"hil scope: {folder}"
         doc.add_root(column(
             row(self.status_div, self.events_div),
+            self.inject.layout,
             row(self.channels, self.window, self.pause),
             row(self.trig_channel, self.trig_level, self.trig_slope, self.trig_pre,
                 column(Div(text="mode"), self.trig_mode), self.arm),
@@ -269,6 +274,7 @@ class ScopePage:
         self.events_div.text = events_html(view)
         state = view.state()
         self.state_div.text = state
+        self.inject.update()
         if self.pause.active and self.view_span is None:
             return
         if self.view_span is not None:

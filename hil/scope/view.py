@@ -127,6 +127,8 @@ class ScopeView:
         self.samples = Follower(self.rec)
         self.event_stream = Follower(self.rec, self.rec.events_path)
         self.events: deque[EventRow] = deque(maxlen=MAX_EVENTS)
+        #: events read so far (the list keeps the last MAX_EVENTS of them)
+        self.events_read = 0
         self.channels: list[str] = []
         self.trigger: Trigger | None = None
         self.buffer: Mapping[str, np.ndarray] = KeptRows({"tick": np.empty(0, np.int64)})
@@ -191,6 +193,7 @@ class ScopeView:
             self.events.append(EventRow(float(rows["t_s"][i]), str(rows["axis"][i]),
                                         str(rows["source"][i]), str(rows["kind"][i]),
                                         int(rows["code"][i]), str(rows["reason"][i])))
+        self.events_read += rows["tick"].size
 
     # -- where the run is ---------------------------------------------------------------
 
