@@ -10,9 +10,7 @@ under the inverse model's 50 Hz low-pass for the ripples' orders) and ends with 
 least twice above the diagnosis's threshold for it (:mod:`hil.identify.diagnosis`)."""
 
 import time
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
-from multiprocessing import get_context
 from pathlib import Path
 
 import pytest
@@ -22,7 +20,7 @@ from hil.identify.command import identify
 from hil.identify.diagnosis import diagnose
 from hil.identify.fit import Identification
 from hil.identify.record import load_record
-from tests.conftest import ROOT
+from tests.conftest import ROOT, spawned_pool
 
 ARROW = ROOT / "configs" / "arrow500_x.toml"
 PROGRAM = """N10 G90 G71
@@ -99,7 +97,7 @@ def diagnosed(tmp_path_factory):
     d = tmp_path_factory.mktemp("faults")
     (d / "p.nc").write_text(PROGRAM)
     names = [*REFINED, "healthy", *(name for name in CASES if name not in REFINED)]
-    with ProcessPoolExecutor(2, mp_context=get_context("spawn")) as pool:
+    with spawned_pool(2) as pool:
         results = dict(zip(names, pool.map(_trace_and_diagnosis, names, [d] * len(names))))
     for name, (_, faults, seconds) in results.items():
         print(f"{name}: identified and diagnosed in {seconds:.1f} s: "
