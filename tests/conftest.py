@@ -1,15 +1,34 @@
 """Shared test fixtures: paths of the repository, its configs and the shared data."""
 
+import os
 import secrets
 import shutil
 import subprocess
+from concurrent.futures import ProcessPoolExecutor
+from contextlib import contextmanager
+from multiprocessing import get_context
 from pathlib import Path
+from unittest import mock
 
 import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
 CONFIGS = ROOT / "configs"
 SHARED = ROOT.parent / "shared"
+
+
+@contextmanager
+def spawned_pool(workers: int):
+    """A process pool of ``workers`` spawned processes whose BLAS (numpy's and scipy's
+    OpenBLAS) runs on one thread.  Each process replays records in compiled loops between
+    BLAS calls on long vectors (the refinement's sum of squares over an EMPS record's
+    50 000 residuals), after which OpenBLAS's second thread spins for a while: on the
+    2-vCPU VM the processes' spinning threads took the cores the others' replays needed
+    (test_identify_cli's EMPS fixture 43 s, its two runs 32 and 49 s of CPU; 29 s and 16
+    and 27 s on one thread each)."""
+    with mock.patch.dict(os.environ, {"OPENBLAS_NUM_THREADS": "1"}), \
+            ProcessPoolExecutor(workers, mp_context=get_context("spawn")) as pool:
+        yield pool
 
 
 @pytest.fixture(scope="session")

@@ -4,8 +4,6 @@ model, and the command's outputs and refusals on a generated trace."""
 import json
 import subprocess
 import sys
-from concurrent.futures import ProcessPoolExecutor
-from multiprocessing import get_context
 from pathlib import Path
 
 import pytest
@@ -13,7 +11,7 @@ import pytest
 from hil.identify.command import identify
 from hil.identify.report import EMPS_PUBLISHED
 from plant.config import load_machine
-from tests.conftest import ROOT, SHARED
+from tests.conftest import ROOT, SHARED, spawned_pool
 from tests.test_identify_effects import BASE, make_trace, write_config
 
 EMPS_DIR = SHARED / "data" / "EMPS"
@@ -36,7 +34,7 @@ def emps(tmp_path_factory):
     selected."""
     runs = {"symmetric": ("viscous_asymmetry",), "whole library": ()}
     outs = {name: tmp_path_factory.mktemp(name.replace(" ", "_")) for name in runs}
-    with ProcessPoolExecutor(2, mp_context=get_context("spawn")) as pool:
+    with spawned_pool(2) as pool:
         done = {name: pool.submit(_identify_emps, outs[name], exclude)
                 for name, exclude in runs.items()}
         return {name: (future.result(), outs[name]) for name, future in done.items()}

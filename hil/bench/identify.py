@@ -97,11 +97,15 @@ def _cached(folder: Path, version: int, duration_s: float | None) -> tuple[Path,
     return trace, info, cached
 
 
-def prepare(c: Case, folder: Path, log=None, duration_s: float | None = None) -> dict:
+def prepare(c: Case, folder: Path, log=None, duration_s: float | None = None,
+            repeat: bool = True) -> dict:
     """Write the case's truth and start machine files and its trace into ``folder`` (the
     trace only when absent or of another generator version or duration); returns the floor,
     the generator's repeat deviation (:func:`~.generate.deviation`) and paths.
-    ``duration_s``: the program repeated to at least this long (None: one pass, 13-32 s)."""
+    ``duration_s``: the program repeated to at least this long (None: one pass, 13-32 s).
+    ``repeat``: False where the caller needs no repeat deviation: the second simulation
+    (at ten times the tolerance, half of the generation's time) is not run and
+    ``repeat`` is None; the trace is the same."""
     folder.mkdir(parents=True, exist_ok=True)
     text = c.axis.read_text()
     truth = _machine_file(folder / "truth.toml", text, merged(SINUMERIK_STYLE, c.truth),
@@ -111,15 +115,18 @@ def prepare(c: Case, folder: Path, log=None, duration_s: float | None = None) ->
                                 "bench truth")
     start = _machine_file(folder / "start.toml", text, c.start, "bench start")
     trace, info, cached = _cached(folder, GENERATOR_VERSION, duration_s)
+    if repeat and cached.get("repeat") is None:
+        cached = {}
     if not cached:
         t0 = time.monotonic()
         traj = bench_moves(c.travel, c.speed, 0.3 * c.travel, duration_s)
-        rec, again = (simulate(truth, traj, record_every=RECORD_EVERY, preroll_s=PREROLL_S,
-                               adc_bits=ADC_BITS, seed=c.seed, rtol=rtol)
-                      for rtol in (RTOL, 10.0 * RTOL))
+        rec, *again = (simulate(truth, traj, record_every=RECORD_EVERY, preroll_s=PREROLL_S,
+                                adc_bits=ADC_BITS, seed=c.seed, rtol=rtol)
+                       for rtol in ((RTOL, 10.0 * RTOL) if repeat else (RTOL,)))
         write(rec, trace, f"hil bench identify ({c.name})")
         cached = {"version": GENERATOR_VERSION, "duration_s": duration_s, "floor": rec.floor,
-                  "repeat": deviation(rec, again), "generated_s": time.monotonic() - t0}
+                  "repeat": deviation(rec, again[0]) if again else None,
+                  "generated_s": time.monotonic() - t0}
         info.write_text(json.dumps(cached, indent=1))
         if log:
             log(f"{c.name}: generated {traj.duration_s:.1f} s in {cached['generated_s']:.0f} s")

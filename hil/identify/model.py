@@ -3,7 +3,9 @@ and the closed-loop replay of the config they make.
 """
 
 import dataclasses
+import json
 import math
+from collections import OrderedDict
 from pathlib import Path
 
 import numpy as np
@@ -26,6 +28,18 @@ def merge(into: dict, more: dict) -> dict:
 #: a refit may move it; what the data ask for beyond it is reported as a finding
 #: (``hil identify --tolerance EFFECT=FRACTION``)
 DEFAULT_TOLERANCE = 0.1
+#: replays of the identification record a model keeps, by the machine-file changes that
+#: made them (the most recent): a replay is a deterministic function of the record and
+#: the machine file, and the closed-loop refinement asks for the same point again and
+#: again (each pass, the polish and the Jacobian start where the last one ended)
+REMEMBERED_REPLAYS = 8
+
+
+def _key(changes: dict) -> str:
+    """Machine-file changes as a string, equal for equal changes: json writes a float as
+    repr does, with every digit (numpy scalars and arrays as their Python values)."""
+    return json.dumps(changes, sort_keys=True,
+                      default=lambda v: v.tolist() if hasattr(v, "tolist") else repr(v))
 
 
 class Model:
@@ -64,6 +78,9 @@ class Model:
                 self.declared[e.name] = c0
         self.tolerance = dict(tolerance or {})
         self._replay: Replay | None = None
+        self._replays: OrderedDict[str, Replay] = OrderedDict()
+        #: replays of the record run so far (not those given back from memory)
+        self.replays_run = 0
         self.pwm_period = 1.0 / ctx.cfg.motor.pwm_frequency_hz
 
     def tolerance_of(self, name: str) -> float:
@@ -277,15 +294,30 @@ class Model:
         if cached and self._replay is not None:
             return self._replay
         try:
-            cfg = self.config(extra)
+            changes = self.overrides(extra)
         except ConfigError:
             return None
-        try:
-            rep = replay(cfg, rec if rec is not None else self.ctx.rec, progress=self.progress)
-        except ConfigError:
-            if extra is None and not any(t.added for t in self.terms):
-                raise
-            return None
+        key = _key(changes) if rec is None else None
+        rep = self._replays.get(key)
+        if rep is None:
+            try:
+                cfg = load_machine(self.path, changes)
+            except ConfigError:
+                return None
+            try:
+                rep = replay(cfg, rec if rec is not None else self.ctx.rec,
+                             progress=self.progress)
+            except ConfigError:
+                if extra is None and not any(t.added for t in self.terms):
+                    raise
+                return None
+            self.replays_run += 1
+            if key is not None:
+                self._replays[key] = rep
+                if len(self._replays) > REMEMBERED_REPLAYS:
+                    self._replays.popitem(last=False)
+        else:
+            self._replays.move_to_end(key)
         if cached:
             self._replay = rep
         return rep

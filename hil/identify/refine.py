@@ -126,11 +126,11 @@ def refine(model: Model, rec: Record, floor: dict, n_eff: float, max_nfev: int,
     Returns the report's ``refinement``: ``before``/``after`` (label -> value),
     ``sigma`` (label -> standard uncertainty), ``wanted`` (label -> what the replay asks
     for beyond the tolerance), ``cost_before``/``cost_after`` (J) and ``replays``."""
-    out = _refine(model, rec, floor, n_eff, max_nfev, say, boxed=False)
+    out = _refine(model, rec, floor, n_eff, max_nfev, say, boxed=False,
+                  rerun=lambda: _beyond_tolerance(model))
     if not out:
         return out
-    declared = [p for p in parameters(model)
-                if model.declared_of(model.term(p.effect)) is not None]
+    declared = _declared(model)
     wanted = {}
     for name in dict.fromkeys(p.effect for p in declared):
         t = model.term(name)
@@ -148,11 +148,29 @@ def refine(model: Model, rec: Record, floor: dict, n_eff: float, max_nfev: int,
             "wanted": wanted, "replays": out["replays"] + held["replays"]}
 
 
+def _declared(model: Model) -> list[Parameter]:
+    """The refined parameters that are declared values."""
+    return [p for p in parameters(model) if model.declared_of(model.term(p.effect)) is not None]
+
+
+def _beyond_tolerance(model: Model) -> bool:
+    """Whether a refined declared value lies beyond its tolerance (:meth:`Model.box`):
+    :func:`refine` then holds it and refines again within the box."""
+    for p in _declared(model):
+        t = model.term(p.effect)
+        lo, hi = model.box(t)
+        if not lo[p.index] <= t.values()[p.index] <= hi[p.index]:
+            return True
+    return False
+
+
 def _refine(model: Model, rec: Record, floor: dict, n_eff: float, max_nfev: int, say,
-            boxed: bool) -> dict:
+            boxed: bool, rerun=None) -> dict:
     """One refinement from the model's point (:func:`refine`), the declared values
     held within their tolerance where ``boxed``; the report's ``refinement`` but
-    ``wanted``."""
+    ``wanted``.  Where ``rerun()`` is true at the point found, another refinement
+    follows whose uncertainties replace these: they are not computed (no ``sigma``, and
+    the terms' ``sigma`` as they were)."""
     params = parameters(model)
     if not params:
         return {}
@@ -193,7 +211,7 @@ def _refine(model: Model, rec: Record, floor: dict, n_eff: float, max_nfev: int,
             prior.append((i, c0j, model.tolerance_of(p.effect) * abs(c0j), p.log))
     n = rec.n - ERROR_START
     weight = math.sqrt(max(n_eff, 1.0) / n)
-    count = [0]
+    replays_before = model.replays_run
     costs = []
     last = np.ones(len(floor))  # the last replay's rms error / floor per channel
     scale_k = np.ones(len(floor))  # each channel's deviation over its floor (>= 1)
@@ -202,8 +220,9 @@ def _refine(model: Model, rec: Record, floor: dict, n_eff: float, max_nfev: int,
         for p, value in zip(params, z):
             put(p, float(value))
         model.coefficients_changed()
+        run = model.replays_run
         rep = model.replay()
-        count[0] += 1
+        count = model.replays_run - replays_before
         if rep is None or rep.status != 0:
             chans = [np.full(n, FAILED)] * len(floor)
         else:
@@ -212,8 +231,8 @@ def _refine(model: Model, rec: Record, floor: dict, n_eff: float, max_nfev: int,
         ratios = np.array([math.sqrt(float(np.mean(c * c))) for c in chans])
         costs.append(float(np.sum(ratios ** 2)))
         last[:] = ratios
-        if say is not None and count[0] % 10 == 0:
-            say(f"  refinement: {count[0]} replays, J {costs[-1]:.4g}")
+        if say is not None and model.replays_run > run and count % 10 == 0:
+            say(f"  refinement: {count} replays, J {costs[-1]:.4g}")
         pri = [((math.exp(z[i]) if log else z[i]) - c0) / s for i, c0, s, log in prior]
         data = np.concatenate([c / s for c, s in zip(chans, scale_k)])
         return np.concatenate([weight * data, np.array(pri)])
@@ -242,17 +261,26 @@ def _refine(model: Model, rec: Record, floor: dict, n_eff: float, max_nfev: int,
     residual(polished)
     if costs[-1] < j_passes:
         best = polished
-    jac = _jacobian(residual, best, (lo, hi), DIFF_STEPS[-1])
     residual(best)
     j1 = costs[-1]
+    found = best
     if j1 > j0:
         # the passes' channel weights balance the channels; the acceptance's J decides
         best = z0
         residual(best)
         j1 = costs[-1]
+    after = {p.label: (math.exp(v) if p.log else float(v)) for p, v in zip(params, best)}
+    out = {"before": before, "after": after, "cost_before": j0, "cost_after": j1}
+    if rerun is not None and rerun():
+        if say is not None:
+            say(f"refined in {model.replays_run - replays_before} replays: "
+                f"J {j0:.4g} -> {j1:.4g}")
+        return {**out, "replays": model.replays_run - replays_before}
+    # the uncertainties at the point the passes and the polish found
+    jac = _jacobian(residual, found, (lo, hi), DIFF_STEPS[-1])
+    residual(best)
     # the rows are in units of each channel's deviation already (its floor, or its misfit)
     sigma = uncertainty(jac, 1.0)
-    after = {p.label: (math.exp(v) if p.log else float(v)) for p, v in zip(params, best)}
     sig = {p.label: (after[p.label] * s if p.log else s) for p, s in zip(params, sigma)}
     for p in params:
         t = terms[p.effect]
@@ -265,9 +293,8 @@ def _refine(model: Model, rec: Record, floor: dict, n_eff: float, max_nfev: int,
         t.sigma = t.sigma.copy()
         t.sigma[p.index] = sig[p.label]
     if say is not None:
-        say(f"refined in {count[0]} replays: J {j0:.4g} -> {j1:.4g}")
-    return {"before": before, "after": after, "sigma": sig, "cost_before": j0,
-            "cost_after": j1, "replays": count[0]}
+        say(f"refined in {model.replays_run - replays_before} replays: J {j0:.4g} -> {j1:.4g}")
+    return {**out, "sigma": sig, "replays": model.replays_run - replays_before}
 
 
 def _polish(residual, z: np.ndarray, bounds: tuple, scale: np.ndarray,
