@@ -198,10 +198,12 @@ def test_an_export_places_the_bus_frames_on_the_runs_time(config, tmp_path, mult
     """hil run on udp_multicast with ``log=bus.asc``, driven in CSP by our master along a
     ramp (5 mm/s); ``hil export --to mdf4 --bus bus.asc`` holds the recording and the
     frames as MDF4 bus logging, which hil eds's DBC decodes: every position actual value
-    (6064h, TPDO2) on the ramp is an encoder reading the recording has, at a time within
-    5 ms of the recording's (a frame answers the newest tick before its SYNC: a tick or
-    two, 0.5-1 ms, and the bus's latency; the clocks placed wrongly would be seconds
-    off)."""
+    (6064h, TPDO2) on the ramp is an encoder reading the recording has, typically (the
+    median) within 1.5 ms of the recording's time for it (a frame answers the newest tick
+    before its SYNC: a tick or two, 0.5-1 ms, and the bus's latency) and each within 15 ms
+    (a frame held up by one of the machine's CPU stops, up to 7 ms on the 2-vCPU VM,
+    docs/benchmarks.md: a suite run here had one frame 5.5 ms off, the median 0.3 ms).
+    Clocks placed wrongly would be seconds off."""
     from asammdf import MDF
 
     from hil.bench.can import Program, master
@@ -237,7 +239,11 @@ def test_an_export_places_the_bus_frames_on_the_runs_time(config, tmp_path, mult
     # on the ramp: at rest the encoder dithers over a few counts, each seen at many times
     moving = np.flatnonzero(np.abs(position.samples - position.samples[0]) > 10_000)
     assert moving.size > 200
+    offsets_s = []
     for t, p in zip(position.timestamps[moving], position.samples[moving]):
         rows = np.flatnonzero(np.round(rec["plant_encoder_counts"]) == p)
         assert rows.size, p
-        assert np.abs(t_rec[rows] - t).min() < 5e-3, (t, p)
+        offsets_s.append(np.abs(t_rec[rows] - t).min())
+    offsets_s = np.array(offsets_s)
+    assert np.median(offsets_s) < 1.5e-3, np.percentile(offsets_s, [50, 99, 100])
+    assert offsets_s.max() < 15e-3, np.percentile(offsets_s, [50, 99, 100])
